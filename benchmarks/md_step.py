@@ -1,0 +1,205 @@
+"""Time one whole MD step: a Lennard-Jones NVE step and an SPH step.
+
+Each step is what a simulation pays per step: the neighbour-list update
+with its skin (rebuilt only when a particle moved more than half the skin)
+plus the forces and the integrator. Run for jax-md's own list and for each
+jaxrt backend, on the same particles, jit-compiled; warm-up calls are
+excluded from the timings.
+
+* LJ: 3D fluid at density 0.8, smooth cutoff 2.0-2.5, skin 0.3,
+  OrderedSparse (jax-md's default for LJ), `jax_md.simulate.nve`.
+* SPH: 2D periodic box of water at spacing dx, cubic spline h = 1.3 dx,
+  summation density + Tait + pressure + viscosity, symplectic Euler.
+
+Prints a table and writes a CSV (device, jax version, jax-md version, git
+sha, N, k = mean neighbours per particle, median_ms, repeats, ...) to
+``benchmarks/results/<device>/md_step.csv``, through the lead's
+``benchmarks/_provenance.py`` when it provides ``write_csv(path, rows)``.
+
+    python benchmarks/md_step.py                      # CPU sizes
+    python benchmarks/md_step.py --n 100000 --repeats 50   # a GPU size
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import functools
+import math
+import pathlib
+import subprocess
+import sys
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+from importlib.metadata import version
+import numpy as np
+from jax import lax
+from jax_md import partition, simulate, space
+
+import jaxrt
+from jaxrt.energy import lennard_jones_neighbor_list, sph
+
+warnings.filterwarnings("ignore", message="Explicitly requested dtype float64")
+
+HERE = pathlib.Path(__file__).resolve().parent
+
+
+def list_fns():
+    fns = {"jax_md": partition.neighbor_list}
+    for b in jaxrt.available_backends():
+        fns[f"jaxrt:{b}"] = functools.partial(jaxrt.neighbor_list, backend=b)
+    return fns
+
+
+def median_ms(fn, carry, repeats, steps_per_call):
+    """Median wall time of one step in ms, and the final carry."""
+    carry = jax.block_until_ready(fn(carry))  # warm-up (compile)
+    carry = jax.block_until_ready(fn(carry))
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        carry = jax.block_until_ready(fn(carry))
+        times.append((time.perf_counter() - t) * 1e3 / steps_per_call)
+    return float(np.median(times)), carry
+
+
+def mean_neighbours(nbrs, n):
+    idx = np.asarray(nbrs.idx)
+    valid = np.sum(idx[0] < n) if nbrs.format is not partition.Dense else \
+        np.sum(idx < n)
+    return valid / n * (2 if nbrs.format is partition.OrderedSparse else 1)
+
+
+def lj_step(list_fn, n, repeats, steps):
+    n_side = round(n ** (1 / 3))
+    n = n_side ** 3
+    box = (n / 0.8) ** (1 / 3)
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
+    R = jnp.asarray(g.reshape(-1, 3) * box / n_side, jnp.float32)
+    disp, shift = space.periodic(box)
+    neighbor_fn, energy_fn = lennard_jones_neighbor_list(
+        disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3,
+        format=partition.OrderedSparse, neighbor_list_fn=list_fn)
+    init, apply = simulate.nve(energy_fn, shift, dt=0.005)
+    nbrs = neighbor_fn.allocate(R)
+    state = init(jax.random.PRNGKey(0), R, 1.0, neighbor=nbrs)
+
+    @jax.jit
+    def run(carry):
+        def step(carry, _):
+            state, nbrs = carry
+            state = apply(state, neighbor=nbrs)
+            return (state, nbrs.update(state.position)), None
+        return lax.scan(step, carry, None, length=steps)[0]
+
+    ms, (_, nbrs) = median_ms(run, (state, nbrs), repeats, steps)
+    if nbrs.did_buffer_overflow:
+        raise RuntimeError("LJ list overflowed during timing")
+    return n, mean_neighbours(nbrs, n), ms
+
+
+def sph_step(list_fn, n, repeats, steps):
+    n_side = round(math.sqrt(n))
+    n = n_side ** 2
+    dx = 0.01
+    side = n_side * dx
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 2, indexing="ij"), -1)
+    R = jnp.asarray((g.reshape(-1, 2) * dx
+                     + rng.uniform(-0.05, 0.05, (n, 2)) * dx) % side,
+                    jnp.float32)
+    disp, shift = space.periodic(side)
+    kernel = sph.CubicSpline(1.3 * dx, dim=2)
+    eos = sph.Tait(rho0=1000.0, c0=10.0)
+    mass = 1000.0 * dx * dx
+    accel = sph.acceleration(disp, kernel, eos, mass=mass, alpha=0.05)
+    neighbor_fn = list_fn(disp, side, float(kernel.cutoff),
+                          dr_threshold=0.3 * dx,
+                          format=partition.OrderedSparse)
+    nbrs = neighbor_fn.allocate(R)
+    V = jnp.asarray(rng.normal(0, 0.1, (n, 2)), jnp.float32)
+    dt = 0.2 * kernel.h / 10.0
+
+    @jax.jit
+    def run(carry):
+        def step(carry, _):
+            R, V, nbrs = carry
+            V = V + dt * accel(R, V, nbrs).total
+            R = shift(R, dt * V)
+            return (R, V, nbrs.update(R)), None
+        return lax.scan(step, carry, None, length=steps)[0]
+
+    ms, (_, _, nbrs) = median_ms(run, (R, V, nbrs), repeats, steps)
+    if nbrs.did_buffer_overflow:
+        raise RuntimeError("SPH list overflowed during timing")
+    return n, mean_neighbours(nbrs, n), ms
+
+
+def git_sha():
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"],
+                              cwd=HERE, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        return "none"
+
+
+def write(rows, device, path=None):
+    if path is None:
+        path = HERE / "results" / device.replace(" ", "_") / "md_step.csv"
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sys.path.insert(0, str(HERE))
+    try:
+        from _provenance import write_csv  # the lead's helper, when present
+    except ImportError:
+        write_csv = None
+    if write_csv is not None:
+        write_csv(path, rows)
+    else:
+        with open(path, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    return path
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=4096,
+                        help="particles (rounded to a cube / square)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=20,
+                        help="steps per timed call (one lax.scan)")
+    parser.add_argument("--only", nargs="*", default=None,
+                        help="list factories to run (default all): jax_md, "
+                        "jaxrt:<backend>")
+    parser.add_argument("--out", default=None,
+                        help="CSV path (default results/<device>/md_step.csv)")
+    args = parser.parse_args()
+    device = jax.devices()[0].device_kind
+    common = dict(device=device, jax_version=jax.__version__,
+                  jax_md_version=version("jax-md"), git_sha=git_sha(),
+                  repeats=args.repeats)
+    rows = []
+    print(f"{'system':6s} {'list':22s} {'N':>8s} {'k':>6s} {'ms/step':>9s}")
+    for name, list_fn in list_fns().items():
+        if args.only and name not in args.only:
+            continue
+        for system, fn in (("lj", lj_step), ("sph", sph_step)):
+            try:
+                n, k, ms = fn(list_fn, args.n, args.repeats, args.steps)
+            except Exception as e:  # noqa: BLE001 - one failure, one row
+                print(f"{system:6s} {name:22s} failed: {e}")
+                continue
+            print(f"{system:6s} {name:22s} {n:8d} {k:6.1f} {ms:9.3f}")
+            rows.append(dict(common, system=system, list=name, N=n,
+                             k=round(k, 2), median_ms=round(ms, 4)))
+    if rows:
+        print("wrote", write(rows, device, args.out))
+
+
+if __name__ == "__main__":
+    main()

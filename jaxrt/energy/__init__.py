@@ -1,0 +1,54 @@
+"""Energies on jax-md neighbour lists: Lennard-Jones and SPH.
+
+Everything here is jit-able and differentiable with respect to positions and
+parameters, and works on Dense, Sparse and OrderedSparse lists from
+`jaxrt.neighbor_list` or `jax_md.partition.neighbor_list`.
+
+LJ (`jaxrt.energy.lj`): `lennard_jones`, `lennard_jones_truncated`,
+`lennard_jones_pair_neighbor_list`, `lennard_jones_neighbor_list`.
+SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
+`WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
+`acceleration` -> `Acceleration`.
+"""
+from jaxrt.energy import lj, sph
+from jaxrt.energy.lj import (
+    TRUNCATIONS,
+    lennard_jones,
+    lennard_jones_neighbor_list,
+    lennard_jones_pair_neighbor_list,
+    lennard_jones_truncated,
+)
+from jaxrt.energy.sph import (
+    KERNELS,
+    Acceleration,
+    CubicSpline,
+    Kernel,
+    QuinticSpline,
+    Tait,
+    WendlandC2,
+    WendlandC4,
+    acceleration,
+    density,
+    kernel,
+)
+
+__all__ = [
+    "KERNELS",
+    "TRUNCATIONS",
+    "Acceleration",
+    "CubicSpline",
+    "Kernel",
+    "QuinticSpline",
+    "Tait",
+    "WendlandC2",
+    "WendlandC4",
+    "acceleration",
+    "density",
+    "kernel",
+    "lennard_jones",
+    "lennard_jones_neighbor_list",
+    "lennard_jones_pair_neighbor_list",
+    "lennard_jones_truncated",
+    "lj",
+    "sph",
+]

@@ -1,0 +1,403 @@
+"""Lennard-Jones energies on neighbour lists, jit-able and differentiable.
+
+The pair sum is jax-md's own (`jax_md.smap.pair_neighbor_list`) and so is
+the smooth switch (`jax_md.energy.multiplicative_isotropic_cutoff`), so with ``truncation="smooth"`` the energy equals
+`jax_md.energy.lennard_jones_neighbor_list` on the same list. jaxrt adds:
+
+* three truncations: ``"truncated"`` (plain cut at ``r_cutoff``),
+  ``"shifted"`` (cut and shifted so that ``E(r_cutoff) = 0``) and
+  ``"smooth"`` (jax-md's C1 switch between ``r_onset`` and ``r_cutoff``);
+* per-particle energies for every layout, OrderedSparse included (each
+  pair's energy split half and half between its two particles);
+* ``sigma``, ``epsilon``, ``r_onset`` and ``r_cutoff`` as keyword arguments of
+  the energy function, so `jax.grad` can differentiate with respect to them;
+* gradients that stay finite when two particles coincide (padding entries
+  and self pairs included), by the double-``where`` trick instead of
+  jax-md's ``nan_to_num``;
+* clear errors for malformed ``species`` / ``sigma`` / ``epsilon``.
+
+Forces are ``-jax.grad(energy_fn)`` (e.g. `jax_md.quantity.force`).
+
+Differences from jax-md, on purpose:
+
+* Python-float parameters stay weakly typed, so a float64 system stays
+  float64 (jax-md casts Python floats to float32).
+* Two particles at exactly the same position contribute zero energy and zero
+  force (jax-md: zero energy, NaN-free only by accident of ``nan_to_num``).
+  Nearly coincident particles give ``+inf`` energy once ``(sigma/r)**12``
+  overflows (``r < sigma * 1e-3.2`` in float32); jax-md replaces that with
+  the largest float and a zero force, which hides the overlap.
+* Unknown keyword arguments to the energy function are passed to the
+  displacement function only (e.g. ``box=`` for a changing box); they are
+  never treated as LJ parameters.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax_md import energy as jmd_energy
+from jax_md import partition, smap, space
+from jax.ops import segment_sum
+
+Array = jax.Array
+
+TRUNCATIONS = ("smooth", "shifted", "truncated")
+
+
+def _concrete(x) -> np.ndarray | None:
+    """``x`` as a NumPy array when its value is known now; None if traced."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    if isinstance(x, (int, float, np.ndarray, np.generic, jax.Array)):
+        return np.asarray(x)
+    return None
+
+
+def lennard_jones(dr: Array, sigma: Array = 1.0, epsilon: Array = 1.0
+                  ) -> Array:
+    """``4 epsilon ((sigma/dr)**12 - (sigma/dr)**6)``, finite at ``dr == 0``.
+
+    Args:
+      dr: float, any shape: distances.
+      sigma, epsilon: float scalars or arrays broadcastable to ``dr``.
+    Returns:
+      Energies, shape and dtype of ``dr`` (promoted with the parameters).
+      Zero, with a zero gradient, where ``dr == 0``. NaN where ``sigma <= 0``
+      or ``epsilon < 0``: those are only reachable under ``jit`` (eagerly
+      the factories raise), and LJ's even powers would otherwise make
+      ``-sigma`` act as ``sigma`` without a trace.
+    """
+    positive = dr > 0
+    # The discarded branch must be finite too, or its NaN leaks into the
+    # gradient through the where (0 * inf).
+    safe = jnp.where(positive, dr, 1)
+    # Same arithmetic as jax_md.energy.lennard_jones, so values match it bit
+    # for bit.
+    idr = sigma / safe
+    idr = idr * idr
+    idr6 = idr * idr * idr
+    idr12 = idr6 * idr6
+    e = jnp.where(positive, 4 * epsilon * (idr12 - idr6), 0)
+    return jnp.where((sigma > 0) & (epsilon >= 0), e, jnp.nan)
+
+
+def lennard_jones_truncated(dr: Array, sigma: Array = 1.0,
+                            epsilon: Array = 1.0, *, r_onset: Array,
+                            r_cutoff: Array, truncation: str = "smooth"
+                            ) -> Array:
+    """Lennard-Jones with a cutoff.
+
+    Args:
+      dr: float, any shape: distances.
+      sigma, epsilon: float scalars or arrays broadcastable to ``dr``.
+      r_onset: float scalar, where the smooth switch starts (absolute
+        distance; only read for ``truncation="smooth"``).
+      r_cutoff: float scalar, absolute cutoff distance.
+      truncation: ``"smooth"`` (jax-md's C1 switch ``S(r)`` times LJ),
+        ``"shifted"`` (``E(r) - E(r_cutoff)`` below the cutoff) or
+        ``"truncated"`` (``E(r)`` below the cutoff).
+    Returns:
+      Energies, shape of ``dr``; zero for ``dr >= r_cutoff``.
+    """
+    # jax-md's switch squares the cutoffs with a float32 exponent, which
+    # turns Python floats into float32 even for float64 positions: give
+    # them the positions' dtype first.
+    dtype = jnp.result_type(dr, r_onset, r_cutoff)
+    r_onset = jnp.asarray(r_onset, dtype)
+    r_cutoff = jnp.asarray(r_cutoff, dtype)
+    if truncation == "smooth":
+        # Called here rather than once per factory so that r_onset and
+        # r_cutoff may be traced (and differentiated).
+        switched = jmd_energy.multiplicative_isotropic_cutoff(
+            lennard_jones, r_onset, r_cutoff)
+        return switched(dr, sigma, epsilon)
+    e = lennard_jones(dr, sigma, epsilon)
+    if truncation == "shifted":
+        e = e - lennard_jones(r_cutoff, sigma, epsilon)
+    elif truncation != "truncated":
+        raise ValueError(_truncation_error(truncation))
+    # dr == r_cutoff falls outside, matching the strict `<` of the lists;
+    # coincident particles stay at zero (not -E(r_cutoff)) as in "smooth".
+    return jnp.where((dr > 0) & (dr < r_cutoff), e, 0)
+
+
+def _truncation_error(truncation) -> str:
+    return (f"truncation={truncation!r} is not known; choose one of "
+            f"{TRUNCATIONS}.")
+
+
+def _check_parameter(name: str, value, species) -> None:
+    """Shapes (and, when known, signs) of sigma / epsilon against species."""
+    v = _concrete(value)
+    shape = tuple(np.shape(value)) if v is None else v.shape
+    if species is None:
+        if len(shape) > 2:
+            raise ValueError(
+                f"{name} has shape {shape}; without species it must be a "
+                "scalar, a per-particle (N,) array or a per-pair (N, N) "
+                "matrix.")
+    else:
+        if len(shape) not in (0, 2) or (len(shape) == 2
+                                        and shape[0] != shape[1]):
+            raise ValueError(
+                f"{name} has shape {shape} but species was given: pass a "
+                f"scalar or a square (S, S) matrix {name}[a, b] for each pair "
+                "of species a, b (per-particle vectors are not combined "
+                "with species).")
+        if len(shape) == 2:
+            s = _concrete(species)
+            if s is not None and s.size and int(s.max()) >= shape[0]:
+                raise ValueError(
+                    f"species has values up to {int(s.max())} but {name} is "
+                    f"{shape[0]}x{shape[0]}: make {name} (S, S) with "
+                    f"S > max(species) = {int(s.max())}.")
+    if v is not None:
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{name} has non-finite entries; pass finite "
+                             "values.")
+        if name == "sigma" and np.any(v <= 0):
+            raise ValueError(f"sigma must be > 0 everywhere; got min "
+                             f"{v.min()}.")
+        if np.any(v < 0):
+            raise ValueError(f"{name} must be >= 0 everywhere (0 switches a "
+                             f"pair off); got min {v.min()}.")
+        if v.ndim == 2 and not np.allclose(v, v.T):
+            raise ValueError(
+                f"{name} is not symmetric: {name}[a, b] must equal "
+                f"{name}[b, a] (an asymmetric matrix gives different energies "
+                "for Dense / Sparse and OrderedSparse lists); symmetrise it, "
+                f"e.g. ({name} + {name}.T) / 2.")
+
+
+def _check_species(species) -> None:
+    if species is None:
+        return
+    shape = np.shape(species)
+    dtype = getattr(species, "dtype", np.asarray(species).dtype)
+    if len(shape) != 1 or not jnp.issubdtype(dtype, jnp.integer):
+        raise ValueError(
+            f"species must be an integer (N,) array; got shape {shape} and "
+            f"dtype {dtype}. Pass one integer type per particle.")
+    s = _concrete(species)
+    if s is not None and s.size and s.min() < 0:
+        raise ValueError("species has negative entries; use 0, 1, ..., S-1.")
+
+
+def _check_cutoffs(r_onset, r_cutoff, truncation) -> None:
+    rc = _concrete(r_cutoff)
+    if rc is not None and (rc.ndim or not rc > 0 or not np.isfinite(rc)):
+        raise ValueError(f"r_cutoff must be a finite scalar > 0; got "
+                         f"{r_cutoff}.")
+    ro = _concrete(r_onset)
+    if truncation == "smooth" and ro is not None and rc is not None:
+        if ro.ndim or not 0 <= ro < rc:
+            raise ValueError(
+                f"r_onset={r_onset} must be a scalar with 0 <= r_onset < "
+                f"r_cutoff={r_cutoff}: the smooth switch divides by "
+                "r_cutoff**2 - r_onset**2.")
+
+
+def lennard_jones_pair_neighbor_list(
+    displacement_or_metric: Callable,
+    *,
+    species: Array | None = None,
+    sigma: Array = 1.0,
+    epsilon: Array = 1.0,
+    r_onset: Array = 2.0,
+    r_cutoff: Array = 2.5,
+    truncation: str = "smooth",
+    per_particle: bool = False,
+) -> Callable[..., Array]:
+    """Lennard-Jones energy on any jax-md neighbour list (absolute units).
+
+    Unlike jax-md's convenience wrapper, ``r_onset`` and ``r_cutoff`` here are
+    absolute distances (not multiples of ``max(sigma)``). The list must have
+    been built with a cutoff of at least ``r_cutoff``; pairs it lacks are
+    silently missing from the sum.
+
+    Args:
+      displacement_or_metric: jax-md displacement or metric function.
+      species: int ``(N,)`` particle types, or None.
+      sigma, epsilon: float scalar; without species also ``(N,)`` per
+        particle (combined by the arithmetic mean, as jax-md does) or
+        ``(N, N)``; with species a symmetric ``(S, S)`` matrix,
+        ``S > max(species)``. ``sigma > 0``, ``epsilon >= 0``.
+      r_onset: float scalar, start of the smooth switch (``"smooth"`` only).
+      r_cutoff: float scalar > r_onset.
+      truncation: ``"smooth"``, ``"shifted"`` or ``"truncated"`` (see
+        `lennard_jones_truncated`).
+      per_particle: return ``(N,)`` energies (each pair split half and half
+        between its particles) instead of the total.
+
+    Returns:
+      ``energy_fn(R, neighbor, *, sigma=None, epsilon=None, r_onset=None,
+      r_cutoff=None, species=None, **metric_kwargs)``. ``R`` is float
+      ``(N, dim)``, ``neighbor`` a jax-md `NeighborList` in any layout. The
+      keyword parameters, when given, replace the factory's (same shapes,
+      may be traced: differentiate with respect to them; only their shapes
+      are checked); ``species`` (int ``(N,)``) only if the factory had
+      species. ``metric_kwargs`` (e.g. ``box=`` for
+      ``space.periodic_general``) go to the displacement function only.
+      Returns a scalar, or ``(N,)`` with ``per_particle``, in the dtype of
+      ``R`` promoted with the parameters.
+
+    Under ``jit`` the value checks cannot run: a ``species`` entry beyond
+    ``sigma``'s size silently reads the last row (JAX clamps gathers),
+    ``sigma <= 0`` or ``epsilon < 0`` gives NaN energies, and
+    ``r_onset >= r_cutoff`` gives NaN gradients with respect to the cutoffs.
+    Shape errors always raise.
+    """
+    if truncation not in TRUNCATIONS:
+        raise ValueError(_truncation_error(truncation))
+    _check_species(species)
+    _check_parameter("sigma", sigma, species)
+    _check_parameter("epsilon", epsilon, species)
+    _check_cutoffs(r_onset, r_cutoff, truncation)
+    metric = space.canonicalize_displacement_or_metric(displacement_or_metric)
+    defaults = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
+                    r_cutoff=r_cutoff)
+    default_species = species
+
+    def energy_fn(R: Array, neighbor: partition.NeighborList, *,
+                  sigma: Array | None = None, epsilon: Array | None = None,
+                  r_onset: Array | None = None, r_cutoff: Array | None = None,
+                  species: Array | None = None, **metric_kwargs) -> Array:
+        given = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
+                     r_cutoff=r_cutoff)
+        p = {k: defaults[k] if v is None else v for k, v in given.items()}
+        if species is None:
+            species = default_species
+        elif default_species is None:
+            raise ValueError(
+                "species was given to the energy function but not to the "
+                "factory: pass species (and (S, S) sigma / epsilon) to "
+                "lennard_jones_pair_neighbor_list.")
+        else:
+            _check_species(species)
+        n = R.shape[0]
+        if species is not None and species.shape[0] != n:
+            raise ValueError(f"species has {species.shape[0]} entries but R "
+                             f"has {n} particles; pass one type per particle.")
+        for name in ("sigma", "epsilon"):
+            # Overrides are usually being differentiated (and finite
+            # differences perturb them asymmetrically), so only their shapes
+            # are checked, never their values.
+            shape = np.shape(p[name])
+            if species is not None and shape and (
+                    len(shape) != 2 or shape[0] != shape[1]):
+                raise ValueError(
+                    f"{name} has shape {shape} but species was given: pass a "
+                    f"scalar or a square (S, S) matrix.")
+            s = None if species is None else _concrete(species)
+            if len(shape) == 2 and s is not None and s.size and (
+                    int(s.max()) >= shape[0]):
+                raise ValueError(
+                    f"species has values up to {int(s.max())} but {name} is "
+                    f"{shape[0]}x{shape[0]}: make {name} (S, S) with "
+                    f"S > max(species).")
+            if species is None and len(shape) >= 1 and shape[0] != n:
+                raise ValueError(
+                    f"{name} has shape {shape} but R has {n} particles: "
+                    f"per-particle {name} must be (N,) or (N, N).")
+
+        def pair(dr, sigma, epsilon):
+            return lennard_jones_truncated(
+                dr, sigma, epsilon, r_onset=p["r_onset"],
+                r_cutoff=p["r_cutoff"], truncation=truncation)
+
+        ordered = neighbor.format is partition.OrderedSparse
+        if not per_particle:
+            reduce_axis = None
+        elif ordered:
+            reduce_axis = ()  # jax-md refuses; reduced below
+        else:
+            reduce_axis = (1,)
+        # ignore_unused_parameters: metric_kwargs (e.g. box=) reach the
+        # displacement only, never the pair function.
+        mapped = smap.pair_neighbor_list(
+            pair, metric, species=species, reduce_axis=reduce_axis,
+            ignore_unused_parameters=True, sigma=p["sigma"],
+            epsilon=p["epsilon"])
+        out = mapped(R, neighbor, **metric_kwargs)
+        if per_particle and ordered:
+            # Each unordered pair appears once: give half to each end. The
+            # padding index n falls outside segment_sum's range and is
+            # dropped (its energies are zero anyway).
+            out = (segment_sum(out, neighbor.idx[0], n)
+                   + segment_sum(out, neighbor.idx[1], n)) / 2
+        return out
+
+    return energy_fn
+
+
+def lennard_jones_neighbor_list(
+    displacement_or_metric: Callable,
+    box_size,
+    *,
+    species: Array | None = None,
+    sigma: Array = 1.0,
+    epsilon: Array = 1.0,
+    r_onset: float = 2.0,
+    r_cutoff: float = 2.5,
+    dr_threshold: float = 0.5,
+    per_particle: bool = False,
+    fractional_coordinates: bool = False,
+    format: partition.NeighborListFormat = partition.OrderedSparse,
+    truncation: str = "smooth",
+    neighbor_list_fn: Callable | None = None,
+    **neighbor_kwargs,
+) -> tuple[partition.NeighborListFns, Callable[..., Array]]:
+    """Drop-in for `jax_md.energy.lennard_jones_neighbor_list`.
+
+    As in jax-md, ``r_onset`` and ``r_cutoff`` are in units of
+    ``max(sigma)``, fixed when this is called: passing a different ``sigma``
+    to the energy function later does not move the cutoff. The energy
+    function's own ``r_onset`` / ``r_cutoff`` keywords are absolute distances
+    (see `lennard_jones_pair_neighbor_list`).
+
+    Args:
+      displacement_or_metric: jax-md displacement or metric function.
+      box_size: the box, as for the neighbour list.
+      species, sigma, epsilon, truncation, per_particle: as in
+        `lennard_jones_pair_neighbor_list`; ``sigma`` must be concrete here
+        (it sets the cutoff).
+      r_onset, r_cutoff: multiples of ``max(sigma)``.
+      dr_threshold: the list's skin.
+      fractional_coordinates: forwarded to the neighbour list only (the
+        displacement function already knows it).
+      format: the list layout.
+      neighbor_list_fn: the list factory; default `jaxrt.neighbor_list`
+        (``backend="auto"``). Give ``functools.partial(jaxrt.neighbor_list,
+        backend=...)`` or ``jax_md.partition.neighbor_list``.
+      neighbor_kwargs: forwarded to ``neighbor_list_fn`` (jaxrt rejects
+        names it does not know).
+
+    Returns:
+      ``(neighbor_fn, energy_fn)`` as in jax-md.
+    """
+    if neighbor_list_fn is None:
+        from jaxrt.neighbors import neighbor_list as neighbor_list_fn
+    s = _concrete(sigma)
+    if s is None:
+        raise ValueError("sigma must be concrete (not traced) here: it sets "
+                         "the cutoff of the neighbour list. Pass traced "
+                         "values to the energy function instead.")
+    _check_parameter("sigma", sigma, species)
+    scale = float(np.max(s))
+    # Array sigma keeps its dtype; a Python float stays weak (no downcast).
+    scale_like = jnp.max(sigma) if isinstance(sigma, jax.Array) else scale
+    if not (float(r_cutoff) > 0 and math.isfinite(float(r_cutoff))):
+        raise ValueError(f"r_cutoff must be finite and > 0; got {r_cutoff}.")
+    neighbor_fn = neighbor_list_fn(
+        displacement_or_metric, box_size, float(r_cutoff) * scale,
+        dr_threshold, fractional_coordinates=fractional_coordinates,
+        format=format, **neighbor_kwargs)
+    energy_fn = lennard_jones_pair_neighbor_list(
+        displacement_or_metric, species=species, sigma=sigma, epsilon=epsilon,
+        r_onset=r_onset * scale_like, r_cutoff=r_cutoff * scale_like,
+        truncation=truncation, per_particle=per_particle)
+    return neighbor_fn, energy_fn

@@ -1,0 +1,59 @@
+"""Error bits carried by every neighbour list, and the host-side check.
+
+jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
+``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds one.
+A non-finite position also sets the overflow bit, so that the usual loop
+(``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches
+``allocate``, which raises a clear error instead of carrying on with a list
+that silently lacks the bad particle's pairs.
+"""
+from __future__ import annotations
+
+import enum
+
+import numpy as np
+from jax_md.partition import NeighborList
+
+
+class ErrorCode(enum.IntFlag):
+    NEIGHBOR_LIST_OVERFLOW = 1 << 0
+    CELL_LIST_OVERFLOW = 1 << 1
+    CELL_SIZE_TOO_SMALL = 1 << 2
+    MALFORMED_BOX = 1 << 3
+    NONFINITE_POSITION = 1 << 4
+
+
+_MESSAGES = {
+    ErrorCode.NONFINITE_POSITION:
+        "a position was NaN or infinite at the last update; the list lacks "
+        "that particle's pairs. Find where the simulation blew up (time step, "
+        "overlapping particles) before reallocating.",
+    ErrorCode.NEIGHBOR_LIST_OVERFLOW:
+        "the neighbour buffer overflowed: reallocate with "
+        "neighbor_fn.allocate(position) (a larger capacity_multiplier "
+        "reallocates less often).",
+    ErrorCode.CELL_LIST_OVERFLOW:
+        "an internal search buffer overflowed: reallocate with "
+        "neighbor_fn.allocate(position).",
+    ErrorCode.CELL_SIZE_TOO_SMALL:
+        "the box grew past what the list was built for: reallocate.",
+    ErrorCode.MALFORMED_BOX:
+        "the box is not upper triangular.",
+}
+
+
+class NeighborListError(RuntimeError):
+    """Raised by `check` for a list whose error bits are set."""
+
+
+def check(neighbors: NeighborList) -> None:
+    """Raise `NeighborListError` if ``neighbors`` carries any error bit.
+
+    Host-side (it reads the error code), so call it outside ``jit``: after a
+    ``lax.scan`` of steps, or every few hundred steps. Works on a batch of
+    lists (any bit set in any system).
+    """
+    code = int(np.bitwise_or.reduce(np.asarray(neighbors.error.code).ravel()))
+    problems = [msg for bit, msg in _MESSAGES.items() if code & bit]
+    if problems:
+        raise NeighborListError("neighbour list error: " + " ".join(problems))

@@ -1,0 +1,438 @@
+"""`neighbor_list`: a drop-in for ``jax_md.partition.neighbor_list``.
+
+It takes jax-md's arguments, returns jax-md's own `NeighborListFns`, and its
+``allocate`` / ``update`` return jax-md's own `NeighborList`, so every jax-md
+consumer (``energy.*_neighbor_list``, ``smap.pair_neighbor_list``,
+``simulate.*``, ``nbrs.update`` inside ``lax.scan``) works unchanged. The
+search itself is delegated to a backend (`jaxrt.backends`).
+
+Where jaxrt differs from jax-md, on purpose:
+
+* Unknown keyword arguments raise ``TypeError`` (jax-md swallows them).
+* Periodicity is an explicit keyword, ``periodic=``, or, when omitted,
+  inferred by probing ``displacement_or_metric`` along each axis against
+  ``box``. A displacement that is neither free nor periodic with the given
+  box raises. Free space needs no box (``box=None`` is accepted).
+* Positions on a periodic axis outside ``[0, L)`` are binned after wrapping,
+  so the list is right (jax-md's cell list silently misses pairs there).
+* Bad input raises at ``allocate``; under ``jit`` a non-finite position sets
+  an error bit (see `jaxrt.errors`) that also reads as overflow.
+* ``NeighborList.cell_list_capacity`` holds a `jaxrt.backends.Capacity`
+  (static buffer sizes), not an int; ``cell_size`` and ``cell_list_fn``
+  are None.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax_md import space
+from jax_md.partition import (NeighborList, NeighborListFns,
+                              NeighborListFormat, PartitionError)
+
+from jaxrt import backends
+from jaxrt.backends import Capacity, Geometry, MetricSq, Query
+from jaxrt.errors import ErrorCode
+
+Dense = NeighborListFormat.Dense
+Sparse = NeighborListFormat.Sparse
+OrderedSparse = NeighborListFormat.OrderedSparse
+
+_ARGUMENTS = ("displacement_or_metric", "box", "r_cutoff", "dr_threshold",
+              "capacity_multiplier", "disable_cell_list", "mask_self",
+              "custom_mask_function", "fractional_coordinates", "format",
+              "backend", "periodic")
+
+
+def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
+    """``fn(Ra, Rb, **kw)`` -> squared distance, from a displacement or metric."""
+    probe = jax.ShapeDtypeStruct((dim,), jnp.float32)
+    try:
+        out = jax.eval_shape(displacement_or_metric, probe, probe)
+    except Exception as e:  # noqa: BLE001 - re-raised with the argument named
+        raise TypeError(
+            "displacement_or_metric must be a function d(Ra, Rb) of two "
+            f"({dim},) positions, as made by jax_md.space; calling it "
+            f"failed with: {e}") from e
+    if out.shape == ():
+        return lambda ra, rb, **kw: displacement_or_metric(ra, rb, **kw) ** 2
+    if out.shape != (dim,):
+        raise TypeError(
+            "displacement_or_metric must return a scalar distance or a "
+            f"({dim},) displacement; it returned shape {out.shape}.")
+    return lambda ra, rb, **kw: space.square_distance(
+        displacement_or_metric(ra, rb, **kw))
+
+
+def _side_vector(box, dim: int) -> np.ndarray | None:
+    """The box as float64 ``(dim,)`` sides, None if no usable box was given.
+
+    Raises for a triclinic box (off-diagonal entries), which only the brute
+    backend handles, signalled by returning NaNs.
+    """
+    if box is None:
+        return None
+    b = np.asarray(box, dtype=np.float64)
+    if b.ndim == 0:
+        b = np.full(dim, float(b))
+    elif b.ndim == 2:
+        if b.shape != (dim, dim):
+            raise ValueError(f"box must be ({dim}, {dim}) for {dim}D positions;"
+                             f" got shape {b.shape}.")
+        if np.any(b - np.diag(np.diag(b))):
+            return np.full(dim, np.nan)
+        b = np.diag(b)
+    elif b.shape != (dim,):
+        raise ValueError(f"box must be a scalar, ({dim},) or ({dim}, {dim}) "
+                         f"for {dim}D positions; got shape {b.shape}.")
+    if not np.all(np.isfinite(b) & (b > 0)):
+        return None
+    return b
+
+
+def _infer_periodic(metric_fn, side: np.ndarray | None, fractional: bool,
+                    dim: int) -> tuple[bool, ...]:
+    """Probe ``metric_fn`` along each axis: free, or periodic with ``side``?"""
+    periodic = []
+    for a in range(dim):
+        unit = 1.0 if fractional else (1.0 if side is None else side[a])
+        scale = side[a] if (fractional and side is not None) else 1.0
+        looks_free = looks_periodic = True
+        for t in (0.75, 1.3, 7.3):
+            rb = np.zeros(dim, np.float32)
+            rb[a] = t * unit
+            r = float(np.sqrt(metric_fn(jnp.zeros(dim, jnp.float32),
+                                        jnp.asarray(rb))))
+            tol = 1e-4 * t * unit * scale + 1e-6
+            looks_free &= abs(r - t * unit * scale) <= tol
+            wrapped = abs(t - round(t)) * unit * scale
+            looks_periodic &= abs(r - wrapped) <= tol
+        if looks_free == looks_periodic:
+            raise ValueError(
+                f"could not tell from displacement_or_metric whether axis {a} "
+                f"is free or periodic with the given box ({box_repr(side)}). "
+                "Pass periodic=True/False (or one bool per axis) explicitly, "
+                "and check that box matches the displacement function.")
+        periodic.append(looks_periodic)
+    return tuple(periodic)
+
+
+def box_repr(side) -> str:
+    return "no box" if side is None else f"sides {np.asarray(side).tolist()}"
+
+
+def _normalise_periodic(periodic, dim: int) -> tuple[bool, ...]:
+    if isinstance(periodic, (bool, np.bool_)):
+        return (bool(periodic),) * dim
+    periodic = tuple(bool(p) for p in periodic)
+    if len(periodic) != dim:
+        raise ValueError(f"periodic must be a bool or {dim} bools (one per "
+                         f"axis); got {len(periodic)}.")
+    return periodic
+
+
+def _layout_capacity(occupancy: int, n: int, extra: int, fmt, mask_self: bool,
+                     multiplier: float) -> int:
+    """jax-md's sizing rule for the layout's capacity."""
+    sparse = fmt is not Dense
+    capacity = int(occupancy * multiplier + (n * extra if sparse else extra))
+    if fmt is Dense:
+        limit = n - 1 if mask_self else n
+    elif fmt is Sparse:
+        limit = n * (n - 1) if mask_self else n * n
+    else:
+        limit = n * (n - 1) // 2
+    return max(min(capacity, limit), 0)
+
+
+def _check_position(position, dim: int | None = None) -> jax.Array:
+    if not hasattr(position, "shape") or not hasattr(position, "dtype"):
+        position = np.asarray(position)
+    if position.ndim != 2 or position.shape[1] not in (1, 2, 3):
+        raise ValueError("position must have shape (N, dim) with dim in "
+                         f"{{1, 2, 3}}; got shape {position.shape}.")
+    if dim is not None and position.shape[1] != dim:
+        raise ValueError(f"position has dim {position.shape[1]} but the list "
+                         f"was allocated for dim {dim}.")
+    if position.shape[0] < 1:
+        raise ValueError("position must hold at least one particle.")
+    if not jnp.issubdtype(position.dtype, jnp.floating):
+        raise TypeError("position must be a floating-point array; got dtype "
+                        f"{position.dtype}. Convert with .astype(float).")
+    return jnp.asarray(position)
+
+
+def _check_positive(name: str, value, allow_zero: bool = False) -> float:
+    if isinstance(value, jax.core.Tracer):
+        raise TypeError(f"{name} must be a concrete number, not a traced value:"
+                        " create the neighbour list outside jit.")
+    try:
+        v = float(np.asarray(value))
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name} must be a number; got {value!r}.") from e
+    if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{name} must be finite and {bound}; got {v}.")
+    return v
+
+
+def neighbor_list(displacement_or_metric: Callable,
+                  box,
+                  r_cutoff: float,
+                  dr_threshold: float = 0.0,
+                  capacity_multiplier: float = 1.25,
+                  disable_cell_list: bool = False,
+                  mask_self: bool = True,
+                  custom_mask_function: Callable | None = None,
+                  fractional_coordinates: bool = False,
+                  format: NeighborListFormat = Dense,
+                  *,
+                  backend: str = "auto",
+                  periodic: bool | Sequence[bool] | None = None,
+                  **unknown) -> NeighborListFns:
+    """Neighbour lists with jax-md's interface and jaxrt's backends.
+
+    Args (as jax-md's; see module docstring for the differences):
+      displacement_or_metric: ``d(Ra, Rb)`` from ``jax_md.space``.
+      box: scalar, ``(dim,)`` or diagonal ``(dim, dim)`` box side(s); may be
+        None in free space.
+      r_cutoff: interaction radius; ``dr_threshold``: skin. Pairs with
+        ``d < r_cutoff + dr_threshold`` (strict) are listed; the list is
+        rebuilt when a particle moved more than ``dr_threshold / 2``.
+      capacity_multiplier: head-room factor when sizing buffers.
+      disable_cell_list: use the all-pairs backend ``"brute"``.
+      mask_self: drop ``i``–``i`` pairs (keep them for SPH density sums).
+      custom_mask_function: ``f(idx)`` on Dense ``(N, m)`` int32 rows,
+        returning them with masked entries set to ``N``.
+      fractional_coordinates: positions in ``[0, 1)^dim`` scaled by ``box``.
+      format: `Dense`, `Sparse` or `OrderedSparse`.
+      backend: ``"auto"`` or a name from `jaxrt.backends.available()`.
+      periodic: bool or one bool per axis; None infers it (module docstring).
+    Returns:
+      jax-md's `NeighborListFns` (``allocate``, ``update``).
+    """
+    if unknown:
+        raise TypeError(
+            f"neighbor_list() got unexpected keyword argument(s) "
+            f"{sorted(unknown)}; it accepts {', '.join(_ARGUMENTS)}.")
+    if not callable(displacement_or_metric):
+        raise TypeError("displacement_or_metric must be a function d(Ra, Rb) "
+                        "from jax_md.space.")
+    if format not in tuple(NeighborListFormat):
+        raise ValueError("format must be jax_md.partition.Dense, Sparse or "
+                         f"OrderedSparse; got {format!r}.")
+    if custom_mask_function is not None and not callable(custom_mask_function):
+        raise TypeError("custom_mask_function must be a function of the "
+                        "(N, m) int32 index array, or None.")
+    r_cutoff = _check_positive("r_cutoff", r_cutoff)
+    dr_threshold = _check_positive("dr_threshold", dr_threshold, allow_zero=True)
+    capacity_multiplier = _check_positive("capacity_multiplier",
+                                          capacity_multiplier)
+    if disable_cell_list:
+        if backend not in ("auto", "brute"):
+            raise ValueError(f"disable_cell_list=True asks for the all-pairs "
+                             f"search but backend={backend!r}; drop one.")
+        backend = "brute"
+    if backend == "auto":
+        backend = _auto_backend()
+    search_backend = backends.get(backend)
+
+    cutoff = r_cutoff + dr_threshold
+    threshold_sq = (dr_threshold / 2) ** 2
+    box_given = box
+    setups: dict[int, tuple] = {}
+
+    def setup(dim: int):
+        """Static description for positions of dimension ``dim`` (cached)."""
+        if dim in setups:
+            return setups[dim]
+        fn = _metric_sq_fn(displacement_or_metric, dim)
+        side = _side_vector(box_given, dim)
+        triclinic = side is not None and np.isnan(side).any()
+        if triclinic and search_backend.name != "brute":
+            raise ValueError("box is triclinic (off-diagonal entries); only "
+                             "backend='brute' handles it.")
+        if triclinic:
+            axes = (True,) * dim if periodic is None else \
+                _normalise_periodic(periodic, dim)
+            side = np.ones(dim)
+        elif periodic is None:
+            axes = _infer_periodic(fn, side, fractional_coordinates, dim)
+        else:
+            axes = _normalise_periodic(periodic, dim)
+        if any(axes) and side is None:
+            raise ValueError("periodic axes need box: pass the box side(s) "
+                             "as box=L or box=(Lx, Ly[, Lz]).")
+        if fractional_coordinates and side is None:
+            raise ValueError("fractional_coordinates=True needs box.")
+        side = np.ones(dim) if side is None else side
+        query = Query(cutoff=cutoff, periodic=axes, mask_self=bool(mask_self),
+                      format=format)
+        setups[dim] = (fn, query, side)
+        return setups[dim]
+
+    def geometry_of(side, box_kwarg, dtype) -> Geometry:
+        if box_kwarg is not None:
+            b = jnp.asarray(box_kwarg, dtype)
+            b = jnp.diagonal(b) if b.ndim == 2 else jnp.broadcast_to(b, side.shape)
+            side_arr = b
+        else:
+            side_arr = jnp.asarray(side, dtype)
+        scale = side_arr if fractional_coordinates else jnp.ones_like(side_arr)
+        return Geometry(side=side_arr, scale=scale)
+
+    def check_kwargs(kwargs):
+        extra = set(kwargs) - {"box"}
+        if extra:
+            raise TypeError(f"unexpected keyword argument(s) {sorted(extra)}; "
+                            "allocate/update accept only box= (with "
+                            "fractional_coordinates=True).")
+        if "box" in kwargs and not fractional_coordinates:
+            raise ValueError("box= may be passed to allocate/update only with "
+                             "fractional_coordinates=True (as in jax-md).")
+
+    def nonfinite_code(position):
+        bad = ~jnp.all(jnp.isfinite(position))
+        bits = ErrorCode.NONFINITE_POSITION | ErrorCode.NEIGHBOR_LIST_OVERFLOW
+        return jnp.where(bad, jnp.uint8(bits), jnp.uint8(0))
+
+    @functools.partial(jax.jit, static_argnames=("query", "capacity"))
+    def build(position, geometry, metric, *, query, capacity):
+        """Search and apply the custom mask. Returns (idx, overflow)."""
+        if custom_mask_function is None:
+            result = search_backend.search(position, geometry, query, capacity,
+                                           metric)
+            return result.idx, result.overflow
+        dense_query = dataclasses.replace(query, format=Dense)
+        pre = Capacity(capacity["row"], capacity.internal)
+        result = search_backend.search(position, geometry, dense_query, pre,
+                                       metric)
+        masked = custom_mask_function(result.idx)
+        n = position.shape[0]
+        rows, counts = backends.pack_rows(masked, masked < n, capacity["row"])
+        final = backends.format_dense_rows(rows, counts, query, capacity)
+        return final.idx, final.overflow | result.overflow
+
+    def allocate(position, extra_capacity: int = 0, **kwargs) -> NeighborList:
+        """Measure the list at ``position`` (float ``(N, dim)``) and size it.
+
+        Eager (not jit-able): buffer sizes depend on the data.
+        """
+        check_kwargs(kwargs)
+        position = _check_position(position)
+        n, dim = position.shape
+        if not bool(jnp.all(jnp.isfinite(position))):
+            bad = np.argwhere(~np.isfinite(np.asarray(position)))[0]
+            raise ValueError(f"position has a non-finite value at particle "
+                             f"{bad[0]}, axis {bad[1]}; fix the input.")
+        extra_capacity = int(extra_capacity)
+        if extra_capacity < 0:
+            raise ValueError("extra_capacity must be >= 0.")
+        fn, query, side = setup(dim)
+        _check_cutoff_against_box(query, side, fractional_coordinates,
+                                  search_backend.name)
+        geometry = geometry_of(side, kwargs.get("box"), position.dtype)
+        metric = MetricSq(fn, {k: v for k, v in kwargs.items()})
+        if custom_mask_function is None:
+            sizes = search_backend.measure(position, geometry, query, metric)
+        else:
+            sizes = _measure_masked(position, geometry, query, metric)
+        capacity = _capacity(sizes, n, extra_capacity, query)
+        idx, overflow = build(position, geometry, metric, query=query,
+                              capacity=capacity)
+        code = jnp.where(overflow, jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
+                         jnp.uint8(0))
+        return NeighborList(idx, position, PartitionError(code), capacity,
+                            capacity.neighbors, format, None, None, update)
+
+    def _measure_masked(position, geometry, query, metric):
+        dense_query = dataclasses.replace(query, format=Dense)
+        pre = search_backend.measure(position, geometry, dense_query, metric)
+        internal = {k: v for k, v in pre.items() if k not in ("row", "edges")}
+        exact = Capacity(pre["row"], tuple(sorted({**internal,
+                                                   "row": pre["row"]}.items())))
+        idx, _ = search_backend.search(position, geometry, dense_query, exact,
+                                       metric)[:2]
+        masked = np.asarray(custom_mask_function(idx))
+        n = position.shape[0]
+        keep = masked < n
+        i = np.arange(n)[:, None]
+        ordered = query.format is OrderedSparse
+        edges = (keep & (masked < i)).sum() if ordered else keep.sum()
+        return {**internal, "row": int(keep.sum(1).max(initial=0)),
+                "edges": int(edges), "row_before_mask": pre["row"]}
+
+    def _capacity(sizes: dict, n: int, extra: int, query: Query) -> Capacity:
+        occupancy = sizes["row"] if format is Dense else sizes["edges"]
+        neighbors = _layout_capacity(occupancy, n, extra, format, mask_self,
+                                     capacity_multiplier)
+        row_sized = sizes.get("row_before_mask", sizes["row"])
+        row = _layout_capacity(row_sized, n, extra, Dense, mask_self,
+                               capacity_multiplier)
+        if format is Dense and custom_mask_function is None:
+            row = neighbors
+        internal = {k: min(max(math.ceil(v * capacity_multiplier), 1), n)
+                    for k, v in sizes.items()
+                    if k not in ("row", "edges", "row_before_mask")}
+        internal["row"] = row
+        return Capacity(neighbors, tuple(sorted(internal.items())))
+
+    def update(position, neighbors: NeighborList, **kwargs) -> NeighborList:
+        """Rebuild ``neighbors`` at ``position`` if a particle moved more than
+        half the skin since the last build. jit/scan/vmap-able."""
+        check_kwargs(kwargs)
+        if not isinstance(neighbors, NeighborList):
+            raise TypeError("neighbors must be a NeighborList from allocate; "
+                            f"got {type(neighbors).__name__}.")
+        position = _check_position(position)
+        ref = neighbors.reference_position
+        if position.shape != ref.shape or position.dtype != ref.dtype:
+            raise ValueError(
+                f"position is {position.dtype}{list(position.shape)} but the "
+                f"list was allocated for {ref.dtype}{list(ref.shape)}; "
+                "reallocate for a new system.")
+        capacity = neighbors.cell_list_capacity
+        if not isinstance(capacity, Capacity):
+            raise TypeError("neighbors was not allocated by jaxrt; use the "
+                            "update of the factory that allocated it.")
+        fn, query, side = setup(position.shape[1])
+        geometry = geometry_of(side, kwargs.get("box"), position.dtype)
+        metric = MetricSq(fn, dict(kwargs))
+        code = neighbors.error.code | nonfinite_code(position)
+
+        def rebuild(_):
+            idx, overflow = build(position, geometry, metric, query=query,
+                                  capacity=capacity)
+            bit = jnp.where(overflow,
+                            jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
+                            jnp.uint8(0))
+            return dataclasses.replace(neighbors, idx=idx,
+                                       reference_position=position,
+                                       error=PartitionError(code | bit))
+
+        def keep(_):
+            return dataclasses.replace(neighbors, error=PartitionError(code))
+
+        if dr_threshold == 0:
+            return rebuild(None)
+        moved = jax.vmap(metric)(position, ref)
+        return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
+
+    return NeighborListFns(allocate, update)
+
+
+def _check_cutoff_against_box(query: Query, side, fractional: bool,
+                              backend_name: str) -> None:
+    del fractional, backend_name  # the cell and brute backends handle any box
+    for a, p in enumerate(query.periodic):
+        if p and not side[a] > 0:
+            raise ValueError(f"box side {a} must be > 0 on a periodic axis.")
+
+
+def _auto_backend() -> str:
+    return "cell"

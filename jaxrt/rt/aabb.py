@@ -1,0 +1,516 @@
+"""Custom AABB method: Algis & Bramas (2024), §4.4 ("Custom AABB"), with the
+particle sorting of §5 ("Custom sorted AABB") and the periodic gamma rays of
+Meneses et al. (seed 003), §3.3 (the geometry is in `jaxrt.rt.periodic`).
+
+Each particle owns an axis-aligned box of half-width ``cutoff`` (plus a pad
+that absorbs float32 rounding) in a `wp.Bvh`. From each particle an
+infinitesimal ray is cast: the intersection program does no geometry, it
+only asks "is the ray's origin inside this box" (a ray query whose
+``max_dist`` is 0 keeps exactly the boxes that contain the origin), then
+runs the exact distance test in the positions' own precision with jax-md's
+arithmetic. Every neighbour is counted; indices are stored while there is
+room, so counts are exact and overflow is never silent.
+
+The BVH is float32 (Warp's only kind). float64 positions get float32 boxes
+padded beyond float32 rounding and a float64 distance test, so float64 lists
+are exact. Every kernel is generic over the position type (``wp.vec3`` or
+``wp.vec3d``) and instantiated for both when this module loads, so the
+module compiles once.
+
+Pure Warp: nothing here knows of JAX (`jaxrt.rt.ffi` wraps it).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from jaxrt.rt import periodic as gamma
+
+# Bit-compatibility with jax-md: no FMA contraction in ``dx*dx + dy*dy + dz*dz``.
+wp.set_module_options({"fuse_fp": False})
+
+# What a query launch writes (one kernel for all three, so one compile).
+MODE_DENSE = wp.constant(0)  # rows[i, :] = neighbours of i, padded with N
+MODE_COUNT = wp.constant(1)  # count[i] only
+MODE_FILL = wp.constant(2)   # pairs[:, row_offset[i] + n] = (j, i)
+
+# Boxes are padded by this fraction of (largest |coordinate| + largest
+# periodic side + cutoff), 8 float32 epsilons: more than the rounding of box
+# corners, ray origins and the periodic wrap (and of float64 to float32).
+PAD_FRACTION = wp.constant(2.0 ** -20)
+
+# Morton keys: 10 bits per axis (int32 keys) on a grid of cells of half the
+# cutoff; coordinates beyond 1024 cells wrap, which only costs locality.
+_MORTON_CELLS_PER_CUTOFF = 2.0
+
+# An infinitesimal ray: any direction with no zero component (zero
+# components make the slab test compute 0 * inf).
+_RAY_DIRECTION = wp.constant(wp.vec3(0.57735026, 0.57735026, 0.57735026))
+
+
+@wp.func
+def _box_reach(half_width: wp.float32, extent: wp.float32, largest_side: wp.float32):
+    """Half-width of every box: the cutoff plus the rounding pad."""
+    return half_width + wp.float32(PAD_FRACTION) * (extent + largest_side + half_width)
+
+
+@wp.kernel
+def _extent_kernel(points: wp.array(dtype=Any), extent: wp.array(dtype=wp.float32)):
+    """extent[0] = max |coordinate| over finite coordinates (extent zeroed)."""
+    i = wp.tid()
+    x = points[i]
+    largest = wp.float32(0.0)
+    for a in range(3):
+        v = wp.float32(wp.abs(x[a]))
+        if wp.isfinite(v) and v > largest:
+            largest = v
+    # Reading first keeps atomics (and their contention on a GPU) rare.
+    if largest > extent[0]:
+        wp.atomic_max(extent, 0, largest)
+
+
+@wp.kernel
+def _morton_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
+                   periodic: wp.vec3i, order: wp.array(dtype=wp.int32),
+                   cells_per_unit: wp.float32,
+                   keys: wp.array(dtype=wp.int32),
+                   values: wp.array(dtype=wp.int32)):
+    """keys[k] = Morton code of particle order[k] (wrapped), values[k] = order[k]."""
+    k = wp.tid()
+    i = order[k]
+    box = side[0]
+    w = gamma.wrap_point(points[i], box, periodic)
+    key = int(0)
+    for a in range(3):
+        c = wp.clamp(wp.float32(w[a]) * cells_per_unit, -1.0e9, 1.0e9)
+        cell = int(wp.floor(c)) & 1023
+        cell = (cell | (cell << 16)) & 0x030000FF
+        cell = (cell | (cell << 8)) & 0x0300F00F
+        cell = (cell | (cell << 4)) & 0x030C30C3
+        cell = (cell | (cell << 2)) & 0x09249249
+        key = key | (cell << a)
+    keys[k] = key
+    values[k] = i
+
+
+@wp.kernel
+def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
+                  periodic: wp.vec3i, order: wp.array(dtype=wp.int32),
+                  half_width: wp.float32, extent: wp.array(dtype=wp.float32),
+                  has_reference: wp.int32, drift_limit: wp.float32,
+                  reference: wp.array(dtype=wp.vec3),
+                  item_points: wp.array(dtype=Any),
+                  item_coords: wp.array(dtype=Any),
+                  lowers: wp.array(dtype=wp.vec3),
+                  uppers: wp.array(dtype=wp.vec3),
+                  moved_far: wp.array(dtype=wp.int32)):
+    """Box of item k around particle order[k].
+
+    Without a reference (a (re)build) the item sits at its wrapped position
+    and that position becomes the reference. With one (a refit), it sits at
+    the image nearest its reference, so crossing a periodic face is not a
+    jump; moved_far[0] = 1 if it drifted more than drift_limit.
+    """
+    k = wp.tid()
+    i = order[k]
+    x = points[i]
+    box = side[0]
+    u = gamma.wrap_point(x, box, periodic)
+    if has_reference != 0:
+        u = gamma.nearest_image(u, reference[k], box, periodic)
+        drift = wp.vec3(u) - reference[k]
+        if wp.max(wp.abs(drift)) > drift_limit:
+            moved_far[0] = 1
+    else:
+        reference[k] = wp.vec3(u)
+    item_points[k] = x
+    item_coords[k] = u
+    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    centre = wp.vec3(u)
+    pad = wp.vec3(reach, reach, reach)
+    lowers[k] = centre - pad
+    uppers[k] = centre + pad
+
+
+@wp.func
+def _square_distance(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
+    """jax-md's ``square_distance(periodic_displacement(side, Ra - Rb))``,
+    operation for operation (``jnp.mod`` is fmod plus a sign fix)."""
+    d = xi - xj
+    for a in range(3):
+        if periodic[a] != 0:
+            half = box[a] * type(box[a])(0.5)
+            r = wp.mod(d[a] + half, box[a])
+            if r != type(r)(0.0) and (r < type(r)(0.0)) != (box[a] < type(r)(0.0)):
+                r = r + box[a]
+            d[a] = r - half
+    return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+
+
+@wp.kernel
+def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
+                  item_coords: wp.array(dtype=Any),
+                  order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
+                  periodic: wp.vec3i, cutoff_sq: Any, half_width: wp.float32,
+                  extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
+                  mask_self: wp.int32, lower_only: wp.int32, mode: wp.int32,
+                  rows: wp.array2d(dtype=wp.int32),
+                  row_offset: wp.array(dtype=wp.int32),
+                  pairs: wp.array2d(dtype=wp.int32),
+                  count: wp.array(dtype=wp.int32)):
+    """Neighbours of particle order[k], from the ray at its item and, near a
+    periodic face, the gamma rays (Meneses et al. §3.3)."""
+    k = wp.tid()
+    n_particles = item_points.shape[0]
+    i = order[k]
+    xi = item_points[k]
+    ui = item_coords[k]
+    box = side[0]
+    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    # Items may sit up to drift_limit outside the box since the last build.
+    face_reach = reach + drift_limit
+    any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
+    base = int(0)
+    if mode == MODE_FILL:
+        base = row_offset[i]
+    width = rows.shape[1]
+    capacity = pairs.shape[1]
+    n = int(0)
+    for ray in range(gamma.RAYS_PER_PARTICLE):
+        shift = gamma.ray_shift(ray)
+        if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
+            origin = wp.vec3(gamma.shifted(ui, shift, box))
+            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            item = int(0)
+            while wp.bvh_query_next(query, item, 0.0):
+                j = order[item]
+                keep = True
+                if any_periodic:  # free space: one ray, no image to choose
+                    keep = gamma.is_canonical_image(shift, ui, item_coords[item],
+                                                    box, periodic)
+                if mask_self != 0 and j == i:
+                    keep = False
+                if lower_only != 0 and j >= i:
+                    keep = False
+                if keep:
+                    keep = _square_distance(xi, item_points[item], box, periodic) < cutoff_sq
+                if keep:
+                    if mode == MODE_DENSE:
+                        if n < width:
+                            rows[i, n] = j
+                    elif mode == MODE_FILL:
+                        slot = base + n
+                        if slot < capacity:
+                            pairs[0, slot] = j
+                            pairs[1, slot] = i
+                    n += 1
+    count[i] = n
+    if mode == MODE_DENSE:
+        for s in range(wp.min(n, width), width):
+            rows[i, s] = n_particles
+
+
+@wp.kernel
+def _total_kernel(count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int32),
+                  total: wp.array(dtype=wp.int32)):
+    """total[0] = exclusive-scan end (launched with dim 1)."""
+    last = count.shape[0] - 1
+    total[0] = offset[last] + count[last]
+
+
+@wp.kernel
+def _pad_pairs_kernel(total: wp.array(dtype=wp.int32), n_particles: wp.int32,
+                      pairs: wp.array2d(dtype=wp.int32)):
+    """Pad the edge slots past the last edge with N."""
+    s = wp.tid()
+    if s >= total[0]:
+        pairs[0, s] = n_particles
+        pairs[1, s] = n_particles
+
+
+def _instantiate(kernel, vectors=(), scalars=()):
+    """Overload ``kernel`` for float32 and float64: ``vectors`` name arrays
+    of positions, ``scalars`` name position-precision scalars."""
+    for scalar, vector in ((wp.float32, wp.vec3f), (wp.float64, wp.vec3d)):
+        types = {name: wp.array(dtype=vector) for name in vectors}
+        types.update({name: scalar for name in scalars})
+        wp.overload(kernel, types)
+
+
+_instantiate(_extent_kernel, vectors=("points",))
+_instantiate(_morton_kernel, vectors=("points", "side"))
+_instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coords"))
+_instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
+             scalars=("cutoff_sq",))
+
+
+def vector_type(points: wp.array):
+    """``wp.vec3`` or ``wp.vec3d``: the position type of ``points``."""
+    if points.dtype not in (wp.vec3f, wp.vec3d):
+        raise TypeError("points must be a Warp array of wp.vec3 (float32) or "
+                        f"wp.vec3d (float64); got dtype {points.dtype}.")
+    return points.dtype
+
+
+def scalar_type(vector):
+    return wp.float64 if vector is wp.vec3d else wp.float32
+
+
+def load(device) -> None:
+    """Compile/load this module's kernels on ``device`` now, so that the
+    first search does not compile inside a JAX call."""
+    wp.load_module(module=__name__, device=device)
+
+
+@dataclasses.dataclass(frozen=True)
+class RebuildPolicy:
+    """When to rebuild the BVH instead of refitting it.
+
+    Refitting keeps the tree's topology and only recomputes node boxes, so
+    it is always exact; it only slows queries as particles wander from where
+    the tree was built. The tree is rebuilt when a particle drifted more
+    than ``drift_fraction * cutoff`` from its position at the last build
+    (on periodic axes, to its nearest image: crossing a face is no drift).
+
+    Attributes:
+      drift_fraction: largest drift, in units of the cutoff, that a refit
+        tolerates. 0 rebuilds on every call; must be below 0.25 so that
+        gamma rays of drifted items still cover the pairs (see
+        `jaxrt.rt.periodic`).
+    """
+
+    drift_fraction: float = 0.2
+
+    def __post_init__(self):
+        if not 0.0 <= self.drift_fraction < 0.25:
+            raise ValueError("drift_fraction must be in [0, 0.25); got "
+                             f"{self.drift_fraction}.")
+
+    def drift_limit(self, cutoff: float) -> float:
+        return self.drift_fraction * cutoff
+
+
+def choose_update(policy: RebuildPolicy, has_tree: bool, moved_far: bool) -> str:
+    """The one place that decides how the BVH follows the particles.
+
+    Returns "build" (no tree yet), "rebuild" (a particle drifted beyond
+    ``policy``) or "refit". An adaptive policy (seed 003 §3.1, *gradient*)
+    replaces this function.
+    """
+    if not has_tree:
+        return "build"
+    return "rebuild" if moved_far else "refit"
+
+
+class AabbSearch:
+    """A BVH of custom AABBs over one system's particles, kept across calls.
+
+    Arrays are owned here (a `wp.Bvh` keeps pointers to its bounds). Items
+    are the particles in ``order`` (Morton order when ``sort``), so queries
+    run in spatial order and index ``order`` to report caller indices.
+
+    Attributes:
+      n: number of particles N.
+      vector: ``wp.vec3`` or ``wp.vec3d``, the position type.
+      device: Warp device holding every array.
+      order: int32 ``(N,)``, the particle held by each item.
+      item_points: ``vector`` ``(N,)``, positions as given, item order.
+      item_coords: ``vector`` ``(N,)``, positions the boxes are centred on
+        (wrapped on periodic axes), item order.
+      reference: ``wp.vec3`` ``(N,)``, ``item_coords`` at the last build.
+      lowers, uppers: ``wp.vec3`` ``(N,)``, the boxes.
+      last_update: "build", "rebuild" or "refit": what the last `update` did.
+    """
+
+    def __init__(self, n: int, vector, device, *, sort: bool,
+                 policy: RebuildPolicy = RebuildPolicy()):
+        if n < 1:
+            raise ValueError(f"need at least one particle; got n={n}.")
+        self.n = n
+        self.vector = vector
+        self.scalar = scalar_type(vector)
+        self.device = wp.get_device(device)
+        self.sort = sort
+        self.policy = policy
+        with wp.ScopedDevice(self.device):
+            self.order = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
+            self.item_points = wp.empty(n, dtype=vector)
+            self.item_coords = wp.empty(n, dtype=vector)
+            self.reference = wp.zeros(n, dtype=wp.vec3)
+            self.lowers = wp.empty(n, dtype=wp.vec3)
+            self.uppers = wp.empty(n, dtype=wp.vec3)
+            self.extent = wp.zeros(1, dtype=wp.float32)
+            self.moved_far = wp.zeros(1, dtype=wp.int32)
+            if sort:
+                self.keys = wp.empty(2 * n, dtype=wp.int32)
+                self.values = wp.empty(2 * n, dtype=wp.int32)
+        self.bvh = None
+        self.last_update = None
+        self._cutoff = None
+        self._periodic = None
+
+    @property
+    def constructor(self) -> str:
+        return "lbvh" if self.device.is_cuda else "sah"
+
+    def update(self, points: wp.array, side: wp.array, periodic: tuple[bool, bool, bool],
+               cutoff: float) -> str:
+        """Fit the BVH to ``points``: build, refit or rebuild (`choose_update`).
+
+        Args:
+          points: ``vector`` ``(N,)`` Cartesian positions.
+          side: ``vector`` ``(1,)``, box sides (read on periodic axes).
+          periodic: one bool per axis.
+          cutoff: box half-width (the search radius).
+        Returns:
+          what was done: "build", "rebuild" or "refit".
+        """
+        if points.shape[0] != self.n or points.dtype != self.vector:
+            raise ValueError(f"points must be {self.n} {self.vector.__name__}; got "
+                             f"{points.shape[0]} {points.dtype.__name__}.")
+        flags = wp.vec3i(*(int(bool(p)) for p in periodic))
+        half_width = float(np.float32(cutoff))
+        drift_limit = self.policy.drift_limit(cutoff)
+        # A tree built for another cutoff or periodicity has wrong boxes.
+        same_setup = (self._cutoff, self._periodic) == (cutoff, tuple(periodic))
+        with wp.ScopedDevice(self.device):
+            self.extent.zero_()
+            wp.launch(_extent_kernel, self.n, inputs=[points, self.extent])
+            moved_far = False
+            if self.bvh is not None and same_setup:
+                self.moved_far.zero_()
+                self._place(points, side, flags, half_width, True, drift_limit)
+                moved_far = bool(self.moved_far.numpy()[0])
+            action = choose_update(self.policy, self.bvh is not None and same_setup,
+                                   moved_far)
+            if action == "refit":
+                self.bvh.refit()
+            else:
+                if self.sort:
+                    wp.launch(_morton_kernel, self.n,
+                              inputs=[points, side, flags, self.order,
+                                      _MORTON_CELLS_PER_CUTOFF / half_width,
+                                      self.keys, self.values])
+                    wp.utils.radix_sort_pairs(self.keys, self.values, self.n,
+                                              end_bit=30)
+                    wp.copy(self.order, self.values, count=self.n)
+                self._place(points, side, flags, half_width, False, drift_limit)
+                if self.bvh is None:
+                    self.bvh = wp.Bvh(self.lowers, self.uppers,
+                                      constructor=self.constructor)
+                else:
+                    self.bvh.rebuild(self.constructor)
+                    action = "rebuild"
+        self._cutoff, self._periodic = cutoff, tuple(periodic)
+        self.last_update = action
+        return action
+
+    def _place(self, points, side, flags, half_width, has_reference, drift_limit):
+        wp.launch(_place_kernel, self.n,
+                  inputs=[points, side, flags, self.order, half_width, self.extent,
+                          int(has_reference), drift_limit, self.reference,
+                          self.item_points, self.item_coords, self.lowers,
+                          self.uppers, self.moved_far])
+
+    def query(self, side: wp.array, *, mask_self: bool, lower_only: bool, mode: int,
+              rows: wp.array | None = None, row_offset: wp.array | None = None,
+              pairs: wp.array | None = None, count: wp.array) -> None:
+        """One query pass over the tree built by the last `update`.
+
+        Args:
+          side: as in `update`.
+          mask_self: drop ``j == i``; lower_only: keep only ``j < i``.
+          mode: MODE_DENSE (fills ``rows``), MODE_COUNT, or MODE_FILL (fills
+            ``pairs`` at ``row_offset``).
+          rows: int32 ``(N, width)``; each row left-packed, padded with N.
+          row_offset: int32 ``(N,)``, first edge slot of each particle.
+          pairs: int32 ``(2, capacity)`` = (receivers j, senders i).
+          count: int32 ``(N,)`` output, exact neighbours per particle.
+        """
+        if self.bvh is None:
+            raise RuntimeError("query before update: call update(points, ...) first.")
+        with wp.ScopedDevice(self.device):
+            empty2 = wp.empty((1, 0), dtype=wp.int32)
+            empty1 = wp.empty(0, dtype=wp.int32)
+            flags = wp.vec3i(*(int(p) for p in self._periodic))
+            wp.launch(_query_kernel, self.n,
+                      inputs=[wp.uint64(self.bvh.id), self.item_points, self.item_coords,
+                              self.order, side, flags,
+                              self.scalar(float(self._cutoff) ** 2),
+                              float(np.float32(self._cutoff)), self.extent,
+                              self.policy.drift_limit(self._cutoff),
+                              int(mask_self), int(lower_only), int(mode),
+                              empty2 if rows is None else rows,
+                              empty1 if row_offset is None else row_offset,
+                              empty2 if pairs is None else pairs, count])
+
+    def query_dense(self, side, *, mask_self: bool, rows: wp.array, count: wp.array):
+        """Dense rows: int32 ``rows`` ``(N, width)`` and exact ``count`` ``(N,)``."""
+        self.query(side, mask_self=mask_self, lower_only=False, mode=MODE_DENSE,
+                   rows=rows, count=count)
+
+    def query_sparse(self, side, *, mask_self: bool, lower_only: bool,
+                     pairs: wp.array, count: wp.array, offset: wp.array,
+                     total: wp.array) -> None:
+        """Edges without an N x capacity detour: count, scan, fill.
+
+        Args:
+          pairs: int32 ``(2, capacity)`` output, (receivers j, senders i),
+            edges grouped by sender in ascending order, padded with N.
+          count, offset: int32 ``(N,)`` outputs, edges per sender and where
+            they start.
+          total: int32 ``(1,)`` output, the exact number of edges (may
+            exceed capacity).
+        """
+        self.query(side, mask_self=mask_self, lower_only=lower_only,
+                   mode=MODE_COUNT, count=count)
+        with wp.ScopedDevice(self.device):
+            wp.utils.array_scan(count, offset, inclusive=False)
+            wp.launch(_total_kernel, 1, inputs=[count, offset, total])
+        self.query(side, mask_self=mask_self, lower_only=lower_only,
+                   mode=MODE_FILL, row_offset=offset, pairs=pairs, count=count)
+        with wp.ScopedDevice(self.device):
+            wp.launch(_pad_pairs_kernel, pairs.shape[1],
+                      inputs=[total, self.n, pairs])
+
+
+def check_cutoff(cutoff: float, side, periodic) -> None:
+    """Raise ValueError unless ``cutoff`` is below half of every periodic side."""
+    for a, p in enumerate(periodic):
+        if p and not gamma.cutoff_fits(cutoff, float(side[a])):
+            raise ValueError(gamma.cutoff_error(cutoff, float(side[a]), a))
+
+
+class AabbMethod:
+    """The `RTMethod` of the custom AABB (one BVH per call, nothing kept).
+
+    Attributes:
+      name: "aabb" or "aabb-unsorted".
+      sort: Morton-sort particles before building.
+    """
+
+    def __init__(self, sort: bool = True):
+        self.sort = sort
+        self.name = "aabb" if sort else "aabb-unsorted"
+
+    def find(self, points: wp.array, *, cutoff: float,
+             side: tuple[float, float, float] | None,
+             periodic: tuple[bool, bool, bool], mask_self: bool,
+             out_idx: wp.array2d, out_count: wp.array) -> None:
+        """See `jaxrt.rt._method.RTMethod.find`."""
+        vector = vector_type(points)
+        periodic = tuple(bool(p) for p in periodic)
+        if len(periodic) != 3:
+            raise ValueError(f"periodic must hold 3 bools; got {periodic}.")
+        if any(periodic) and side is None:
+            raise ValueError("side must give the box sides when an axis is periodic.")
+        box = (1.0, 1.0, 1.0) if side is None else tuple(float(s) for s in side)
+        check_cutoff(cutoff, box, periodic)
+        search = AabbSearch(points.shape[0], vector, points.device, sort=self.sort)
+        side_array = wp.array([box], dtype=vector, device=points.device)
+        search.update(points, side_array, periodic, cutoff)
+        search.query_dense(side_array, mask_self=mask_self, rows=out_idx,
+                           count=out_count)

@@ -1,0 +1,71 @@
+"""Float64 brute-force oracle and list normalisation shared by the tests."""
+from __future__ import annotations
+
+import numpy as np
+from jax_md import partition
+
+
+def brute_pairs(position, cutoff, side=None, periodic=False, mask_self=True):
+    """Set of (i, j) with |r_i - r_j| < cutoff, in float64 (min image).
+
+    Args:
+      position: ``(N, dim)`` array, any float dtype (cast to float64).
+      side: ``(dim,)`` or scalar box side for periodic axes.
+      periodic: bool or per-axis bools.
+    """
+    r = np.asarray(position, np.float64)
+    n, dim = r.shape
+    per = np.broadcast_to(np.asarray(periodic, bool), (dim,))
+    d = r[:, None, :] - r[None, :, :]
+    if per.any():
+        L = np.broadcast_to(np.asarray(side, np.float64), (dim,))
+        d = np.where(per, d - L * np.round(d / np.where(per, L, 1.0)), d)
+    d2 = np.sum(d * d, axis=-1)
+    keep = d2 < float(cutoff) ** 2
+    if mask_self:
+        np.fill_diagonal(keep, False)
+    i, j = np.nonzero(keep)
+    return set(zip(i.tolist(), j.tolist()))
+
+
+def list_pairs(nbrs) -> set[tuple[int, int]]:
+    """Set of (i, j) (i the centre, j its neighbour) in any jax-md layout."""
+    idx = np.asarray(nbrs.idx)
+    n = np.asarray(nbrs.reference_position).shape[0]
+    if nbrs.format is partition.Dense:
+        i, k = np.nonzero(idx < n)
+        return set(zip(i.tolist(), idx[i, k].tolist()))
+    receivers, senders = idx
+    keep = receivers < n
+    return set(zip(senders[keep].tolist(), receivers[keep].tolist()))
+
+
+def ordered(pairs):
+    """OrderedSparse keeps j < i."""
+    return {(i, j) for i, j in pairs if j < i}
+
+
+def expected_pairs(fmt, pairs):
+    return ordered(pairs) if fmt is partition.OrderedSparse else pairs
+
+
+def assert_layout(nbrs):
+    """jax-md's layout invariants: padding N, Dense left-packed, Sparse prefix."""
+    idx = np.asarray(nbrs.idx)
+    n = np.asarray(nbrs.reference_position).shape[0]
+    assert idx.dtype == np.int32
+    assert idx.min(initial=0) >= 0 and idx.max(initial=n) <= n
+    if nbrs.format is partition.Dense:
+        valid = idx < n
+        # left-packed: no valid entry after a padding entry
+        assert not np.any(~valid[:, :-1] & valid[:, 1:])
+        for row in idx:
+            row = row[row < n]
+            assert len(set(row.tolist())) == len(row), "duplicate neighbour"
+    else:
+        assert idx.shape[0] == 2
+        valid = idx[0] < n
+        assert np.array_equal(valid, idx[1] < n)
+        assert not np.any(~valid[:-1] & valid[1:]), "valid edges not a prefix"
+        edges = list(zip(idx[0][valid].tolist(), idx[1][valid].tolist()))
+        assert len(set(edges)) == len(edges), "duplicate edge"

@@ -1,0 +1,464 @@
+"""`jaxrt.neighbor_list` against jax-md's own list and a float64 brute force."""
+from __future__ import annotations
+
+import functools
+
+import hypothesis
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax_md import energy, partition, simulate, space
+
+import jaxrt
+from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
+
+FORMATS = [partition.Dense, partition.Sparse, partition.OrderedSparse]
+PURE_JAX = ["cell", "brute"]
+
+
+def make(periodic, side, dim=3):
+    return space.periodic(side) if periodic else space.free()
+
+
+def check_against_oracles(R, side, cutoff, periodic, fmt, backend,
+                          mask_self=True, jax_md_too=True):
+    disp, _ = make(periodic, side)
+    nbrs = jaxrt.neighbor_list(disp, side, cutoff, format=fmt, backend=backend,
+                               mask_self=mask_self).allocate(R)
+    assert not nbrs.did_buffer_overflow
+    assert_layout(nbrs)
+    got = list_pairs(nbrs)
+    want = expected_pairs(fmt, brute_pairs(R, cutoff, side, periodic, mask_self))
+    assert got == want
+    if jax_md_too:
+        ref = partition.neighbor_list(disp, side, cutoff, format=fmt,
+                                      mask_self=mask_self).allocate(R)
+        assert got == list_pairs(ref)
+        assert nbrs.idx.shape == ref.idx.shape  # same capacity rule
+    return nbrs
+
+
+@pytest.mark.parametrize("backend", PURE_JAX)
+@pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.parametrize("periodic", [True, False])
+def test_random_scene_matches_jax_md_and_brute_force(backend, fmt, periodic):
+    side = 8.0
+    R = jax.random.uniform(jax.random.PRNGKey(1), (300, 3)) * side
+    check_against_oracles(R, side, 1.7, periodic, fmt, backend)
+
+
+@hypothesis.settings(max_examples=12, deadline=None)
+@hypothesis.given(
+    n=st.sampled_from([1, 2, 17, 150]),
+    side=st.floats(3.2, 12.0),
+    cutoff=st.floats(0.3, 3.0),
+    periodic=st.booleans(),
+    dim=st.sampled_from([2, 3]),
+    seed=st.integers(0, 2**16),
+    mask_self=st.booleans(),
+)
+def test_hypothesis_scenes(n, side, cutoff, periodic, dim, seed, mask_self):
+    hypothesis.assume(not periodic or cutoff < side / 2)
+    R = np.random.default_rng(seed).uniform(0, side, (n, dim)).astype(np.float32)
+    disp, _ = make(periodic, side)
+    for fmt in FORMATS:
+        nbrs = jaxrt.neighbor_list(disp, side, cutoff, format=fmt,
+                                   mask_self=mask_self).allocate(R)
+        assert_layout(nbrs)
+        assert list_pairs(nbrs) == expected_pairs(
+            fmt, brute_pairs(R, cutoff, side, periodic, mask_self))
+
+
+# --------------------------------------------------------------------------
+# Adversarial scenes
+
+
+def lattice(n_per_side, spacing, dim=3):
+    g = np.arange(n_per_side, dtype=np.float32) * spacing
+    return np.stack(np.meshgrid(*[g] * dim, indexing="ij"), -1).reshape(-1, dim)
+
+
+@pytest.mark.parametrize("backend", PURE_JAX)
+@pytest.mark.parametrize("periodic", [True, False])
+def test_lattice_pairs_exactly_at_cutoff_are_excluded(backend, periodic):
+    # spacing 0.5, cutoff 1.0: second neighbours sit exactly at the cutoff,
+    # exactly representable, so strict '<' must drop them.
+    R = lattice(8, 0.5)
+    nbrs = check_against_oracles(R, 4.0, 1.0, periodic, partition.Dense, backend)
+    counts = np.sum(np.asarray(nbrs.idx) < len(R), axis=1)
+    if periodic:  # 6 at 0.5, 12 at 0.707, 8 at 0.866; the 6 at 1.0 excluded
+        assert np.all(counts == 26)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_particles_on_faces_and_corners_periodic(fmt):
+    side = 6.0
+    below = np.nextafter(np.float32(side), np.float32(0))
+    pts = [[0, 0, 0], [below, below, below], [0, below, 3], [below, 0, 0],
+           [3, 3, 0], [3, 3, below], [0.0, 3, 3], [below, 3, 3], [1, 1, 1]]
+    R = np.asarray(pts, np.float32)
+    check_against_oracles(R, side, 1.0, True, fmt, "cell")
+
+
+def test_coincident_particles_and_equal_coordinates():
+    R = np.array([[1, 1, 1], [1, 1, 1], [1, 1, 2], [1, 2, 1], [2, 1, 1],
+                  [1, 1, 1]], np.float32)
+    for periodic in (True, False):
+        for fmt in FORMATS:
+            check_against_oracles(R, 5.0, 1.5, periodic, fmt, "cell")
+
+
+def test_fewer_particles_than_cells_and_a_huge_free_box():
+    R = np.array([[0.0, 0, 0], [0.5, 0, 0], [1000.0, 1000, 1000],
+                  [1000.2, 1000, 1000]], np.float32)
+    check_against_oracles(R, 1.0, 0.6, False, partition.Dense, "cell",
+                          jax_md_too=False)
+
+
+@pytest.mark.parametrize("side_over_cutoff", [2.01, 3.0, 3.01, 4.5])
+def test_small_periodic_boxes(side_over_cutoff):
+    cutoff = 1.0
+    side = side_over_cutoff * cutoff
+    R = jax.random.uniform(jax.random.PRNGKey(3), (120, 3)) * side
+    for fmt in FORMATS:
+        check_against_oracles(R, side, cutoff, True, fmt, "cell",
+                              jax_md_too=side_over_cutoff > 3.0)
+
+
+def test_per_axis_box_and_mixed_boundaries():
+    side = np.array([6.0, 9.0, 4.0], np.float32)
+    R = jax.random.uniform(jax.random.PRNGKey(4), (200, 3)) * side
+    check_against_oracles(R, side, 1.3, True, partition.Sparse, "cell")
+
+    # periodic in x and y only: a displacement we write ourselves.
+    def slab(ra, rb):
+        d = ra - rb
+        wrapped = jnp.mod(d + side / 2, side) - side / 2
+        return jnp.where(jnp.array([True, True, False]), wrapped, d)
+
+    nbrs = jaxrt.neighbor_list(slab, side, 1.3).allocate(R)
+    assert list_pairs(nbrs) == brute_pairs(R, 1.3, side, [True, True, False])
+
+
+def test_two_dimensions():
+    R = jax.random.uniform(jax.random.PRNGKey(5), (400, 2)) * 10.0
+    for periodic in (True, False):
+        for fmt in FORMATS:
+            check_against_oracles(R, 10.0, 1.1, periodic, fmt, "cell")
+
+
+def test_float64_pairs_near_cutoff_with_large_coordinates():
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(0)
+        base = 1000.0 + rng.uniform(0, 1, (50, 3))
+        cutoff = 0.75
+        direction = rng.normal(size=(50, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        inside = base + direction * cutoff * (1 - 1e-12)
+        outside = base + direction * cutoff * (1 + 1e-12)
+        R = np.concatenate([base, inside, outside])
+        disp, _ = space.free()
+        nbrs = jaxrt.neighbor_list(disp, None, cutoff).allocate(jnp.asarray(R))
+        assert nbrs.idx.dtype == jnp.int32
+        pairs = list_pairs(nbrs)
+        assert pairs == brute_pairs(R, cutoff)
+        for k in range(50):
+            assert (k, 50 + k) in pairs and (k, 100 + k) not in pairs
+
+
+def test_periodic_positions_outside_the_box_are_wrapped_not_wrong():
+    side = 7.0
+    R = jax.random.uniform(jax.random.PRNGKey(6), (250, 3)) * side
+    shifted = R + side * jax.random.randint(jax.random.PRNGKey(7), R.shape, -2, 3)
+    disp, _ = space.periodic(side)
+    nbrs = jaxrt.neighbor_list(disp, side, 1.5).allocate(shifted)
+    assert list_pairs(nbrs) == brute_pairs(R, 1.5, side, True)
+
+
+def test_fractional_coordinates_orthorhombic():
+    box = jnp.array([6.0, 8.0, 5.0])
+    frac = jax.random.uniform(jax.random.PRNGKey(8), (200, 3))
+    disp, _ = space.periodic_general(box, fractional_coordinates=True)
+    for fmt in FORMATS:
+        nbrs = jaxrt.neighbor_list(disp, box, 1.4, fractional_coordinates=True,
+                                   format=fmt).allocate(frac)
+        want = brute_pairs(frac * box, 1.4, box, True)
+        assert list_pairs(nbrs) == expected_pairs(fmt, want)
+        ref = partition.neighbor_list(disp, box, 1.4, fractional_coordinates=True,
+                                      format=fmt).allocate(frac)
+        assert list_pairs(nbrs) == list_pairs(ref)
+    # a box that grows under update (NPT): same result as a fresh list.
+    fns = jaxrt.neighbor_list(disp, box, 1.4, fractional_coordinates=True)
+    nbrs = fns.allocate(frac)
+    bigger = box * 1.1
+    nbrs = fns.update(frac, nbrs, box=bigger)
+    assert not nbrs.did_buffer_overflow
+    assert list_pairs(nbrs) == brute_pairs(frac * bigger, 1.4, bigger, True)
+
+
+def test_triclinic_box_needs_brute():
+    box = jnp.array([[6.0, 1.0, 0.0], [0.0, 6.0, 0.5], [0.0, 0.0, 6.0]])
+    disp, _ = space.periodic_general(box, fractional_coordinates=True)
+    frac = jax.random.uniform(jax.random.PRNGKey(9), (100, 3))
+    with pytest.raises(ValueError, match="triclinic"):
+        jaxrt.neighbor_list(disp, box, 1.0, fractional_coordinates=True
+                            ).allocate(frac)
+    nbrs = jaxrt.neighbor_list(disp, box, 1.0, fractional_coordinates=True,
+                               backend="brute").allocate(frac)
+    ref = partition.neighbor_list(disp, box, 1.0, fractional_coordinates=True,
+                                  disable_cell_list=True).allocate(frac)
+    assert list_pairs(nbrs) == list_pairs(ref)
+
+
+def test_mask_self_false_keeps_self_pairs_and_custom_mask():
+    R = jax.random.uniform(jax.random.PRNGKey(10), (100, 3)) * 5.0
+    disp, _ = space.periodic(5.0)
+    nbrs = jaxrt.neighbor_list(disp, 5.0, 1.2, mask_self=False).allocate(R)
+    assert all((i, i) in list_pairs(nbrs) for i in range(100))
+
+    def drop_even_neighbours(idx):
+        return jnp.where(idx % 2 == 0, idx.shape[0], idx)
+
+    for fmt in FORMATS:
+        kwargs = dict(format=fmt, custom_mask_function=drop_even_neighbours)
+        got = jaxrt.neighbor_list(disp, 5.0, 1.2, **kwargs).allocate(R)
+        ref = partition.neighbor_list(disp, 5.0, 1.2, **kwargs).allocate(R)
+        assert_layout(got)
+        assert list_pairs(got) == list_pairs(ref)
+        assert got.idx.shape == ref.idx.shape
+
+
+# --------------------------------------------------------------------------
+# Skin, jit, scan, vmap, overflow
+
+
+def test_skin_rebuild_rule_matches_jax_md():
+    side, cutoff, skin = 6.0, 1.2, 0.4
+    R = jax.random.uniform(jax.random.PRNGKey(11), (150, 3)) * side
+    disp, shift = space.periodic(side)
+    ours = jaxrt.neighbor_list(disp, side, cutoff, dr_threshold=skin)
+    theirs = partition.neighbor_list(disp, side, cutoff, dr_threshold=skin)
+    a, b = ours.allocate(R), theirs.allocate(R)
+    # a move of 0.19 < skin/2 keeps the old list, 0.21 rebuilds.
+    for step in (0.19, 0.21):
+        moved = shift(R, jnp.zeros_like(R).at[0, 0].set(step))
+        a2, b2 = ours.update(moved, a), theirs.update(moved, b)
+        assert bool(jnp.all(a2.reference_position == b2.reference_position))
+        assert list_pairs(a2) == list_pairs(b2)
+
+
+def test_update_in_scan_equals_fresh_build_every_step():
+    side, cutoff = 5.0, 1.0
+    disp, shift = space.periodic(side)
+    R = jax.random.uniform(jax.random.PRNGKey(12), (120, 3)) * side
+    fns = jaxrt.neighbor_list(disp, side, cutoff, dr_threshold=0.3,
+                              capacity_multiplier=2.0)
+    nbrs = fns.allocate(R)
+    kicks = 0.03 * jax.random.normal(jax.random.PRNGKey(13), (40,) + R.shape)
+
+    def step(carry, kick):
+        R, nbrs = carry
+        R = shift(R, kick)
+        nbrs = nbrs.update(R)
+        return (R, nbrs), (R, nbrs.idx)
+
+    (_, last), (Rs, idxs) = jax.lax.scan(step, (R, nbrs), kicks)
+    assert not last.did_buffer_overflow
+    for t in range(0, 40, 7):
+        snap = jax.tree_util.tree_map(lambda x: x, last)
+        snap = snap.__class__(idxs[t], Rs[t], last.error, *[
+            getattr(last, f) for f in ("cell_list_capacity", "max_occupancy",
+                                       "format", "cell_size", "cell_list_fn",
+                                       "update_fn")])
+        within = brute_pairs(Rs[t], cutoff, side, True)
+        listed = list_pairs(snap)
+        # the skin guarantees every pair within the cutoff is listed
+        assert within <= listed
+        assert listed <= brute_pairs(Rs[t], cutoff + 0.3 + 0.3, side, True)
+
+
+def test_vmap_over_systems_equals_separate_calls():
+    side = 5.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.1, capacity_multiplier=1.5)
+    Rs = jax.random.uniform(jax.random.PRNGKey(14), (4, 100, 3)) * side
+    nbrs = fns.allocate(Rs[0])
+    batch = jax.vmap(fns.update, in_axes=(0, None))(Rs, nbrs)
+    for b in range(4):
+        one = fns.update(Rs[b], nbrs)
+        assert np.array_equal(np.asarray(batch.idx[b]), np.asarray(one.idx))
+        assert list_pairs(one) == brute_pairs(Rs[b], 1.1, side, True) or \
+            one.did_buffer_overflow
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_overflow_is_flagged_sticky_and_fixed_by_reallocation(fmt):
+    side = 6.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.2, format=fmt)
+    R = jax.random.uniform(jax.random.PRNGKey(15), (200, 3)) * side
+    nbrs = fns.allocate(R)
+    update = jax.jit(fns.update)
+    crowded = R.at[:40].set(R[0] + 0.01 * jnp.arange(40)[:, None])
+    nbrs = update(crowded, nbrs)
+    assert nbrs.did_buffer_overflow
+    nbrs = update(R, nbrs)  # fits again, but the error bit stays
+    assert nbrs.did_buffer_overflow
+    with pytest.raises(jaxrt.NeighborListError, match="reallocate"):
+        jaxrt.check(nbrs)
+    nbrs = fns.allocate(crowded)
+    assert not nbrs.did_buffer_overflow
+    jaxrt.check(nbrs)
+    assert list_pairs(nbrs) == expected_pairs(
+        fmt, brute_pairs(crowded, 1.2, side, True))
+
+
+def test_candidate_buffer_overflow_is_flagged():
+    """The cell list's internal candidate buffer overflowing is reported
+    even when the neighbour rows have room."""
+    from jaxrt import backends
+    from jaxrt.backends import Capacity, Geometry, MetricSq, Query
+    from jaxrt.neighbors import _metric_sq_fn
+
+    side = 6.0
+    disp, _ = space.periodic(side)
+    R = jax.random.uniform(jax.random.PRNGKey(16), (200, 3)) * side
+    cell = backends.get("cell")
+    query = Query(1.0, (True,) * 3, True, partition.Dense)
+    geometry = Geometry(jnp.full(3, side), jnp.ones(3))
+    metric = MetricSq(_metric_sq_fn(disp, 3))
+    sizes = cell.measure(R, geometry, query, metric)
+    roomy = dict(row=199)
+    ok = cell.search(R, geometry, query, Capacity(199, tuple(sorted(
+        {**roomy, "candidates": sizes["candidates"]}.items()))), metric)
+    short = cell.search(R, geometry, query, Capacity(199, tuple(sorted(
+        {**roomy, "candidates": sizes["candidates"] - 1}.items()))), metric)
+    assert not ok.overflow and short.overflow
+    assert int(ok.occupancy) == sizes["row"]
+
+
+# --------------------------------------------------------------------------
+# jax-md consumers work unchanged
+
+
+def test_lennard_jones_energy_and_forces_equal_jax_md():
+    side = 7.0
+    disp, _ = space.periodic(side)
+    R = lattice(6, side / 6) + 0.05 * np.asarray(
+        jax.random.normal(jax.random.PRNGKey(18), (216, 3)))
+    R = jnp.mod(jnp.asarray(R), side)
+    for fmt in FORMATS:
+        kw = dict(r_cutoff=2.5, format=fmt)
+        nf_ref, e_ref = energy.lennard_jones_neighbor_list(disp, side, **kw)
+        nf, e = energy.lennard_jones_neighbor_list(
+            disp, side, neighbor_list_fn=functools.partial(
+                jaxrt.neighbor_list, backend="cell"), **kw)
+        n_ref, n = nf_ref.allocate(R), nf.allocate(R)
+        np.testing.assert_allclose(e(R, n), e_ref(R, n_ref), rtol=2e-6)
+        f, f_ref = jax.grad(e)(R, n), jax.grad(e_ref)(R, n_ref)
+        np.testing.assert_allclose(f, f_ref, rtol=1e-4, atol=1e-4)
+
+
+def test_grad_finite_with_coincident_particles():
+    side = 5.0
+    disp, _ = space.periodic(side)
+    nf, e = energy.soft_sphere_neighbor_list(
+        disp, side, neighbor_list_fn=jaxrt.neighbor_list)
+    R = jnp.array([[1.0, 1, 1], [1.0, 1, 1], [2.0, 2, 2]])
+    nbrs = nf.allocate(R)
+    g = jax.grad(e)(R, nbrs)
+    assert bool(jnp.all(jnp.isfinite(g)))
+
+
+def test_nve_in_fori_loop_with_jaxrt_list():
+    side = 6.0
+    disp, shift = space.periodic(side)
+    R = jnp.asarray(lattice(5, side / 5))
+    nf, e = energy.soft_sphere_neighbor_list(
+        disp, side, sigma=1.1, dr_threshold=0.3,
+        neighbor_list_fn=jaxrt.neighbor_list)
+    init, apply = simulate.nve(e, shift, 1e-3)
+    nbrs = nf.allocate(R)
+    state = init(jax.random.PRNGKey(0), R, kT=0.5, neighbor=nbrs)
+
+    def body(_, carry):
+        state, nbrs = carry
+        nbrs = nbrs.update(state.position)
+        return apply(state, neighbor=nbrs), nbrs
+
+    state, nbrs = jax.lax.fori_loop(0, 200, body, (state, nbrs))
+    assert not nbrs.did_buffer_overflow
+    assert bool(jnp.all(jnp.isfinite(state.position)))
+    fresh = nf.allocate(state.position)
+    np.testing.assert_allclose(e(state.position, nbrs),
+                               e(state.position, fresh), rtol=1e-5)
+
+
+# --------------------------------------------------------------------------
+# Bad input
+
+
+def test_bad_arguments_raise_clear_errors():
+    disp, _ = space.periodic(5.0)
+    with pytest.raises(TypeError, match="cell_size"):
+        jaxrt.neighbor_list(disp, 5.0, 1.0, cell_size=2.0)
+    with pytest.raises(ValueError, match="r_cutoff"):
+        jaxrt.neighbor_list(disp, 5.0, 0.0)
+    with pytest.raises(ValueError, match="r_cutoff"):
+        jaxrt.neighbor_list(disp, 5.0, float("nan"))
+    with pytest.raises(ValueError, match="dr_threshold"):
+        jaxrt.neighbor_list(disp, 5.0, 1.0, dr_threshold=-0.1)
+    with pytest.raises(ValueError, match="backend"):
+        jaxrt.neighbor_list(disp, 5.0, 1.0, backend="nope")
+    with pytest.raises(ValueError, match="format"):
+        jaxrt.neighbor_list(disp, 5.0, 1.0, format="Dense")
+    fns = jaxrt.neighbor_list(disp, 5.0, 1.0)
+    R = jax.random.uniform(jax.random.PRNGKey(0), (10, 3)) * 5.0
+    with pytest.raises(ValueError, match="shape"):
+        fns.allocate(R[:, :, None])
+    with pytest.raises(TypeError, match="floating"):
+        fns.allocate(jnp.ones((10, 3), jnp.int32))
+    with pytest.raises(ValueError, match="non-finite.*particle 3"):
+        fns.allocate(R.at[3, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="non-finite"):
+        fns.allocate(R.at[2, 0].set(jnp.inf))
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        fns.allocate(R, neighbour_idx=3)
+    nbrs = fns.allocate(R)
+    with pytest.raises(ValueError, match="allocated for"):
+        fns.update(R[:5], nbrs)
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        fns.update(R, nbrs, species=1)
+
+
+def test_box_that_does_not_match_the_displacement_is_refused():
+    disp, _ = space.periodic(20.0)
+    R = jax.random.uniform(jax.random.PRNGKey(0), (10, 3)) * 5.0
+    with pytest.raises(ValueError, match="periodic=True/False"):
+        jaxrt.neighbor_list(disp, 5.0, 1.0).allocate(R)
+    free, _ = space.free()
+    # explicit periodic without a box
+    with pytest.raises(ValueError, match="box"):
+        jaxrt.neighbor_list(free, None, 1.0, periodic=True).allocate(R)
+
+
+def test_nan_under_jit_sets_error_bits_and_check_raises():
+    disp, _ = space.periodic(5.0)
+    fns = jaxrt.neighbor_list(disp, 5.0, 1.0)
+    R = jax.random.uniform(jax.random.PRNGKey(0), (30, 3)) * 5.0
+    nbrs = fns.allocate(R)
+    bad = jax.jit(fns.update)(R.at[4, 2].set(jnp.nan), nbrs)
+    assert bad.did_buffer_overflow  # so the usual reallocation loop notices
+    assert int(bad.error.code) & jaxrt.ErrorCode.NONFINITE_POSITION
+    with pytest.raises(jaxrt.NeighborListError, match="NaN"):
+        jaxrt.check(bad)
+
+
+def test_free_space_needs_no_box():
+    free, _ = space.free()
+    R = jax.random.normal(jax.random.PRNGKey(0), (200, 3)) * 3.0
+    for box in (None, 0.0, 1.0):
+        nbrs = jaxrt.neighbor_list(free, box, 1.0).allocate(R)
+        assert list_pairs(nbrs) == brute_pairs(R, 1.0)
