@@ -1,0 +1,3 @@
+from jaxrt.cli import main
+
+raise SystemExit(main())

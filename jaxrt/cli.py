@@ -1,0 +1,352 @@
+"""The ``jaxrt`` command.
+
+    jaxrt demo [--steps 500] [--n 2048] [--backend auto] [--out jaxrt-out]
+        LJ fluid NVE; checks jaxrt's list against jax-md's every chunk.
+        The same as ``jaxrt run lj-fluid --compare-jax-md``.
+    jaxrt run SCENE.toml|NAME [--steps N] [--out DIR] [--chunk K]
+              [--backend B] [--n N] [--compare-jax-md]
+    jaxrt scenes            built-in scene names, one line each
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import pathlib
+import sys
+import time
+import warnings
+
+import numpy as np
+
+DEMO_STEPS, DEMO_N = 2000, 2048
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="jaxrt", description=__doc__.split(
+        "\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    sub.add_parser("scenes", help="list built-in scenes")
+    for name in ("run", "demo"):
+        p = sub.add_parser(name, help="run a scene" if name == "run" else
+                           "LJ fluid NVE, compared with jax-md's lists")
+        if name == "run":
+            p.add_argument("scene", help="a .toml file or a built-in name")
+            p.add_argument("--compare-jax-md", action="store_true",
+                           help="check jaxrt's list equals jax-md's at every "
+                           "chunk and time both rebuilds")
+        p.add_argument("--steps", type=int, default=None)
+        p.add_argument("--out", default="jaxrt-out")
+        p.add_argument("--chunk", type=int, default=None,
+                       help="steps per jitted chunk (overflow is checked "
+                       "between chunks); default steps/10, at most 100")
+        p.add_argument("--backend", default=None,
+                       help="neighbour backend (see jaxrt.available_backends)")
+        p.add_argument("--n", type=int, default=None,
+                       help="particles (lj-fluid only)")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    args = _parser().parse_args(argv)
+    warnings.filterwarnings("ignore", message="Explicitly requested dtype")
+    from jaxrt import scene as S
+    if args.command == "scenes":
+        for name, (factory, steps) in S.BUILTIN.items():
+            print(f"{name:16s} {factory.__doc__.split(chr(10))[0]}")
+        return 0
+    if args.command == "demo":
+        args.scene, args.compare_jax_md = "lj-fluid", True
+        args.steps = args.steps or DEMO_STEPS
+        args.n = args.n or DEMO_N
+    try:
+        scene, default_steps = _load(args)
+    except S.SceneError as e:
+        print(f"jaxrt: bad scene: {e}", file=sys.stderr)
+        return 2
+    steps = args.steps or default_steps
+    if steps < 1:
+        print("jaxrt: --steps must be >= 1", file=sys.stderr)
+        return 2
+    run(scene, steps=steps, out=pathlib.Path(args.out), chunk=args.chunk,
+        compare_jax_md=args.compare_jax_md)
+    return 0
+
+
+def _load(args):
+    from jaxrt import scene as S
+    kw = {}
+    if args.backend:
+        kw["backend"] = args.backend
+    if args.scene in S.BUILTIN:
+        if args.n is not None:
+            if args.scene != "lj-fluid":
+                raise S.SceneError("--n: only lj-fluid takes a particle "
+                                   "count.")
+            kw["n"] = args.n
+        return S.builtin(args.scene, **kw), S.BUILTIN[args.scene][1]
+    path = pathlib.Path(args.scene)
+    if not path.exists():
+        raise S.SceneError(f"{args.scene!r} is neither a file nor a built-in "
+                           f"scene ({', '.join(S.BUILTIN)}).")
+    if args.n is not None:
+        raise S.SceneError("--n: only for the built-in lj-fluid.")
+    scene = S.load(path)
+    if args.backend:
+        scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
+            scene.neighbors, backend=args.backend))
+    return scene, 1000
+
+
+# ---------------------------------------------------------------------------
+
+
+def _pair_codes(nbrs, n: int) -> np.ndarray:
+    """Sorted unique ``i * n + j`` (i < j) of a list in any layout."""
+    from jax_md import partition
+    idx = np.asarray(nbrs.idx)
+    if partition.is_sparse(nbrs.format):
+        i, j = idx[0], idx[1]
+    else:
+        i = np.broadcast_to(np.arange(n)[:, None], idx.shape).ravel()
+        j = idx.ravel()
+    keep = (i < n) & (j < n) & (i != j)
+    i, j = i[keep].astype(np.int64), j[keep].astype(np.int64)
+    return np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+
+
+def _median_time(fn, *args, repeats: int = 5) -> float:
+    import jax
+    jax.block_until_ready(fn(*args))  # warm: compiled and cached
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+class _JaxMdCheck:
+    """jax-md's own list at the same cutoff, to compare and to time."""
+
+    def __init__(self, compiled):
+        import jax
+        from jax_md import partition
+        from jaxrt import scene as S
+        sc = compiled.scene
+        fmt = S.FORMATS[sc.neighbors.format]
+        box = np.asarray([s if s > 0 else 1.0 for s in sc.box.size])
+        reach = sc.cutoff + sc.neighbors.skin
+        # Cell lists in jax-md need a periodic box; elsewhere all pairs.
+        brute = not all(sc.box.periodic)
+        # threshold 0: any motion rebuilds, so the list is always at the
+        # positions it is updated with (same pair rule: d < reach).
+        self.fns = partition.neighbor_list(
+            compiled.displacement, box, reach, 0.0, format=fmt,
+            disable_cell_list=brute)
+        # Same cutoff and skin as jaxrt's, for timing a rebuild.
+        self.timing_fns = partition.neighbor_list(
+            compiled.displacement, box, sc.cutoff, sc.neighbors.skin,
+            format=fmt, disable_cell_list=brute)
+        self.update = jax.jit(self.fns.update)
+        self.nbrs = None
+        self.checks = 0
+
+    def compare(self, jaxrt_nbrs, n: int) -> None:
+        """Raise if jaxrt's pairs differ from jax-md's at jaxrt's build
+        positions."""
+        ref = jaxrt_nbrs.reference_position
+        if self.nbrs is None:
+            self.nbrs = self.fns.allocate(ref)
+        else:
+            self.nbrs = self.update(ref, self.nbrs)
+            if self.nbrs.did_buffer_overflow:
+                self.nbrs = self.fns.allocate(ref)
+        a, b = _pair_codes(jaxrt_nbrs, n), _pair_codes(self.nbrs, n)
+        if a.shape != b.shape or np.any(a != b):
+            only_a = np.setdiff1d(a, b)[:5]
+            only_b = np.setdiff1d(b, a)[:5]
+            raise RuntimeError(
+                f"jaxrt's list differs from jax-md's: {len(a)} vs {len(b)} "
+                f"pairs; only jaxrt: {[divmod(int(c), n) for c in only_a]}, "
+                f"only jax-md: {[divmod(int(c), n) for c in only_b]}")
+        self.checks += 1
+
+    def rebuild_times(self, compiled, position) -> tuple[float, float]:
+        """Median seconds of a forced, jitted rebuild: (jaxrt, jax-md)."""
+        import jax
+        moved = position.at[0].add(compiled.scene.neighbors.skin + 0.01)
+        ours = compiled.neighbor_fn.allocate(position)
+        theirs = self.timing_fns.allocate(position)
+        t_ours = _median_time(jax.jit(compiled.neighbor_fn.update), moved,
+                              ours)
+        t_theirs = _median_time(jax.jit(self.timing_fns.update), moved,
+                                theirs)
+        return t_ours, t_theirs
+
+
+def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
+        compare_jax_md: bool = False) -> dict:
+    """Run ``scene`` for ``steps`` steps, print a summary, write files to
+    ``out``. Returns the summary as a dict."""
+    import jax
+    from tqdm import tqdm
+    from jaxrt import scene as S
+
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    compiled = S.compile_scene(scene)
+    p = scene.particles
+    n = p.n
+    print(f"scene {scene.name!r}: {n} particles, {p.dim}D, "
+          f"{steps} steps of dt = {scene.integrator.dt:.4g}")
+    for line in compiled.plan:
+        print(f"  - {line}")
+    checker = None
+    if compare_jax_md:
+        if compiled.neighbor_fn is None:
+            raise SystemExit("jaxrt: --compare-jax-md needs a scene with a "
+                             "pair effect (it has no neighbour list).")
+        checker = _JaxMdCheck(compiled)
+
+    state, nbrs = compiled.init()
+    chunk = chunk or max(1, min(100, steps // 10))
+    stats = S.RunStats()
+    frames = [np.asarray(state.position)]
+    frame_steps = [0]
+    # Compile outside the timed loop (the first chunk of each length).
+    t = time.perf_counter()
+    jax.block_until_ready(compiled.chunk.lower(state, nbrs, steps=chunk)
+                          .compile())
+    t_compile = time.perf_counter() - t
+    if checker is not None:
+        checker.compare(nbrs, n)
+    bar = tqdm(total=steps, unit="step", desc=scene.name, smoothing=0.1,
+               mininterval=0.5)
+    done, t_run = 0, 0.0
+    while done < steps:
+        k = min(chunk, steps - done)
+        t = time.perf_counter()
+        state, nbrs = S.run_chunk(compiled, state, nbrs, steps=k,
+                                  stats=stats)
+        jax.block_until_ready(state.position)
+        t_run += time.perf_counter() - t
+        done += k
+        bar.update(k)
+        if checker is not None:
+            checker.compare(nbrs, n)
+        if not np.all(np.isfinite(np.asarray(state.position))):
+            raise RuntimeError(f"positions became non-finite by step {done}")
+        frames.append(np.asarray(state.position))
+        frame_steps.append(done)
+    bar.close()
+    if nbrs is not None:
+        from jaxrt.errors import check
+        check(nbrs)
+
+    ke = np.concatenate(stats.kinetic).astype(np.float64)
+    u = np.concatenate(stats.potential).astype(np.float64)
+    mom = np.concatenate(stats.momentum).astype(np.float64)
+    e = ke + u
+    rows = [("particles", f"{n}"), ("steps", f"{done}"),
+            ("steps/s (compiled)", f"{done / t_run:.1f}"),
+            ("compile (s)", f"{t_compile:.1f}"),
+            ("neighbour updates", f"{done if nbrs is not None else 0}"),
+            ("list rebuilds", f"{stats.rebuilds}"),
+            ("overflows (redone chunks)", f"{stats.overflows}")]
+    conservative = (scene.integrator.kind == "verlet" and not any(
+        x.kind.startswith("sph") for x in scene.effects))
+    summary = dict(steps_per_s=done / t_run, rebuilds=stats.rebuilds,
+                   overflows=stats.overflows, steps=done)
+    if conservative:
+        drift = (e[-1] - e[0]) / n
+        rows.append(("energy drift (E_end - E_1) / N", f"{drift:+.3e}"))
+        rows.append(("max |E - E_1| / N", f"{np.abs(e - e[0]).max() / n:.3e}"))
+        summary["energy_drift_per_particle"] = float(drift)
+    else:
+        rows.append(("total mass (exact)",
+                     f"{p.masses.sum():.6g} (constant by construction)"))
+    has_external = any(x.kind in ("gravity", "walls") for x in scene.effects)
+    dmom = np.abs(mom[-1] - mom[0]).max()
+    rows.append(("momentum change |P_end - P_1|" +
+                 (" (external forces)" if has_external else ""),
+                 f"{dmom:.3e}"))
+    summary["momentum_change"] = float(dmom)
+    if checker is not None:
+        t_ours, t_theirs = checker.rebuild_times(compiled, state.position)
+        rows += [("lists equal to jax-md's", f"yes, {checker.checks} checks"),
+                 ("rebuild jaxrt (ms, median)", f"{1e3 * t_ours:.2f}"),
+                 ("rebuild jax-md (ms, median)", f"{1e3 * t_theirs:.2f}"),
+                 ("speed-up", f"{t_theirs / t_ours:.2f}x")]
+        summary.update(rebuild_jaxrt_s=t_ours, rebuild_jaxmd_s=t_theirs)
+    width = max(len(r[0]) for r in rows)
+    print()
+    for name, val in rows:
+        print(f"  {name:<{width}}  {val}")
+
+    _write_outputs(scene, out, state, np.asarray(frames), frame_steps, ke, u)
+    print(f"\nwrote {out}/energies.png, final.png, snapshots.npz, "
+          f"trajectory.xyz ({time.perf_counter() - t_start:.1f} s total)")
+    return summary
+
+
+def _write_outputs(scene, out, state, frames, frame_steps, ke, u) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    p = scene.particles
+    np.savez(out / "snapshots.npz", positions=frames,
+             steps=np.asarray(frame_steps),
+             velocity=np.asarray(state.velocity), masses=p.masses,
+             box=np.asarray(scene.box.size))
+    _write_xyz(out / "trajectory.xyz", scene, frames, frame_steps)
+
+    steps = np.arange(1, len(ke) + 1)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(steps, ke, label="kinetic")
+    if np.any(u):
+        ax.plot(steps, u, label="potential")
+        ax.plot(steps, ke + u, label="total", color="k")
+    ax.set_xlabel("step")
+    ax.set_ylabel("energy")
+    ax.set_title(f"{scene.name}: energies")
+    ax.legend()
+    fig.savefig(out / "energies.png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+    pos = frames[-1]
+    speed = np.linalg.norm(np.asarray(state.velocity), axis=1)
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.scatter(pos[:, 0], pos[:, 1] if pos.shape[1] > 1 else 0 * pos[:, 0],
+               c=speed, s=4, cmap="viridis")
+    ax.set_aspect("equal")
+    ax.set_title(f"{scene.name}: final state (colour: speed; x-y)")
+    fig.savefig(out / "final.png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _write_xyz(path, scene, frames, frame_steps) -> None:
+    """Extended XYZ, one frame per snapshot (species as element X0, X1...)."""
+    p = scene.particles
+    dim = p.dim
+    size = list(scene.box.size) + [0.0] * (3 - dim)
+    lattice = " ".join(f"{size[i] if i == j else 0.0:g}"
+                       for i in range(3) for j in range(3))
+    pbc = " ".join("T" if b == "periodic" else "F"
+                   for b in list(scene.box.boundary) + ["free"] * (3 - dim))
+    species = (np.zeros(p.n, int) if p.species is None else p.species)
+    with open(path, "w") as f:
+        for pos, step in zip(frames, frame_steps):
+            f.write(f"{p.n}\n")
+            f.write(f'Lattice="{lattice}" Properties=species:S:1:pos:R:3 '
+                    f'pbc="{pbc}" step={step}\n')
+            pad = np.zeros((p.n, 3))
+            pad[:, :dim] = pos
+            for s, r in zip(species, pad):
+                f.write(f"X{s} {r[0]:.6f} {r[1]:.6f} {r[2]:.6f}\n")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
