@@ -147,23 +147,13 @@ def git_sha():
 
 
 def write(rows, device, path=None):
-    if path is None:
-        path = HERE / "results" / device.replace(" ", "_") / "md_step.csv"
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """CSV with provenance columns, via benchmarks/_provenance.py."""
     sys.path.insert(0, str(HERE))
-    try:
-        from _provenance import write_csv  # the lead's helper, when present
-    except ImportError:
-        write_csv = None
-    if write_csv is not None:
-        write_csv(path, rows)
-    else:
-        with open(path, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-    return path
+    from _provenance import write_csv
+    if path is None:
+        return write_csv(rows, "md_step.csv")
+    path = pathlib.Path(path)
+    return write_csv(rows, path.name, str(path.parent))
 
 
 def main():
