@@ -25,11 +25,12 @@ def device_slug() -> str:
 
 
 def provenance() -> dict:
+    from importlib import metadata
     versions = {"jax": jax.__version__}
-    for mod in ("jax_md", "warp"):
-        try:
-            versions[mod] = __import__(mod).__version__
-        except Exception:  # noqa: BLE001 - optional packages
+    for mod, dist in (("jax_md", "jax-md"), ("warp", "warp-lang")):
+        try:  # jax_md has no __version__; ask the installed distribution
+            versions[mod] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
             versions[mod] = "absent"
     sha = os.environ.get("GIT_SHA")
     if not sha:

@@ -52,13 +52,20 @@ reads the next set, so no call repeats the previous input):
 Each (configuration, method) runs as one job in a worker subprocess that
 runs jobs in order and prints one JSON row per job; a job that crashes the
 worker (OOM abort, segfault) or passes ``--timeout`` is recorded as failed
-and a fresh worker takes the remaining jobs. Errors inside a job are caught
-and recorded (``failed=...``). After ``--time-budget`` seconds no new
-configuration is started; the rest are recorded as skipped.
+and a fresh worker takes the remaining jobs (a job's timeout includes the
+worker's imports and the first compile of each kernel). Errors inside a job
+are caught and recorded (``failed=...``). After ``--time-budget`` seconds no
+new configuration is started; the rest are recorded as skipped. At
+``--hard-stop`` seconds the running job is killed ("killed at --hard-stop")
+and the rest skipped. Finished rows are also appended to
+``seed_rt_study.partial.jsonl`` as they come, in case the whole run is killed.
+Configurations run in order of N, both scenes interleaved, so a budget cuts
+the largest.
 
 Usage:
   python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-  python benchmarks/seed_rt_study.py --time-budget 420              # GPU
+  python benchmarks/seed_rt_study.py --time-budget 330 --hard-stop 450 \
+      --timeout 150                                                # GPU, < 8 min
   python benchmarks/seed_rt_study.py --plot-only results.csv [--out DIR]
 Writes seed_rt_study.csv (with provenance columns), seed_rt_uniform.png and
 seed_rt_sphere.png to --out, else $OUT, else benchmarks/results/<device>/.
@@ -173,8 +180,9 @@ def run_job(scene: str, param: int, p: int, method: str, repeats: int,
     del sets
 
     # init: allocate, first call untimed
-    nbrs = fns.allocate(inputs[0])
-    jax.block_until_ready(nbrs.idx)
+    for x in inputs[::-1]:  # warm-up: compile for every input's shapes
+        nbrs = fns.allocate(x)
+        jax.block_until_ready(nbrs.idx)
     times = []
     for k in range(init_repeats):
         x = inputs[(k + 1) % INPUT_SETS]
@@ -244,7 +252,8 @@ def _reader(stream, q):
     q.put(None)
 
 
-def run_jobs(jobs: list[dict], args, deadline: float, tmp: Path) -> list[dict]:
+def run_jobs(jobs: list[dict], args, deadline: float, hard: float, tmp: Path,
+             log: Path) -> list[dict]:
     rows: list[dict | None] = [None] * len(jobs)
     start = 0
     while start < len(jobs) and time.time() <= deadline:
@@ -267,10 +276,12 @@ def run_jobs(jobs: list[dict], args, deadline: float, tmp: Path) -> list[dict]:
             while True:
                 wait = args.timeout + 120 if current is None else \
                     max(1.0, args.timeout - (time.time() - started_at))
+                wait = min(wait, max(0.1, hard - time.time()))
                 try:
                     line = q.get(timeout=wait)
                 except queue.Empty:
-                    broke = f"timeout {args.timeout}s"
+                    broke = "killed at --hard-stop" if time.time() >= hard \
+                        else f"timeout {args.timeout:g}s"
                     proc.kill()
                     break
                 if line is None:
@@ -288,24 +299,30 @@ def run_jobs(jobs: list[dict], args, deadline: float, tmp: Path) -> list[dict]:
                 elif line.startswith("ROW ") and current is not None:
                     row = json.loads(line[4:])
                     rows[current] = row
+                    with open(log, "a") as f:
+                        f.write(json.dumps(row) + "\n")
                     print(f"init {row.get('init_ms', float('nan')):9.3f} ms  "
                           f"compute {row.get('compute_ms', float('nan')):9.3f} ms"
                           + (f"  FAILED {row['failed'][:80]}" if "failed" in row else ""),
                           flush=True)
                     current = None
             proc.wait()
-        if broke is None:
-            break  # worker finished (or stopped at the deadline)
+        if broke is None or current is None:
+            break  # worker finished (or stopped at the deadline / hard stop)
         tail = [ln for ln in err_path.read_text().strip().splitlines() if ln.strip()]
         reason = broke + (f": {tail[-1][:150]}" if tail and "crash" in broke else "")
         j = jobs[current]
         rows[current] = {**j, "N": n_of(j["param"], j["p"]), "failed": reason}
         print(f"FAILED {reason}", flush=True)
+        with open(log, "a") as f:
+            f.write(json.dumps(rows[current]) + "\n")
         start = current + 1
+        if time.time() >= hard:
+            break
     for i, j in enumerate(jobs):
         if rows[i] is None:
             rows[i] = {**j, "N": n_of(j["param"], j["p"]),
-                       "failed": "skipped: time budget"}
+                       "failed": "skipped: time budget or hard stop"}
     return rows
 
 
@@ -336,7 +353,7 @@ def headline(rows: list[dict]) -> list[dict]:
         good = [r for r in group if _ok(r)]
         if not good:
             reason = group[0].get("failed", "") if group else ""
-            out.append({"scene": scene, SCENES[scene][0][0]: param, "p": p, "N": n,
+            out.append({"scene": scene, SCENES[scene][0]: param, "p": p, "N": n,
                         "fastest": "-", "note": reason[:40]})
             continue
         best = min(good, key=lambda r: float(r["total_ms"]))
@@ -349,7 +366,7 @@ def headline(rows: list[dict]) -> list[dict]:
             if not _ok(r):
                 return "skip" if str(r.get("failed", "")).startswith("skipped") else "fail"
             return round(float(r["total_ms"]) / float(best["total_ms"]), 2)
-        out.append({"scene": scene, SCENES[scene][0][0]: param, "p": p, "N": n,
+        out.append({"scene": scene, SCENES[scene][0]: param, "p": p, "N": n,
                     "fastest": best["method"], "total_ms": float(best["total_ms"]),
                     "x_vs_jaxmd": ratio("jax-md"), "x_vs_cell": ratio("cell"),
                     "note": ""})
@@ -380,8 +397,8 @@ def plot(rows: list[dict], folder: Path) -> list[Path]:
         pname = SCENES[scene][0]
         params = sorted({int(r["param"]) for r in srows})
         methods = [m for m in METHODS if any(r["method"] == m for r in srows)]
-        fig, axes = plt.subplots(len(params), 1, squeeze=False,
-                                 figsize=(max(8, 1.6 * 6), 3.2 * len(params)))
+        fig, axes = plt.subplots(len(params), 1, squeeze=False, layout="constrained",
+                                 figsize=(10, 1.2 + 2.8 * len(params)))
         for ax, param in zip(axes[:, 0], params):
             prow = [r for r in srows if int(r["param"]) == param]
             ps = sorted({int(r["p"]) for r in prow})
@@ -419,13 +436,12 @@ def plot(rows: list[dict], folder: Path) -> list[Path]:
             ax.set_title(f"{scene}: {pname}={param}", fontsize=9)
         handles = [Patch(color=COLORS[m], label=f"{m} compute") for m in methods] + \
                   [Patch(color=_lighten(COLORS[m]), label=f"{m} init") for m in methods]
-        fig.legend(handles=handles, ncol=len(methods), fontsize=7, loc="upper center",
-                   bbox_to_anchor=(0.5, 1.0))
+        fig.legend(handles=handles, ncol=len(methods), fontsize=7,
+                   loc="outside lower center")
         dev = next((r.get("device") for r in srows if r.get("device")), "")
         fig.suptitle(f"Seed 001 §5 {scene} ({dev}); number on bar = total speed-up "
                      "over jax-md; light = init (allocate), dark = compute "
-                     "(update + forces)", fontsize=8, y=1.0 - 0.6 / (3.2 * len(params) + 1))
-        fig.tight_layout(rect=(0, 0, 1, 1 - 1.1 / (3.2 * len(params))))
+                     "(update + forces)", fontsize=8)
         path = folder / fname
         fig.savefig(path, dpi=130)
         plt.close(fig)
@@ -462,6 +478,8 @@ def main(argv=None) -> None:
     parser.add_argument("--init-repeats", type=int, default=None, help="default 5 (2 --small)")
     parser.add_argument("--time-budget", type=float, default=float("inf"),
                         help="seconds; no new configuration starts after it")
+    parser.add_argument("--hard-stop", type=float, default=float("inf"),
+                        help="seconds; kill the running job then, skip the rest")
     parser.add_argument("--timeout", type=float, default=300,
                         help="seconds per (configuration, method) job")
     parser.add_argument("--out", default=None)
@@ -483,7 +501,7 @@ def main(argv=None) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         for path in plot(rows, folder):
             print("wrote", path)
-        print_table(headline(rows), ["scene", "b", "a", "p", "N", "fastest",
+        print_table(headline(rows), ["scene", "beta", "alpha", "p", "N", "fastest",
                                      "total_ms", "x_vs_jaxmd", "x_vs_cell", "note"])
         return
 
@@ -512,7 +530,12 @@ def main(argv=None) -> None:
     folder_hint.mkdir(parents=True, exist_ok=True)
     print(f"{len(jobs)} jobs ({len(configs)} configurations x {len(args.methods)} "
           f"methods), {len(rows_skipped)} skipped by --max-n", flush=True)
-    rows = run_jobs(jobs, args, deadline, folder_hint) + rows_skipped
+    log = folder_hint / "seed_rt_study.partial.jsonl"
+    log.unlink(missing_ok=True)
+    print(f"rows also appended to {log} as they finish", flush=True)
+    rows = run_jobs(jobs, args, deadline, t0 + args.hard_stop, folder_hint,
+                    log) + rows_skipped
+    (folder_hint / "seed_rt_jobs.json").unlink(missing_ok=True)
     add_speedups(rows)
 
     from _provenance import write_csv
@@ -531,7 +554,7 @@ def main(argv=None) -> None:
                        "search_ms", "speedup_vs_jaxmd", "k_mean", "overflow", "failed"])
     print("\nHeadline: fastest method per configuration (total = init + compute); "
           "x_vs_* = that method's total / fastest total")
-    print_table(headline(rows), ["scene", "b", "a", "p", "N", "fastest", "total_ms",
+    print_table(headline(rows), ["scene", "beta", "alpha", "p", "N", "fastest", "total_ms",
                                  "x_vs_jaxmd", "x_vs_cell", "note"])
     print(f"elapsed {time.time() - t0:.0f} s")
 
