@@ -22,18 +22,15 @@ sha, N, k = mean neighbours per particle, median_ms, repeats, ...) to
 from __future__ import annotations
 
 import argparse
-import csv
 import functools
 import math
 import pathlib
-import subprocess
 import sys
 import time
 import warnings
 
 import jax
 import jax.numpy as jnp
-from importlib.metadata import version
 import numpy as np
 from jax import lax
 from jax_md import partition, simulate, space
@@ -137,15 +134,6 @@ def sph_step(list_fn, n, repeats, steps):
     return n, mean_neighbours(nbrs, n), ms
 
 
-def git_sha():
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"],
-                              cwd=HERE, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (subprocess.CalledProcessError, FileNotFoundError):
-        return "none"
-
-
 def write(rows, device, path=None):
     """CSV with provenance columns, via benchmarks/_provenance.py."""
     sys.path.insert(0, str(HERE))
@@ -170,9 +158,8 @@ def main():
                         help="CSV path (default results/<device>/md_step.csv)")
     args = parser.parse_args()
     device = jax.devices()[0].device_kind
-    common = dict(device=device, jax_version=jax.__version__,
-                  jax_md_version=version("jax-md"), git_sha=git_sha(),
-                  repeats=args.repeats)
+    # device, versions and git sha are added by _provenance.write_csv
+    common = dict(repeats=args.repeats)
     rows = []
     print(f"{'system':6s} {'list':22s} {'N':>8s} {'k':>6s} {'ms/step':>9s}")
     for name, list_fn in list_fns().items():

@@ -8,12 +8,13 @@ plus up to as many single-cell ranges where a periodic x row wraps around.
 Range ends are found by binary search on the sorted keys.
 
 Memory is O(N·k): no buffer is sized by the number of cells (only keys are,
-and they are computed, never allocated), and candidates are visited one
-range at a time, ``(N, width)`` per step, never ``N × 27 × cell capacity``.
+and they are computed, never allocated), and each particle's candidates are
+visited in blocks of slots, ``(N, block)`` per step, never
+``N × 27 × cell capacity``.
 The cell grid is recomputed on every call from the box (periodic axes) or
 from the particles' bounding box (free axes), so a changing box or a
-wandering cloud never invalidates it; only the two range widths are static,
-and exceeding them sets the overflow flag.
+wandering cloud never invalidates it; only the bound on one particle's
+candidates is static, and exceeding it sets the overflow flag.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt import backends
-from jaxrt.backends import Capacity, Geometry, MetricSq, Query, SearchResult
+from jaxrt.backends import Capacity, Geometry, MetricSq, Query
 
 # Cells are made this much wider than the search radius so that a particle
 # binned one cell off by rounding still has all its neighbours in the stencil.

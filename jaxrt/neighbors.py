@@ -115,14 +115,14 @@ def _infer_periodic(metric_fn, side: np.ndarray | None, fractional: bool,
         if looks_free == looks_periodic:
             raise ValueError(
                 f"could not tell from displacement_or_metric whether axis {a} "
-                f"is free or periodic with the given box ({box_repr(side)}). "
+                f"is free or periodic with the given box ({_box_repr(side)}). "
                 "Pass periodic=True/False (or one bool per axis) explicitly, "
                 "and check that box matches the displacement function.")
         periodic.append(looks_periodic)
     return tuple(periodic)
 
 
-def box_repr(side) -> str:
+def _box_repr(side) -> str:
     return "no box" if side is None else f"sides {np.asarray(side).tolist()}"
 
 
@@ -334,8 +334,6 @@ def neighbor_list(displacement_or_metric: Callable,
         if extra_capacity < 0:
             raise ValueError("extra_capacity must be >= 0.")
         fn, query, side = setup(dim)
-        _check_cutoff_against_box(query, side, fractional_coordinates,
-                                  search_backend.name)
         geometry = geometry_of(side, kwargs.get("box"), position.dtype)
         metric = MetricSq(fn, {k: v for k, v in kwargs.items()})
         if custom_mask_function is None:
@@ -424,14 +422,6 @@ def neighbor_list(displacement_or_metric: Callable,
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
 
     return NeighborListFns(allocate, update)
-
-
-def _check_cutoff_against_box(query: Query, side, fractional: bool,
-                              backend_name: str) -> None:
-    del fractional, backend_name  # the cell and brute backends handle any box
-    for a, p in enumerate(query.periodic):
-        if p and not side[a] > 0:
-            raise ValueError(f"box side {a} must be > 0 on a periodic axis.")
 
 
 def _auto_backend() -> str:
