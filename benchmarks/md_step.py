@@ -7,7 +7,9 @@ jaxrt backend, on the same particles, jit-compiled; warm-up calls are
 excluded from the timings.
 
 * LJ: 3D fluid at density 0.8, smooth cutoff 2.0-2.5, skin 0.3,
-  OrderedSparse (jax-md's default for LJ), `jax_md.simulate.nve`.
+  `jax_md.simulate.nve`. The baseline is jax-md's own energy and list in
+  its default layout (OrderedSparse); jaxrt runs Dense (forces summed row
+  by row, no scatter) and OrderedSparse for every backend (`--list`).
 * SPH: 2D periodic box of water at spacing dx, cubic spline h = 1.3 dx,
   summation density + Tait + pressure + viscosity, symplectic Euler.
 
@@ -33,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax_md import energy as jmd_energy
 from jax_md import partition, simulate, space
 
 import jaxrt
@@ -43,8 +46,37 @@ warnings.filterwarnings("ignore", message="Explicitly requested dtype float64")
 HERE = pathlib.Path(__file__).resolve().parent
 
 
-def list_fns():
-    fns = {"jax_md": partition.neighbor_list}
+def lj_setups():
+    """label -> (list factory, energy factory, format) for the LJ step.
+
+    ``jax-md`` rows are jax-md's own energy on jax-md's own list (the
+    baseline is its default, OrderedSparse). ``jaxrt:<backend>`` rows use
+    jaxrt's energy on jaxrt's list; on Dense lists that energy takes its
+    forces row by row (`jaxrt.energy._rows`: no scatter), on OrderedSparse
+    it is jax-md's pair sum. ``jax-md list + jaxrt energy`` separates the
+    energy's share from the list's.
+    """
+    setups = {
+        "jax-md/OrderedSparse": (partition.neighbor_list,
+                                 jmd_energy.lennard_jones_neighbor_list,
+                                 partition.OrderedSparse),
+        "jax-md/Dense": (partition.neighbor_list,
+                         jmd_energy.lennard_jones_neighbor_list,
+                         partition.Dense),
+        "jax-md list + jaxrt energy/Dense": (partition.neighbor_list,
+                                             lennard_jones_neighbor_list,
+                                             partition.Dense),
+    }
+    for b in jaxrt.available_backends():
+        list_fn = functools.partial(jaxrt.neighbor_list, backend=b)
+        for fmt in (partition.Dense, partition.OrderedSparse):
+            setups[f"jaxrt:{b}/{fmt.name}"] = (list_fn,
+                                              lennard_jones_neighbor_list, fmt)
+    return setups
+
+
+def sph_list_fns():
+    fns = {"jax-md": partition.neighbor_list}
     for b in jaxrt.available_backends():
         fns[f"jaxrt:{b}"] = functools.partial(jaxrt.neighbor_list, backend=b)
     return fns
@@ -69,16 +101,22 @@ def mean_neighbours(nbrs, n):
     return valid / n * (2 if nbrs.format is partition.OrderedSparse else 1)
 
 
-def lj_step(list_fn, n, repeats, steps):
+def lj_step(setup, n, repeats, steps):
     n_side = round(n ** (1 / 3))
     n = n_side ** 3
     box = (n / 0.8) ** (1 / 3)
     g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
     R = jnp.asarray(g.reshape(-1, 3) * box / n_side, jnp.float32)
     disp, shift = space.periodic(box)
-    neighbor_fn, energy_fn = lennard_jones_neighbor_list(
-        disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3,
-        format=partition.OrderedSparse, neighbor_list_fn=list_fn)
+    list_fn, energy_factory, fmt = setup
+    # r_onset / r_cutoff in units of sigma = 1, as jax-md's factory takes them.
+    # jax-md's factory builds its own list (and would silently swallow a
+    # neighbor_list_fn keyword).
+    extra = {} if energy_factory is jmd_energy.lennard_jones_neighbor_list \
+        else dict(neighbor_list_fn=list_fn)
+    neighbor_fn, energy_fn = energy_factory(
+        disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3, format=fmt,
+        **extra)
     init, apply = simulate.nve(energy_fn, shift, dt=0.005)
     nbrs = neighbor_fn.allocate(R)
     state = init(jax.random.PRNGKey(0), R, 1.0, neighbor=nbrs)
@@ -152,28 +190,50 @@ def main():
     parser.add_argument("--steps", type=int, default=20,
                         help="steps per timed call (one lax.scan)")
     parser.add_argument("--only", nargs="*", default=None,
-                        help="list factories to run (default all): jax_md, "
-                        "jaxrt:<backend>")
+                        help="labels to run (default all; see --list): "
+                        "LJ setups like 'jaxrt:bvh/Dense', SPH lists like "
+                        "'jaxrt:bvh'; a label without '/' selects every LJ "
+                        "format of that list")
+    parser.add_argument("--systems", nargs="*", default=["lj", "sph"],
+                        choices=["lj", "sph"])
+    parser.add_argument("--list", action="store_true",
+                        help="print the labels and exit")
     parser.add_argument("--out", default=None,
                         help="CSV path (default results/<device>/md_step.csv)")
     args = parser.parse_args()
     device = jax.devices()[0].device_kind
     # device, versions and git sha are added by _provenance.write_csv
     common = dict(repeats=args.repeats)
+    jobs = [("lj", label, setup) for label, setup in lj_setups().items()]
+    jobs += [("sph", label, fn) for label, fn in sph_list_fns().items()]
+    if args.list:
+        print("\n".join(f"{system:4s} {label}" for system, label, _ in jobs))
+        return
+
+    def selected(label):
+        return not args.only or label in args.only or \
+            label.split("/")[0] in args.only
+
     rows = []
-    print(f"{'system':6s} {'list':22s} {'N':>8s} {'k':>6s} {'ms/step':>9s}")
-    for name, list_fn in list_fns().items():
-        if args.only and name not in args.only:
+    print(f"{'system':6s} {'setup':36s} {'N':>8s} {'k':>6s} {'ms/step':>9s}")
+    for system, label, setup in jobs:
+        if system not in args.systems or not selected(label):
             continue
-        for system, fn in (("lj", lj_step), ("sph", sph_step)):
-            try:
-                n, k, ms = fn(list_fn, args.n, args.repeats, args.steps)
-            except Exception as e:  # noqa: BLE001 - one failure, one row
-                print(f"{system:6s} {name:22s} failed: {e}")
-                continue
-            print(f"{system:6s} {name:22s} {n:8d} {k:6.1f} {ms:9.3f}")
-            rows.append(dict(common, system=system, list=name, N=n,
-                             k=round(k, 2), median_ms=round(ms, 4)))
+        fn = lj_step if system == "lj" else sph_step
+        # jax-md's jitted integrators cache on the list's static fields, and
+        # comparing two jax-md lists there fails (their cell_size is an
+        # array): start every setup with empty caches.
+        jax.clear_caches()
+        try:
+            n, k, ms = fn(setup, args.n, args.repeats, args.steps)
+        except Exception as e:  # noqa: BLE001 - one failure, one row
+            print(f"{system:6s} {label:36s} failed: {str(e)[:200]}")
+            rows.append(dict(common, system=system, list=label, N=args.n,
+                             failed=str(e)[:200]))
+            continue
+        print(f"{system:6s} {label:36s} {n:8d} {k:6.1f} {ms:9.3f}")
+        rows.append(dict(common, system=system, list=label, N=n,
+                         k=round(k, 2), median_ms=round(ms, 4)))
     if rows:
         print("wrote", write(rows, device, args.out))
 

@@ -259,6 +259,40 @@ def bench_scene(scene, n, repeats, rng, warp_device):
         if sort:
             bvh_count = out_count.numpy()
 
+    # The BVH's builder and leaf size change only the speed: sweep them.
+    cuda = str(warp_device).startswith("cuda")
+    variants = ([("lbvh", 2), ("lbvh", 4), ("lbvh", 8), ("cubql", 1),
+                 ("cubql", 4)] if cuda else [("sah", 4)])
+    for constructor, leaf in variants:
+        try:
+            tree = aabb.AabbSearch(n, wp.vec3, warp_device, sort=True,
+                                   constructor=constructor, leaf_size=leaf)
+        except Exception as e:  # noqa: BLE001 - builder absent on this device
+            print(f"  {constructor} leaf {leaf}: not available ({e})")
+            continue
+        out_rows = wp.empty((n, width), dtype=wp.int32, device=warp_device)
+        out_count = wp.empty(n, dtype=wp.int32, device=warp_device)
+        label = f"bvh {constructor} leaf {leaf}"
+        record(f"{label} update (rebuild)", lambda: time_calls(
+            lambda x: tree.update(x, side_array, axes, cutoff), warp_sets,
+            repeats, warp_sync))
+
+        def query(x):
+            tree.update(x, side_array, axes, cutoff)
+            wp.synchronize_device(warp_device)
+            start = time.perf_counter()
+            tree.query_dense(side_array, mask_self=True, rows=out_rows,
+                             count=out_count)
+            wp.synchronize_device(warp_device)
+            return (time.perf_counter() - start) * 1e3
+
+        record(f"{label} query Dense", lambda: median_of_self_timed(
+            query, warp_sets, repeats))
+        if not np.array_equal(out_count.numpy(), bvh_count):
+            print(f"  WARNING: {label} counts differ from the default BVH's",
+                  file=sys.stderr)
+        del tree, out_rows, out_count
+
     # Baselines.
     def jax_md_update():
         fns = partition.neighbor_list(disp, side, cutoff, format=partition.Dense)

@@ -322,19 +322,27 @@ class AabbSearch:
         (wrapped on periodic axes), item order.
       reference: ``wp.vec3`` ``(N,)``, ``item_coords`` at the last build.
       lowers, uppers: ``wp.vec3`` ``(N,)``, the boxes.
+      constructor: Warp's builder ("lbvh", "cubql" on CUDA; "sah",
+        "median" on CPU); leaf_size: boxes per BVH leaf. Neither changes
+        the result, only the speed (`benchmarks/rt_neighbors.py` sweeps them).
       last_update: "build", "rebuild" or "refit": what the last `update` did.
     """
 
     def __init__(self, n: int, vector, device, *, sort: bool,
-                 policy: RebuildPolicy = RebuildPolicy()):
+                 policy: RebuildPolicy = RebuildPolicy(),
+                 constructor: str | None = None, leaf_size: int = 1):
         if n < 1:
             raise ValueError(f"need at least one particle; got n={n}.")
+        if int(leaf_size) < 1:
+            raise ValueError(f"leaf_size must be >= 1; got {leaf_size}.")
         self.n = n
         self.vector = vector
         self.scalar = scalar_type(vector)
         self.device = wp.get_device(device)
         self.sort = sort
         self.policy = policy
+        self._constructor = constructor
+        self.leaf_size = int(leaf_size)
         with wp.ScopedDevice(self.device):
             self.order = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
             self.item_points = wp.empty(n, dtype=vector)
@@ -354,6 +362,9 @@ class AabbSearch:
 
     @property
     def constructor(self) -> str:
+        """Warp's BVH builder: as given, else LBVH on CUDA and SAH on CPU."""
+        if self._constructor is not None:
+            return self._constructor
         return "lbvh" if self.device.is_cuda else "sah"
 
     def update(self, points: wp.array, side: wp.array, periodic: tuple[bool, bool, bool],
@@ -400,7 +411,8 @@ class AabbSearch:
                 self._place(points, side, flags, half_width, False, drift_limit)
                 if self.bvh is None:
                     self.bvh = wp.Bvh(self.lowers, self.uppers,
-                                      constructor=self.constructor)
+                                      constructor=self.constructor,
+                                      leaf_size=self.leaf_size)
                 else:
                     self.bvh.rebuild(self.constructor)
                     action = "rebuild"
