@@ -75,11 +75,13 @@ def lj_setups():
     return setups
 
 
-def sph_list_fns():
+def sph_setups():
+    """label -> (list factory, format) for the SPH step (jaxrt's SPH)."""
     fns = {"jax-md": partition.neighbor_list}
     for b in jaxrt.available_backends():
         fns[f"jaxrt:{b}"] = functools.partial(jaxrt.neighbor_list, backend=b)
-    return fns
+    return {f"{name}/{fmt.name}": (fn, fmt) for name, fn in fns.items()
+            for fmt in (partition.Dense, partition.OrderedSparse)}
 
 
 def median_ms(fn, carry, repeats, steps_per_call):
@@ -135,7 +137,7 @@ def lj_step(setup, n, repeats, steps):
     return n, mean_neighbours(nbrs, n), ms
 
 
-def sph_step(list_fn, n, repeats, steps):
+def sph_step(setup, n, repeats, steps):
     n_side = round(math.sqrt(n))
     n = n_side ** 2
     dx = 0.01
@@ -150,9 +152,9 @@ def sph_step(list_fn, n, repeats, steps):
     eos = sph.Tait(rho0=1000.0, c0=10.0)
     mass = 1000.0 * dx * dx
     accel = sph.acceleration(disp, kernel, eos, mass=mass, alpha=0.05)
+    list_fn, fmt = setup
     neighbor_fn = list_fn(disp, side, float(kernel.cutoff),
-                          dr_threshold=0.3 * dx,
-                          format=partition.OrderedSparse)
+                          dr_threshold=0.3 * dx, format=fmt)
     nbrs = neighbor_fn.allocate(R)
     V = jnp.asarray(rng.normal(0, 0.1, (n, 2)), jnp.float32)
     dt = 0.2 * kernel.h / 10.0
@@ -191,9 +193,8 @@ def main():
                         help="steps per timed call (one lax.scan)")
     parser.add_argument("--only", nargs="*", default=None,
                         help="labels to run (default all; see --list): "
-                        "LJ setups like 'jaxrt:bvh/Dense', SPH lists like "
-                        "'jaxrt:bvh'; a label without '/' selects every LJ "
-                        "format of that list")
+                        "setups like 'jaxrt:bvh/Dense'; a label without '/' "
+                        "selects every format of that list")
     parser.add_argument("--systems", nargs="*", default=["lj", "sph"],
                         choices=["lj", "sph"])
     parser.add_argument("--list", action="store_true",
@@ -205,7 +206,7 @@ def main():
     # device, versions and git sha are added by _provenance.write_csv
     common = dict(repeats=args.repeats)
     jobs = [("lj", label, setup) for label, setup in lj_setups().items()]
-    jobs += [("sph", label, fn) for label, fn in sph_list_fns().items()]
+    jobs += [("sph", label, setup) for label, setup in sph_setups().items()]
     if args.list:
         print("\n".join(f"{system:4s} {label}" for system, label, _ in jobs))
         return

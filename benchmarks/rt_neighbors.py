@@ -14,8 +14,14 @@ warm-up, rotating between 3 input sets so no call repeats the previous one):
   bvh jit Dense (refit)         the same on inputs jittered by 1 % of the
                                 cutoff: the kept BVH is refit
   bvh jit OrderedSparse         count, scan, fill path
+  bvh jit Dense (rebuild) cluster g
+                                the same with one BVH box per g sorted
+                                particles (--jit-clusters)
   bvh update (rebuild) / (refit), bvh lbvh rebuild only, bvh query Dense,
   bvh-unsorted ...              the Warp pieces timed directly (synchronised)
+  bvh <builder> leaf <l> cluster <g> ...
+                                the same pieces with another BVH builder,
+                                leaf size or cluster size
   jax-md Dense update           jax_md.partition.neighbor_list(...).update
   jaxrt cell Dense update       the pure-JAX backend
   warp HashGrid build / query Dense
@@ -173,7 +179,7 @@ def provenance():
 # One scene at one size
 
 
-def bench_scene(scene, n, repeats, rng, warp_device):
+def bench_scene(scene, n, repeats, rng, warp_device, jit_clusters=()):
     sets, side, cutoff, periodic = {"uniform": uniform_scene,
                                     "sphere": sphere_scene}[scene](n, rng)
     disp = (space.periodic(side) if periodic else space.free())[0]
@@ -214,6 +220,18 @@ def bench_scene(scene, n, repeats, rng, warp_device):
         return run
 
     record("bvh jit Dense (rebuild)", bvh_jit(partition.Dense, device_sets, "rebuild"))
+    # The same call with one BVH box per run of g sorted particles.
+    device_kind = "cuda" if str(warp_device).startswith("cuda") else "cpu"
+    default_cluster = ffi.DEFAULT_CLUSTER_SIZE[device_kind]
+    for g in jit_clusters:
+        if g == default_cluster:
+            continue
+        ffi.DEFAULT_CLUSTER_SIZE[device_kind] = g
+        try:
+            record(f"bvh jit Dense (rebuild) cluster {g}",
+                   bvh_jit(partition.Dense, device_sets, "rebuild"))
+        finally:
+            ffi.DEFAULT_CLUSTER_SIZE[device_kind] = default_cluster
     record("bvh jit Dense (refit)", bvh_jit(partition.Dense, refit_sets, "refit"))
     record("bvh jit OrderedSparse (rebuild)",
            bvh_jit(partition.OrderedSparse, device_sets, "rebuild"))
@@ -261,18 +279,21 @@ def bench_scene(scene, n, repeats, rng, warp_device):
 
     # The BVH's builder and leaf size change only the speed: sweep them.
     cuda = str(warp_device).startswith("cuda")
-    variants = ([("lbvh", 2), ("lbvh", 4), ("lbvh", 8), ("cubql", 1),
-                 ("cubql", 4)] if cuda else [("sah", 4)])
-    for constructor, leaf in variants:
+    variants = ([("lbvh", 4, 1), ("lbvh", 1, 4), ("lbvh", 1, 8),
+                 ("lbvh", 1, 16), ("lbvh", 1, 32), ("lbvh", 4, 16)]
+                if cuda else [("sah", 4, 1), ("sah", 1, 8)])
+    for constructor, leaf, cluster in variants:
         try:
             tree = aabb.AabbSearch(n, wp.vec3, warp_device, sort=True,
-                                   constructor=constructor, leaf_size=leaf)
+                                   constructor=constructor, leaf_size=leaf,
+                                   cluster_size=cluster)
         except Exception as e:  # noqa: BLE001 - builder absent on this device
-            print(f"  {constructor} leaf {leaf}: not available ({e})")
+            print(f"  {constructor} leaf {leaf} cluster {cluster}: not "
+                  f"available ({e})")
             continue
         out_rows = wp.empty((n, width), dtype=wp.int32, device=warp_device)
         out_count = wp.empty(n, dtype=wp.int32, device=warp_device)
-        label = f"bvh {constructor} leaf {leaf}"
+        label = f"bvh {constructor} leaf {leaf} cluster {cluster}"
         record(f"{label} update (rebuild)", lambda: time_calls(
             lambda x: tree.update(x, side_array, axes, cutoff), warp_sets,
             repeats, warp_sync))
@@ -361,6 +382,9 @@ def main(argv=None):
                         choices=["uniform", "sphere"])
     parser.add_argument("--repeats", type=int, default=10,
                         help="timed calls per row (>= 10 for reported numbers)")
+    parser.add_argument("--jit-clusters", type=int, nargs="*", default=[8, 16],
+                        help="cluster sizes to time through jax.jit besides "
+                             "the default (jaxrt.rt.ffi.DEFAULT_CLUSTER_SIZE)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
@@ -381,7 +405,8 @@ def main(argv=None):
     rows = []
     for scene in args.scenes:
         for n in sizes:
-            rows += bench_scene(scene, n, args.repeats, rng, warp_device)
+            rows += bench_scene(scene, n, args.repeats, rng, warp_device,
+                                args.jit_clusters)
             ffi.forget_trees()  # free the previous size's BVHs
 
     print(f"\n{'scene':8s} {'N':>8s} {'k':>6s}  {'method':32s} {'median ms':>10s}")

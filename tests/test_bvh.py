@@ -227,12 +227,41 @@ def setup_backend(R, side, cutoff, periodic, fmt, name="bvh"):
     return backend, query, geometry, capacity
 
 
-@pytest.mark.parametrize("fmt", [Dense, OrderedSparse])
-def test_scan_with_persistent_bvh_equals_fresh_build_every_step(fmt):
+@pytest.fixture(scope="module")
+def clustered():
+    """Backend "bvh-cluster5": one BVH box per run of 5 sorted particles (an
+    odd size, so the last cluster is partial). Registered only while this
+    module's tests run, so other modules do not enumerate it."""
+    backends.register("bvh-cluster5", lambda: ffi.AabbBackend(
+        "bvh-cluster5", sort=True, cluster_size=5))
+    yield "bvh-cluster5"
+    backends._REGISTRY.pop("bvh-cluster5")
+    backends._INSTANCES.pop("bvh-cluster5", None)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.parametrize("periodic", [True, False])
+def test_clustered_boxes_give_the_same_lists(fmt, periodic, clustered):
+    R = jax.random.uniform(jax.random.PRNGKey(21), (303, 3)) * 8.0
+    check(R, 8.0, 1.7, periodic, fmt, backend="bvh-cluster5", jax_md_too=False)
+    # Ties at the cutoff, and particles on faces and corners.
+    check(lattice(8, 0.5), 4.0, 1.0, periodic, fmt, backend="bvh-cluster5",
+          jax_md_too=False)
+    corners = np.array([[0, 0, 0], [3.999, 3.999, 3.999], [0, 3.999, 0],
+                        [3.999, 0, 0.5], [2, 2, 2]], np.float32)
+    check(corners, 4.0, 1.5, periodic, fmt, backend="bvh-cluster5",
+          jax_md_too=False)
+
+
+@pytest.mark.parametrize("fmt,name", [(Dense, "bvh"), (OrderedSparse, "bvh"),
+                                      (Dense, "bvh-cluster5")])
+def test_scan_with_persistent_bvh_equals_fresh_build_every_step(fmt, name,
+                                                              clustered):
     n, side, cutoff = 250, 8.0, 1.7
     key = jax.random.PRNGKey(11)
     R0 = jax.random.uniform(key, (n, 3)) * side
-    backend, query, geometry, capacity = setup_backend(R0, side, cutoff, True, fmt)
+    backend, query, geometry, capacity = setup_backend(R0, side, cutoff, True,
+                                                       fmt, name)
     velocity = jax.random.normal(jax.random.PRNGKey(12), (n, 3)) * 0.03
     kicks = jnp.zeros(50).at[jnp.array([17, 35])].set(1.0)  # large moves: rebuilds
 

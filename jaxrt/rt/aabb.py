@@ -11,6 +11,12 @@ runs the exact distance test in the positions' own precision with jax-md's
 arithmetic. Every neighbour is counted; indices are stored while there is
 room, so counts are exact and overflow is never silent.
 
+Clusters (an extension, ``cluster_size`` g > 1): one box around each run of
+g consecutive Morton-sorted particles, grown by the cutoff, so the BVH has
+g times fewer leaves and a ray that lands in a box tests the g particles
+exactly. The result is the same; on a GPU without RT cores the traversal,
+not the distance tests, is what costs (`benchmarks/rt_neighbors.py`).
+
 The BVH is float32 (Warp's only kind). float64 positions get float32 boxes
 padded beyond float32 rounding and a float64 distance test, so float64 lists
 are exact. Every kernel is generic over the position type (``wp.vec3`` or
@@ -99,15 +105,12 @@ def _morton_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
 @wp.kernel
 def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
                   periodic: wp.vec3i, order: wp.array(dtype=wp.int32),
-                  half_width: wp.float32, extent: wp.array(dtype=wp.float32),
                   has_reference: wp.int32, drift_limit: wp.float32,
                   reference: wp.array(dtype=wp.vec3),
                   item_points: wp.array(dtype=Any),
                   item_coords: wp.array(dtype=Any),
-                  lowers: wp.array(dtype=wp.vec3),
-                  uppers: wp.array(dtype=wp.vec3),
                   moved_far: wp.array(dtype=wp.int32)):
-    """Box of item k around particle order[k].
+    """Item k is particle order[k]: its position and box centre.
 
     Without a reference (a (re)build) the item sits at its wrapped position
     and that position becomes the reference. With one (a refit), it sits at
@@ -128,11 +131,30 @@ def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
         reference[k] = wp.vec3(u)
     item_points[k] = x
     item_coords[k] = u
-    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
-    centre = wp.vec3(u)
+
+
+@wp.kernel
+def _cluster_box_kernel(item_coords: wp.array(dtype=Any), side: wp.array(dtype=Any),
+                        periodic: wp.vec3i, cluster_size: wp.int32,
+                        half_width: wp.float32, extent: wp.array(dtype=wp.float32),
+                        lowers: wp.array(dtype=wp.vec3),
+                        uppers: wp.array(dtype=wp.vec3)):
+    """Box of cluster c: the union of the boxes of items
+    [c * cluster_size, (c + 1) * cluster_size), i.e. their centres' bounds
+    grown by the reach. With cluster_size 1 it is the seed's box per particle."""
+    c = wp.tid()
+    first = c * cluster_size
+    last = wp.min(first + cluster_size, item_coords.shape[0])
+    low = wp.vec3(item_coords[first])
+    high = low
+    for m in range(first + 1, last):
+        u = wp.vec3(item_coords[m])
+        low = wp.min(low, u)
+        high = wp.max(high, u)
+    reach = _box_reach(half_width, extent[0], gamma.largest_side(side[0], periodic))
     pad = wp.vec3(reach, reach, reach)
-    lowers[k] = centre - pad
-    uppers[k] = centre + pad
+    lowers[c] = low - pad
+    uppers[c] = high + pad
 
 
 @wp.func
@@ -157,6 +179,7 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                   periodic: wp.vec3i, cutoff_sq: Any, half_width: wp.float32,
                   extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
                   mask_self: wp.int32, lower_only: wp.int32, mode: wp.int32,
+                  cluster_size: wp.int32,
                   rows: wp.array2d(dtype=wp.int32),
                   row_offset: wp.array(dtype=wp.int32),
                   pairs: wp.array2d(dtype=wp.int32),
@@ -184,29 +207,33 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
             query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
-            item = int(0)
-            while wp.bvh_query_next(query, item, 0.0):
-                j = order[item]
-                keep = True
-                if any_periodic:  # free space: one ray, no image to choose
-                    keep = gamma.is_canonical_image(shift, ui, item_coords[item],
-                                                    box, periodic)
-                if mask_self != 0 and j == i:
-                    keep = False
-                if lower_only != 0 and j >= i:
-                    keep = False
-                if keep:
-                    keep = _square_distance(xi, item_points[item], box, periodic) < cutoff_sq
-                if keep:
-                    if mode == MODE_DENSE:
-                        if n < width:
-                            rows[i, n] = j
-                    elif mode == MODE_FILL:
-                        slot = base + n
-                        if slot < capacity:
-                            pairs[0, slot] = j
-                            pairs[1, slot] = i
-                    n += 1
+            cluster = int(0)
+            while wp.bvh_query_next(query, cluster, 0.0):
+                first = cluster * cluster_size
+                last = wp.min(first + cluster_size, n_particles)
+                for item in range(first, last):
+                    j = order[item]
+                    keep = True
+                    if any_periodic:  # free space: one ray, no image to choose
+                        keep = gamma.is_canonical_image(shift, ui, item_coords[item],
+                                                        box, periodic)
+                    if mask_self != 0 and j == i:
+                        keep = False
+                    if lower_only != 0 and j >= i:
+                        keep = False
+                    if keep:
+                        keep = _square_distance(xi, item_points[item], box,
+                                                periodic) < cutoff_sq
+                    if keep:
+                        if mode == MODE_DENSE:
+                            if n < width:
+                                rows[i, n] = j
+                        elif mode == MODE_FILL:
+                            slot = base + n
+                            if slot < capacity:
+                                pairs[0, slot] = j
+                                pairs[1, slot] = i
+                        n += 1
     count[i] = n
     if mode == MODE_DENSE:
         for s in range(wp.min(n, width), width):
@@ -243,6 +270,7 @@ def _instantiate(kernel, vectors=(), scalars=()):
 _instantiate(_extent_kernel, vectors=("points",))
 _instantiate(_morton_kernel, vectors=("points", "side"))
 _instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coords"))
+_instantiate(_cluster_box_kernel, vectors=("item_coords", "side"))
 _instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
              scalars=("cutoff_sq",))
 
@@ -321,20 +349,27 @@ class AabbSearch:
       item_coords: ``vector`` ``(N,)``, positions the boxes are centred on
         (wrapped on periodic axes), item order.
       reference: ``wp.vec3`` ``(N,)``, ``item_coords`` at the last build.
-      lowers, uppers: ``wp.vec3`` ``(N,)``, the boxes.
+      lowers, uppers: ``wp.vec3`` ``(ceil(N / cluster_size),)``, the boxes.
+      cluster_size: particles per box. 1 is the seed's method (a box per
+        particle); g > 1 puts one box around each run of g consecutive
+        items (spatially compact when Morton-sorted), so the BVH has g
+        times fewer leaves and every hit tests g particles exactly.
       constructor: Warp's builder ("lbvh", "cubql" on CUDA; "sah",
-        "median" on CPU); leaf_size: boxes per BVH leaf. Neither changes
-        the result, only the speed (`benchmarks/rt_neighbors.py` sweeps them).
+        "median" on CPU); leaf_size: boxes per BVH leaf. None of the three
+        changes the result, only the speed (`benchmarks/rt_neighbors.py`
+        sweeps them).
       last_update: "build", "rebuild" or "refit": what the last `update` did.
     """
 
     def __init__(self, n: int, vector, device, *, sort: bool,
                  policy: RebuildPolicy = RebuildPolicy(),
-                 constructor: str | None = None, leaf_size: int = 1):
+                 constructor: str | None = None, leaf_size: int = 1,
+                 cluster_size: int = 1):
         if n < 1:
             raise ValueError(f"need at least one particle; got n={n}.")
-        if int(leaf_size) < 1:
-            raise ValueError(f"leaf_size must be >= 1; got {leaf_size}.")
+        for name, value in (("leaf_size", leaf_size), ("cluster_size", cluster_size)):
+            if int(value) < 1:
+                raise ValueError(f"{name} must be >= 1; got {value}.")
         self.n = n
         self.vector = vector
         self.scalar = scalar_type(vector)
@@ -343,13 +378,15 @@ class AabbSearch:
         self.policy = policy
         self._constructor = constructor
         self.leaf_size = int(leaf_size)
+        self.cluster_size = int(cluster_size)
+        n_clusters = -(-n // self.cluster_size)
         with wp.ScopedDevice(self.device):
             self.order = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
             self.item_points = wp.empty(n, dtype=vector)
             self.item_coords = wp.empty(n, dtype=vector)
             self.reference = wp.zeros(n, dtype=wp.vec3)
-            self.lowers = wp.empty(n, dtype=wp.vec3)
-            self.uppers = wp.empty(n, dtype=wp.vec3)
+            self.lowers = wp.empty(n_clusters, dtype=wp.vec3)
+            self.uppers = wp.empty(n_clusters, dtype=wp.vec3)
             self.extent = wp.zeros(1, dtype=wp.float32)
             self.moved_far = wp.zeros(1, dtype=wp.int32)
             if sort:
@@ -393,11 +430,12 @@ class AabbSearch:
             moved_far = False
             if self.bvh is not None and same_setup:
                 self.moved_far.zero_()
-                self._place(points, side, flags, half_width, True, drift_limit)
+                self._place(points, side, flags, True, drift_limit)
                 moved_far = bool(self.moved_far.numpy()[0])
             action = choose_update(self.policy, self.bvh is not None and same_setup,
                                    moved_far)
             if action == "refit":
+                self._boxes(side, flags, half_width)
                 self.bvh.refit()
             else:
                 if self.sort:
@@ -408,7 +446,8 @@ class AabbSearch:
                     wp.utils.radix_sort_pairs(self.keys, self.values, self.n,
                                               end_bit=30)
                     wp.copy(self.order, self.values, count=self.n)
-                self._place(points, side, flags, half_width, False, drift_limit)
+                self._place(points, side, flags, False, drift_limit)
+                self._boxes(side, flags, half_width)
                 if self.bvh is None:
                     self.bvh = wp.Bvh(self.lowers, self.uppers,
                                       constructor=self.constructor,
@@ -420,12 +459,16 @@ class AabbSearch:
         self.last_update = action
         return action
 
-    def _place(self, points, side, flags, half_width, has_reference, drift_limit):
+    def _place(self, points, side, flags, has_reference, drift_limit):
         wp.launch(_place_kernel, self.n,
-                  inputs=[points, side, flags, self.order, half_width, self.extent,
+                  inputs=[points, side, flags, self.order,
                           int(has_reference), drift_limit, self.reference,
-                          self.item_points, self.item_coords, self.lowers,
-                          self.uppers, self.moved_far])
+                          self.item_points, self.item_coords, self.moved_far])
+
+    def _boxes(self, side, flags, half_width):
+        wp.launch(_cluster_box_kernel, self.lowers.shape[0],
+                  inputs=[self.item_coords, side, flags, self.cluster_size,
+                          half_width, self.extent, self.lowers, self.uppers])
 
     def query(self, side: wp.array, *, mask_self: bool, lower_only: bool, mode: int,
               rows: wp.array | None = None, row_offset: wp.array | None = None,
@@ -455,6 +498,7 @@ class AabbSearch:
                               float(np.float32(self._cutoff)), self.extent,
                               self.policy.drift_limit(self._cutoff),
                               int(mask_self), int(lower_only), int(mode),
+                              self.cluster_size,
                               empty2 if rows is None else rows,
                               empty1 if row_offset is None else row_offset,
                               empty2 if pairs is None else pairs, count])

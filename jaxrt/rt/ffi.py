@@ -54,6 +54,10 @@ from jaxrt.rt._method import RTMethod
 MAX_KEPT_TREES = 8
 # vmap over more systems than this loops one call site instead of unrolling.
 MAX_UNROLLED_SYSTEMS = 16
+# Particles per BVH box for backend "bvh" by device kind, from
+# benchmarks/rt_neighbors.py (results/h100/rt_neighbors.csv): 1 is the
+# seed's box per particle.
+DEFAULT_CLUSTER_SIZE = {"cpu": 1, "cuda": 1}
 
 Dense = NeighborListFormat.Dense
 OrderedSparse = NeighborListFormat.OrderedSparse
@@ -79,14 +83,21 @@ def forget_trees() -> None:
 
 
 def _tree(slot: int, n: int, vector, device, sort: bool,
-          policy: aabb.RebuildPolicy) -> aabb.AabbSearch:
+          policy: aabb.RebuildPolicy, cluster: int) -> aabb.AabbSearch:
     """The BVH kept for ``slot`` (a fresh, unkept one for slot < 0)."""
+    if cluster == 0:  # the device's default
+        cluster = DEFAULT_CLUSTER_SIZE["cuda" if device.is_cuda else "cpu"]
+
+    def new():
+        return aabb.AabbSearch(n, vector, device, sort=sort, policy=policy,
+                               cluster_size=cluster)
+
     if slot < 0:
-        return aabb.AabbSearch(n, vector, device, sort=sort, policy=policy)
-    key = (slot, n, vector, str(device), sort, policy)
+        return new()
+    key = (slot, n, vector, str(device), sort, policy, cluster)
     tree = _TREES.pop(key, None)
     if tree is None:
-        tree = aabb.AabbSearch(n, vector, device, sort=sort, policy=policy)
+        tree = new()
     _TREES[key] = tree
     while len(_TREES) > MAX_KEPT_TREES:
         _TREES.popitem(last=False)
@@ -115,21 +126,23 @@ def _aabb_callables(vector):
 
     def dense(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
               cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
-              sort: wp.int32, drift: wp.float64, slot: wp.int32,
-              rows: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+              sort: wp.int32, drift: wp.float64, cluster: wp.int32,
+              slot: wp.int32, rows: wp.array2d(dtype=wp.int32),
+              count: wp.array(dtype=wp.int32)):
         tree = _tree(int(slot), points.shape[0], vector, points.device,
-                     bool(sort), aabb.RebuildPolicy(float(drift)))
+                     bool(sort), aabb.RebuildPolicy(float(drift)), int(cluster))
         update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
         tree.query_dense(side, mask_self=bool(mask_self), rows=rows, count=count)
 
     def sparse(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
                cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
                lower_only: wp.int32, sort: wp.int32, drift: wp.float64,
-               slot: wp.int32, pairs: wp.array2d(dtype=wp.int32),
+               cluster: wp.int32, slot: wp.int32,
+               pairs: wp.array2d(dtype=wp.int32),
                count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int32),
                total: wp.array(dtype=wp.int32)):
         tree = _tree(int(slot), points.shape[0], vector, points.device,
-                     bool(sort), aabb.RebuildPolicy(float(drift)))
+                     bool(sort), aabb.RebuildPolicy(float(drift)), int(cluster))
         update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
         tree.query_sparse(side, mask_self=bool(mask_self),
                           lower_only=bool(lower_only), pairs=pairs, count=count,
@@ -255,13 +268,19 @@ class AabbBackend:
       name: the ``backend=`` name.
       sort: Morton-sort particles at each build (the seed's sorted AABB).
       policy: when to rebuild rather than refit (`jaxrt.rt.aabb.RebuildPolicy`).
+      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 0
+        picks `DEFAULT_CLUSTER_SIZE` for the device the call runs on.
     """
 
     def __init__(self, name: str, *, sort: bool,
-                 policy: aabb.RebuildPolicy = aabb.RebuildPolicy()):
+                 policy: aabb.RebuildPolicy = aabb.RebuildPolicy(),
+                 cluster_size: int = 0):
+        if int(cluster_size) < 0:
+            raise ValueError(f"cluster_size must be >= 0; got {cluster_size}.")
         self.name = name
         self.sort = sort
         self.policy = policy
+        self.cluster_size = int(cluster_size)
         _load_kernels()
 
     def _dense(self, points, side, query: Query, axes, width: int, slot=None):
@@ -273,7 +292,8 @@ class AabbBackend:
         def call(points, side, slot):
             return tuple(dense(points, side, query.cutoff, _bits(axes),
                                int(query.mask_self), int(self.sort),
-                               self.policy.drift_fraction, slot,
+                               self.policy.drift_fraction, self.cluster_size,
+                               slot,
                                output_dims={"rows": (n, stored), "count": (n,)}))
 
         if slot is not None:
@@ -292,7 +312,8 @@ class AabbBackend:
         def call(points, side, slot):
             return tuple(sparse(points, side, query.cutoff, _bits(axes),
                                 int(query.mask_self), int(lower_only),
-                                int(self.sort), self.policy.drift_fraction, slot,
+                                int(self.sort), self.policy.drift_fraction,
+                                self.cluster_size, slot,
                                 output_dims={"pairs": (2, stored), "count": (n,),
                                              "offset": (n,), "total": (1,)}))
 
