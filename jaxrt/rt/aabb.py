@@ -172,6 +172,38 @@ def _square_distance(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
     return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 
 
+@wp.func
+def _visit(item: int, i: int, shift: wp.vec3i, xi: Any, ui: Any,
+           item_points: wp.array(dtype=Any), item_coords: wp.array(dtype=Any),
+           order: wp.array(dtype=wp.int32), box: Any, periodic: wp.vec3i,
+           any_periodic: bool, cutoff_sq: Any, mask_self: wp.int32,
+           lower_only: wp.int32, mode: wp.int32, base: int, n: int,
+           rows: wp.array2d(dtype=wp.int32), pairs: wp.array2d(dtype=wp.int32)):
+    """The intersection program: is ``item`` a neighbour of particle ``i``
+    seen through the ray with ``shift``? Stores it while there is room.
+    Returns the updated neighbour count ``n``."""
+    j = order[item]
+    if mask_self != 0 and j == i:
+        return n
+    if lower_only != 0 and j >= i:
+        return n
+    # Free space has one ray, so no image to choose.
+    if any_periodic and not gamma.is_canonical_image(shift, ui, item_coords[item],
+                                                     box, periodic):
+        return n
+    if not (_square_distance(xi, item_points[item], box, periodic) < cutoff_sq):
+        return n
+    if mode == MODE_DENSE:
+        if n < rows.shape[1]:
+            rows[i, n] = j
+    elif mode == MODE_FILL:
+        slot = base + n
+        if slot < pairs.shape[1]:
+            pairs[0, slot] = j
+            pairs[1, slot] = i
+    return n + 1
+
+
 @wp.kernel
 def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                   item_coords: wp.array(dtype=Any),
@@ -185,7 +217,10 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                   pairs: wp.array2d(dtype=wp.int32),
                   count: wp.array(dtype=wp.int32)):
     """Neighbours of particle order[k], from the ray at its item and, near a
-    periodic face, the gamma rays (Meneses et al. §3.3)."""
+    periodic face, the gamma rays (Meneses et al. §3.3). A hit is a box of
+    ``cluster_size`` consecutive items; size 1 (the seed's method) has its
+    own branch without the member loop, which measured twice as fast on a
+    GPU."""
     k = wp.tid()
     n_particles = item_points.shape[0]
     i = order[k]
@@ -199,43 +234,29 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     base = int(0)
     if mode == MODE_FILL:
         base = row_offset[i]
-    width = rows.shape[1]
-    capacity = pairs.shape[1]
     n = int(0)
     for ray in range(gamma.RAYS_PER_PARTICLE):
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
             query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
-            cluster = int(0)
-            while wp.bvh_query_next(query, cluster, 0.0):
-                first = cluster * cluster_size
-                last = wp.min(first + cluster_size, n_particles)
-                for item in range(first, last):
-                    j = order[item]
-                    keep = True
-                    if any_periodic:  # free space: one ray, no image to choose
-                        keep = gamma.is_canonical_image(shift, ui, item_coords[item],
-                                                        box, periodic)
-                    if mask_self != 0 and j == i:
-                        keep = False
-                    if lower_only != 0 and j >= i:
-                        keep = False
-                    if keep:
-                        keep = _square_distance(xi, item_points[item], box,
-                                                periodic) < cutoff_sq
-                    if keep:
-                        if mode == MODE_DENSE:
-                            if n < width:
-                                rows[i, n] = j
-                        elif mode == MODE_FILL:
-                            slot = base + n
-                            if slot < capacity:
-                                pairs[0, slot] = j
-                                pairs[1, slot] = i
-                        n += 1
+            hit = int(0)
+            if cluster_size == 1:
+                while wp.bvh_query_next(query, hit, 0.0):
+                    n = _visit(hit, i, shift, xi, ui, item_points, item_coords,
+                               order, box, periodic, any_periodic, cutoff_sq,
+                               mask_self, lower_only, mode, base, n, rows, pairs)
+            else:
+                while wp.bvh_query_next(query, hit, 0.0):
+                    first = hit * cluster_size
+                    for item in range(first, wp.min(first + cluster_size, n_particles)):
+                        n = _visit(item, i, shift, xi, ui, item_points, item_coords,
+                                   order, box, periodic, any_periodic, cutoff_sq,
+                                   mask_self, lower_only, mode, base, n, rows,
+                                   pairs)
     count[i] = n
     if mode == MODE_DENSE:
+        width = rows.shape[1]
         for s in range(wp.min(n, width), width):
             rows[i, s] = n_particles
 
