@@ -448,8 +448,10 @@ class AabbSearch:
         with wp.ScopedDevice(self.device):
             self.extent.zero_()
             wp.launch(_extent_kernel, self.n, inputs=[points, self.extent])
-            moved_far = False
-            if self.bvh is not None and same_setup:
+            moved_far = True
+            # Only a policy that may refit needs the drift, and reading it
+            # back stalls the host until the GPU has caught up.
+            if self.bvh is not None and same_setup and self.policy.drift_fraction > 0:
                 self.moved_far.zero_()
                 self._place(points, side, flags, True, drift_limit)
                 moved_far = bool(self.moved_far.numpy()[0])
