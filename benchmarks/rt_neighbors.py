@@ -255,6 +255,19 @@ def bench_scene(scene, n, repeats, rng, warp_device, jit_clusters=()):
     def warp_sync(_):
         wp.synchronize_device(warp_device)
 
+    def timed_query(tree, out_rows, out_count):
+        """``run()`` for `record`: the median query time of ``tree``, each
+        call after an (untimed) update to the next input set."""
+        def query(x):
+            tree.update(x, side_array, axes, cutoff)
+            wp.synchronize_device(warp_device)
+            start = time.perf_counter()
+            tree.query_dense(side_array, mask_self=True, rows=out_rows,
+                             count=out_count)
+            wp.synchronize_device(warp_device)
+            return (time.perf_counter() - start) * 1e3
+        return lambda: median_of_self_timed(query, warp_sets, repeats)
+
     for name, sort in (("bvh", True), ("bvh-unsorted", False)):
         tree = aabb.AabbSearch(n, wp.vec3, warp_device, sort=sort)
         out_rows = wp.empty((n, width), dtype=wp.int32, device=warp_device)
@@ -271,17 +284,7 @@ def bench_scene(scene, n, repeats, rng, warp_device, jit_clusters=()):
                 lambda x: tree.update(x, side_array, axes, cutoff), warp_refit,
                 repeats, warp_sync))
 
-        def query(x):
-            tree.update(x, side_array, axes, cutoff)
-            wp.synchronize_device(warp_device)
-            start = time.perf_counter()
-            tree.query_dense(side_array, mask_self=True, rows=out_rows,
-                             count=out_count)
-            wp.synchronize_device(warp_device)
-            return (time.perf_counter() - start) * 1e3
-
-        record(f"{name} query Dense", lambda: median_of_self_timed(
-            query, warp_sets, repeats))
+        record(f"{name} query Dense", timed_query(tree, out_rows, out_count))
         if sort:
             bvh_count = out_count.numpy()
 
@@ -306,17 +309,7 @@ def bench_scene(scene, n, repeats, rng, warp_device, jit_clusters=()):
             lambda x: tree.update(x, side_array, axes, cutoff), warp_sets,
             repeats, warp_sync))
 
-        def query(x):
-            tree.update(x, side_array, axes, cutoff)
-            wp.synchronize_device(warp_device)
-            start = time.perf_counter()
-            tree.query_dense(side_array, mask_self=True, rows=out_rows,
-                             count=out_count)
-            wp.synchronize_device(warp_device)
-            return (time.perf_counter() - start) * 1e3
-
-        record(f"{label} query Dense", lambda: median_of_self_timed(
-            query, warp_sets, repeats))
+        record(f"{label} query Dense", timed_query(tree, out_rows, out_count))
         if not np.array_equal(out_count.numpy(), bvh_count):
             print(f"  WARNING: {label} counts differ from the default BVH's",
                   file=sys.stderr)

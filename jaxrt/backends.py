@@ -123,6 +123,10 @@ class SearchResult(NamedTuple):
 
 
 class Backend(Protocol):
+    """``name``; optionally ``max_list_entries``, the largest int32 buffer
+    the backend can index (default ``2**31 - 1``): `jaxrt.neighbor_list`
+    refuses larger lists at ``allocate``."""
+
     name: str
 
     def measure(self, position: Array, geometry: Geometry, query: Query,

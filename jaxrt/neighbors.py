@@ -341,6 +341,7 @@ def neighbor_list(displacement_or_metric: Callable,
         else:
             sizes = _measure_masked(position, geometry, query, metric)
         capacity = _capacity(sizes, n, extra_capacity, query)
+        _check_list_size(search_backend, n, capacity, query)
         idx, overflow = build(position, geometry, metric, query=query,
                               capacity=capacity)
         code = jnp.where(overflow, jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
@@ -422,6 +423,25 @@ def neighbor_list(displacement_or_metric: Callable,
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
 
     return NeighborListFns(allocate, update)
+
+
+def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
+    """Refuse lists larger than the backend can index (never a crash or a
+    silently wrapped index): int32 indices address at most 2**31 - 1
+    entries, and Warp kernels compute byte offsets in 32-bit ints."""
+    limit = getattr(backend, "max_list_entries", 2 ** 31 - 1)
+    entries = {"idx": n * capacity.neighbors if query.format is Dense
+               else 2 * capacity.neighbors}
+    if "row" in dict(capacity.internal):
+        entries["rows before conversion"] = n * capacity["row"]
+    name, largest = max(entries.items(), key=lambda kv: kv[1])
+    if largest > limit:
+        raise ValueError(
+            f"the neighbour list needs {largest:,} int32 entries ({name}, N = "
+            f"{n:,}), more than backend={backend.name!r} can address "
+            f"({limit:,}). Use fewer particles or a smaller r_cutoff + "
+            "dr_threshold, OrderedSparse (half the edges of Sparse), or, for "
+            "the ray-traced backends, backend='cell'.")
 
 
 def _auto_backend() -> str:

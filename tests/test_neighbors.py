@@ -462,3 +462,24 @@ def test_free_space_needs_no_box():
     for box in (None, 0.0, 1.0):
         nbrs = jaxrt.neighbor_list(free, box, 1.0).allocate(R)
         assert list_pairs(nbrs) == brute_pairs(R, 1.0)
+
+
+def test_lists_beyond_what_the_backend_can_index_are_refused(monkeypatch):
+    # A Warp kernel computes byte offsets in 32-bit ints, so its outputs
+    # must stay below 2**29 int32 entries: a larger list must be refused at
+    # allocate with the fix, never written through a wrapped offset.
+    from jaxrt import backends
+    R = jnp.asarray(np.random.default_rng(0).uniform(0, 6, (200, 3)),
+                    jnp.float32)
+    disp, _ = space.periodic(6.0)
+    fns = jaxrt.neighbor_list(disp, 6.0, 1.5, backend="cell")
+    small = fns.allocate(R)
+    entries = int(np.prod(small.idx.shape))
+    monkeypatch.setattr(type(backends.get("cell")), "max_list_entries",
+                        entries - 1, raising=False)
+    with pytest.raises(ValueError, match="more than backend='cell' can "
+                       "address.*fewer particles"):
+        fns.allocate(R)
+    monkeypatch.setattr(type(backends.get("cell")), "max_list_entries",
+                        entries, raising=False)
+    assert fns.allocate(R).idx.shape == small.idx.shape

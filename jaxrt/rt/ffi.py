@@ -54,9 +54,12 @@ from jaxrt.rt._method import RTMethod
 MAX_KEPT_TREES = 8
 # vmap over more systems than this loops one call site instead of unrolling.
 MAX_UNROLLED_SYSTEMS = 16
-# Particles per BVH box for backend "bvh" by device kind, from
-# benchmarks/rt_neighbors.py (results/h100/rt_neighbors.csv): 1 is the
-# seed's box per particle.
+# Warp kernels compute byte offsets in 32-bit ints (warp/native/array.h):
+# an int32 output of 2**29 entries or more would wrap (seen as an illegal
+# address on the H100 at N = 8.4e6, k = 288).
+MAX_LIST_ENTRIES = 2 ** 29 - 1
+# Particles per BVH box for backend "bvh" by device kind: 1 is the seed's
+# box per particle, fastest in every measured case (rt_neighbors.py).
 DEFAULT_CLUSTER_SIZE = {"cpu": 1, "cuda": 1}
 
 Dense = NeighborListFormat.Dense
@@ -272,6 +275,8 @@ class AabbBackend:
         picks `DEFAULT_CLUSTER_SIZE` for the device the call runs on.
     """
 
+    max_list_entries = MAX_LIST_ENTRIES
+
     def __init__(self, name: str, *, sort: bool,
                  policy: aabb.RebuildPolicy = aabb.RebuildPolicy(),
                  cluster_size: int = 0):
@@ -364,6 +369,8 @@ class MethodBackend:
       name: the ``backend=`` name.
       method: the wrapped `RTMethod`.
     """
+
+    max_list_entries = MAX_LIST_ENTRIES
 
     def __init__(self, method: RTMethod, name: str):
         self.method = method
