@@ -225,17 +225,13 @@ def bench_scene(scene, n, repeats, rng, warp_device, jit_clusters=()):
 
     record("bvh jit Dense (rebuild)", bvh_jit(partition.Dense, device_sets, "rebuild"))
     # The same call with one BVH box per run of g sorted particles.
-    device_kind = "cuda" if str(warp_device).startswith("cuda") else "cpu"
-    default_cluster = ffi.DEFAULT_CLUSTER_SIZE[device_kind]
     for g in jit_clusters:
-        if g == default_cluster:
-            continue
-        ffi.DEFAULT_CLUSTER_SIZE[device_kind] = g
-        try:
-            record(f"bvh jit Dense (rebuild) cluster {g}",
-                   bvh_jit(partition.Dense, device_sets, "rebuild"))
-        finally:
-            ffi.DEFAULT_CLUSTER_SIZE[device_kind] = default_cluster
+        name = f"bvh-cluster{g}"
+        if name not in jaxrt.available_backends():
+            jaxrt.backends.register(name, lambda g=g, name=name: ffi.AabbBackend(
+                name, sort=True, cluster_size=g))
+        record(f"bvh jit Dense (rebuild) cluster {g}",
+               bvh_jit(partition.Dense, device_sets, "rebuild", backend=name))
     record("bvh jit Dense (refit)", bvh_jit(partition.Dense, refit_sets, "refit"))
     # Rebuilding on every call needs no drift read-back (no host stall).
     record("bvh jit Dense (always rebuild)",
@@ -385,7 +381,7 @@ def main(argv=None):
                         help="timed calls per row (>= 10 for reported numbers)")
     parser.add_argument("--jit-clusters", type=int, nargs="*", default=[8, 16],
                         help="cluster sizes to time through jax.jit besides "
-                             "the default (jaxrt.rt.ffi.DEFAULT_CLUSTER_SIZE)")
+                             "the default of 1 (the seed's box per particle)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")

@@ -793,25 +793,24 @@ def _ok(row) -> bool:
     return v not in (None, "") and not row.get("failed") and math.isfinite(float(v))
 
 
+# Prefix of a row's ``failed`` text -> its label on the plots, in order;
+# out-of-memory texts (any prefix, `is_oom`) rank after the skips.
+_SKIPS = (("skipped: not selected", "n/s"), ("skipped: N > --max-n", "N>max"),
+          ("skipped", "skip"))
+_FAILURES = (("timeout", "timeout"), ("killed", "killed"), ("crashed", "crash"))
+
+
 def short_reason(row) -> str:
     f = str(row.get("failed") or "")
     if not f:
         return ""
-    if f.startswith("skipped: not selected"):
-        return "n/s"
-    if f.startswith("skipped: N > --max-n"):
-        return "N>max"
-    if f.startswith("skipped"):
-        return "skip"
-    if f.startswith("out of memory") or is_oom(f):
-        return "OOM"
-    if f.startswith("timeout"):
-        return "timeout"
-    if f.startswith("killed"):
-        return "killed"
-    if f.startswith("crashed"):
-        return "crash"
-    return "fail"
+    label = next((lb for prefix, lb in _SKIPS if f.startswith(prefix)), None)
+    if label is None and (f.startswith("out of memory") or is_oom(f)):
+        label = "OOM"
+    if label is None:
+        label = next((lb for prefix, lb in _FAILURES if f.startswith(prefix)),
+                     "fail")
+    return label
 
 
 def add_speedups(rows: list[dict]) -> None:

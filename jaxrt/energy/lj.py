@@ -326,11 +326,6 @@ def lennard_jones_pair_neighbor_list(
                     f"{name} has shape {shape} but R has {n} particles: "
                     f"per-particle {name} must be (N,) or (N, N).")
 
-        def pair(dr, sigma, epsilon):
-            return lennard_jones_truncated(
-                dr, sigma, epsilon, r_onset=p["r_onset"],
-                r_cutoff=p["r_cutoff"], truncation=truncation)
-
         if (neighbor.format is partition.Dense and not per_particle
                 and gradient == "rows"):
             return dense_pair_energy(
@@ -339,6 +334,8 @@ def lennard_jones_pair_neighbor_list(
                  "r_onset": p["r_onset"], "r_cutoff": p["r_cutoff"]},
                 species, metric_kwargs)
 
+        pair = functools.partial(_PAIRS[truncation], r_onset=p["r_onset"],
+                                 r_cutoff=p["r_cutoff"])
         ordered = neighbor.format is partition.OrderedSparse
         if not per_particle:
             reduce_axis = None

@@ -58,9 +58,6 @@ MAX_UNROLLED_SYSTEMS = 16
 # an int32 output of 2**29 entries or more would wrap (seen as an illegal
 # address on the H100 at N = 8.4e6, k = 288).
 MAX_LIST_ENTRIES = 2 ** 29 - 1
-# Particles per BVH box for backend "bvh" by device kind: 1 is the seed's
-# box per particle, fastest in every measured case (rt_neighbors.py).
-DEFAULT_CLUSTER_SIZE = {"cpu": 1, "cuda": 1}
 
 Dense = NeighborListFormat.Dense
 OrderedSparse = NeighborListFormat.OrderedSparse
@@ -88,9 +85,6 @@ def forget_trees() -> None:
 def _tree(slot: int, n: int, vector, device, sort: bool,
           policy: aabb.RebuildPolicy, cluster: int) -> aabb.AabbSearch:
     """The BVH kept for ``slot`` (a fresh, unkept one for slot < 0)."""
-    if cluster == 0:  # the device's default
-        cluster = DEFAULT_CLUSTER_SIZE["cuda" if device.is_cuda else "cpu"]
-
     def new():
         return aabb.AabbSearch(n, vector, device, sort=sort, policy=policy,
                                cluster_size=cluster)
@@ -271,17 +265,18 @@ class AabbBackend:
       name: the ``backend=`` name.
       sort: Morton-sort particles at each build (the seed's sorted AABB).
       policy: when to rebuild rather than refit (`jaxrt.rt.aabb.RebuildPolicy`).
-      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 0
-        picks `DEFAULT_CLUSTER_SIZE` for the device the call runs on.
+      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 1,
+        the seed's box per particle, was the fastest in every measured case
+        (`benchmarks/rt_neighbors.py`).
     """
 
     max_list_entries = MAX_LIST_ENTRIES
 
     def __init__(self, name: str, *, sort: bool,
                  policy: aabb.RebuildPolicy = aabb.RebuildPolicy(),
-                 cluster_size: int = 0):
-        if int(cluster_size) < 0:
-            raise ValueError(f"cluster_size must be >= 0; got {cluster_size}.")
+                 cluster_size: int = 1):
+        if int(cluster_size) < 1:
+            raise ValueError(f"cluster_size must be >= 1; got {cluster_size}.")
         self.name = name
         self.sort = sort
         self.policy = policy
