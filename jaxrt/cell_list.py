@@ -1,20 +1,40 @@
 """Pure-JAX sorted cell list: the backend ``"cell"``, which runs wherever JAX runs.
 
-Particles are hashed to cells of side >= the search radius, sorted by cell
-key (x fastest), and each particle visits the neighbouring cells through
-*ranges of the sorted order*: the three cells ``x-1, x, x+1`` of one row are
-consecutive keys, so a 3D particle needs 9 contiguous ranges (2D: 3, 1D: 1),
-plus up to as many single-cell ranges where a periodic x row wraps around.
-Range ends are found by binary search on the sorted keys.
+Four passes, each a few large array programs, none of them a scatter over
+candidates (XLA's CPU scatter costs ~14 ns per element, more than all else
+a candidate needs):
 
-Memory is O(N·k): no buffer is sized by the number of cells (only keys are,
-and they are computed, never allocated), and each particle's candidates are
-visited in blocks of slots, ``(N, block)`` per step, never
-``N × 27 × cell capacity``.
-The cell grid is recomputed on every call from the box (periodic axes) or
-from the particles' bounding box (free axes), so a changing box or a
-wandering cloud never invalidates it; only the bound on one particle's
-candidates is static, and exceeding it sets the overflow flag.
+1. **Sort.** Particles are hashed to cells ``cutoff / 4`` wide along x and
+   ``cutoff`` wide across, and sorted by cell key, x fastest.
+2. **Runs.** The cells ``x-4 .. x+4`` of one stencil row ``(dy, dz)`` are
+   consecutive keys, so each row is one run of the sorted order (two where a
+   periodic x row wraps around): 9 runs in 3D, 3 in 2D, 1 in 1D. Their ends
+   come from a table of cell starts (or a binary search for sparse grids).
+   Finer x cells make a row ``2.25 cutoff`` long instead of ``3 cutoff``;
+   finer cells across would add rows.
+3. **Windows.** Each run is read as a window of ``W`` slots (``W`` static:
+   the longest run). Every slot gets a cheap distance test in the cell
+   list's own arithmetic (Cartesian, minimum image by rounding), which
+   sorts it into *sure* (below ``cutoff - tol``), *shell* (within ``tol``
+   of the cutoff) or out, as bits packed into uint32 words.
+4. **Decide and pack.** The caller's metric decides the shell pairs (a few
+   per hundred particles), which join the sure bits; then each particle's
+   set bits are left-packed into its row with gathers (`_select`).
+
+So every pair is decided as ``metric_sq(Ri, Rj) < cutoff**2`` with the
+caller's metric, bit for bit as jax-md decides, provided that metric is the
+Euclidean minimum-image distance up to ``tol`` (``2**-18`` of the cutoff
+plus 16 ulps of the largest coordinate), which the cell grid assumes anyway.
+The caller's metric is not used on every slot because jax-md's periodic
+wrap (a float ``mod``) is a scalar libm call on CPU: 20x the cheap test.
+
+Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
+``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
+``N × 27 × cell capacity`` candidate array. The grid is recomputed on every
+call from the box (periodic axes) or the particles' bounding box (free
+axes), so a changing box or a wandering cloud never invalidates it; ``W``
+and the shell buffer are the only static sizes, and exceeding either sets
+the overflow flag.
 """
 from __future__ import annotations
 
@@ -28,15 +48,24 @@ import numpy as np
 from jaxrt import backends
 from jaxrt.backends import Capacity, Geometry, MetricSq, Query
 
-# Cells are made this much wider than the search radius so that a particle
+# Cells are made this much wider than their minimum so that a particle
 # binned one cell off by rounding still has all its neighbours in the stencil.
 _CELL_MARGIN = 2.0 ** -10
-# Cells are at least cutoff / _REACH wide; the stencil spans _REACH cells
-# each way. Finer cells waste fewer candidates (2: 15.6 rc³ of volume per
-# particle instead of 27 rc³) at the price of more, shorter ranges.
-_REACH = 1
-# Candidate slots visited per step: memory (N, _BLOCK) per step.
-_BLOCK = 32
+# Stencil reach in cells: (along x, across). Cells are cutoff / reach wide.
+_REACH = (4, 1)
+# The cheap test's margin over the cutoff: relative, plus ulps of the
+# largest coordinate. The two metrics differ by a few ulps of the box side
+# (each rounds a difference, a wrap and a square); this is 4x that.
+_TOL_RELATIVE = 2.0 ** -18
+_TOL_ULPS = 16
+# The shell buffer (pairs within tol of the cutoff, which the caller's
+# metric decides: ~0.04 per particle in a float32 liquid) is twice the
+# largest shell seen at allocate, and at least this: its fullest particle
+# is a rare event, which must not overflow the list during a run.
+_MIN_SHELL = 4
+# Run ends come from a table of cell starts when the grid has at most this
+# many cells per particle, else from a binary search: O(N) memory either way.
+_TABLE_PER_PARTICLE = 4
 # Keys are int32: keep the (virtual) grid below 2**30 cells.
 _MAX_CELLS_PER_AXIS = {1: 2 ** 30, 2: 2 ** 15, 3: 2 ** 10}
 
@@ -47,15 +76,17 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
     Returns:
-      int32 ``(N, dim)`` cell coordinates and int32 ``(dim,)`` cells per axis.
+      float ``(N, dim)`` positions wrapped into ``[0, side)`` on periodic
+      axes; int32 ``(N, dim)`` cell coordinates; int32 ``(dim,)`` cells per
+      axis.
     """
     dim = query.dim
     max_cells = _MAX_CELLS_PER_AXIS[dim]
-    min_size = query.cutoff * (1.0 + _CELL_MARGIN) / _REACH
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
-    coords, counts = [], []
+    wrapped, coords, counts = [], [], []
     for a in range(dim):
+        min_size = query.cutoff * (1.0 + _CELL_MARGIN) / _REACH[a > 0]
         x = cart[:, a]
         if query.periodic[a]:
             side = geometry.side[a]
@@ -70,9 +101,11 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
             n = jnp.floor(extent / size) + 1
         n = n.astype(jnp.int32)
         c = jnp.floor((x - origin) / size).astype(jnp.int32)
+        wrapped.append(x)
         coords.append(jnp.clip(c, 0, n - 1))
         counts.append(n)
-    return jnp.stack(coords, axis=1), jnp.stack(counts)
+    return (jnp.stack(wrapped, axis=1), jnp.stack(coords, axis=1),
+            jnp.stack(counts))
 
 
 def _key(coord, n):
@@ -83,180 +116,395 @@ def _key(coord, n):
     return key
 
 
-def _distinct_offset(d: int, n):
-    """On a periodic axis of ``n`` cells, is offset ``d`` the first of
-    ``-REACH..REACH`` to name its cell? (Small boxes alias offsets.)"""
-    ok = jnp.ones((), bool)
-    for earlier in range(-_REACH, d):
-        ok &= jnp.mod(d - earlier, n) != 0
-    return ok
-
-
-def _ranges(sorted_key, cell, n, query: Query):
-    """Ranges of the sorted order that hold each particle's candidate cells.
+def _runs(sorted_key, cell, n, query: Query):
+    """Runs of the sorted order that hold each particle's candidate cells.
 
     Args:
       sorted_key: int32 ``(N,)`` ascending cell keys.
-      cell: int32 ``(N, dim)`` cell coordinates of the sorted particles.
+      cell: int32 ``(N, dim)`` cell coordinates of the particles.
       n: int32 ``(dim,)`` cells per axis.
     Returns:
-      ``(start, stop)``, each int32 ``(N, R)``: one range per row of cells
-      of the stencil, and when x is periodic one more per row for the cells
-      that wrap around (empty for most particles).
+      ``(start1, len1, start2, len2)``, each int32 ``(N, R)``, one column per
+      stencil row: the run of its cells and, when x is periodic, the run of
+      the cells that wrap around (empty for most particles).
     """
     dim = query.dim
-    starts, stops = [], []
-    cx, nx = cell[:, 0], n[0]
-    for offset in itertools.product(range(-_REACH, _REACH + 1), repeat=dim - 1):
-        other = []
-        valid = jnp.ones(cx.shape, bool)
-        for a, d in enumerate(offset, start=1):
-            c = cell[:, a] + d
-            if query.periodic[a]:
-                c = jnp.mod(c, n[a])
-                valid &= _distinct_offset(d, n[a])
-            else:
-                valid &= (c >= 0) & (c < n[a])
-            other.append(c)
-
-        def cells(lo, hi, valid):
-            first = _key(jnp.stack([lo] + other, axis=1), n)
-            last = _key(jnp.stack([hi] + other, axis=1), n)
-            start = jnp.searchsorted(sorted_key, first, side="left")
-            stop = jnp.searchsorted(sorted_key, last, side="right")
-            starts.append(jnp.where(valid, start, 0))
-            stops.append(jnp.where(valid, stop, 0))
-
-        lo, hi = cx - _REACH, cx + _REACH
-        if query.periodic[0]:
-            whole_row = nx <= 2 * _REACH + 1
-            cells(jnp.where(whole_row, 0, jnp.maximum(lo, 0)),
-                  jnp.where(whole_row, nx - 1, jnp.minimum(hi, nx - 1)), valid)
-            # The stencil pokes out of one end of the row: its cells wrap to
-            # a second contiguous run at the other end.
-            below = lo < 0
-            wraps = ~whole_row & (below | (hi >= nx))
-            cells(jnp.where(below, nx + lo, 0),
-                  jnp.where(below, nx - 1, hi - nx), valid & wraps)
+    rx, across = _REACH
+    # Stencil rows as arrays (one op per step, not per row: compile time).
+    offsets = np.array(list(itertools.product(range(-across, across + 1),
+                                              repeat=dim - 1)), np.int32)
+    offsets = offsets.reshape(len(offsets), dim - 1)  # (R, dim - 1)
+    valid = jnp.ones((cell.shape[0], len(offsets)), bool)
+    other = []
+    for a in range(1, dim):
+        d = offsets[:, a - 1]
+        c = cell[:, a:a + 1] + d
+        if query.periodic[a]:
+            c = jnp.mod(c, n[a])
+            # Small boxes alias offsets: keep the first to name each cell.
+            gap = np.arange(1, 2 * across + 1)  # d - e for earlier e
+            aliased = jnp.mod(gap, n[a]) == 0
+            first = jnp.stack([~jnp.any(aliased[:x + across])
+                               for x in range(-across, across + 1)])
+            valid &= first[d + across][None, :]
         else:
-            cells(jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1), valid)
-    start = jnp.stack(starts, axis=1).astype(jnp.int32)
-    stop = jnp.stack(stops, axis=1).astype(jnp.int32)
-    return start, stop
+            valid &= (c >= 0) & (c < n[a])
+        other.append(c)
+    base = jnp.zeros_like(valid, dtype=jnp.int32)
+    stride = n[0]
+    for a, c in enumerate(other, start=1):
+        base = base + c * stride
+        stride = stride * n[a]
+    cx, nx = cell[:, :1], n[0]
+    lo, hi = cx - rx, cx + rx
+    if query.periodic[0]:
+        whole_row = nx <= 2 * rx + 1
+        lo1 = jnp.where(whole_row, 0, jnp.maximum(lo, 0))
+        hi1 = jnp.where(whole_row, nx - 1, jnp.minimum(hi, nx - 1))
+        # The stencil pokes out of one end of the row: its cells wrap to a
+        # second contiguous run at the other end.
+        below = lo < 0
+        wraps = ~whole_row & (below | (hi >= nx))
+        lo2 = jnp.where(below, nx + lo, 0)
+        hi2 = jnp.where(below, nx - 1, hi - nx)
+    else:
+        lo1, hi1 = jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1)
+        lo2 = hi2 = wraps = jnp.zeros_like(lo)
+    keys = jnp.stack([base + lo1, base + hi1 + 1, base + lo2, base + hi2 + 1])
+    ends = _first_at_or_after(sorted_key, keys, n)
+    len1 = jnp.where(valid, ends[1] - ends[0], 0)
+    len2 = jnp.where(valid & wraps, ends[3] - ends[2], 0)
+    return ends[0], len1, ends[2], len2
+
+
+def _first_at_or_after(sorted_key, keys, n):
+    """How many sorted keys are below each of ``keys`` (int32, any shape).
+
+    A table of cell starts (one scatter-add of N, a cumsum, gathers) when
+    the grid has at most ``_TABLE_PER_PARTICLE`` cells per particle, else a
+    binary search (sparse clouds in free space).
+    """
+    size = _TABLE_PER_PARTICLE * sorted_key.shape[0] + 64
+    cells = jnp.prod(n.astype(jnp.float32))
+
+    def table(keys):
+        count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(
+            1, mode="drop")
+        start = jnp.concatenate([jnp.zeros((1,), jnp.int32),
+                                 jnp.cumsum(count, dtype=jnp.int32)])
+        return start[jnp.clip(keys, 0, size)]
+
+    def search(keys):
+        return jnp.searchsorted(sorted_key, keys, side="left").astype(
+            jnp.int32)
+
+    return jax.lax.cond(cells <= size - 1, table, search, keys)
 
 
 @functools.partial(jax.jit, static_argnames="query")
 def _sorted_system(position, geometry: Geometry, query: Query):
-    """Sort particles by cell. Returns int32 ``order`` ``(N,)`` (sorted
-    position -> caller's index) and the ``(N, R)`` candidate ranges."""
-    cart = position * geometry.scale
-    cell, n = _grid(cart, geometry, query)
-    key = _key(cell, n)
-    order = jnp.argsort(key).astype(jnp.int32)
-    start, stop = _ranges(key[order], cell[order], n, query)
-    return order, start, stop
-
-
-@functools.partial(jax.jit, static_argnames=("candidates", "row_width", "query"))
-def _visit(position, order, start, stop, metric_sq: MetricSq, *, candidates,
-           row_width, query: Query):
-    """Walk every particle's candidates and collect its neighbours.
-
-    The candidates of particle i are its ranges laid end to end; they are
-    visited in blocks of slots, so only their total (not every range) is
-    padded to a static width.
+    """Sort particles by cell.
 
     Args:
-      position: float ``(N, dim)`` positions in the caller's coordinates.
-      order: int32 ``(N,)`` sorted position -> caller's index.
-      start, stop: int32 ``(N, R)`` candidate ranges (sorted positions).
-      candidates: static bound on a particle's total number of candidates.
-      row_width: static width of the output rows.
+      position: float ``(N, dim)`` in the caller's coordinates.
     Returns:
-      rows int32 ``(N, row_width)`` in the caller's order (indices in the
-      caller's numbering, padded with N), exact counts int32 ``(N,)``,
-      counts of ``j < i`` int32 ``(N,)``, and whether some particle had more
-      candidates than ``candidates`` (bool scalar).
+      int32 ``order`` ``(N,)`` (sorted position -> caller's index); float
+      ``(N, dim)`` Cartesian positions wrapped into the box, in the caller's
+      order; and each particle's runs ``(start1, len1, start2, len2)``
+      (`_runs`), int32 ``(N, R)`` in the caller's order.
+    """
+    cart, cell, n = _grid(position * geometry.scale, geometry, query)
+    key = _key(cell, n)
+    # Ties in any order: rows are sets.
+    sorted_key, order = jax.lax.sort(
+        (key, jnp.arange(key.shape[0], dtype=jnp.int32)), num_keys=1,
+        is_stable=False)
+    return order, cart, _runs(sorted_key, cell, n, query)
+
+
+def _even_bits(x):
+    """The 16 even bits of each uint32, compacted into its low half."""
+    x = x & jnp.uint32(0x55555555)
+    x = (x | (x >> 1)) & jnp.uint32(0x33333333)
+    x = (x | (x >> 2)) & jnp.uint32(0x0F0F0F0F)
+    x = (x | (x >> 4)) & jnp.uint32(0x00FF00FF)
+    return (x | (x >> 8)) & jnp.uint32(0x0000FFFF)
+
+
+def _words(halves):
+    """uint32 ``(N, 2M)`` of 16-bit halves -> ``(N, M)`` 32-bit words."""
+    return halves[:, 0::2] | (halves[:, 1::2] << 16)
+
+
+def _pack_bits(flags):
+    """bool ``(N, 32 M)`` -> uint32 ``(N, M)``; slot ``s`` is bit ``s % 32``
+    of word ``s // 32``."""
+    n, width = flags.shape
+    bits = flags.reshape(n, width // 32, 32).astype(jnp.uint32)
+    return jnp.sum(bits << jnp.arange(32, dtype=jnp.uint32), axis=2,
+                   dtype=jnp.uint32)
+
+
+# _BIT_IN_BYTE[8 b + r]: position of the r-th set bit of byte b.
+_BIT_IN_BYTE = np.zeros((256, 8), np.int32)
+for _byte in range(256):
+    _bits = [b for b in range(8) if _byte >> b & 1]
+    _BIT_IN_BYTE[_byte, :len(_bits)] = _bits
+_BIT_IN_BYTE = _BIT_IN_BYTE.reshape(-1)
+
+
+def _popcount(x):
+    return jax.lax.population_count(x).astype(jnp.int32)
+
+
+def _select(words, width: int, payload, group: int):
+    """Left-pack set bits: where each particle's ``t``-th set bit is.
+
+    Args:
+      words: uint32 ``(N, M)``; bit ``b`` of word ``m`` is slot ``32 m + b``.
+      width: static number of output columns.
+      payload: int32 ``(N, M, P)``, per word, gathered along with it.
+      group: static, divides ``M``: words are searched a group at a time.
+    Returns:
+      int32 ``(N, width)`` bit ``b`` and int32 ``(N, width, P)`` the payload
+      of its word (both meaningless where invalid), bool ``(N, width)``
+      valid (``t < count``), int32 ``(N,)`` counts.
+    """
+    n, m = words.shape
+    popcount = _popcount(words)
+    # M is tens: an unrolled prefix sum beats XLA CPU's cumsum.
+    prefix = [popcount[:, 0]]
+    for c in range(1, m):
+        prefix.append(prefix[-1] + popcount[:, c])
+    inclusive = jnp.stack(prefix, axis=1)
+    count = prefix[-1]
+    t = jnp.arange(width, dtype=jnp.int32)[None, :]
+    # The word holding bit t is the number of inclusive prefixes <= t: found
+    # by compare-and-count over the groups' last prefixes, then within the
+    # group (fused compares beat a binary search of gathers).
+    groups = m // group
+    k = jnp.zeros((n, width), jnp.int32)
+    for c in range(group - 1, m - 1, group):
+        k = k + (inclusive[:, c:c + 1] <= t)
+    block = inclusive.reshape(n * groups, group)[
+        jnp.arange(n, dtype=jnp.int32)[:, None] * groups + k]
+    k = group * k + sum((block[..., c] <= t).astype(jnp.int32)
+                        for c in range(group - 1))
+    # One gather per output: the word, the bits before it, the payload.
+    table = jnp.concatenate([words.astype(jnp.int32)[..., None],
+                             (inclusive - popcount)[..., None], payload],
+                            axis=2).reshape(n * m, -1)
+    got = table[jnp.arange(n, dtype=jnp.int32)[:, None] * m + k]
+    word = got[..., 0].astype(jnp.uint32)
+    rank = t - got[..., 1]
+    # The rank-th set bit of the word: its byte, then a table.
+    below = [_popcount(word & jnp.uint32(mask))
+             for mask in (0xFF, 0xFFFF, 0xFFFFFF)]
+    byte = sum((rank >= c).astype(jnp.int32) for c in below)
+    rank = rank - jnp.where(byte == 0, 0, jnp.where(
+        byte == 1, below[0], jnp.where(byte == 2, below[1], below[2])))
+    value = (word >> (8 * byte).astype(jnp.uint32)) & jnp.uint32(0xFF)
+    bit = 8 * byte + jnp.asarray(_BIT_IN_BYTE)[value.astype(jnp.int32) * 8
+                                               + jnp.clip(rank, 0, 7)]
+    return bit, got[..., 2:], t < count[:, None], count
+
+
+def _slots(window: int) -> int:
+    """Slots per stencil row: whole words (a partial word breaks fusion)."""
+    return 32 * max(-(-window // 32), 1)
+
+
+def _tolerance(cart, geometry: Geometry, query: Query):
+    """Bound on |cheap distance - caller's distance| (float scalar)."""
+    scale = jnp.max(jnp.abs(cart), initial=0.0) + query.cutoff
+    if any(query.periodic):
+        scale = scale + jnp.max(jnp.where(jnp.asarray(query.periodic),
+                                          geometry.side, 0.0))
+    eps = jnp.finfo(cart.dtype).eps
+    return query.cutoff * _TOL_RELATIVE + _TOL_ULPS * eps * scale
+
+
+def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
+                     window: int):
+    """The cheap distance test on every slot of every stencil row's window.
+
+    Args:
+      cart: float ``(N, dim)`` wrapped Cartesian positions (caller's order).
+      order, runs: `_sorted_system`.
+    Returns:
+      uint32 ``(N, R · slots / 32)`` twice: the slots surely within the
+      cutoff, and the slots within ``tol`` of it (the shell); bit ``s`` of
+      row ``r`` is the run's ``s``-th particle.
+    """
+    n, dim = cart.shape
+    slots = _slots(window)
+    dtype = cart.dtype
+    tol = _tolerance(cart, geometry, query)
+    inner_sq = (jnp.maximum(query.cutoff - tol, 0.0) ** 2).astype(dtype)
+    outer_sq = ((query.cutoff + tol) ** 2).astype(dtype)
+    side = geometry.side.astype(dtype)
+    inverse_side = 1.0 / side
+    pad = jnp.zeros((dim, slots), dtype)
+    table = jnp.concatenate([pad, cart[order].T, pad], axis=1)
+    slot = jnp.arange(slots, dtype=jnp.int32)[None, :]
+    me = jnp.zeros((n,), jnp.int32).at[order].set(
+        jnp.arange(n, dtype=jnp.int32))[:, None]  # each particle's sorted index
+
+    def windows(first):  # float (N, dim, slots): slot s -> sorted first + s
+        return jax.vmap(lambda f: jax.lax.dynamic_slice(
+            table, (jnp.zeros_like(f), f + slots), (dim, slots)))(first)
+
+    def row(run):
+        first1, size1, first2, size2 = (x[:, None] for x in run)
+        near = windows(run[0])
+        if query.periodic[0]:
+            near = jnp.where((slot < size1)[:, None, :], near,
+                             windows(run[2] - run[1]))
+        d2 = jnp.zeros((n, slots), dtype)
+        for a in range(dim):
+            d = near[:, a, :] - cart[:, a:a + 1]
+            if query.periodic[a]:
+                d = d - side[a] * jnp.round(d * inverse_side[a])
+            d2 = d2 + d * d
+        inside = slot < size1 + size2
+        if query.mask_self:
+            j = jnp.where(slot < size1, first1 + slot, first2 + slot - size1)
+            inside &= j != me
+        sure = inside & (d2 < inner_sq)
+        shell = inside & ~sure & (d2 < outer_sq)
+        # One reduction for both flags (two over the same windows made XLA
+        # recompute the windows): slot b of 16 sets bit 2b if sure, 2b + 1
+        # if in the shell.
+        code = sure.astype(jnp.uint32) | (shell.astype(jnp.uint32) << 1)
+        code = code.reshape(n, slots // 16, 16)
+        return jnp.sum(code << (2 * jnp.arange(16, dtype=jnp.uint32)),
+                       axis=2, dtype=jnp.uint32)
+
+    start1, len1, start2, len2 = runs
+    # All stencil rows in one fused pass (a scan's in-place output update
+    # runs on one core).
+    pairs = jax.vmap(row)((start1.T, len1.T, start2.T, len2.T))
+    pairs = jnp.transpose(pairs, (1, 0, 2)).reshape(n, -1)
+    return _words(_even_bits(pairs)), _words(_even_bits(pairs >> 1))
+
+
+def _word_runs(runs, window: int):
+    """Per word, where its bits point: int32 ``(N, M, 3)`` = (sorted index
+    of bit 0 in the first run, bits in the first run, sorted index of bit 0
+    in the second run). Word m is part ``m % wpr`` of stencil row
+    ``m // wpr`` (a static layout)."""
+    start1, len1, start2, _ = runs
+    n, rows = start1.shape
+    wpr = _slots(window) // 32
+    offset = 32 * jnp.arange(wpr, dtype=jnp.int32)[None, None, :]
+
+    def per_word(x):  # (N, R) -> (N, R, wpr) by broadcasting, not gathers
+        return jnp.broadcast_to(x[:, :, None], (n, rows, wpr))
+
+    first1 = per_word(start1) + offset
+    limit = per_word(len1) - offset
+    first2 = per_word(start2 - len1) + offset
+    return jnp.stack([first1, limit, first2], axis=3).reshape(n, rows * wpr, 3)
+
+
+def _sorted_index(bit, word_run):
+    """Sorted index of ``bit`` of a word with `_word_runs` ``word_run``
+    (int32 ``(..., 3)``)."""
+    first1, limit, first2 = (word_run[..., c] for c in range(3))
+    return jnp.where(bit < limit, first1, first2) + bit
+
+
+@functools.partial(jax.jit, static_argnames=("window", "shell", "row_width",
+                                             "query"))
+def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
+           shell, row_width, query: Query):
+    """Every particle's neighbours, as the caller's metric decides.
+
+    Args:
+      position: float ``(N, dim)`` in the caller's coordinates.
+      window: static slots per stencil row (longest run).
+      shell: static most shell pairs of one particle.
+      row_width: static width of the output rows (0: only count).
+    Returns:
+      rows int32 ``(N, row_width)``, left-packed with neighbour indices,
+      padded with ``N``; counts int32 ``(N,)``, exact unless a buffer
+      overflowed; int32 ``(N,)`` shell pairs; and whether a run was longer
+      than ``window`` or a shell fuller than ``shell`` (bool scalar).
     """
     n = position.shape[0]
-    sorted_position = position[order]
-    cutoff_sq = jnp.asarray(query.cutoff ** 2, position.dtype)
-    pair_metric = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))
-    self_index = jnp.arange(n, dtype=jnp.int32)[:, None]
-    length = stop - start
-    end = jnp.cumsum(length, axis=1, dtype=jnp.int32)
-    total = end[:, -1]
-    shift = start - (end - length)  # slot -> sorted index, per range
-    block = min(_BLOCK, max(candidates, 1))
-    n_blocks = -(-candidates // block)
+    order, cart, runs = _sorted_system(position, geometry, query)
+    sure, maybe = _candidate_words(cart, order, runs, geometry, query, window)
+    word_runs = _word_runs(runs, window)
+    flat_word = jnp.arange(sure.size, dtype=jnp.int32).reshape(sure.shape)
 
-    def visit_block(b, carry):
-        rows, count, lower = carry
-        slot = b * block + jnp.arange(block, dtype=jnp.int32)[None, :]
-        r = jnp.sum(end[:, None, :] <= slot[:, :, None], axis=2,
-                    dtype=jnp.int32)
-        r = jnp.minimum(r, end.shape[1] - 1)
-        j = slot + jnp.take_along_axis(shift, r, axis=1)
-        inside = slot < total[:, None]
-        j = jnp.clip(j, 0, n - 1)
-        d2 = pair_metric(sorted_position, sorted_position[j])
-        keep = inside & (d2 < cutoff_sq)
-        if query.mask_self:
-            keep &= j != self_index
-        j_caller = order[j]
-        at = count[:, None] + jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
-        # Flat indices scatter faster than (row, column) pairs on CPU.
-        at = jnp.where(keep & (at < row_width), self_index * row_width + at,
-                       n * row_width)
-        rows = rows.at[at].set(j_caller, mode="drop")
-        count = count + jnp.sum(keep, axis=1, dtype=jnp.int32)
-        if row_width == 0:  # only measure() reads it (OrderedSparse sizing)
-            lower = lower + jnp.sum(keep & (j_caller < order[:, None]),
-                                    axis=1, dtype=jnp.int32)
-        return rows, count, lower
+    # The shell: the caller's metric decides, on a few pairs per particle,
+    # and the accepted ones join the sure bits.
+    payload = jnp.concatenate([word_runs, flat_word[..., None]], axis=2)
+    bit, got, valid, shell_count = _select(maybe, shell, payload,
+                                           _slots(window) // 32)
+    j = order[jnp.clip(_sorted_index(bit, got), 0, n - 1)]
+    d2 = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))(position,
+                                                           position[j])
+    accept = valid & (d2 < jnp.asarray(query.cutoff ** 2, position.dtype))
+    words = sure.reshape(-1).at[jnp.where(accept, got[..., 3], sure.size)].add(
+        jnp.uint32(1) << bit.astype(jnp.uint32), mode="drop").reshape(
+            sure.shape)
+    overflow = (jnp.any(runs[1] + runs[3] > window)
+                | jnp.any(shell_count > shell))
+    if row_width == 0:
+        count = jnp.sum(jax.lax.population_count(words), axis=1,
+                        dtype=jnp.int32)
+        return jnp.zeros((n, 0), jnp.int32), count, shell_count, overflow
 
-    rows = jnp.full((n * row_width,), n, jnp.int32)
-    zeros = jnp.zeros((n,), jnp.int32)
-    rows, count, lower = jax.lax.fori_loop(0, n_blocks, visit_block,
-                                           (rows, zeros, zeros))
-    rows = rows.reshape(n, row_width)
-    # Back to the caller's order.
-    rows = jnp.zeros_like(rows).at[order].set(rows)
-    count = zeros.at[order].set(count)
-    lower = zeros.at[order].set(lower)
-    return rows, count, lower, jnp.any(total > candidates)
+    bit, got, valid, count = _select(words, row_width, word_runs,
+                                     _slots(window) // 32)
+    j = jnp.clip(_sorted_index(bit, got), 0, n - 1)
+    rows = jnp.where(valid, order[j], n)
+    return rows, count, shell_count, overflow
 
 
 class CellList:
     """The sorted cell list as a `jaxrt.backends.Backend`.
 
-    Internal capacities: ``"candidates"`` (most candidates of one particle)
-    and ``"row"`` (width of the rows built before conversion to a Sparse
-    layout).
+    Internal capacities: ``"window"`` (longest run of one stencil row),
+    ``"shell"`` (most pairs of one particle that the caller's metric
+    decides) and ``"row"`` (width of the rows built before conversion to a
+    Sparse layout).
     """
 
     name = "cell"
 
     def measure(self, position, geometry, query, metric_sq):
-        order, start, stop = _sorted_system(position, geometry, query)
-        candidates = max(int(np.max(np.sum(stop - start, axis=1))), 1)
-        _, count, lower, _ = _visit(position, order, start, stop, metric_sq,
-                                    candidates=candidates, row_width=0,
-                                    query=query)
-        count, lower = np.asarray(count), np.asarray(lower)
-        ordered = query.format.name == "OrderedSparse"
-        return {"row": int(count.max(initial=0)),
-                "edges": int(lower.sum() if ordered else count.sum()),
-                "candidates": candidates}
+        _, _, (_, len1, _, len2) = _sorted_system(position, geometry, query)
+        window = max(int(np.max(len1 + len2, initial=0)), 1)
+        shell = _MIN_SHELL
+        while True:  # enough room to count every shell pair exactly
+            _, count, shell_count, _ = _visit(
+                position, geometry, metric_sq, window=window, shell=shell,
+                row_width=0, query=query)
+            fullest = int(np.max(shell_count, initial=0))
+            if fullest <= shell:
+                break
+            shell = 2 * fullest
+        count = np.asarray(count)
+        sizes = {"row": int(count.max(initial=0)), "window": window,
+                 "shell": max(2 * fullest, _MIN_SHELL)}
+        if query.format.name == "OrderedSparse":
+            rows, _, _, _ = _visit(position, geometry, metric_sq,
+                                   window=window, shell=shell,
+                                   row_width=max(sizes["row"], 1), query=query)
+            rows = np.asarray(rows)
+            sizes["edges"] = int(np.sum(rows < np.arange(len(rows))[:, None]))
+        else:
+            sizes["edges"] = int(count.sum())
+        return sizes
 
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
-        order, start, stop = _sorted_system(position, geometry, query)
-        rows, count, _, too_many = _visit(
-            position, order, start, stop, metric_sq,
-            candidates=capacity["candidates"], row_width=capacity["row"],
-            query=query)
+        rows, count, _, overflow = _visit(
+            position, geometry, metric_sq, window=capacity["window"],
+            shell=capacity["shell"], row_width=capacity["row"], query=query)
         result = backends.format_dense_rows(rows, count, query, capacity)
-        return result._replace(overflow=result.overflow | too_many)
+        return result._replace(overflow=result.overflow | overflow)
 
 
 backends.register("cell", CellList)

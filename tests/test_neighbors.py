@@ -314,28 +314,43 @@ def test_overflow_is_flagged_sticky_and_fixed_by_reallocation(fmt):
         fmt, brute_pairs(crowded, 1.2, side, True))
 
 
-def test_candidate_buffer_overflow_is_flagged():
-    """The cell list's internal candidate buffer overflowing is reported
-    even when the neighbour rows have room."""
+def test_cell_list_internal_buffer_overflow_is_flagged():
+    """The cell list's internal buffers (the longest stencil-row run and the
+    shell of pairs at the cutoff that the caller's metric decides)
+    overflowing is reported even when the neighbour rows have room."""
     from jaxrt import backends
     from jaxrt.backends import Capacity, Geometry, MetricSq, Query
     from jaxrt.neighbors import _metric_sq_fn
 
     side = 6.0
     disp, _ = space.periodic(side)
-    R = jax.random.uniform(jax.random.PRNGKey(16), (200, 3)) * side
     cell = backends.get("cell")
     query = Query(1.0, (True,) * 3, True, partition.Dense)
     geometry = Geometry(jnp.full(3, side), jnp.ones(3))
     metric = MetricSq(_metric_sq_fn(disp, 3))
-    sizes = cell.measure(R, geometry, query, metric)
-    roomy = dict(row=199)
-    ok = cell.search(R, geometry, query, Capacity(199, tuple(sorted(
-        {**roomy, "candidates": sizes["candidates"]}.items()))), metric)
-    short = cell.search(R, geometry, query, Capacity(199, tuple(sorted(
-        {**roomy, "candidates": sizes["candidates"] - 1}.items()))), metric)
-    assert not ok.overflow and short.overflow
-    assert int(ok.occupancy) == sizes["row"]
+    # A unit lattice at cutoff 1: six pairs of every particle lie exactly
+    # at the cutoff (the shell), none inside.
+    for R, shell_pairs in [
+            (jax.random.uniform(jax.random.PRNGKey(16), (200, 3)) * side,
+             None),
+            (jnp.asarray(lattice(6, 1.0)), 6)]:
+        sizes = cell.measure(R, geometry, query, metric)
+        if shell_pairs is not None:
+            assert sizes["shell"] >= shell_pairs
+        fits = dict(row=len(R) - 1, window=sizes["window"],
+                    shell=sizes["shell"])
+
+        def search(**change):
+            internal = tuple(sorted({**fits, **change}.items()))
+            return cell.search(R, geometry, query,
+                               Capacity(len(R) - 1, internal), metric)
+
+        ok = search()
+        assert not ok.overflow and int(ok.occupancy) == sizes["row"]
+        assert search(window=sizes["window"] - 1).overflow
+        if shell_pairs is not None:
+            assert search(shell=shell_pairs - 1).overflow
+            assert not search(shell=shell_pairs).overflow
 
 
 # --------------------------------------------------------------------------
