@@ -5,6 +5,7 @@
 # after bringing Warp and jax-md (../shared/gpu/README.md):
 #   bash benchmarks/run_h100.sh seed     # seed 001 §5 study (~9 min)
 #   bash benchmarks/run_h100.sh lists    # lists, RT sweep, MD steps (~7 min)
+#   bash benchmarks/run_h100.sh cell     # cell list vs jax-md and bvh (~8 min)
 set -uo pipefail
 OUT=${OUT:-benchmarks/results/h100}
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
@@ -25,5 +26,12 @@ case "${1:-}" in
       timeout 150 python benchmarks/md_step.py --n $n --repeats 5 --steps 20 \
         --only "${setups[@]}" --out "$OUT/md_step_$n.csv"
     done ;;
-  *) echo "usage: run_h100.sh seed|lists" >&2; exit 2 ;;
+  cell)
+    timeout 420 python benchmarks/neighbors.py --sizes 100000 1000000 \
+      --sphere-n 10000 --backends cell bvh --repeats 10 --timeout 120 \
+      --out "$OUT"
+    timeout 150 python benchmarks/md_step.py --n 1000000 --repeats 5 \
+      --steps 20 --only jax-md/Dense jaxrt:cell/Dense jaxrt:bvh/Dense \
+      --out "$OUT/md_step_cell_1e6.csv" ;;
+  *) echo "usage: run_h100.sh seed|lists|cell" >&2; exit 2 ;;
 esac

@@ -9,7 +9,8 @@ a candidate needs):
 2. **Runs.** The cells ``x-4 .. x+4`` of one stencil row ``(dy, dz)`` are
    consecutive keys, so each row is one run of the sorted order (two where a
    periodic x row wraps around): 9 runs in 3D, 3 in 2D, 1 in 1D. Their ends
-   come from a table of cell starts (or a binary search for sparse grids).
+   come from a table of cell starts (cells are coarsened where there would
+   be more than 4 per particle, so the table is O(N)).
    Finer x cells make a row ``2.25 cutoff`` long instead of ``3 cutoff``;
    finer cells across would add rows.
 3. **Windows.** Each run is read as a window of ``W`` slots (``W`` static:
@@ -63,15 +64,17 @@ _TOL_ULPS = 16
 # largest shell seen at allocate, and at least this: its fullest particle
 # is a rare event, which must not overflow the list during a run.
 _MIN_SHELL = 4
-# Run ends come from a table of cell starts when the grid has at most this
-# many cells per particle, else from a binary search: O(N) memory either way.
-_TABLE_PER_PARTICLE = 4
-# Keys are int32: keep the (virtual) grid below 2**30 cells.
-_MAX_CELLS_PER_AXIS = {1: 2 ** 30, 2: 2 ** 15, 3: 2 ** 10}
+# Cells are coarsened where the grid would have more than this many cells
+# per particle: the table of cell starts is O(N).
+_CELLS_PER_PARTICLE = 4
 
 
 def _grid(cart: jax.Array, geometry: Geometry, query: Query):
     """Cell coordinates of each particle.
+
+    Cells are as small as the stencil allows, unless that makes more than
+    ``_CELLS_PER_PARTICLE · N`` cells (sparse clouds, huge boxes): then all
+    are coarsened together until the cell-start table fits.
 
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
@@ -81,31 +84,31 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
       axis.
     """
     dim = query.dim
-    max_cells = _MAX_CELLS_PER_AXIS[dim]
+    budget = _table_size(cart.shape[0]) - 1
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
-    wrapped, coords, counts = [], [], []
-    for a in range(dim):
-        min_size = query.cutoff * (1.0 + _CELL_MARGIN) / _REACH[a > 0]
-        x = cart[:, a]
-        if query.periodic[a]:
-            side = geometry.side[a]
-            x = jnp.mod(x, side)
-            n = jnp.clip(jnp.floor(side / min_size), 1, max_cells)
-            size = side / n
-            origin = 0.0
-        else:
-            origin = jnp.min(x)
-            extent = jnp.max(x) - origin
-            size = jnp.maximum(min_size, extent / (max_cells - 1))
-            n = jnp.floor(extent / size) + 1
-        n = n.astype(jnp.int32)
-        c = jnp.floor((x - origin) / size).astype(jnp.int32)
-        wrapped.append(x)
-        coords.append(jnp.clip(c, 0, n - 1))
-        counts.append(n)
-    return (jnp.stack(wrapped, axis=1), jnp.stack(coords, axis=1),
-            jnp.stack(counts))
+    periodic = np.array(query.periodic)
+    wrapped = jnp.where(periodic, jnp.mod(cart, geometry.side.astype(
+        cart.dtype)), cart)
+    origin = jnp.where(periodic, 0.0, jnp.min(wrapped, axis=0))
+    extent = jnp.where(periodic, geometry.side,
+                       jnp.max(wrapped, axis=0) - origin)
+    min_size = query.cutoff * (1.0 + _CELL_MARGIN) / np.array(
+        [_REACH[a > 0] for a in range(dim)])
+
+    def cells(coarsen):  # float (dim,): cells per axis
+        size = min_size * coarsen
+        return jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
+                         jnp.floor(extent / size) + 1)
+
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.prod(cells(c)) > budget, lambda c: c * 1.25,
+        jnp.ones((), extent.dtype))
+    n = cells(coarsen)
+    size = jnp.where(periodic, extent / n, min_size * coarsen)
+    n = n.astype(jnp.int32)
+    coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
+    return wrapped, jnp.clip(coord, 0, n - 1), n
 
 
 def _key(coord, n):
@@ -140,7 +143,9 @@ def _runs(sorted_key, cell, n, query: Query):
         d = offsets[:, a - 1]
         c = cell[:, a:a + 1] + d
         if query.periodic[a]:
-            c = jnp.mod(c, n[a])
+            # |d| <= across < n or aliased away: one wrap (an integer mod
+            # per candidate cell costs 10x more).
+            c = jnp.where(c < 0, c + n[a], jnp.where(c >= n[a], c - n[a], c))
             # Small boxes alias offsets: keep the first to name each cell.
             gap = np.arange(1, 2 * across + 1)  # d - e for earlier e
             aliased = jnp.mod(gap, n[a]) == 0
@@ -170,35 +175,31 @@ def _runs(sorted_key, cell, n, query: Query):
     else:
         lo1, hi1 = jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1)
         lo2 = hi2 = wraps = jnp.zeros_like(lo)
-    keys = jnp.stack([base + lo1, base + hi1 + 1, base + lo2, base + hi2 + 1])
-    ends = _first_at_or_after(sorted_key, keys, n)
-    len1 = jnp.where(valid, ends[1] - ends[0], 0)
-    len2 = jnp.where(valid & wraps, ends[3] - ends[2], 0)
-    return ends[0], len1, ends[2], len2
+    keys = jnp.stack([base + lo1, base + hi1 + 1, base + lo2, base + hi2 + 1],
+                     axis=2)
+    # Materialised keys: computed inside the gather's loop they cost 6x.
+    keys = jax.lax.optimization_barrier(keys)
+    ends = _first_at_or_after(sorted_key, keys)
+    len1 = jnp.where(valid, ends[..., 1] - ends[..., 0], 0)
+    len2 = jnp.where(valid & wraps, ends[..., 3] - ends[..., 2], 0)
+    return ends[..., 0], len1, ends[..., 2], len2
 
 
-def _first_at_or_after(sorted_key, keys, n):
-    """How many sorted keys are below each of ``keys`` (int32, any shape).
+def _table_size(n: int) -> int:
+    return _CELLS_PER_PARTICLE * n + 64
 
-    A table of cell starts (one scatter-add of N, a cumsum, gathers) when
-    the grid has at most ``_TABLE_PER_PARTICLE`` cells per particle, else a
-    binary search (sparse clouds in free space).
-    """
-    size = _TABLE_PER_PARTICLE * sorted_key.shape[0] + 64
-    cells = jnp.prod(n.astype(jnp.float32))
 
-    def table(keys):
-        count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(
-            1, mode="drop")
-        start = jnp.concatenate([jnp.zeros((1,), jnp.int32),
-                                 jnp.cumsum(count, dtype=jnp.int32)])
-        return start[jnp.clip(keys, 0, size)]
-
-    def search(keys):
-        return jnp.searchsorted(sorted_key, keys, side="left").astype(
-            jnp.int32)
-
-    return jax.lax.cond(cells <= size - 1, table, search, keys)
+def _first_at_or_after(sorted_key, keys):
+    """How many sorted keys are below each of ``keys`` (int32, any shape),
+    from a table of cell starts: a scatter-add of N, a cumsum, gathers."""
+    size = _table_size(sorted_key.shape[0])
+    count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(1, mode="drop")
+    start = jnp.concatenate([jnp.zeros((1,), jnp.int32),
+                             jnp.cumsum(count, dtype=jnp.int32)])
+    # Materialised: fused into the gather, XLA recomputes the cumsum's last
+    # level per lookup.
+    start = jax.lax.optimization_barrier(start)
+    return start[jnp.clip(keys, 0, size)]
 
 
 @functools.partial(jax.jit, static_argnames="query")

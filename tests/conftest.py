@@ -1,0 +1,14 @@
+"""Test-suite settings.
+
+The suite compiles hundreds of small XLA programs and runs each once or a
+few times on tiny systems, so LLVM's optimisation passes cost far more than
+they save: the CPU backend is told not to run them (set before JAX starts;
+an ``XLA_FLAGS`` already in the environment wins). Semantics are unchanged
+(XLA's CPU backend does not enable fast-math either way), and every
+comparison with jax-md compiles both sides under the same flags.
+"""
+import os
+
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_backend_optimization_level=0").strip()
