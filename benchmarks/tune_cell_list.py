@@ -1,24 +1,38 @@
-"""Sweep the cell list's stencil reach and block width (module constants
-`jaxrt.cell_list._REACH`, `_BLOCK`) on a uniform scene; prints ms per update.
+"""Sweep the cell list's stencil reach (module constant
+`jaxrt.cell_list._REACH` = (reach along x, reach across)) on a uniform
+periodic scene (density 1, rc = 2.5); prints ms per Dense update (warm,
+median of 7) and the internal buffer sizes.
 
-    python benchmarks/tune_cell_list.py
+    python benchmarks/tune_cell_list.py [N ...]
 """
-import os, time, itertools, numpy as np, jax, jax.numpy as jnp
+import sys
+import time
+
+import jax
+import numpy as np
 from jax_md import space
-import jaxrt, jaxrt.cell_list as cl
-for N in (100000, 1000000):
-    L = N ** (1 / 3)
-    R = jax.random.uniform(jax.random.PRNGKey(0), (N, 3)) * L
-    disp, _ = space.periodic(L)
-    for reach, block in [(1, 32), (1, 128), (1, 600), (2, 64), (2, 256), (2, 400)]:
-        cl._REACH, cl._BLOCK = reach, block
+
+import jaxrt
+import jaxrt.cell_list as cl
+
+sizes = [int(a) for a in sys.argv[1:]] or [100_000]
+for n in sizes:
+    side = n ** (1 / 3)
+    R = jax.random.uniform(jax.random.PRNGKey(0), (n, 3)) * side
+    disp, _ = space.periodic(side)
+    for reach in [(1, 1), (2, 1), (4, 1), (8, 1)]:
+        cl._REACH = reach
         jax.clear_caches()
-        fns = jaxrt.neighbor_list(disp, L, 2.5)
-        nb = fns.allocate(R)
-        up = jax.jit(fns.update)
-        xs = [R + 1e-3 * i for i in range(3)]
-        for x in xs: up(x, nb).idx.block_until_ready()
-        ts = []
-        for i in range(10):
-            t = time.perf_counter(); up(xs[i % 3], nb).idx.block_until_ready(); ts.append(time.perf_counter() - t)
-        print(N, reach, block, dict(nb.cell_list_capacity.internal), f"{np.median(ts)*1e3:.2f} ms", flush=True)
+        fns = jaxrt.neighbor_list(disp, side, 2.5, backend="cell")
+        nbrs = fns.allocate(R)
+        update = jax.jit(fns.update)
+        inputs = [(R + 1e-3 * i) % side for i in range(3)]
+        for x in inputs:
+            update(x, nbrs).idx.block_until_ready()
+        times = []
+        for i in range(7):
+            t = time.perf_counter()
+            update(inputs[i % 3], nbrs).idx.block_until_ready()
+            times.append(time.perf_counter() - t)
+        print(n, reach, dict(nbrs.cell_list_capacity.internal),
+              f"{np.median(times) * 1e3:.1f} ms", flush=True)

@@ -88,8 +88,10 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
     periodic = np.array(query.periodic)
-    wrapped = jnp.where(periodic, jnp.mod(cart, geometry.side.astype(
-        cart.dtype)), cart)
+    # Free axes stay as they are (no wrap arithmetic where there is no box).
+    wrapped = jnp.stack([jnp.mod(cart[:, a], geometry.side[a].astype(
+        cart.dtype)) if query.periodic[a] else cart[:, a]
+        for a in range(dim)], axis=1)
     origin = jnp.where(periodic, 0.0, jnp.min(wrapped, axis=0))
     extent = jnp.where(periodic, geometry.side,
                        jnp.max(wrapped, axis=0) - origin)
@@ -423,14 +425,15 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
 
     Args:
       position: float ``(N, dim)`` in the caller's coordinates.
-      window: static slots per stencil row (longest run).
+      window: static slots per stencil row (longest run), rounded up to
+        whole 32-slot words.
       shell: static most shell pairs of one particle.
       row_width: static width of the output rows (0: only count).
     Returns:
       rows int32 ``(N, row_width)``, left-packed with neighbour indices,
       padded with ``N``; counts int32 ``(N,)``, exact unless a buffer
       overflowed; int32 ``(N,)`` shell pairs; and whether a run was longer
-      than ``window`` or a shell fuller than ``shell`` (bool scalar).
+      than the window or a shell fuller than ``shell`` (bool scalar).
     """
     n = position.shape[0]
     order, cart, runs = _sorted_system(position, geometry, query)
@@ -450,7 +453,8 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     words = sure.reshape(-1).at[jnp.where(accept, got[..., 3], sure.size)].add(
         jnp.uint32(1) << bit.astype(jnp.uint32), mode="drop").reshape(
             sure.shape)
-    overflow = (jnp.any(runs[1] + runs[3] > window)
+    # Runs may fill the window's whole words: its real size.
+    overflow = (jnp.any(runs[1] + runs[3] > _slots(window))
                 | jnp.any(shell_count > shell))
     if row_width == 0:
         count = jnp.sum(jax.lax.population_count(words), axis=1,

@@ -330,10 +330,12 @@ def test_cell_list_internal_buffer_overflow_is_flagged():
     metric = MetricSq(_metric_sq_fn(disp, 3))
     # A unit lattice at cutoff 1: six pairs of every particle lie exactly
     # at the cutoff (the shell), none inside.
-    for R, shell_pairs in [
-            (jax.random.uniform(jax.random.PRNGKey(16), (200, 3)) * side,
-             None),
-            (jnp.asarray(lattice(6, 1.0)), 6)]:
+    # A crowd of 40 near one point: a stencil-row run longer than one
+    # 32-slot window word.
+    uniform = jax.random.uniform(jax.random.PRNGKey(16), (200, 3)) * side
+    crowded = uniform.at[:40].set(uniform[0] + 1e-3 * jnp.arange(40)[:, None])
+    for R, shell_pairs in [(crowded, None),
+                           (jnp.asarray(lattice(6, 1.0)), 6)]:
         sizes = cell.measure(R, geometry, query, metric)
         if shell_pairs is not None:
             assert sizes["shell"] >= shell_pairs
@@ -347,7 +349,9 @@ def test_cell_list_internal_buffer_overflow_is_flagged():
 
         ok = search()
         assert not ok.overflow and int(ok.occupancy) == sizes["row"]
-        assert search(window=sizes["window"] - 1).overflow
+        if shell_pairs is None:
+            assert sizes["window"] > 32
+            assert search(window=32).overflow
         if shell_pairs is not None:
             assert search(shell=shell_pairs - 1).overflow
             assert not search(shell=shell_pairs).overflow
