@@ -239,15 +239,6 @@ def _words(halves):
     return halves[:, 0::2] | (halves[:, 1::2] << 16)
 
 
-def _pack_bits(flags):
-    """bool ``(N, 32 M)`` -> uint32 ``(N, M)``; slot ``s`` is bit ``s % 32``
-    of word ``s // 32``."""
-    n, width = flags.shape
-    bits = flags.reshape(n, width // 32, 32).astype(jnp.uint32)
-    return jnp.sum(bits << jnp.arange(32, dtype=jnp.uint32), axis=2,
-                   dtype=jnp.uint32)
-
-
 # _BIT_IN_BYTE[8 b + r]: position of the r-th set bit of byte b.
 _BIT_IN_BYTE = np.zeros((256, 8), np.int32)
 for _byte in range(256):
