@@ -179,8 +179,6 @@ def _runs(sorted_key, cell, n, query: Query):
         lo2 = hi2 = wraps = jnp.zeros_like(lo)
     keys = jnp.stack([base + lo1, base + hi1 + 1, base + lo2, base + hi2 + 1],
                      axis=2)
-    # Materialised keys: computed inside the gather's loop they cost 6x.
-    keys = jax.lax.optimization_barrier(keys)
     ends = _first_at_or_after(sorted_key, keys)
     len1 = jnp.where(valid, ends[..., 1] - ends[..., 0], 0)
     len2 = jnp.where(valid & wraps, ends[..., 3] - ends[..., 2], 0)
@@ -198,9 +196,6 @@ def _first_at_or_after(sorted_key, keys):
     count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(1, mode="drop")
     start = jnp.concatenate([jnp.zeros((1,), jnp.int32),
                              jnp.cumsum(count, dtype=jnp.int32)])
-    # Materialised: fused into the gather, XLA recomputes the cumsum's last
-    # level per lookup.
-    start = jax.lax.optimization_barrier(start)
     return start[jnp.clip(keys, 0, size)]
 
 
