@@ -64,6 +64,8 @@ _TOL_ULPS = 16
 # largest shell seen at allocate, and at least this: its fullest particle
 # is a rare event, which must not overflow the list during a run.
 _MIN_SHELL = 4
+# Prefix sums over at most this many words per particle are a matrix product.
+_MATMUL_PREFIX = 64
 # Cells are coarsened where the grid would have more than this many cells
 # per particle: the table of cell starts is O(N).
 _CELLS_PER_PARTICLE = 4
@@ -261,12 +263,8 @@ def _select(words, width: int, payload, group: int):
     """
     n, m = words.shape
     popcount = _popcount(words)
-    # M is tens: an unrolled prefix sum beats XLA CPU's cumsum.
-    prefix = [popcount[:, 0]]
-    for c in range(1, m):
-        prefix.append(prefix[-1] + popcount[:, c])
-    inclusive = jnp.stack(prefix, axis=1)
-    count = prefix[-1]
+    inclusive = _prefix(popcount)
+    count = inclusive[:, -1]
     t = jnp.arange(width, dtype=jnp.int32)[None, :]
     # The word holding bit t is the number of inclusive prefixes <= t: found
     # by compare-and-count over the groups' last prefixes, then within the
@@ -296,6 +294,23 @@ def _select(words, width: int, payload, group: int):
     bit = 8 * byte + jnp.asarray(_BIT_IN_BYTE)[value.astype(jnp.int32) * 8
                                                + jnp.clip(rank, 0, 7)]
     return bit, got[..., 2:], t < count[:, None], count
+
+
+def _prefix(x):
+    """Inclusive prefix sums along axis 1 of int32 ``(N, M)``, M small.
+
+    Up to `_MATMUL_PREFIX` columns: one matrix product, exact (float32
+    sums of at most M * 32 < 2**24). An unrolled chain of adds compiled
+    into one XLA fusion per column and took twice the compile time; XLA's
+    cumsum ran slower. Wider (clustered scenes' long windows): a log-depth
+    scan, as the product costs M**2 per row.
+    """
+    m = x.shape[1]
+    if m > _MATMUL_PREFIX:
+        return jax.lax.associative_scan(jnp.add, x, axis=1)
+    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32)))
+    return jnp.dot(x.astype(jnp.float32), upper,
+                   precision=jax.lax.Precision.HIGHEST).astype(jnp.int32)
 
 
 def _slots(window: int) -> int:
@@ -357,8 +372,13 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
             d2 = d2 + d * d
         inside = slot < size1 + size2
         if query.mask_self:
-            j = jnp.where(slot < size1, first1 + slot, first2 + slot - size1)
-            inside &= j != me
+            # The particle's own slot, a scalar per row (a per-slot index
+            # made XLA GPU write a slot < size1 mask to memory: 0.2 ms of
+            # 9.7 at N = 1e6).
+            own1, own2 = me - first1, me - first2
+            own = jnp.where((own1 >= 0) & (own1 < size1), own1, jnp.where(
+                (own2 >= 0) & (own2 < size2), size1 + own2, -1))
+            inside &= slot != own
         sure = inside & (d2 < inner_sq)
         shell = inside & ~sure & (d2 < outer_sq)
         # One reduction for both flags (two over the same windows made XLA

@@ -314,6 +314,19 @@ def test_overflow_is_flagged_sticky_and_fixed_by_reallocation(fmt):
         fmt, brute_pairs(crowded, 1.2, side, True))
 
 
+@pytest.mark.parametrize("words", [1, 27, 64, 65, 300])
+def test_cell_list_prefix_sums_are_exact(words):
+    # Both ways (matrix product up to 64 words, scan beyond) against numpy,
+    # at the largest counts a word can hold.
+    from jaxrt import cell_list
+    rng = np.random.default_rng(words)
+    counts = rng.integers(0, 33, size=(7, words)).astype(np.int32)
+    counts[0] = 32
+    got = np.asarray(cell_list._prefix(jnp.asarray(counts)))
+    assert got.dtype == np.int32
+    np.testing.assert_array_equal(got, np.cumsum(counts, axis=1))
+
+
 def test_cell_list_internal_buffer_overflow_is_flagged():
     """The cell list's internal buffers (the longest stencil-row run and the
     shell of pairs at the cutoff that the caller's metric decides)
