@@ -34,8 +34,8 @@ Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``N × 27 × cell capacity`` candidate array. The grid is recomputed on every
 call from the box (periodic axes) or the particles' bounding box (free
 axes), so a changing box or a wandering cloud never invalidates it; ``W``
-and the shell buffer are the only static sizes, and exceeding either sets
-the overflow flag.
+and the two shell buffers are the only static sizes, and exceeding any
+sets the overflow flag.
 """
 from __future__ import annotations
 
@@ -66,6 +66,15 @@ _TOL_ULPS = 16
 _MIN_SHELL = 4
 # Prefix sums over at most this many words per particle are a matrix product.
 _MATMUL_PREFIX = 64
+# Particles whose shell pairs are decided: twice as many as had one at
+# allocate, and at least this many (capped at N).
+_MIN_SHELL_ROWS = 64
+
+
+def _shell_rows(measured: int, n: int) -> int:
+    return min(max(2 * measured, _MIN_SHELL_ROWS), n)
+
+
 # Cells are coarsened where the grid would have more than this many cells
 # per particle: the table of cell starts is O(N).
 _CELLS_PER_PARTICLE = 4
@@ -423,10 +432,10 @@ def _sorted_index(bit, word_run):
     return jnp.where(bit < limit, first1, first2) + bit
 
 
-@functools.partial(jax.jit, static_argnames=("window", "shell", "row_width",
-                                             "query"))
+@functools.partial(jax.jit, static_argnames=("window", "shell", "shell_rows",
+                                             "row_width", "query"))
 def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
-           shell, row_width, query: Query):
+           shell, shell_rows, row_width, query: Query):
     """Every particle's neighbours, as the caller's metric decides.
 
     Args:
@@ -434,34 +443,45 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
       window: static slots per stencil row (longest run), rounded up to
         whole 32-slot words.
       shell: static most shell pairs of one particle.
+      shell_rows: static most particles with a shell pair.
       row_width: static width of the output rows (0: only count).
     Returns:
       rows int32 ``(N, row_width)``, left-packed with neighbour indices,
       padded with ``N``; counts int32 ``(N,)``, exact unless a buffer
-      overflowed; int32 ``(N,)`` shell pairs; and whether a run was longer
-      than the window or a shell fuller than ``shell`` (bool scalar).
+      overflowed; int32 ``(2,)`` the particles with a shell pair and the
+      most shell pairs of one; and whether a run was longer than the window
+      or a shell buffer too small (bool scalar).
     """
     n = position.shape[0]
     order, cart, runs = _sorted_system(position, geometry, query)
     sure, maybe = _candidate_words(cart, order, runs, geometry, query, window)
     word_runs = _word_runs(runs, window)
-    flat_word = jnp.arange(sure.size, dtype=jnp.int32).reshape(sure.shape)
+    m = sure.shape[1]
 
-    # The shell: the caller's metric decides, on a few pairs per particle,
-    # and the accepted ones join the sure bits.
-    payload = jnp.concatenate([word_runs, flat_word[..., None]], axis=2)
-    bit, got, valid, shell_count = _select(maybe, shell, payload,
-                                           _slots(window) // 32)
+    # The shell: the caller's metric decides the pairs of the few particles
+    # that have any (a few in a hundred), gathered first so that the search
+    # for their bits and the metric run on them only.
+    has_shell = jnp.any(maybe != 0, axis=1)
+    (at,) = jnp.nonzero(has_shell, size=shell_rows, fill_value=n)
+    real = at < n
+    at = jnp.minimum(at, n - 1)
+    flat_word = at[:, None] * m + jnp.arange(m, dtype=jnp.int32)[None, :]
+    payload = jnp.concatenate([word_runs[at], flat_word[..., None]], axis=2)
+    bit, got, valid, shell_count = _select(
+        jnp.where(real[:, None], maybe[at], jnp.uint32(0)), shell, payload,
+        _slots(window) // 32)
     j = order[jnp.clip(_sorted_index(bit, got), 0, n - 1)]
-    d2 = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))(position,
+    d2 = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))(position[at],
                                                            position[j])
     accept = valid & (d2 < jnp.asarray(query.cutoff ** 2, position.dtype))
     words = sure.reshape(-1).at[jnp.where(accept, got[..., 3], sure.size)].add(
         jnp.uint32(1) << bit.astype(jnp.uint32), mode="drop").reshape(
             sure.shape)
+    shell_count = jnp.stack([jnp.sum(has_shell, dtype=jnp.int32),
+                             jnp.max(shell_count, initial=0)])
     # Runs may fill the window's whole words: its real size.
     overflow = (jnp.any(runs[1] + runs[3] > _slots(window))
-                | jnp.any(shell_count > shell))
+                | (shell_count[0] > shell_rows) | (shell_count[1] > shell))
     if row_width == 0:
         count = jnp.sum(jax.lax.population_count(words), axis=1,
                         dtype=jnp.int32)
@@ -479,30 +499,36 @@ class CellList:
 
     Internal capacities: ``"window"`` (longest run of one stencil row),
     ``"shell"`` (most pairs of one particle that the caller's metric
-    decides) and ``"row"`` (width of the rows built before conversion to a
-    Sparse layout).
+    decides), ``"shell_rows"`` (most particles with such pairs) and
+    ``"row"`` (width of the rows built before conversion to a Sparse
+    layout).
     """
 
     name = "cell"
 
     def measure(self, position, geometry, query, metric_sq):
         _, _, (_, len1, _, len2) = _sorted_system(position, geometry, query)
+        n = position.shape[0]
         window = max(int(np.max(len1 + len2, initial=0)), 1)
-        shell = _MIN_SHELL
+        # A first guess that fits liquids (a few in a hundred have a shell).
+        shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
         while True:  # enough room to count every shell pair exactly
-            _, count, shell_count, _ = _visit(
+            _, count, (has, fullest), _ = _visit(
                 position, geometry, metric_sq, window=window, shell=shell,
-                row_width=0, query=query)
-            fullest = int(np.max(shell_count, initial=0))
-            if fullest <= shell:
+                shell_rows=shell_rows, row_width=0, query=query)
+            has, fullest = int(has), int(fullest)
+            if has <= shell_rows and fullest <= shell:
                 break
-            shell = 2 * fullest
+            shell = max(shell, 2 * fullest)
+            shell_rows = max(shell_rows, _shell_rows(has, n))
         count = np.asarray(count)
         sizes = {"row": int(count.max(initial=0)), "window": window,
-                 "shell": max(2 * fullest, _MIN_SHELL)}
+                 "shell": max(2 * fullest, _MIN_SHELL),
+                 "shell_rows": _shell_rows(has, n)}
         if query.format.name == "OrderedSparse":
             rows, _, _, _ = _visit(position, geometry, metric_sq,
                                    window=window, shell=shell,
+                                   shell_rows=shell_rows,
                                    row_width=max(sizes["row"], 1), query=query)
             rows = np.asarray(rows)
             sizes["edges"] = int(np.sum(rows < np.arange(len(rows))[:, None]))
@@ -513,7 +539,8 @@ class CellList:
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
         rows, count, _, overflow = _visit(
             position, geometry, metric_sq, window=capacity["window"],
-            shell=capacity["shell"], row_width=capacity["row"], query=query)
+            shell=capacity["shell"], shell_rows=capacity["shell_rows"],
+            row_width=capacity["row"], query=query)
         result = backends.format_dense_rows(rows, count, query, capacity)
         return result._replace(overflow=result.overflow | overflow)
 

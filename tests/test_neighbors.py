@@ -328,9 +328,10 @@ def test_cell_list_prefix_sums_are_exact(words):
 
 
 def test_cell_list_internal_buffer_overflow_is_flagged():
-    """The cell list's internal buffers (the longest stencil-row run and the
-    shell of pairs at the cutoff that the caller's metric decides)
-    overflowing is reported even when the neighbour rows have room."""
+    """The cell list's internal buffers (the longest stencil-row run, the
+    shell of pairs at the cutoff that the caller's metric decides, and the
+    particles that have such pairs) overflowing is reported even when the
+    neighbour rows have room."""
     from jaxrt import backends
     from jaxrt.backends import Capacity, Geometry, MetricSq, Query
     from jaxrt.neighbors import _metric_sq_fn
@@ -353,7 +354,7 @@ def test_cell_list_internal_buffer_overflow_is_flagged():
         if shell_pairs is not None:
             assert sizes["shell"] >= shell_pairs
         fits = dict(row=len(R) - 1, window=sizes["window"],
-                    shell=sizes["shell"])
+                    shell=sizes["shell"], shell_rows=sizes["shell_rows"])
 
         def search(**change):
             internal = tuple(sorted({**fits, **change}.items()))
@@ -368,6 +369,9 @@ def test_cell_list_internal_buffer_overflow_is_flagged():
         if shell_pairs is not None:
             assert search(shell=shell_pairs - 1).overflow
             assert not search(shell=shell_pairs).overflow
+            # every lattice particle has shell pairs
+            assert sizes["shell_rows"] == len(R)
+            assert search(shell_rows=len(R) - 1).overflow
 
 
 # --------------------------------------------------------------------------
