@@ -455,7 +455,6 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     n = position.shape[0]
     order, cart, runs = _sorted_system(position, geometry, query)
     sure, maybe = _candidate_words(cart, order, runs, geometry, query, window)
-    word_runs = _word_runs(runs, window)
     m = sure.shape[1]
 
     # The shell: the caller's metric decides the pairs of the few particles
@@ -466,7 +465,10 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     real = at < n
     at = jnp.minimum(at, n - 1)
     flat_word = at[:, None] * m + jnp.arange(m, dtype=jnp.int32)[None, :]
-    payload = jnp.concatenate([word_runs[at], flat_word[..., None]], axis=2)
+    # Their runs are gathered, not their words' (the per-word table is then
+    # used once, and XLA builds it inside the row packing's table).
+    payload = jnp.concatenate([_word_runs([r[at] for r in runs], window),
+                               flat_word[..., None]], axis=2)
     bit, got, valid, shell_count = _select(
         jnp.where(real[:, None], maybe[at], jnp.uint32(0)), shell, payload,
         _slots(window) // 32)
@@ -487,6 +489,7 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
                         dtype=jnp.int32)
         return jnp.zeros((n, 0), jnp.int32), count, shell_count, overflow
 
+    word_runs = _word_runs(runs, window)
     bit, got, valid, count = _select(words, row_width, word_runs,
                                      _slots(window) // 32)
     j = jnp.clip(_sorted_index(bit, got), 0, n - 1)
