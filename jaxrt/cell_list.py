@@ -188,26 +188,46 @@ def _runs(sorted_key, cell, n, query: Query):
     else:
         lo1, hi1 = jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1)
         lo2 = hi2 = wraps = jnp.zeros_like(lo)
-    keys = jnp.stack([base + lo1, base + hi1 + 1, base + lo2, base + hi2 + 1],
-                     axis=2)
-    ends = _first_at_or_after(sorted_key, keys)
-    len1 = jnp.where(valid, ends[..., 1] - ends[..., 0], 0)
-    len2 = jnp.where(valid & wraps, ends[..., 3] - ends[..., 2], 0)
-    return ends[..., 0], len1, ends[..., 2], len2
+    start = _cell_starts(sorted_key)
+    start1, end1 = _run_ends(start, base + lo1, hi1 - lo1)
+    start2, end2 = _run_ends(start, base + lo2, hi2 - lo2)
+    len1 = jnp.where(valid, end1 - start1, 0)
+    len2 = jnp.where(valid & wraps, end2 - start2, 0)
+    return start1, len1, start2, len2
 
 
 def _table_size(n: int) -> int:
     return _CELLS_PER_PARTICLE * n + 64
 
 
-def _first_at_or_after(sorted_key, keys):
-    """How many sorted keys are below each of ``keys`` (int32, any shape),
-    from a table of cell starts: a scatter-add of N, a cumsum, gathers."""
+# A stencil row spans at most this many cells along x (and its wrapped
+# part fewer), plus one for the end of the run.
+_RUN_SPAN = 2 * _REACH[0] + 2
+
+
+def _cell_starts(sorted_key):
+    """int32 ``(table + 1 + _RUN_SPAN,)``: how many sorted keys are below
+    each cell key (a scatter-add of N and a cumsum), padded at the end so
+    that a run's slice never leaves the table."""
     size = _table_size(sorted_key.shape[0])
     count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(1, mode="drop")
-    start = jnp.concatenate([jnp.zeros((1,), jnp.int32),
-                             jnp.cumsum(count, dtype=jnp.int32)])
-    return start[jnp.clip(keys, 0, size)]
+    total = jnp.full((_RUN_SPAN,), sorted_key.shape[0], jnp.int32)
+    return jnp.concatenate([jnp.zeros((1,), jnp.int32),
+                            jnp.cumsum(count, dtype=jnp.int32), total])
+
+
+def _run_ends(start, first, extra):
+    """Sorted positions where the run of cells ``first .. first + extra``
+    begins and ends (int32, any shape; ``extra < _RUN_SPAN``, negative for
+    an empty run). One slice of the table per run: half the gathers of
+    looking up both ends (XLA CPU gathers cost ~10 ns per index)."""
+    size = start.shape[0] - _RUN_SPAN
+    first = jnp.clip(first, 0, size)
+    span = jax.vmap(lambda f: jax.lax.dynamic_slice(start, (f,), (_RUN_SPAN,)))(
+        first.reshape(-1)).reshape(first.shape + (_RUN_SPAN,))
+    last = jnp.clip(extra + 1, 0, _RUN_SPAN - 1)[..., None]
+    at = jnp.arange(_RUN_SPAN, dtype=jnp.int32)
+    return span[..., 0], jnp.sum(jnp.where(at == last, span, 0), axis=-1)
 
 
 @functools.partial(jax.jit, static_argnames="query")
