@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -67,7 +68,8 @@ _MIN_SHELL = 4
 # Prefix sums over at most this many words per particle are a matrix product.
 _MATMUL_PREFIX = 64
 # Particles whose shell pairs are decided: twice as many as had one at
-# allocate, and at least this many (capped at N).
+# allocate (or would have in a liquid, `CellList.measure`), and at least
+# this many (capped at N).
 _MIN_SHELL_ROWS = 64
 
 
@@ -530,7 +532,7 @@ class CellList:
     name = "cell"
 
     def measure(self, position, geometry, query, metric_sq):
-        _, _, (_, len1, _, len2) = _sorted_system(position, geometry, query)
+        _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
         window = max(int(np.max(len1 + len2, initial=0)), 1)
         # A first guess that fits liquids (a few in a hundred have a shell).
@@ -545,9 +547,16 @@ class CellList:
             shell = max(shell, 2 * fullest)
             shell_rows = max(shell_rows, _shell_rows(has, n))
         count = np.asarray(count)
+        # A lattice at allocate may have no pair near the cutoff, and a
+        # liquid a few per hundred particles: expect the liquid's share,
+        # from the pairs found (they grow as r**dim, so a shell of width
+        # 2 tol holds 2 dim tol / cutoff of them).
+        tol = float(_tolerance(cart, geometry, query))
+        per_particle = count.mean() * 2 * query.dim * tol / query.cutoff
+        liquid = math.ceil(n * -math.expm1(-per_particle))
         sizes = {"row": int(count.max(initial=0)), "window": window,
                  "shell": max(2 * fullest, _MIN_SHELL),
-                 "shell_rows": _shell_rows(has, n)}
+                 "shell_rows": _shell_rows(max(has, liquid), n)}
         if query.format.name == "OrderedSparse":
             rows, _, _, _ = _visit(position, geometry, metric_sq,
                                    window=window, shell=shell,

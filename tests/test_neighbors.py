@@ -327,6 +327,25 @@ def test_cell_list_prefix_sums_are_exact(words):
     np.testing.assert_array_equal(got, np.cumsum(counts, axis=1))
 
 
+def test_cell_list_allocated_on_a_lattice_survives_melting():
+    # No lattice distance lies near the cutoff, so no particle has a pair
+    # in the shell at allocate; once the lattice is shaken a few percent
+    # do, and the shell buffers sized at allocate must hold them.
+    # Large enough that a hundred or so particles then have one.
+    n_side, spacing, cutoff = 22, 1.0, 2.5 * (1 + 2 ** -6)
+    side = n_side * spacing
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, cutoff, backend="cell")
+    R = jnp.asarray(lattice(n_side, spacing), jnp.float32)
+    nbrs = fns.allocate(R)
+    shaken = jnp.mod(R + 0.2 * jax.random.normal(jax.random.PRNGKey(3), R.shape),
+                     side)
+    nbrs = jax.jit(fns.update)(shaken, nbrs)
+    assert not nbrs.did_buffer_overflow
+    reference = partition.neighbor_list(disp, side, cutoff).allocate(shaken)
+    assert list_pairs(nbrs) == list_pairs(reference)
+
+
 def test_cell_list_internal_buffer_overflow_is_flagged():
     """The cell list's internal buffers (the longest stencil-row run, the
     shell of pairs at the cutoff that the caller's metric decides, and the
