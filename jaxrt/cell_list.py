@@ -428,6 +428,17 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     return _words(_even_bits(pairs)), _words(_even_bits(pairs >> 1))
 
 
+def _first_true(mask, size: int):
+    """int32 ``(size,)``: the indices of the first ``size`` True entries of
+    bool ``(N,)`` ``mask``, ascending, padded with N (a cumsum and a
+    scatter of N; `jnp.nonzero`'s integer remainder would put a ``rem`` in
+    free-space programs, which must have no periodic-image work)."""
+    n = mask.shape[0]
+    rank = jnp.cumsum(mask, dtype=jnp.int32) - 1
+    return jnp.full((size,), n, jnp.int32).at[jnp.where(mask, rank, size)].set(
+        jnp.arange(n, dtype=jnp.int32), mode="drop")
+
+
 def _word_runs(runs, window: int):
     """Per word, where its bits point: int32 ``(N, M, 3)`` = (sorted index
     of bit 0 in the first run, bits in the first run, sorted index of bit 0
@@ -483,7 +494,7 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     # that have any (a few in a hundred), gathered first so that the search
     # for their bits and the metric run on them only.
     has_shell = jnp.any(maybe != 0, axis=1)
-    (at,) = jnp.nonzero(has_shell, size=shell_rows, fill_value=n)
+    at = _first_true(has_shell, shell_rows)
     real = at < n
     at = jnp.minimum(at, n - 1)
     flat_word = at[:, None] * m + jnp.arange(m, dtype=jnp.int32)[None, :]
