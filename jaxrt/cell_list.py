@@ -502,7 +502,7 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     # used once, and XLA builds it inside the row packing's table).
     payload = jnp.concatenate([_word_runs([r[at] for r in runs], window),
                                flat_word[..., None]], axis=2)
-    bit, got, valid, shell_count = _select(
+    bit, got, valid, per_particle = _select(
         jnp.where(real[:, None], maybe[at], jnp.uint32(0)), shell, payload,
         _slots(window) // 32)
     j = order[jnp.clip(_sorted_index(bit, got), 0, n - 1)]
@@ -512,22 +512,22 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     words = sure.reshape(-1).at[jnp.where(accept, got[..., 3], sure.size)].add(
         jnp.uint32(1) << bit.astype(jnp.uint32), mode="drop").reshape(
             sure.shape)
-    shell_count = jnp.stack([jnp.sum(has_shell, dtype=jnp.int32),
-                             jnp.max(shell_count, initial=0)])
+    shell_sizes = jnp.stack([jnp.sum(has_shell, dtype=jnp.int32),
+                             jnp.max(per_particle, initial=0)])
     # Runs may fill the window's whole words: its real size.
     overflow = (jnp.any(runs[1] + runs[3] > _slots(window))
-                | (shell_count[0] > shell_rows) | (shell_count[1] > shell))
+                | (shell_sizes[0] > shell_rows) | (shell_sizes[1] > shell))
     if row_width == 0:
         count = jnp.sum(jax.lax.population_count(words), axis=1,
                         dtype=jnp.int32)
-        return jnp.zeros((n, 0), jnp.int32), count, shell_count, overflow
+        return jnp.zeros((n, 0), jnp.int32), count, shell_sizes, overflow
 
     word_runs = _word_runs(runs, window)
     bit, got, valid, count = _select(words, row_width, word_runs,
                                      _slots(window) // 32)
     j = jnp.clip(_sorted_index(bit, got), 0, n - 1)
     rows = jnp.where(valid, order[j], n)
-    return rows, count, shell_count, overflow
+    return rows, count, shell_sizes, overflow
 
 
 class CellList:
