@@ -15,6 +15,11 @@ imports and input creation, before any list is built.
 
     python benchmarks/neighbors.py                 # CPU sizes
     python benchmarks/neighbors.py --sizes 100000 1000000 --backends cell bvh
+
+A method ``cell:xla`` is the backend ``cell`` with its candidate pass forced
+to the portable array programs (on a GPU, ``cell`` runs `_cell_kernel`);
+rows of ``cell`` then say whether its list equals that path's
+(``same_as_xla``: sorted rows compared entry by entry).
 """
 from __future__ import annotations
 
@@ -57,8 +62,11 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
 
     R, side, cutoff, periodic = scene(scene_name, n, 0)
     disp, _ = space.periodic(side) if periodic else space.free()
+    backend, _, kernel = method.partition(":")
     if method != "jax-md":
         import jaxrt  # noqa: F401  (before the baseline: its imports are not the list's)
+        if kernel:
+            jaxrt.backends.get(backend).kernel = kernel
     jitter = np.random.default_rng(1)
     inputs = []
     for _ in range(3):
@@ -73,7 +81,7 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
         fns = partition.neighbor_list(disp, side, cutoff)
     else:
         fns = jaxrt.neighbor_list(disp, side if periodic else None, cutoff,
-                                  backend=method)
+                                  backend=backend)
     t = time.perf_counter()
     nbrs = fns.allocate(first)
     jax.block_until_ready(nbrs.idx)
@@ -89,6 +97,7 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
     ms = median_ms(lambda x: update(x, nbrs).idx, inputs, repeats)
     overflow = bool(update(inputs[0], nbrs).did_buffer_overflow)
     dev = jax.devices()[0]
+    same_as_xla = None
     if dev.platform == "cpu":
         peak_mb = _rss_mb()
         # the process's peak minus its peak before any list was built
@@ -97,11 +106,20 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
     else:
         peak_mb = dev.memory_stats().get("peak_bytes_in_use", 0) / 2**20
         above_mb = float("nan")
+    if method == "cell" and dev.platform != "cpu":
+        got = np.sort(np.asarray(update(inputs[0], nbrs).idx), axis=1)
+        # A new list: each traces its search once, with the kernel then set.
+        jaxrt.backends.get("cell").kernel = "xla"
+        portable = jaxrt.neighbor_list(disp, side if periodic else None,
+                                       cutoff, backend="cell")
+        want = np.asarray(jax.jit(portable.update)(inputs[0], nbrs).idx)
+        same_as_xla = bool(np.array_equal(got, np.sort(want, axis=1)))
+        jaxrt.backends.get("cell").kernel = "auto"
     return {"scene": scene_name, "method": method, "N": n, "k": round(k, 1),
             "capacity": int(idx.shape[-1]), "allocate_s": allocate_s,
             "update_ms": ms, "repeats": repeats, "xla_temp_mb": temp_mb,
             "peak_mb": peak_mb, "peak_above_baseline_mb": above_mb,
-            "overflow": overflow}
+            "overflow": overflow, "same_as_xla": same_as_xla}
 
 
 def main(argv=None) -> None:

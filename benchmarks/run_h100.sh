@@ -28,8 +28,8 @@ case "${1:-}" in
     done ;;
   cell)
     timeout 420 python benchmarks/neighbors.py --sizes 100000 1000000 \
-      --sphere-n 10000 --backends cell bvh --repeats 10 --timeout 120 \
-      --out "$OUT"
+      --sphere-n 10000 --backends cell cell:xla bvh --repeats 10 \
+      --timeout 120 --out "$OUT"
     timeout 150 python benchmarks/md_step.py --n 1000000 --repeats 5 \
       --steps 20 --only jax-md/Dense jaxrt:cell/Dense jaxrt:bvh/Dense \
       --out "$OUT/md_step_cell_1e6.csv" ;;

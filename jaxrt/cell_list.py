@@ -22,6 +22,14 @@ a candidate needs):
    per hundred particles), which join the sure bits; then each particle's
    set bits are left-packed into its row with gathers (`_select`).
 
+On CUDA, passes 3 and 4 are one kernel instead (`jaxrt._cell_kernel`,
+Pallas lowered to Triton, chosen where the program is lowered): each thread
+walks its particle's runs to their real ends with the same cheap test and
+appends sure pairs to the row and shell pairs to a small buffer, whose
+pairs the caller's metric then decides and appends. Same sets, and no
+window: XLA's GPU code for the windows was at its floor (the window is the
+longest run, so two thirds of the slots lie past a run's end).
+
 So every pair is decided as ``metric_sq(Ri, Rj) < cutoff**2`` with the
 caller's metric, bit for bit as jax-md decides, provided that metric is the
 Euclidean minimum-image distance up to ``tol`` (``2**-18`` of the cutoff
@@ -47,7 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import backends
+from jaxrt import _cell_kernel, backends
 from jaxrt.backends import Capacity, Geometry, MetricSq, Query
 
 # Cells are made this much wider than their minimum so that a particle
@@ -232,17 +240,19 @@ def _run_ends(start, first, extra):
     return span[..., 0], jnp.sum(jnp.where(at == last, span, 0), axis=-1)
 
 
-@functools.partial(jax.jit, static_argnames="query")
-def _sorted_system(position, geometry: Geometry, query: Query):
+@functools.partial(jax.jit, static_argnames=("query", "sorted_runs"))
+def _sorted_system(position, geometry: Geometry, query: Query,
+                   sorted_runs: bool = False):
     """Sort particles by cell.
 
     Args:
       position: float ``(N, dim)`` in the caller's coordinates.
+      sorted_runs: static: give the runs in sorted order, not the caller's.
     Returns:
       int32 ``order`` ``(N,)`` (sorted position -> caller's index); float
       ``(N, dim)`` Cartesian positions wrapped into the box, in the caller's
       order; and each particle's runs ``(start1, len1, start2, len2)``
-      (`_runs`), int32 ``(N, R)`` in the caller's order.
+      (`_runs`), int32 ``(N, R)`` in the caller's order (or sorted order).
     """
     cart, cell, n = _grid(position * geometry.scale, geometry, query)
     key = _key(cell, n)
@@ -250,6 +260,8 @@ def _sorted_system(position, geometry: Geometry, query: Query):
     sorted_key, order = jax.lax.sort(
         (key, jnp.arange(key.shape[0], dtype=jnp.int32)), num_keys=1,
         is_stable=False)
+    if sorted_runs:
+        cell = cell[order]
     return order, cart, _runs(sorted_key, cell, n, query)
 
 
@@ -359,6 +371,15 @@ def _tolerance(cart, geometry: Geometry, query: Query):
     return query.cutoff * _TOL_RELATIVE + _TOL_ULPS * eps * scale
 
 
+def _thresholds(cart, geometry: Geometry, query: Query):
+    """Squared distances (float scalars, ``cart``'s dtype) below which the
+    cheap test calls a pair sure, and below which it is in the shell."""
+    tol = _tolerance(cart, geometry, query)
+    inner_sq = (jnp.maximum(query.cutoff - tol, 0.0) ** 2).astype(cart.dtype)
+    outer_sq = ((query.cutoff + tol) ** 2).astype(cart.dtype)
+    return inner_sq, outer_sq
+
+
 def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
                      window: int):
     """The cheap distance test on every slot of every stencil row's window.
@@ -374,9 +395,7 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     n, dim = cart.shape
     slots = _slots(window)
     dtype = cart.dtype
-    tol = _tolerance(cart, geometry, query)
-    inner_sq = (jnp.maximum(query.cutoff - tol, 0.0) ** 2).astype(dtype)
-    outer_sq = ((query.cutoff + tol) ** 2).astype(dtype)
+    inner_sq, outer_sq = _thresholds(cart, geometry, query)
     side = geometry.side.astype(dtype)
     inverse_side = 1.0 / side
     pad = jnp.zeros((dim, slots), dtype)
@@ -530,6 +549,52 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     return rows, count, shell_sizes, overflow
 
 
+@functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
+                                             "row_width", "query",
+                                             "interpret"))
+def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
+          shell_rows, row_width, query: Query, interpret: bool = False):
+    """`_visit` with the candidate pass as one GPU kernel (`_cell_kernel`):
+    the same sets, in another order within rows. Needs no window: the
+    kernel walks each run to its end.
+
+    Returns:
+      As `_visit`: rows int32 ``(N, max(row_width, 1))``, counts int32
+      ``(N,)``, int32 ``(2,)`` shell sizes, bool scalar overflow.
+    """
+    n = position.shape[0]
+    order, cart, runs = _sorted_system(position, geometry, query,
+                                       sorted_runs=True)
+    inner_sq, outer_sq = _thresholds(cart, geometry, query)
+    rows, count, shells, shell_count = _cell_kernel.candidate_rows(
+        cart[order], order, runs, inner_sq, outer_sq, geometry.side,
+        periodic=query.periodic, mask_self=query.mask_self,
+        row_width=row_width, shell=shell, interpret=interpret)
+    width = rows.shape[1]
+
+    # The shell, decided by the caller's metric for the few particles that
+    # have one, and appended to their rows.
+    has_shell = shell_count > 0
+    at = _first_true(has_shell, shell_rows)
+    real = at < n
+    at = jnp.minimum(at, n - 1)
+    valid = real[:, None] & (jnp.arange(shells.shape[1], dtype=jnp.int32)
+                             < shell_count[at][:, None])
+    j = jnp.where(valid, shells[at], 0)
+    d2 = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))(position[at],
+                                                           position[j])
+    accept = valid & (d2 < jnp.asarray(query.cutoff ** 2, position.dtype))
+    slot = count[at][:, None] + jnp.cumsum(accept, axis=1,
+                                           dtype=jnp.int32) - 1
+    rows = rows.at[at[:, None], jnp.where(accept, slot, width)].set(
+        j, mode="drop")
+    count = count.at[at].add(jnp.sum(accept, axis=1, dtype=jnp.int32))
+    shell_sizes = jnp.stack([jnp.sum(has_shell, dtype=jnp.int32),
+                             jnp.max(shell_count, initial=0)])
+    overflow = (shell_sizes[0] > shell_rows) | (shell_sizes[1] > shell)
+    return rows, count, shell_sizes, overflow
+
+
 class CellList:
     """The sorted cell list as a `jaxrt.backends.Backend`.
 
@@ -541,6 +606,11 @@ class CellList:
     """
 
     name = "cell"
+    # Candidate pass: "auto" (the `_cell_kernel` kernel on CUDA, windows of
+    # array programs elsewhere), "xla" (windows everywhere) or "interpret"
+    # (the kernel in Pallas' interpreter: tests on CPUs). Read when a list
+    # first traces its search: set it before calling `jaxrt.neighbor_list`.
+    kernel = "auto"
 
     def measure(self, position, geometry, query, metric_sq):
         _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
@@ -580,10 +650,30 @@ class CellList:
         return sizes
 
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
-        rows, count, _, overflow = _visit(
-            position, geometry, metric_sq, window=capacity["window"],
-            shell=capacity["shell"], shell_rows=capacity["shell_rows"],
-            row_width=capacity["row"], query=query)
+        options = dict(shell=capacity["shell"],
+                       shell_rows=capacity["shell_rows"],
+                       row_width=max(capacity["row"], 1), query=query)
+
+        def portable():
+            return _visit(position, geometry, metric_sq,
+                          window=capacity["window"], **options)
+
+        def kernel(interpret=False):
+            return _walk(position, geometry, metric_sq, interpret=interpret,
+                         **options)
+
+        fits = _cell_kernel.fits(position.shape[0], options["row_width"],
+                                 options["shell"])
+        if self.kernel == "interpret" and fits:
+            search = functools.partial(kernel, interpret=True)
+        elif self.kernel == "auto" and fits:
+            # Chosen where the program is lowered: the kernel on CUDA only.
+            def search():
+                return jax.lax.platform_dependent(cuda=kernel,
+                                                  default=portable)
+        else:
+            search = portable
+        rows, count, _, overflow = search()
         result = backends.format_dense_rows(rows, count, query, capacity)
         return result._replace(overflow=result.overflow | overflow)
 

@@ -106,8 +106,10 @@ def _infer_periodic(metric_fn, side: np.ndarray | None, fractional: bool,
         for t in (0.75, 1.3, 7.3):
             rb = np.zeros(dim, np.float32)
             rb[a] = t * unit
-            r = float(np.sqrt(metric_fn(jnp.zeros(dim, jnp.float32),
-                                        jnp.asarray(rb))))
+            # Eager even when the list first meets positions under jit.
+            with jax.ensure_compile_time_eval():
+                r = float(np.sqrt(metric_fn(jnp.zeros(dim, jnp.float32),
+                                            jnp.asarray(rb))))
             tol = 1e-4 * t * unit * scale + 1e-6
             looks_free &= abs(r - t * unit * scale) <= tol
             wrapped = abs(t - round(t)) * unit * scale

@@ -1,0 +1,156 @@
+"""The cell list's GPU kernel (`jaxrt._cell_kernel`) against the float64 brute
+force and the portable path, run in Pallas' interpreter so that CPUs test
+the same kernel body that CUDA compiles (on a GPU, every cell-list test in
+`test_neighbors.py` runs the compiled kernel as well)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax_md import partition, space
+
+import jaxrt
+from jaxrt import backends
+from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
+from test_neighbors import lattice
+
+
+@pytest.fixture
+def kernel(monkeypatch):
+    """Lists built in the test run the kernel in the interpreter."""
+    monkeypatch.setattr(backends.get("cell"), "kernel", "interpret")
+
+
+def kernel_list(R, side, cutoff, periodic, fmt=partition.Dense,
+                mask_self=True, metric=None):
+    disp = metric or (space.periodic(side)[0] if periodic
+                      else space.free()[0])
+    nbrs = jaxrt.neighbor_list(disp, side if periodic else None, cutoff,
+                               format=fmt, mask_self=mask_self,
+                               backend="cell").allocate(jnp.asarray(R))
+    assert not nbrs.did_buffer_overflow
+    assert_layout(nbrs)
+    return nbrs
+
+
+def check(R, side, cutoff, periodic, fmt=partition.Dense, mask_self=True):
+    nbrs = kernel_list(R, side, cutoff, periodic, fmt, mask_self)
+    want = brute_pairs(R, cutoff, side, periodic, mask_self)
+    assert list_pairs(nbrs) == expected_pairs(fmt, want)
+    return nbrs
+
+
+RNG = np.random.default_rng(20)
+SIDE = np.float32(6.0)
+BELOW = np.nextafter(SIDE, np.float32(0))
+SCENES = {
+    # name: (positions, side, cutoff, periodic)
+    "random": (RNG.uniform(0, 7, (260, 3)).astype(np.float32), 7.0, 1.6,
+               True),
+    "random free": (RNG.uniform(0, 7, (260, 3)).astype(np.float32), 7.0, 1.6,
+                    False),
+    # second neighbours exactly at the cutoff: the shell decides them.
+    "lattice at cutoff": (lattice(6, 0.5), 3.0, 1.0, True),
+    "lattice at cutoff, free": (lattice(6, 0.5), 3.0, 1.0, False),
+    # faces and corners: runs that wrap around x.
+    "faces": (np.asarray([[0, 0, 0], [BELOW] * 3, [0, BELOW, 3], [BELOW, 0, 0],
+                          [3, 3, 0], [3, 3, BELOW], [0, 3, 3], [BELOW, 3, 3],
+                          [1, 1, 1]], np.float32), SIDE, 1.0, True),
+    "coincident": (np.asarray([[1, 1, 1], [1, 1, 1], [1, 1, 2], [1, 2, 1],
+                               [2, 1, 1], [1, 1, 1]], np.float32), 5.0, 1.5,
+                   True),
+    # the whole x row is the stencil: one run of every cell.
+    "box of 2.01 cutoffs": (RNG.uniform(0, 2.01, (90, 3)).astype(np.float32),
+                            2.01, 1.0, True),
+    "box of 3.01 cutoffs": (RNG.uniform(0, 3.01, (90, 3)).astype(np.float32),
+                            3.01, 1.0, True),
+    "2d": (RNG.uniform(0, 9, (300, 2)).astype(np.float32), 9.0, 1.1, True),
+    "2d free": (RNG.uniform(0, 9, (300, 2)).astype(np.float32), 9.0, 1.1,
+                False),
+}
+
+
+@pytest.mark.parametrize("name", SCENES)
+def test_kernel_matches_brute_force_and_the_portable_path(kernel, monkeypatch,
+                                                          name):
+    R, side, cutoff, periodic = SCENES[name]
+    got = check(R, side, cutoff, periodic)
+    monkeypatch.setattr(backends.get("cell"), "kernel", "xla")
+    portable = kernel_list(R, side, cutoff, periodic)
+    # the same sets; the kernel appends shell pairs after the sure ones
+    assert np.array_equal(np.sort(np.asarray(got.idx), axis=1),
+                          np.sort(np.asarray(portable.idx), axis=1))
+
+
+@pytest.mark.parametrize("fmt, mask_self", [(partition.Sparse, False),
+                                             (partition.OrderedSparse, True)])
+def test_kernel_sparse_layouts_and_self_pairs(kernel, fmt, mask_self):
+    R, side, cutoff, periodic = SCENES["random"]
+    check(R[:120], side, cutoff, periodic, fmt, mask_self)
+
+
+def test_kernel_mixed_boundaries_and_per_axis_box(kernel):
+    side = np.array([6.0, 9.0, 4.0], np.float32)
+    R = RNG.uniform(0, 1, (200, 3)).astype(np.float32) * side
+
+    def slab(ra, rb):  # periodic in x and y only
+        d = ra - rb
+        wrapped = jnp.mod(d + side / 2, side) - side / 2
+        return jnp.where(jnp.array([True, True, False]), wrapped, d)
+
+    nbrs = kernel_list(R, side, 1.3, True, metric=slab)
+    assert list_pairs(nbrs) == brute_pairs(R, 1.3, side, [True, True, False])
+
+
+def test_kernel_float64_pairs_a_hair_inside_and_outside(kernel):
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(0)
+        base = 1000.0 + rng.uniform(0, 1, (40, 3))
+        direction = rng.normal(size=(40, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        R = np.concatenate([base, base + direction * 0.75 * (1 - 1e-12),
+                            base + direction * 0.75 * (1 + 1e-12)])
+        pairs = list_pairs(kernel_list(R, None, 0.75, False))
+        assert pairs == brute_pairs(R, 0.75)
+        for k in range(40):
+            assert (k, 40 + k) in pairs and (k, 80 + k) not in pairs
+
+
+def test_kernel_overflow_is_flagged_and_fixed_by_reallocation(kernel):
+    side = 6.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.2, backend="cell")
+    R = jax.random.uniform(jax.random.PRNGKey(15), (150, 3)) * side
+    nbrs = fns.allocate(R)
+    # squeeze a third of the particles into a corner: rows outgrow capacity
+    crowded = R.at[:50].multiply(0.1)
+    nbrs = jax.jit(fns.update)(crowded, nbrs)
+    assert nbrs.did_buffer_overflow
+    nbrs = fns.allocate(crowded)
+    assert not nbrs.did_buffer_overflow
+    assert list_pairs(nbrs) == brute_pairs(crowded, 1.2, side, True)
+
+
+def test_kernel_under_vmap_and_scan(kernel):
+    side = 5.0
+    disp, shift = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.1, capacity_multiplier=1.5,
+                              backend="cell")
+    Rs = jax.random.uniform(jax.random.PRNGKey(14), (3, 80, 3)) * side
+    nbrs = fns.allocate(Rs[0])
+    batch = jax.vmap(fns.update, in_axes=(0, None))(Rs, nbrs)
+    assert not np.any(np.asarray(batch.did_buffer_overflow))
+    for b in range(3):
+        one = batch.idx[b]
+        listed = {(i, int(j)) for i, row in enumerate(np.asarray(one))
+                  for j in row if j < 80}
+        assert listed == brute_pairs(Rs[b], 1.1, side, True)
+
+    def step(nbrs, R):
+        nbrs = nbrs.update(R)
+        return nbrs, nbrs.idx
+
+    last, idxs = jax.lax.scan(step, nbrs, Rs)
+    assert np.array_equal(np.asarray(idxs), np.asarray(batch.idx))
+    assert not last.did_buffer_overflow
