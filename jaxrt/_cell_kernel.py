@@ -26,8 +26,13 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jax.experimental import pallas as pl
-from jax.experimental.pallas import triton as plgpu
+try:
+    from jax.experimental import pallas as pl
+    from jax.experimental.pallas import triton as plgpu
+    _COMPILER_PARAMS = (getattr(plgpu, "CompilerParams", None)
+                        or plgpu.TritonCompilerParams)
+except (ImportError, AttributeError):  # an older JAX: the portable path
+    pl = plgpu = None
 
 # Particles per program (one per thread) and warps per program: one warp
 # per program was the fastest of 32-256 particles and 1-8 warps on an H100
@@ -37,9 +42,10 @@ _WARPS = 1
 
 
 def fits(n: int, row_width: int, shell: int) -> bool:
-    """Whether there are particles, and the kernel's int32 flat offsets can
-    address the outputs."""
-    return 0 < n and n * max(row_width, shell, 1) < 2 ** 31 - 1
+    """Whether this JAX has Pallas' Triton backend, there are particles,
+    and the kernel's int32 flat offsets can address the outputs."""
+    return (plgpu is not None and 0 < n
+            and n * max(row_width, shell, 1) < 2 ** 31 - 1)
 
 
 def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
@@ -66,6 +72,11 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
       ``(N, shell)`` the shell candidates (valid up to the count) and int32
       ``(N,)`` their exact counts.
     """
+    # Indices only: no tangents may reach the kernel (a pallas_call with
+    # aliased outputs has no JVP, and grad through a list update in a scan
+    # would differentiate it).
+    sorted_cart, inner_sq, outer_sq, side = jax.lax.stop_gradient(
+        (sorted_cart, inner_sq, outer_sq, side))
     n, dim = sorted_cart.shape
     dtype = sorted_cart.dtype
     padded = -(-n // _BLOCK) * _BLOCK
@@ -104,7 +115,7 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
     rows, count, shell_rows, shell_count = pl.pallas_call(
         kernel, out_shape=outputs, grid=(padded // _BLOCK,),
         input_output_aliases={len(coords) + 4: 0},
-        compiler_params=plgpu.CompilerParams(num_warps=_WARPS),
+        compiler_params=_COMPILER_PARAMS(num_warps=_WARPS),
         interpret=interpret, name="jaxrt_cell_walk",
     )(params, *coords, pad(order), starts, lengths,
       jnp.full((n * row_width,), n, jnp.int32))

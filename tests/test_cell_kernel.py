@@ -19,6 +19,9 @@ from test_neighbors import lattice
 @pytest.fixture
 def kernel(monkeypatch):
     """Lists built in the test run the kernel in the interpreter."""
+    from jaxrt import _cell_kernel
+    if not _cell_kernel.fits(1, 1, 1):
+        pytest.skip("this JAX has no Pallas Triton backend")
     monkeypatch.setattr(backends.get("cell"), "kernel", "interpret")
 
 
@@ -154,3 +157,32 @@ def test_kernel_under_vmap_and_scan(kernel):
     last, idxs = jax.lax.scan(step, nbrs, Rs)
     assert np.array_equal(np.asarray(idxs), np.asarray(batch.idx))
     assert not last.did_buffer_overflow
+
+
+def test_kernel_list_update_inside_grad(kernel, monkeypatch):
+    """Differentiating through ``nbrs.update`` (forces inside a training
+    loss) must not differentiate the kernel: the same gradient as the
+    portable path."""
+    side = 5.0
+    disp, _ = space.periodic(side)
+    R = jax.random.uniform(jax.random.PRNGKey(21), (60, 3)) * side
+
+    def gradient():
+        fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+        nbrs = fns.allocate(R)
+
+        def loss(sigma_scale, R):
+            nbrs2 = nbrs.update(R * sigma_scale)
+            d = jax.vmap(lambda i, row: jax.vmap(
+                lambda j: disp(R[i], R[j]))(row))(jnp.arange(60), nbrs2.idx)
+            r = jnp.sqrt(jnp.sum(d ** 2, axis=-1) + 1.0)
+            return jnp.sum(jnp.where(nbrs2.idx < 60, r, 0.0)) * sigma_scale
+
+        return jax.grad(loss, argnums=(0, 1))(1.0, R)
+
+    got = gradient()
+    monkeypatch.setattr(backends.get("cell"), "kernel", "xla")
+    want = gradient()
+    for g, w in zip(got, want):
+        assert np.all(np.isfinite(np.asarray(g)))
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=1e-6)
