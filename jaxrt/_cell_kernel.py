@@ -125,6 +125,14 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
 
 def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
           runs):
+    """One program: ``_BLOCK`` consecutive sorted particles, one per thread.
+
+    Refs: float ``(8,)`` params (inner_sq, outer_sq, 3 sides, 3 inverse
+    sides); ``dim`` float ``(padded,)`` sorted coordinates; int32
+    ``(padded,)`` order; int32 ``(runs, padded)`` run starts and lengths;
+    the row fill (aliased to the rows); then the four outputs of
+    `candidate_rows`, flat.
+    """
     coord_refs = refs[:dim]
     order_ref, starts_ref, lengths_ref, _ = refs[dim:dim + 4]
     rows_ref, count_ref, shell_ref, shell_count_ref = refs[dim + 4:]
