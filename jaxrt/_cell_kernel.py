@@ -127,8 +127,9 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
           runs):
     """One program: ``_BLOCK`` consecutive sorted particles, one per thread.
 
-    Refs: float ``(8,)`` params (inner_sq, outer_sq, 3 sides, 3 inverse
-    sides); ``dim`` float ``(padded,)`` sorted coordinates; int32
+    Refs: float ``(8,)`` params (inner_sq, outer_sq, then ``dim`` box
+    sides from slot 2 and their inverses from slot 5); ``dim`` float
+    ``(padded,)`` sorted coordinates; int32
     ``(padded,)`` order; int32 ``(runs, padded)`` run starts and lengths;
     the row fill (aliased to the rows); then the four outputs of
     `candidate_rows`, flat.
