@@ -62,12 +62,18 @@ class Query:
       periodic: one bool per spatial axis.
       mask_self: drop ``i == i`` pairs.
       format: the jax-md layout to write.
+      decide_by_metric: the caller's metric decides every candidate pair
+        (it is not the Euclidean minimum-image distance of ``Geometry``, or
+        the box is triclinic): the grid only proposes candidates, which
+        holds as long as the metric is never shorter than that distance.
+        Backends that cannot do this are refused by the front.
     """
 
     cutoff: float
     periodic: tuple[bool, ...]
     mask_self: bool
     format: NeighborListFormat
+    decide_by_metric: bool = False
 
     @property
     def dim(self) -> int:
@@ -83,11 +89,25 @@ class Geometry:
       side: float ``(dim,)``, the box side per axis in Cartesian units; only
         read on periodic axes.
       scale: float ``(dim,)``; Cartesian position = ``position * scale``
-        (ones, unless jax-md's ``fractional_coordinates`` is on).
+        (ones, unless jax-md's ``fractional_coordinates`` is on, or the
+        metric is scaled per axis), after ``transform``.
+      transform: None, or float ``(dim, dim)`` ``T``: positions are first
+        mapped to ``position @ T.T`` (Cartesian positions in a triclinic
+        box, to fractional coordinates). Then ``side`` and ``scale`` are the
+        box's heights, and the grid's distance only bounds the metric's
+        from below (`Query.decide_by_metric` is set).
     """
 
     side: Array
     scale: Array
+    transform: Array | None = None
+
+    def grid_coordinates(self, position: Array) -> Array:
+        """float ``(N, dim)``: ``position`` in the grid's Cartesian frame."""
+        if self.transform is not None:  # elementwise: no TF32 on GPUs
+            position = jnp.sum(self.transform.astype(position.dtype)
+                               * position[:, None, :], axis=-1)
+        return position * self.scale.astype(position.dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,10 +117,18 @@ class Capacity:
     Attributes:
       neighbors: the layout's capacity (Dense row width, or Sparse edges).
       internal: backend-specific sizes as sorted ``(name, size)`` pairs.
+      metric_decides: `Query.decide_by_metric`, as ``allocate`` found it.
+      orthorhombic: the metric's Gram matrix was diagonal at ``allocate``
+        (`jaxrt._space`); a shear appearing later sets an error bit.
+      slack: how much (relatively) farther the grid searches, for a metric
+        found up to that much shorter than its model (`jaxrt._space`).
     """
 
     neighbors: int
     internal: tuple[tuple[str, int], ...] = ()
+    metric_decides: bool = False
+    orthorhombic: bool = True
+    slack: float = 0.0
 
     def __getitem__(self, name: str) -> int:
         return dict(self.internal)[name]

@@ -36,6 +36,12 @@ Euclidean minimum-image distance up to ``tol`` (``2**-18`` of the cutoff
 plus 16 ulps of the largest coordinate), which the cell grid assumes anyway.
 The caller's metric is not used on every slot because jax-md's periodic
 wrap (a float ``mod``) is a scalar libm call on CPU: 20x the cheap test.
+Where the metric is not that distance (a triclinic box, binned in its
+fractional coordinates scaled by its heights; a metric that is not a
+quadratic form), ``Query.decide_by_metric`` makes the metric the test on
+every slot instead, on the portable path: slower, and exact as long as
+the metric is never shorter than the grid's distance, which the front
+checks (`jaxrt._space`).
 
 Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
@@ -254,7 +260,8 @@ def _sorted_system(position, geometry: Geometry, query: Query,
       order; and each particle's runs ``(start1, len1, start2, len2)``
       (`_runs`), int32 ``(N, R)`` in the caller's order (or sorted order).
     """
-    cart, cell, n = _grid(position * geometry.scale, geometry, query)
+    cart, cell, n = _grid(geometry.grid_coordinates(position), geometry,
+                          query)
     key = _key(cell, n)
     # Ties in any order: rows are sets.
     sorted_key, order = jax.lax.sort(
@@ -381,12 +388,18 @@ def _thresholds(cart, geometry: Geometry, query: Query):
 
 
 def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
-                     window: int):
+                     window: int, position, metric_sq: MetricSq):
     """The cheap distance test on every slot of every stencil row's window.
+
+    With ``query.decide_by_metric`` the test on each slot is the caller's
+    metric instead (slower, and the shell is empty): the grid's distance
+    then only bounds the metric from below (a triclinic box, or a metric
+    that is not the Euclidean minimum image).
 
     Args:
       cart: float ``(N, dim)`` wrapped Cartesian positions (caller's order).
       order, runs: `_sorted_system`.
+      position, metric_sq: the caller's positions and metric.
     Returns:
       uint32 ``(N, R · slots / 32)`` twice: the slots surely within the
       cutoff, and the slots within ``tol`` of it (the shell); bit ``s`` of
@@ -396,10 +409,13 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     slots = _slots(window)
     dtype = cart.dtype
     inner_sq, outer_sq = _thresholds(cart, geometry, query)
+    if query.decide_by_metric:  # the metric's own decision, nothing near it
+        inner_sq = outer_sq = jnp.asarray(query.cutoff ** 2, dtype)
     side = geometry.side.astype(dtype)
     inverse_side = 1.0 / side
     pad = jnp.zeros((dim, slots), dtype)
-    table = jnp.concatenate([pad, cart[order].T, pad], axis=1)
+    source = position if query.decide_by_metric else cart
+    table = jnp.concatenate([pad, source[order].T, pad], axis=1)
     slot = jnp.arange(slots, dtype=jnp.int32)[None, :]
     me = jnp.zeros((n,), jnp.int32).at[order].set(
         jnp.arange(n, dtype=jnp.int32))[:, None]  # each particle's sorted index
@@ -414,12 +430,16 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
         if query.periodic[0]:
             near = jnp.where((slot < size1)[:, None, :], near,
                              windows(run[2] - run[1]))
-        d2 = jnp.zeros((n, slots), dtype)
-        for a in range(dim):
-            d = near[:, a, :] - cart[:, a:a + 1]
-            if query.periodic[a]:
-                d = d - side[a] * jnp.round(d * inverse_side[a])
-            d2 = d2 + d * d
+        if query.decide_by_metric:
+            d2 = jax.vmap(jax.vmap(metric_sq, (None, 1)), (0, 0))(position,
+                                                                  near)
+        else:
+            d2 = jnp.zeros((n, slots), dtype)
+            for a in range(dim):
+                d = near[:, a, :] - cart[:, a:a + 1]
+                if query.periodic[a]:
+                    d = d - side[a] * jnp.round(d * inverse_side[a])
+                d2 = d2 + d * d
         inside = slot < size1 + size2
         if query.mask_self:
             # The particle's own slot, a scalar per row (a per-slot index
@@ -506,7 +526,8 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     """
     n = position.shape[0]
     order, cart, runs = _sorted_system(position, geometry, query)
-    sure, maybe = _candidate_words(cart, order, runs, geometry, query, window)
+    sure, maybe = _candidate_words(cart, order, runs, geometry, query, window,
+                                   position, metric_sq)
     m = sure.shape[1]
 
     # The shell: the caller's metric decides the pairs of the few particles
@@ -664,6 +685,8 @@ class CellList:
 
         fits = _cell_kernel.fits(position.shape[0], options["row_width"],
                                  options["shell"])
+        # The kernel computes its own Euclidean distances.
+        fits = fits and not query.decide_by_metric
         if self.kernel == "interpret" and fits:
             search = functools.partial(kernel, interpret=True)
         elif self.kernel == "auto" and fits:

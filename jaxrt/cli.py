@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import math
 import pathlib
 import sys
 import time
@@ -20,6 +21,18 @@ import warnings
 import numpy as np
 
 DEMO_STEPS, DEMO_N = 2000, 2048
+
+# trajectory.xyz names species 0, 1, 2, ... by these elements (ASE and OVITO
+# need real symbols; "X0" is a KeyError in ase.io.read): noble gases first,
+# the classic LJ atoms, then the rest of the periodic table by Z. The file's
+# comment line states the map (species_map="0:Ar 1:Ne").
+_BY_Z = """H He Li Be B C N O F Ne Na Mg Al Si P S Cl Ar K Ca Sc Ti V Cr Mn Fe
+Co Ni Cu Zn Ga Ge As Se Br Kr Rb Sr Y Zr Nb Mo Tc Ru Rh Pd Ag Cd In Sn Sb Te I
+Xe Cs Ba La Ce Pr Nd Pm Sm Eu Gd Tb Dy Ho Er Tm Yb Lu Hf Ta W Re Os Ir Pt Au Hg
+Tl Pb Bi Po At Rn Fr Ra Ac Th Pa U Np Pu Am Cm Bk Cf Es Fm Md No Lr Rf Db Sg Bh
+Hs Mt Ds Rg Cn Nh Fl Mc Lv Ts Og""".split()
+_NOBLE = ("Ar", "Ne", "Kr", "Xe", "He", "Rn")
+XYZ_ELEMENTS = _NOBLE + tuple(e for e in _BY_Z if e not in _NOBLE)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -194,6 +207,7 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     from tqdm import tqdm
     from jaxrt import scene as S
 
+    _xyz_symbols(scene.particles)  # fail before the run, not after it
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     compiled = S.compile_scene(scene)
@@ -214,6 +228,7 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     chunk = chunk or max(1, min(100, steps // 10))
     stats = S.RunStats()
     frames = [np.asarray(state.position)]
+    frame_velocities = [np.asarray(state.velocity)]
     frame_steps = [0]
     # Compile outside the timed loop (the first chunk of each length).
     t = time.perf_counter()
@@ -239,6 +254,7 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
         if not np.all(np.isfinite(np.asarray(state.position))):
             raise RuntimeError(f"positions became non-finite by step {done}")
         frames.append(np.asarray(state.position))
+        frame_velocities.append(np.asarray(state.velocity))
         frame_steps.append(done)
     bar.close()
     if nbrs is not None:
@@ -285,23 +301,31 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     for name, val in rows:
         print(f"  {name:<{width}}  {val}")
 
-    _write_outputs(scene, out, state, np.asarray(frames), frame_steps, ke, u)
+    _write_outputs(scene, out, state, np.asarray(frames),
+                   np.asarray(frame_velocities), frame_steps, ke, u)
     print(f"\nwrote {out}/energies.png, final.png, snapshots.npz, "
           f"trajectory.xyz ({time.perf_counter() - t_start:.1f} s total)")
     return summary
 
 
-def _write_outputs(scene, out, state, frames, frame_steps, ke, u) -> None:
+def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
+                   u) -> None:
+    """snapshots.npz, trajectory.xyz, energies.png, final.png in ``out``.
+
+    frames, velocities: float ``(F, N, dim)`` per snapshot; frame_steps:
+    ``F`` step numbers; ke, u: float ``(steps,)`` energies.
+    """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     p = scene.particles
-    np.savez(out / "snapshots.npz", positions=frames,
+    # velocity: the final one (kept for old readers); velocities: per frame.
+    np.savez(out / "snapshots.npz", positions=frames, velocities=velocities,
              steps=np.asarray(frame_steps),
              velocity=np.asarray(state.velocity), masses=p.masses,
              box=np.asarray(scene.box.size))
-    _write_xyz(out / "trajectory.xyz", scene, frames, frame_steps)
+    _write_xyz(out / "trajectory.xyz", scene, frames, velocities, frame_steps)
 
     steps = np.arange(1, len(ke) + 1)
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -327,25 +351,53 @@ def _write_outputs(scene, out, state, frames, frame_steps, ke, u) -> None:
     plt.close(fig)
 
 
-def _write_xyz(path, scene, frames, frame_steps) -> None:
-    """Extended XYZ, one frame per snapshot (species as element X0, X1...)."""
+def _xyz_symbols(p) -> tuple[np.ndarray, str]:
+    """Element symbols ``(N,)`` of particles ``p`` and the comment line's
+    map ``"0:Ar 1:Ne"`` (species present only). Raises past 118 species."""
+    species = np.zeros(p.n, int) if p.species is None else p.species
+    if species.max() >= len(XYZ_ELEMENTS):
+        raise ValueError(
+            f"particles.species goes up to {species.max()} but trajectory.xyz "
+            f"can name {len(XYZ_ELEMENTS)} species (0 to "
+            f"{len(XYZ_ELEMENTS) - 1}) as elements; renumber the species.")
+    return (np.asarray(XYZ_ELEMENTS)[species],
+            " ".join(f"{s}:{XYZ_ELEMENTS[s]}" for s in np.unique(species)))
+
+
+def _write_xyz(path, scene, frames, velocities, frame_steps) -> None:
+    """Extended XYZ that ase.io.read and OVITO read, one frame per snapshot.
+
+    frames, velocities: float ``(F, N, dim)``; frame_steps: ``F`` ints.
+    Columns ``species:S:1:pos:R:3:velocities:R:3`` (axes beyond ``dim``
+    written as 0); species as elements (`XYZ_ELEMENTS`, map in
+    ``species_map=``); ``Lattice=`` the diagonal box (a zero vector on an
+    axis without a positive side, and no Lattice at all when no axis has
+    one); ``pbc=`` per axis. Floats round-trip: 9 significant digits for
+    float32 runs, 17 for float64.
+    """
     p = scene.particles
     dim = p.dim
-    size = list(scene.box.size) + [0.0] * (3 - dim)
-    lattice = " ".join(f"{size[i] if i == j else 0.0:g}"
-                       for i in range(3) for j in range(3))
+    symbols, species_map = _xyz_symbols(p)
+    size = [s if math.isfinite(s) and s > 0 else 0.0
+            for s in scene.box.size] + [0.0] * (3 - dim)
+    header = ""
+    if any(size):
+        # repr: the shortest text that reads back as the same float64.
+        header = 'Lattice="' + " ".join(
+            repr(float(size[i]) if i == j else 0.0)
+            for i in range(3) for j in range(3)) + '" '
     pbc = " ".join("T" if b == "periodic" else "F"
                    for b in list(scene.box.boundary) + ["free"] * (3 - dim))
-    species = (np.zeros(p.n, int) if p.species is None else p.species)
+    header += (f'Properties=species:S:1:pos:R:3:velocities:R:3 pbc="{pbc}" '
+               f'species_map="{species_map}"')
+    digits = 9 if frames.dtype == np.float32 else 17
     with open(path, "w") as f:
-        for pos, step in zip(frames, frame_steps):
-            f.write(f"{p.n}\n")
-            f.write(f'Lattice="{lattice}" Properties=species:S:1:pos:R:3 '
-                    f'pbc="{pbc}" step={step}\n')
-            pad = np.zeros((p.n, 3))
-            pad[:, :dim] = pos
-            for s, r in zip(species, pad):
-                f.write(f"X{s} {r[0]:.6f} {r[1]:.6f} {r[2]:.6f}\n")
+        for pos, vel, step in zip(frames, velocities, frame_steps):
+            f.write(f"{p.n}\n{header} step={step}\n")
+            cols = np.zeros((p.n, 6))
+            cols[:, :dim], cols[:, 3:3 + dim] = pos, vel
+            for s, row in zip(symbols, cols):
+                f.write(s + "".join(f" {x:.{digits}g}" for x in row) + "\n")
 
 
 if __name__ == "__main__":

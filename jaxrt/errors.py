@@ -2,7 +2,8 @@
 
 jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
 ``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds one.
-A non-finite position also sets the overflow bit, so that the usual loop
+A non-finite position, a metric that disagrees with the box, or a box too
+small for the cutoff also sets the overflow bit, so that the usual loop
 (``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches
 ``allocate``, which raises a clear error instead of carrying on with a list
 that silently lacks the bad particle's pairs.
@@ -21,6 +22,8 @@ class ErrorCode(enum.IntFlag):
     CELL_SIZE_TOO_SMALL = 1 << 2
     MALFORMED_BOX = 1 << 3
     NONFINITE_POSITION = 1 << 4
+    METRIC_MISMATCH = 1 << 5
+    BOX_TOO_SMALL = 1 << 6
 
 
 _MESSAGES = {
@@ -28,6 +31,16 @@ _MESSAGES = {
         "a position was NaN or infinite at the last update; the list lacks "
         "that particle's pairs. Find where the simulation blew up (time step, "
         "overlapping particles) before reallocating.",
+    ErrorCode.METRIC_MISMATCH:
+        "displacement_or_metric disagreed with the box and periodicity the "
+        "list was allocated for (checked on the particles at the extremes "
+        "of each axis at the last rebuild): a periodic displacement given "
+        "box=None, a box that does not match it, or a box that became "
+        "sheared. Reallocate; allocate names the pair and the fix.",
+    ErrorCode.BOX_TOO_SMALL:
+        "the box passed to update shrank so that r_cutoff + dr_threshold is "
+        "no longer below half its height on a periodic axis: the list would "
+        "drop periodic images. Use a larger box or a smaller cutoff.",
     ErrorCode.NEIGHBOR_LIST_OVERFLOW:
         "the neighbour buffer overflowed: reallocate with "
         "neighbor_fn.allocate(position) (a larger capacity_multiplier "

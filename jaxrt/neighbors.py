@@ -6,17 +6,28 @@ consumer (``energy.*_neighbor_list``, ``smap.pair_neighbor_list``,
 ``simulate.*``, ``nbrs.update`` inside ``lax.scan``) works unchanged. The
 search itself is delegated to a backend (`jaxrt.backends`).
 
-Where jaxrt differs from jax-md, on purpose:
+Where jaxrt differs from jax-md, on purpose (the README's table):
 
-* Unknown keyword arguments raise ``TypeError`` (jax-md swallows them).
+* Keyword arguments jax-md would swallow (its ``**static_kwargs``) are
+  accepted with a warning naming them; a near miss of a real argument
+  raises ``TypeError`` with "did you mean".
 * Periodicity is an explicit keyword, ``periodic=``, or, when omitted,
   inferred by probing ``displacement_or_metric`` along each axis against
-  ``box``. A displacement that is neither free nor periodic with the given
-  box raises. Free space needs no box (``box=None`` is accepted).
+  ``box``. Free space needs no box (``box=None`` is accepted).
+* The metric is modelled (`jaxrt._space`: periods, a triclinic box's
+  transform, the metric's Gram matrix) and the model is checked against
+  the metric: on sampled pairs at ``allocate`` (a mismatch raises, or
+  makes the cell list let the metric decide every pair where that is
+  safe) and on the extreme particles of each axis at every rebuild under
+  ``jit`` (an error bit). A periodic displacement given ``box=None`` is
+  caught so.
+* A cutoff of half a periodic height or more raises (an index-only list
+  holds one image per pair).
 * Positions on a periodic axis outside ``[0, L)`` are binned after wrapping,
   so the list is right (jax-md's cell list silently misses pairs there).
-* Bad input raises at ``allocate``; under ``jit`` a non-finite position sets
-  an error bit (see `jaxrt.errors`) that also reads as overflow.
+* Bad input raises at ``allocate``; under ``jit`` a non-finite position, a
+  metric that disagrees with the box, or a box shrunk below twice the
+  cutoff sets an error bit (see `jaxrt.errors`) that also reads as overflow.
 * ``NeighborList.cell_list_capacity`` holds a `jaxrt.backends.Capacity`
   (static buffer sizes), not an int; ``cell_size`` and ``cell_list_fn``
   are None.
@@ -24,8 +35,10 @@ Where jaxrt differs from jax-md, on purpose:
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
+import warnings
 from typing import Callable, Sequence
 
 import jax
@@ -35,7 +48,7 @@ from jax_md import space
 from jax_md.partition import (NeighborList, NeighborListFns,
                               NeighborListFormat, PartitionError)
 
-from jaxrt import backends
+from jaxrt import _space, backends
 from jaxrt.backends import Capacity, Geometry, MetricSq, Query
 from jaxrt.errors import ErrorCode
 
@@ -69,14 +82,13 @@ def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
         displacement_or_metric(ra, rb, **kw))
 
 
-def _side_vector(box, dim: int) -> np.ndarray | None:
-    """The box as float64 ``(dim,)`` sides, None if no usable box was given.
-
-    Raises for a triclinic box (off-diagonal entries), which only the brute
-    backend handles, signalled by returning NaNs.
-    """
+def _box_parts(box, dim: int):
+    """The box as float64 ``(dim,)`` sides or a ``(dim, dim)`` triclinic
+    matrix (columns are the lattice vectors, jax-md's convention): returns
+    ``(sides, matrix)``, at most one of them not None; both None where no
+    usable box was given (None, or not positive: free space needs none)."""
     if box is None:
-        return None
+        return None, None
     b = np.asarray(box, dtype=np.float64)
     if b.ndim == 0:
         b = np.full(dim, float(b))
@@ -85,47 +97,62 @@ def _side_vector(box, dim: int) -> np.ndarray | None:
             raise ValueError(f"box must be ({dim}, {dim}) for {dim}D positions;"
                              f" got shape {b.shape}.")
         if np.any(b - np.diag(np.diag(b))):
-            return np.full(dim, np.nan)
+            if not np.all(np.isfinite(b)) or abs(np.linalg.det(b)) <= 0:
+                raise ValueError("box is a singular or non-finite matrix; "
+                                 "pass the lattice vectors as its columns.")
+            return None, b
         b = np.diag(b)
     elif b.shape != (dim,):
         raise ValueError(f"box must be a scalar, ({dim},) or ({dim}, {dim}) "
                          f"for {dim}D positions; got shape {b.shape}.")
     if not np.all(np.isfinite(b) & (b > 0)):
-        return None
-    return b
+        return None, None
+    return b, None
 
 
-def _infer_periodic(metric_fn, side: np.ndarray | None, fractional: bool,
-                    dim: int) -> tuple[bool, ...]:
-    """Probe ``metric_fn`` along each axis: free, or periodic with ``side``?"""
+def _grid_space(box, dim: int, fractional: bool, periodic) -> _space.Space:
+    """Periods and transform of the grid's space (`jaxrt._space.Space`);
+    ``periodic`` is the per-axis tuple or None (to be inferred)."""
+    sides, matrix = _box_parts(box, dim)
+    axes = (False,) * dim if periodic is None else periodic
+    if fractional:
+        if sides is None and matrix is None:
+            raise ValueError("fractional_coordinates=True needs box.")
+        return _space.Space(axes, np.ones(dim))
+    if matrix is not None:
+        # Cartesian positions in a triclinic box: bin them in fractional
+        # coordinates, where every axis has period 1.
+        return _space.Space(axes, np.ones(dim), np.linalg.inv(matrix))
+    return _space.Space(axes, np.ones(dim) if sides is None else sides)
+
+
+def _infer_periodic(metric, space: _space.Space, box_known: bool, g
+                    ) -> tuple[bool, ...]:
+    """Probe the metric along each grid axis: free, or periodic with the
+    box? ``g``: the metric's Gram matrix (`jaxrt._space.gram`)."""
+    dim = space.dim
     periodic = []
     for a in range(dim):
-        unit = 1.0 if fractional else (1.0 if side is None else side[a])
-        scale = side[a] if (fractional and side is not None) else 1.0
+        unit = float(space.period[a])
+        length = float(np.sqrt(max(float(g[a, a]), 0.0)))
         looks_free = looks_periodic = True
         for t in (0.75, 1.3, 7.3):
-            rb = np.zeros(dim, np.float32)
-            rb[a] = t * unit
-            # Eager even when the list first meets positions under jit.
+            q = np.zeros(dim)
+            q[a] = t * unit
             with jax.ensure_compile_time_eval():
-                r = float(np.sqrt(metric_fn(jnp.zeros(dim, jnp.float32),
-                                            jnp.asarray(rb))))
-            tol = 1e-4 * t * unit * scale + 1e-6
-            looks_free &= abs(r - t * unit * scale) <= tol
-            wrapped = abs(t - round(t)) * unit * scale
-            looks_periodic &= abs(r - wrapped) <= tol
-        if looks_free == looks_periodic:
+                rb = space.from_grid(jnp.asarray(q, jnp.float32))
+                r = float(np.sqrt(metric(jnp.zeros(dim, jnp.float32), rb)))
+            tol = 1e-4 * t * unit * length + 1e-6
+            looks_free &= abs(r - t * unit * length) <= tol
+            looks_periodic &= abs(r - abs(t - round(t)) * unit * length) <= tol
+        if looks_free == looks_periodic or (looks_periodic and not box_known):
             raise ValueError(
                 f"could not tell from displacement_or_metric whether axis {a} "
-                f"is free or periodic with the given box ({_box_repr(side)}). "
-                "Pass periodic=True/False (or one bool per axis) explicitly, "
-                "and check that box matches the displacement function.")
+                f"is free or periodic with the given box. Pass periodic=True/"
+                "False (or one bool per axis) explicitly, and check that box "
+                "matches the displacement function.")
         periodic.append(looks_periodic)
     return tuple(periodic)
-
-
-def _box_repr(side) -> str:
-    return "no box" if side is None else f"sides {np.asarray(side).tolist()}"
 
 
 def _normalise_periodic(periodic, dim: int) -> tuple[bool, ...]:
@@ -201,8 +228,9 @@ def neighbor_list(displacement_or_metric: Callable,
 
     Args (as jax-md's; see module docstring for the differences):
       displacement_or_metric: ``d(Ra, Rb)`` from ``jax_md.space``.
-      box: scalar, ``(dim,)`` or diagonal ``(dim, dim)`` box side(s); may be
-        None in free space.
+      box: scalar, ``(dim,)`` or ``(dim, dim)`` box (a triclinic matrix has
+        the lattice vectors as columns, as ``space.periodic_general``); may
+        be None in free space.
       r_cutoff: interaction radius; ``dr_threshold``: skin. Pairs with
         ``d < r_cutoff + dr_threshold`` (strict) are listed; the list is
         rebuilt when a particle moved more than ``dr_threshold / 2``.
@@ -218,10 +246,7 @@ def neighbor_list(displacement_or_metric: Callable,
     Returns:
       jax-md's `NeighborListFns` (``allocate``, ``update``).
     """
-    if unknown:
-        raise TypeError(
-            f"neighbor_list() got unexpected keyword argument(s) "
-            f"{sorted(unknown)}; it accepts {', '.join(_ARGUMENTS)}.")
+    _check_unknown_keywords(unknown)
     if not callable(displacement_or_metric):
         raise TypeError("displacement_or_metric must be a function d(Ra, Rb) "
                         "from jax_md.space.")
@@ -243,59 +268,66 @@ def neighbor_list(displacement_or_metric: Callable,
     if backend == "auto":
         backend = _auto_backend()
     search_backend = backends.get(backend)
+    # The all-pairs search asks the caller's metric about every pair, so it
+    # is exact for any metric; the grids need the model to hold.
+    any_metric = search_backend.name == "brute"
+    decides_by_metric = search_backend.name in ("brute", "cell")
 
     cutoff = r_cutoff + dr_threshold
     threshold_sq = (dr_threshold / 2) ** 2
-    box_given = box
     setups: dict[int, tuple] = {}
 
-    def setup(dim: int):
-        """Static description for positions of dimension ``dim`` (cached)."""
+    def setup(dim: int, kwargs: dict):
+        """``(metric fn, Space, Query)`` for positions of dimension ``dim``,
+        fixed at the first ``allocate`` (its keywords reach the metric)."""
         if dim in setups:
             return setups[dim]
         fn = _metric_sq_fn(displacement_or_metric, dim)
-        side = _side_vector(box_given, dim)
-        triclinic = side is not None and np.isnan(side).any()
-        if triclinic and search_backend.name != "brute":
-            raise ValueError("box is triclinic (off-diagonal entries); only "
-                             "backend='brute' handles it.")
-        if triclinic:
-            axes = (True,) * dim if periodic is None else \
-                _normalise_periodic(periodic, dim)
-            side = np.ones(dim)
-        elif periodic is None:
-            axes = _infer_periodic(fn, side, fractional_coordinates, dim)
-        else:
-            axes = _normalise_periodic(periodic, dim)
-        if any(axes) and side is None:
+        axes = None if periodic is None else _normalise_periodic(periodic, dim)
+        grid = _grid_space(box, dim, fractional_coordinates, axes)
+        has_box = any(part is not None for part in _box_parts(box, dim))
+        if axes is None:
+            with jax.ensure_compile_time_eval():
+                g = np.asarray(_space.gram(MetricSq(fn, dict(kwargs)), grid,
+                                           jnp.float32))
+            axes = _infer_periodic(MetricSq(fn, dict(kwargs)), grid, has_box, g)
+            grid = dataclasses.replace(grid, periodic=axes)
+        if any(axes) and not has_box:
             raise ValueError("periodic axes need box: pass the box side(s) "
                              "as box=L or box=(Lx, Ly[, Lz]).")
-        if fractional_coordinates and side is None:
-            raise ValueError("fractional_coordinates=True needs box.")
-        side = np.ones(dim) if side is None else side
+        if grid.transform is not None and not all(axes):
+            raise ValueError(
+                "a triclinic box with Cartesian positions needs every axis "
+                "periodic (periodic=True); for a slab, use an orthorhombic "
+                "box or fractional_coordinates=True.")
         query = Query(cutoff=cutoff, periodic=axes, mask_self=bool(mask_self),
                       format=format)
-        setups[dim] = (fn, query, side)
+        setups[dim] = (fn, grid, query)
         return setups[dim]
 
-    def geometry_of(side, box_kwarg, dtype) -> Geometry:
-        if box_kwarg is not None:
-            b = jnp.asarray(box_kwarg, dtype)
-            b = jnp.diagonal(b) if b.ndim == 2 else jnp.broadcast_to(b, side.shape)
-            side_arr = b
-        else:
-            side_arr = jnp.asarray(side, dtype)
-        scale = side_arr if fractional_coordinates else jnp.ones_like(side_arr)
-        return Geometry(side=side_arr, scale=scale)
+    def model(grid: _space.Space, metric: MetricSq, dtype, diagonal: bool,
+              slack: float = 0.0):
+        """Geometry for the backends, Gram matrix and heights (traceable).
+        With ``slack`` (the metric decides every pair) the grid's distances
+        shrink by that fraction, so that it still holds every neighbour of
+        a metric up to that much shorter than its model."""
+        g = _space.gram(metric, grid, dtype)
+        h = _space.heights(g, diagonal)
+        grid_h = h * (1.0 - slack) if slack else h
+        transform = (None if grid.transform is None
+                     else jnp.asarray(grid.transform, dtype))
+        geometry = Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
+                            scale=grid_h, transform=transform)
+        return geometry, g, h
 
-    def check_kwargs(kwargs):
+    def check_kwargs(kwargs, allocating: bool):
         extra = set(kwargs) - {"box"}
         if extra:
             raise TypeError(f"unexpected keyword argument(s) {sorted(extra)}; "
-                            "allocate/update accept only box= (with "
-                            "fractional_coordinates=True).")
-        if "box" in kwargs and not fractional_coordinates:
-            raise ValueError("box= may be passed to allocate/update only with "
+                            "allocate/update accept only box= (passed to "
+                            "displacement_or_metric, as in jax-md).")
+        if "box" in kwargs and not fractional_coordinates and not allocating:
+            raise ValueError("box= may be passed to update only with "
                              "fractional_coordinates=True (as in jax-md).")
 
     def nonfinite_code(position):
@@ -311,7 +343,7 @@ def neighbor_list(displacement_or_metric: Callable,
                                            metric)
             return result.idx, result.overflow
         dense_query = dataclasses.replace(query, format=Dense)
-        pre = Capacity(capacity["row"], capacity.internal)
+        pre = dataclasses.replace(capacity, neighbors=capacity["row"])
         result = search_backend.search(position, geometry, dense_query, pre,
                                        metric)
         masked = custom_mask_function(result.idx)
@@ -325,7 +357,7 @@ def neighbor_list(displacement_or_metric: Callable,
 
         Eager (not jit-able): buffer sizes depend on the data.
         """
-        check_kwargs(kwargs)
+        check_kwargs(kwargs, allocating=True)
         position = _check_position(position)
         n, dim = position.shape
         if not bool(jnp.all(jnp.isfinite(position))):
@@ -335,14 +367,40 @@ def neighbor_list(displacement_or_metric: Callable,
         extra_capacity = int(extra_capacity)
         if extra_capacity < 0:
             raise ValueError("extra_capacity must be >= 0.")
-        fn, query, side = setup(dim)
-        geometry = geometry_of(side, kwargs.get("box"), position.dtype)
-        metric = MetricSq(fn, {k: v for k, v in kwargs.items()})
+        fn, grid, query = setup(dim, kwargs)
+        metric = MetricSq(fn, dict(kwargs))
+        g = _space.gram(metric, grid, position.dtype)
+        diagonal = grid.transform is None and _space.is_diagonal(g)
+        h = _space.heights(g, diagonal)
+        _check_cutoff(cutoff, grid, np.asarray(h, np.float64))
+        metric_decides = not diagonal
+        slack = 0.0
+        if not any_metric:
+            dev, slack, i, j = _space.sample_deviation(position, metric, g, h,
+                                                       grid)
+            if slack is None:
+                raise _shorter_metric_error(position, metric, g, grid, i, j,
+                                            dev, box)
+            metric_decides |= bool(np.any(np.abs(dev) > 1))
+            if not metric_decides:
+                slack = 0.0
+        if metric_decides and not decides_by_metric:
+            raise ValueError(
+                f"backend={search_backend.name!r} computes Euclidean "
+                "minimum-image distances in an orthorhombic box itself, but "
+                + ("the box is triclinic" if not diagonal else
+                   "displacement_or_metric differs from that distance") +
+                "; use backend='cell' (its grid then lets the metric decide "
+                "every pair) or backend='brute'.")
+        query = dataclasses.replace(query, decide_by_metric=metric_decides)
+        geometry, _, _ = model(grid, metric, position.dtype, diagonal, slack)
         if custom_mask_function is None:
             sizes = search_backend.measure(position, geometry, query, metric)
         else:
             sizes = _measure_masked(position, geometry, query, metric)
         capacity = _capacity(sizes, n, extra_capacity, query)
+        capacity = dataclasses.replace(capacity, metric_decides=metric_decides,
+                                       orthorhombic=diagonal, slack=slack)
         _check_list_size(search_backend, n, capacity, query)
         idx, overflow = build(position, geometry, metric, query=query,
                               capacity=capacity)
@@ -386,7 +444,7 @@ def neighbor_list(displacement_or_metric: Callable,
     def update(position, neighbors: NeighborList, **kwargs) -> NeighborList:
         """Rebuild ``neighbors`` at ``position`` if a particle moved more than
         half the skin since the last build. jit/scan/vmap-able."""
-        check_kwargs(kwargs)
+        check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
                             f"got {type(neighbors).__name__}.")
@@ -401,20 +459,39 @@ def neighbor_list(displacement_or_metric: Callable,
         if not isinstance(capacity, Capacity):
             raise TypeError("neighbors was not allocated by jaxrt; use the "
                             "update of the factory that allocated it.")
-        fn, query, side = setup(position.shape[1])
-        geometry = geometry_of(side, kwargs.get("box"), position.dtype)
+        fn, grid, query = setup(position.shape[1], kwargs)
+        query = dataclasses.replace(query,
+                                    decide_by_metric=capacity.metric_decides)
         metric = MetricSq(fn, dict(kwargs))
+        geometry, g, h = model(grid, metric, position.dtype,
+                               capacity.orthorhombic, capacity.slack)
         code = neighbors.error.code | nonfinite_code(position)
+        # A box passed here may have shrunk below twice the cutoff.
+        too_small = jnp.any(jnp.asarray(grid.periodic) & ~_space.cutoff_fits(
+            cutoff, jnp.asarray(grid.period, position.dtype) * h))
+        code = code | jnp.where(too_small, jnp.uint8(
+            ErrorCode.BOX_TOO_SMALL | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
+            jnp.uint8(0))
 
         def rebuild(_):
             idx, overflow = build(position, geometry, metric, query=query,
                                   capacity=capacity)
-            bit = jnp.where(overflow,
-                            jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
-                            jnp.uint8(0))
+            bits = jnp.where(overflow,
+                             jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
+                             jnp.uint8(0))
+            if not any_metric:
+                wrong = _space.extremes_disagree(
+                    position, metric, g, h, grid,
+                    lower_bound_only=capacity.metric_decides,
+                    slack=capacity.slack)
+                if capacity.orthorhombic:
+                    wrong |= _space.off_diagonal(g)
+                bits = bits | jnp.where(wrong, jnp.uint8(
+                    ErrorCode.METRIC_MISMATCH
+                    | ErrorCode.NEIGHBOR_LIST_OVERFLOW), jnp.uint8(0))
             return dataclasses.replace(neighbors, idx=idx,
                                        reference_position=position,
-                                       error=PartitionError(code | bit))
+                                       error=PartitionError(code | bits))
 
         def keep(_):
             return dataclasses.replace(neighbors, error=PartitionError(code))
@@ -425,6 +502,63 @@ def neighbor_list(displacement_or_metric: Callable,
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
 
     return NeighborListFns(allocate, update)
+
+
+def _check_unknown_keywords(unknown: dict) -> None:
+    """jax-md's ``neighbor_list`` takes ``**static_kwargs`` and ignores them
+    (user code passes ``cell_size=``, ``t=``): warn, naming them. A near
+    miss of a real argument is a typo, which must not pass silently."""
+    if not unknown:
+        return
+    for name in unknown:
+        close = difflib.get_close_matches(name, _ARGUMENTS, n=1, cutoff=0.8)
+        if close:
+            raise TypeError(
+                f"neighbor_list() got an unexpected keyword argument {name!r};"
+                f" did you mean {close[0]!r}?")
+    warnings.warn(
+        f"neighbor_list() ignores the keyword argument(s) {sorted(unknown)}, "
+        "as jax-md's neighbor_list does (its **static_kwargs); jaxrt accepts "
+        f"{', '.join(_ARGUMENTS)}.", stacklevel=3)
+
+
+def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray
+                  ) -> None:
+    """Refuse a cutoff of half a periodic height or more: an index-only list
+    would hold each pair once, through its nearest image, and drop the
+    other images within the cutoff, which interact too."""
+    span = grid.period * height
+    for a, p in enumerate(grid.periodic):
+        if p and not bool(_space.cutoff_fits(cutoff, span[a])):
+            raise ValueError(
+                f"r_cutoff + dr_threshold = {cutoff:g} is not below half the "
+                f"periodic box's height on axis {a} (L/2 = {span[a] / 2:g}): "
+                "a neighbour list holds each pair once, through its nearest "
+                "image, and would drop the other images within the cutoff. "
+                "Use a larger box (replicate the cell), a smaller r_cutoff / "
+                "dr_threshold, or jaxrt.pairs for lists with lattice shifts.")
+
+
+def _shorter_metric_error(position, metric, g, grid, i, j, dev, box
+                          ) -> ValueError:
+    k = int(np.argmin(dev))
+    a, b = int(i[k]), int(j[k])
+    with jax.ensure_compile_time_eval():
+        pos = jnp.asarray(position)
+        m = float(np.sqrt(metric(pos[a], pos[b])))
+        q = grid.to_grid(pos)
+        d = float(np.sqrt(_space.model_sq(q[a], q[b], g, grid)))
+    free = [ax for ax, p in enumerate(grid.periodic) if not p]
+    hint = (f" Axes {free} are treated as free space: a periodic displacement"
+            " needs box= (the L of space.periodic(L)) so that jaxrt knows it."
+            if free and box is None else
+            " Check that box is the one the displacement was made with.")
+    return ValueError(
+        f"displacement_or_metric puts particles {a} and {b} {m:.6g} apart, "
+        f"closer than the {d:.6g} that box and periodicity imply "
+        f"(periodic={list(grid.periodic)}), so a grid search would miss "
+        f"pairs.{hint} A metric that shortens distances in other ways can "
+        "only be searched by backend='brute'.")
 
 
 def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:

@@ -669,6 +669,21 @@ def _displacement_shift(box: Box):
     return displacement, shift
 
 
+def _list_sides(box: Box) -> np.ndarray:
+    """The ``box=`` of `jaxrt.neighbor_list`: float64 ``(dim,)``, one
+    positive side per axis.
+
+    The list reads the side on periodic axes only, but needs a positive
+    number on every axis: a single missing side (a free axis may have size
+    0) would make it drop the whole box, and then the periodic axes of a
+    mixed box have none. Wall axes keep their size; a free axis without a
+    positive size gets 1.0 (never read).
+    """
+    size = np.asarray(box.size, float)
+    ok = np.isfinite(size) & (size > 0)
+    return np.where(ok, size, 1.0)
+
+
 def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
                   ) -> Compiled:
     """Compile ``scene`` to a step containing only its effects.
@@ -692,11 +707,10 @@ def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
     neighbor_fn = None
     if scene.pair_effects:
         fmt = FORMATS[scene.neighbors.format]
-        size = None if "free" in box.boundary else box.size
-        if size is not None:
-            size = np.asarray(size, float)
+        # Sides on every axis, even with free axes: periodic ones need theirs
+        # (periodic= says which axes wrap; the others' sides are not read).
         neighbor_fn = nl_fn(
-            displacement, size, scene.cutoff, scene.neighbors.skin,
+            displacement, _list_sides(box), scene.cutoff, scene.neighbors.skin,
             capacity_multiplier=scene.neighbors.capacity_multiplier,
             format=fmt, backend=scene.neighbors.backend,
             periodic=box.periodic)

@@ -69,3 +69,25 @@ def assert_layout(nbrs):
         assert not np.any(~valid[:-1] & valid[1:]), "valid edges not a prefix"
         edges = list(zip(idx[0][valid].tolist(), idx[1][valid].tolist()))
         assert len(set(edges)) == len(edges), "duplicate edge"
+
+
+def brute_pairs_general(fractional, box, cutoff, mask_self=True):
+    """Set of (i, j) within ``cutoff`` in a triclinic box, float64, with
+    jax-md's ``periodic_general`` rule: the fractional difference wrapped
+    into [-1/2, 1/2) per axis, then mapped by ``box`` (columns are the
+    lattice vectors).
+
+    Args:
+      fractional: ``(N, dim)`` fractional coordinates.
+      box: ``(dim, dim)`` matrix.
+    """
+    f = np.asarray(fractional, np.float64)
+    b = np.asarray(box, np.float64)
+    d = f[:, None, :] - f[None, :, :]
+    d = d - np.round(d)
+    cart = np.einsum("ab,ijb->ija", b, d)
+    keep = np.sum(cart * cart, axis=-1) < float(cutoff) ** 2
+    if mask_self:
+        np.fill_diagonal(keep, False)
+    i, j = np.nonzero(keep)
+    return set(zip(i.tolist(), j.tolist()))

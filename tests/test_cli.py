@@ -1,4 +1,5 @@
 """The jaxrt command, driven through main()."""
+import numpy as np
 import pytest
 
 from jaxrt import cli
@@ -31,6 +32,72 @@ def test_run_toml(tmp_path, capsys):
     assert (tmp_path / "o" / "energies.png").exists()
     xyz = (tmp_path / "o" / "trajectory.xyz").read_text().splitlines()
     assert xyz[0] == "3" and "Lattice=" in xyz[1]
+
+
+MIXED = """
+[box]
+size = [8.0, 8.0, 8.0]
+boundary = ["periodic", "wall", "free"]
+
+[particles]
+positions = [[0.5, 4.0, 4.0], [7.45, 4.0, 4.0], [4.0, 2.0, 1.0]]
+velocities = [[-0.3, 0.2, -0.1], [0.1, 0.0, 0.3], [0.05, -0.05, 0.01]]
+species = [0, 1, 2]
+
+[[effects]]
+kind = "lj"
+r_cutoff = 2.5
+
+[integrator]
+dt = 0.01
+"""
+
+
+@pytest.mark.parametrize("text", [MIXED, "2d"], ids=["mixed-3d", "2d"])
+def test_trajectory_reads_in_ase(tmp_path, capsys, text):
+    """trajectory.xyz used to name species X0, X1 (ASE: KeyError 'X0'),
+    write the box with 6 digits and no velocities. Every frame must read
+    back in ASE as what the run had: symbols by the stated map, positions
+    and velocities bit for bit (float32 written with 9 digits), cell, pbc.
+    """
+    import ase.io as ase_io  # a test dependency (pyproject: test extra)
+    from test_scene import GOOD
+    from jaxrt import scene as S
+    text = GOOD if text == "2d" else text
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    assert cli.main(["run", str(p), "--steps", "6", "--chunk", "2",
+                     "--out", str(tmp_path / "o")]) == 0
+    frames = ase_io.read(tmp_path / "o" / "trajectory.xyz", index=":")
+    snap = np.load(tmp_path / "o" / "snapshots.npz")
+    assert len(frames) == 4 and list(snap["steps"]) == [0, 2, 4, 6]
+    sc = S.load(p)
+    dim, n = sc.particles.dim, sc.particles.n
+    species = (np.zeros(n, int) if sc.particles.species is None
+               else sc.particles.species)
+    names = ["Ar", "Ne", "Kr"]
+    for k, atoms in enumerate(frames):
+        assert atoms.get_chemical_symbols() == [names[s] for s in species]
+        assert atoms.info["step"] == 2 * k
+        assert atoms.info["species_map"].startswith("0:Ar")
+        pos, vel = atoms.positions, atoms.arrays["velocities"]
+        np.testing.assert_array_equal(pos[:, :dim].astype(np.float32),
+                                      snap["positions"][k])
+        np.testing.assert_array_equal(vel[:, :dim].astype(np.float32),
+                                      snap["velocities"][k])
+        assert not pos[:, dim:].any() and not vel[:, dim:].any()
+        cell = np.zeros((3, 3))
+        cell[:dim, :dim] = np.diag(sc.box.size)
+        np.testing.assert_array_equal(atoms.cell.array, cell)
+        assert list(atoms.pbc) == [b == "periodic" for b in
+                                   sc.box.boundary] + [False] * (3 - dim)
+    # Frame 0 is the scene's input exactly; the last is the final state.
+    np.testing.assert_array_equal(
+        snap["positions"][0], sc.particles.positions.astype(np.float32))
+    np.testing.assert_array_equal(
+        snap["velocities"][0], sc.particles.velocities.astype(np.float32))
+    np.testing.assert_array_equal(snap["velocities"][-1], snap["velocity"])
+    assert np.any(snap["positions"][-1] != snap["positions"][0])  # it moved
 
 
 def test_bad_scene_exit_code(tmp_path, capsys):

@@ -420,6 +420,52 @@ def test_bad_input_raises_value_errors_naming_the_argument():
             1.0)
 
 
+def test_unknown_energy_keyword_raises_with_suggestion():
+    """A misspelt keyword used to reach jax-md's displacement, which takes
+    ``**unused`` and dropped it: sigmaa=2. gave the sigma=1 energy."""
+    R, side, _ = fluid(n_side=2)
+    disp, _ = space.periodic(side)
+    nbrs = partition.neighbor_list(disp, side, 2.5).allocate(R)
+    fn = lj.lennard_jones_pair_neighbor_list(disp)
+    with pytest.raises(TypeError, match=r"\['sigmaa'\].*did you mean "
+                       r"'sigma'\?.*accepts sigma, epsilon, r_onset"):
+        fn(R, nbrs, sigmaa=2.0)
+    with pytest.raises(TypeError, match=r"'colour'.*perturbation"):
+        jax.jit(lambda R: fn(R, nbrs, colour=1.0))(R)  # at trace time too
+    _, energy_fn = lj.lennard_jones_neighbor_list(
+        disp, side, neighbor_list_fn=partition.neighbor_list)
+    with pytest.raises(TypeError, match="did you mean 'epsilon'"):
+        energy_fn(R, nbrs, epsilom=2.0)
+
+
+def test_legitimate_energy_keywords_still_work():
+    """Parameters and the displacement's own keywords (``box=`` of
+    periodic_general, a keyword named in a custom displacement) pass."""
+    R, side, _ = fluid(n_side=2)
+    disp, _ = space.periodic(side)
+    nbrs = partition.neighbor_list(disp, side, 2.5).allocate(R)
+    fn = lj.lennard_jones_pair_neighbor_list(disp)
+    e1 = fn(R, nbrs)
+    e2 = fn(R, nbrs, sigma=1.05, epsilon=2.0, r_onset=1.9, r_cutoff=2.4)
+    assert np.isfinite(e2) and abs(e2 - e1) > 1e-3 * abs(e1)
+    # jax_md.simulate.nvt_nose_hoover passes its kT on to the energy.
+    np.testing.assert_array_equal(fn(R, nbrs, kT=0.5), e1)
+    general, _ = space.periodic_general(jnp.eye(3) * side,
+                                        fractional_coordinates=False)
+    g = lj.lennard_jones_pair_neighbor_list(general)
+    np.testing.assert_allclose(g(R, nbrs, box=jnp.eye(3) * side), e1,
+                               rtol=1e-6)
+
+    # A custom displacement keyword (jax-md's canonicalisation probes t=).
+    def scaled(Ra, Rb, scale=1.0, t=None):
+        return disp(Ra, Rb) * scale
+    s = lj.lennard_jones_pair_neighbor_list(scaled)
+    np.testing.assert_allclose(s(R, nbrs, scale=1.0), e1, rtol=1e-6)
+    assert abs(s(R, nbrs, scale=1.02) - e1) > 1e-3 * abs(e1)
+    with pytest.raises(TypeError, match="'box'.*accepts.*scale"):
+        s(R, nbrs, box=side)  # scaled has no **kwargs: box would be lost
+
+
 def test_under_jit_bad_values_poison_with_nan():
     """Under jit a traced sigma <= 0 cannot raise; as documented, the energy
     is NaN rather than the (identical, by LJ's even powers) energy of

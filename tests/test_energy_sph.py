@@ -316,6 +316,23 @@ def test_bad_input_raises_value_errors_naming_the_argument():
         sph.acceleration(disp, k, eos)(R, R, nbrs, rho=-jnp.ones(4))
 
 
+def test_unknown_keyword_names_it_and_the_accepted_ones():
+    """As the LJ energy: a typo raises TypeError with a suggestion and the
+    list of accepted keywords (Python's own message had neither)."""
+    disp, _ = space.free()
+    k = sph.CubicSpline(0.1, dim=2)
+    R = jnp.zeros((4, 2)) + jnp.arange(4.0)[:, None] * 0.05
+    nbrs = partition.neighbor_list(disp, 1.0, 0.2,
+                                   disable_cell_list=True).allocate(R)
+    with pytest.raises(TypeError, match=r"\['hh'\].*did you mean 'h'\?.*"
+                       r"accepts h, mass"):
+        sph.density(disp, k)(R, nbrs, hh=0.2)
+    with pytest.raises(TypeError, match=r"did you mean 'alpha'\?.*accepts "
+                       r"rho, pressure"):
+        sph.acceleration(disp, k, sph.Tait(**EOS))(R, R, nbrs, alpah=0.2)
+    assert sph.density(disp, k)(R, nbrs, h=0.12, mass=2.0).shape == (4,)
+
+
 def test_under_jit_bad_values_poison_with_nan():
     """Traced values cannot raise; as documented they give NaN, not a
     plausible wrong number."""

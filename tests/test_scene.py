@@ -145,6 +145,38 @@ def test_langevin_runs_and_is_random():
     assert "random_bits" in _jaxpr(c)
 
 
+
+def test_mixed_boundaries_wrap_periodic_axis_only():
+    """``["periodic", "wall", "free"]`` (the module docstring's example)
+    used to fail at init: the free axis made the scene pass no box at all,
+    and the list needs the periodic side. A pair straddles each face; only
+    the periodic one may interact (the others are 7.6 and 7.8 apart, 0.4
+    and 0.2 if wrongly wrapped)."""
+    L = 8.0
+    pos = np.array([[0.5, 4.0, 4.0], [7.45, 4.0, 4.0],    # periodic x: 1.05
+                    [4.0, 0.2, 4.0], [4.0, 7.8, 4.0],      # wall y
+                    [4.0, 4.0, 0.1], [4.0, 4.0, 7.9]])     # free z
+    sc = S.Scene(particles=S.make_particles(positions=pos),
+                 box=S.Box((L,) * 3, ("periodic", "wall", "free")),
+                 effects=(LJ,), integrator=S.Integrator(dt=0.001),
+                 neighbors=S.Neighbors(skin=0.3))
+    c, state, stats = _run(sc, 5)
+    from jaxrt.cli import _pair_codes  # i * n + j, i < j, any layout
+    assert list(_pair_codes(c.init()[1], 6)) == [0 * 6 + 1]
+    # Same as every pair within reach under the scene's own displacement.
+    d = np.asarray(jax.vmap(jax.vmap(c.displacement, (None, 0)), (0, None))(
+        state.position, state.position))
+    i, j = np.nonzero(np.triu(np.linalg.norm(d, axis=-1) < 2.8, 1))
+    assert list(i * 6 + j) == [1]
+    # The straddling pair repels across the face: 0 pushed to +x, 1 to -x;
+    # the others feel nothing.
+    a = np.asarray(state.accel)
+    assert a[0, 0] > 1 and a[1, 0] < -1
+    assert np.all(a[2:] == 0)
+    u = np.concatenate(stats.potential)
+    np.testing.assert_allclose(u[0], 4 * (1.05**-12 - 1.05**-6), rtol=0.02)
+
+
 # --- TOML ------------------------------------------------------------------
 
 def test_toml_round_trip():

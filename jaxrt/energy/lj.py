@@ -27,9 +27,14 @@ Differences from jax-md, on purpose:
   Nearly coincident particles give ``+inf`` energy once ``(sigma/r)**12``
   overflows (``r < sigma * 1e-3.2`` in float32); jax-md replaces that with
   the largest float and a zero force, which hides the overlap.
-* Unknown keyword arguments to the energy function are passed to the
-  displacement function only (e.g. ``box=`` for a changing box); they are
-  never treated as LJ parameters.
+* Keyword arguments of the energy function other than the LJ parameters
+  go to the displacement function only (e.g. ``box=`` for a changing box),
+  and only those it reads: its named parameters, plus ``box``, ``new_box``
+  and ``perturbation`` when it takes ``**kwargs`` as jax_md.space's do.
+  ``kT`` (which jax_md.simulate's Nose-Hoover integrators pass on) is
+  accepted and dropped. Anything else (a typo such as ``sigmaa=``) raises
+  ``TypeError`` (jax-md's displacements take ``**unused`` and would drop it
+  silently).
 """
 from __future__ import annotations
 
@@ -44,6 +49,8 @@ from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
 from jax.ops import segment_sum
 
+from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
+                                    reject_unknown)
 from jaxrt.energy._rows import dense_pair_energy
 
 Array = jax.Array
@@ -133,6 +140,10 @@ def lennard_jones_truncated(dr: Array, sigma: Array = 1.0,
 # its custom JVP on the function object.
 _PAIRS = {t: functools.partial(lennard_jones_truncated, truncation=t)
           for t in TRUNCATIONS}
+
+
+# The energy function's own keywords (lennard_jones_pair_neighbor_list).
+_ENERGY_KEYWORDS = ("sigma", "epsilon", "r_onset", "r_cutoff", "species")
 
 
 def _truncation_error(truncation) -> str:
@@ -260,7 +271,8 @@ def lennard_jones_pair_neighbor_list(
       may be traced: differentiate with respect to them; only their shapes
       are checked); ``species`` (int ``(N,)``) only if the factory had
       species. ``metric_kwargs`` (e.g. ``box=`` for
-      ``space.periodic_general``) go to the displacement function only.
+      ``space.periodic_general``) go to the displacement function only; a
+      name it does not read raises ``TypeError`` (module docstring).
       Returns a scalar, or ``(N,)`` with ``per_particle``, in the dtype of
       ``R`` promoted with the parameters.
 
@@ -280,6 +292,7 @@ def lennard_jones_pair_neighbor_list(
     _check_parameter("epsilon", epsilon, species)
     _check_cutoffs(r_onset, r_cutoff, truncation)
     metric = space.canonicalize_displacement_or_metric(displacement_or_metric)
+    metric_keywords = displacement_keywords(displacement_or_metric)
     defaults = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
                     r_cutoff=r_cutoff)
     default_species = species
@@ -288,6 +301,11 @@ def lennard_jones_pair_neighbor_list(
                   sigma: Array | None = None, epsilon: Array | None = None,
                   r_onset: Array | None = None, r_cutoff: Array | None = None,
                   species: Array | None = None, **metric_kwargs) -> Array:
+        # Names are static, so this raises at trace time under jit too.
+        reject_unknown("energy_fn", metric_kwargs, _ENERGY_KEYWORDS,
+                       metric_keywords, SIMULATE_KEYWORDS)
+        metric_kwargs = {k: v for k, v in metric_kwargs.items()
+                         if k in metric_keywords}
         given = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
                      r_cutoff=r_cutoff)
         p = {k: defaults[k] if v is None else v for k, v in given.items()}

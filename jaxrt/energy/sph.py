@@ -26,7 +26,8 @@ Bad input raises `ValueError` when the value is known (outside ``jit``).
 Under ``jit`` a value check cannot raise, so bad values poison the result
 with NaN instead of giving a plausible wrong answer: a kernel with ``h <= 0``
 returns NaN, `Tait.pressure` of a negative density returns NaN. Shape
-errors (``mass``, ``rho`` of the wrong length) always raise.
+errors (``mass``, ``rho`` of the wrong length) always raise. An unknown
+keyword argument raises ``TypeError`` naming it and the accepted ones.
 """
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ops import segment_sum
 from jax_md import partition
+
+from jaxrt.energy._keywords import reject_unknown
 
 Array = jax.Array
 
@@ -435,8 +438,11 @@ def density(displacement: Callable, kernel: Kernel, *,
     default_mass = mass
 
     def density_fn(R: Array, neighbor: partition.NeighborList, *,
-                   h: Array | None = None, mass: Array | None = None
-                   ) -> Array:
+                   h: Array | None = None, mass: Array | None = None,
+                   **unknown) -> Array:
+        # **unknown only to name a typo and the accepted keywords (Python's
+        # own TypeError names neither the fix nor the alternatives).
+        reject_unknown("density_fn", unknown, ("h", "mass"))
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
         _check_kernel_dim(k, R)
         n = R.shape[0]
@@ -516,7 +522,9 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
                  rho: Array | None = None, pressure: Array | None = None,
                  h: Array | None = None, mass: Array | None = None,
                  eos: Tait | None = None, alpha: Array | None = None,
-                 beta: Array | None = None) -> Acceleration:
+                 beta: Array | None = None, **unknown) -> Acceleration:
+        reject_unknown("accel_fn", unknown, ("rho", "pressure", "h", "mass",
+                                             "eos", "alpha", "beta"))
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
         _check_kernel_dim(k, R)
         if V.shape != R.shape:

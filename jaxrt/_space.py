@@ -1,0 +1,292 @@
+"""What the caller's ``displacement_or_metric`` measures, as the grids need it.
+
+jax-md hands a neighbour list a function ``d(Ra, Rb)`` and a box, and never
+checks that the two agree. The grids of jaxrt's backends bin positions, so
+they need to know how far apart in position space two neighbours can be.
+This module models the caller's metric as
+
+    d(Ra, Rb)**2 = q^T G q,   q = wrap(T Ra - T Rb)
+
+with ``T`` a static linear map to the grid's space (the identity, or the
+inverse of a triclinic box for Cartesian positions), ``wrap`` the minimum
+image on periodic axes of period ``P`` (in that space), and ``G`` the
+metric's Gram matrix, read off the metric itself at short displacements
+(exact for jax-md's spaces, whose ``d**2`` is a quadratic form; `gram`). So fractional coordinates, triclinic boxes, scaled or
+anisotropic metrics and a box passed to ``allocate`` / ``update`` are all
+one case, and the model is checked against the metric before it is trusted:
+
+* at ``allocate`` on sampled pairs (`sample_deviation`): a metric the model
+  does not fit is either decided pair by pair by the metric (when it is
+  never shorter than the model, so the grid still holds every neighbour) or
+  refused;
+* on every rebuild under ``jit``, on the particles at the extremes of each
+  axis (`extremes_disagree`): this is what catches a periodic displacement
+  given with ``box=None``, whose short distances look free.
+
+Height: a neighbour within ``c`` lies within ``c / h_a`` of the particle
+along axis ``a`` of the grid's space, with ``h_a = 1 / sqrt((G^-1)_aa)``
+(Cauchy-Schwarz on ``q_a = e_a^T G^-1/2 G^1/2 q``); for a diagonal ``G``,
+``h_a = sqrt(G_aa)``. ``P_a h_a`` is the periodic cell's height across
+axis ``a``, and the cutoff must stay below half of it.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# Off-diagonal Gram entries below this (relative) count as zero.
+_DIAGONAL_TOLERANCE = 2.0 ** -20
+# Model and metric may differ by rounding: this much relative, plus ulps of
+# the largest coordinate. XLA's GPU arithmetic (contracted multiply-adds,
+# its division and square root) made them differ by up to ~30 ulps on the
+# H200, where the CPU agreed to a few. A metric that departs from its
+# quadratic model by less than this is taken as the model (the cell list
+# then decides only pairs within 2**-18 of the cutoff by the metric).
+_AGREE_RELATIVE = 2.0 ** -16
+_AGREE_ULPS = 64
+# The cutoff must stay this far (relatively) below half a periodic height,
+# the ray-traced backends' margin (`jaxrt.rt.periodic.CUTOFF_MARGIN`), so
+# that every backend refuses the same boxes.
+CUTOFF_MARGIN = 2.0 ** -16
+# The largest relative shortfall of the metric under its model that the
+# grid absorbs by searching that much farther (TF32 rounding is 2**-11).
+MAX_SLACK = 2.0 ** -7
+# Pairs sampled at allocate: particles adjacent along each axis (most of
+# them near one another) and random ones (most far apart).
+_ADJACENT_SAMPLES = 4096
+_RANDOM_SAMPLES = 2048
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Space:
+    """The static part of the model, fixed by `jaxrt.neighbor_list`'s arguments.
+
+    Attributes:
+      periodic: one bool per axis.
+      period: float64 ``(dim,)``, ``P``: the period of each axis in the
+        grid's space (box sides for Cartesian positions in an orthorhombic
+        box, 1 for fractional coordinates or a triclinic box, 1 where free).
+      transform: float64 ``(dim, dim)`` ``T`` (grid coordinates ``q = T p``
+        for positions ``p``), or None for the identity.
+    """
+
+    periodic: tuple[bool, ...]
+    period: np.ndarray
+    transform: np.ndarray | None = None
+
+    @property
+    def dim(self) -> int:
+        return len(self.periodic)
+
+    def to_grid(self, position):
+        """Grid coordinates ``q`` of float ``(..., dim)`` positions."""
+        if self.transform is None:
+            return position
+        return apply(jnp.asarray(self.transform, position.dtype), position)
+
+    def from_grid(self, q):
+        if self.transform is None:
+            return q
+        return apply(jnp.asarray(np.linalg.inv(self.transform), q.dtype), q)
+
+    def wrap(self, dq):
+        """Minimum image of grid displacements ``dq`` (float ``(..., dim)``)."""
+        if not any(self.periodic):
+            return dq
+        p = jnp.asarray(np.where(self.periodic, self.period, 1.0), dq.dtype)
+        on = jnp.asarray(self.periodic)
+        return jnp.where(on, dq - p * jnp.round(dq / p), dq)
+
+
+def apply(matrix, vectors):
+    """``matrix @ v`` for float ``(..., dim)`` vectors, elementwise in the
+    vectors' dtype: a matrix product on a GPU may round its float32 inputs
+    to TF32 (10 bits), far coarser than the checks here allow."""
+    return jnp.sum(matrix * vectors[..., None, :], axis=-1)
+
+
+def gram(metric_sq, space: Space, dtype):
+    """``G``: float ``(dim, dim)`` in ``dtype``, the Gram matrix of
+    ``metric_sq`` (`jaxrt.backends.MetricSq`) in grid coordinates. Traceable
+    (a box passed to ``update`` changes it under ``jit``).
+
+    From values of the metric, not its derivatives: jax-md's fractional
+    spaces give ``transform`` a custom JVP (forces in real space), so
+    autodiff sees the identity. Steps are powers of two well inside half a
+    period, so that jax-md's wrap and a box side times a step are exact:
+    a Cartesian metric gives the identity and a fractional orthorhombic one
+    the squared sides, bit for bit.
+    """
+    dim = space.dim
+    steps = 2.0 ** np.floor(np.log2(np.asarray(space.period, np.float64) / 64))
+    origin = jnp.zeros((dim,), dtype)
+
+    def squared(q):
+        return metric_sq(space.from_grid(jnp.asarray(q, dtype)), origin)
+
+    unit = np.diag(steps)
+    rows = []
+    for a in range(dim):
+        row = []
+        for b in range(dim):
+            if a == b:
+                row.append(squared(unit[a]) / (steps[a] * steps[a]))
+            else:  # polarisation: exact zero for an orthorhombic box
+                row.append((squared(unit[a] + unit[b])
+                            - squared(unit[a] - unit[b]))
+                           / (4 * steps[a] * steps[b]))
+        rows.append(jnp.stack(row))
+    return jnp.stack(rows).astype(dtype)
+
+
+def is_diagonal(g) -> bool:
+    """Eager: is the (concrete) Gram matrix diagonal?"""
+    g = np.asarray(g, np.float64)
+    d = np.sqrt(np.abs(np.diag(g)))
+    off = np.abs(g - np.diag(np.diag(g)))
+    return bool(np.all(off <= _DIAGONAL_TOLERANCE * np.outer(d, d)))
+
+
+def off_diagonal(g):
+    """Traced: does the Gram matrix have off-diagonal entries (bool scalar)?"""
+    d = jnp.sqrt(jnp.abs(jnp.diagonal(g)))
+    off = jnp.abs(g - jnp.diag(jnp.diagonal(g)))
+    return jnp.any(off > _DIAGONAL_TOLERANCE * d[:, None] * d[None, :])
+
+
+def heights(g, diagonal: bool):
+    """``h``: float ``(dim,)``, metric length per unit grid step across each
+    axis (module docstring). ``diagonal`` (static) takes the exact
+    ``sqrt(G_aa)``, which equals the box side for jax-md's fractional
+    coordinates bit for bit."""
+    if diagonal:
+        return jnp.sqrt(jnp.diagonal(g))
+    cofactor = _cofactor_diagonal(g)
+    det = jnp.sum(g[0] * jnp.stack([cofactor[0]] + [
+        _cofactor(g, 0, b) for b in range(1, g.shape[0])]))
+    return jnp.sqrt(det / cofactor)
+
+
+def _cofactor(g, a: int, b: int):
+    """Cofactor ``C_ab`` of a 2x2 or 3x3 ``g`` (a != b)."""
+    if g.shape[0] == 2:
+        return -g[1 - a, 1 - b]
+    rows = [r for r in range(3) if r != a]
+    cols = [c for c in range(3) if c != b]
+    minor = (g[rows[0], cols[0]] * g[rows[1], cols[1]]
+             - g[rows[0], cols[1]] * g[rows[1], cols[0]])
+    return minor if (a + b) % 2 == 0 else -minor
+
+
+def _cofactor_diagonal(g):
+    """float ``(dim,)``: the diagonal cofactors of ``g`` (dim <= 3), written
+    out (``(G^-1)_aa = C_aa / det G``) rather than a GPU solver's inverse."""
+    dim = g.shape[0]
+    if dim == 1:
+        return jnp.ones((1,), g.dtype)
+    if dim == 2:
+        return jnp.stack([g[1, 1], g[0, 0]])
+    return jnp.stack([g[b, b] * g[c, c] - g[b, c] * g[c, b]
+                      for b, c in ((1, 2), (0, 2), (0, 1))])
+
+
+def model_sq(qa, qb, g, space: Space):
+    """The model's squared distance of grid coordinates ``qa``, ``qb``
+    (float ``(..., dim)``)."""
+    dq = space.wrap(qa - qb)
+    return jnp.sum(dq * apply(g, dq), axis=-1)
+
+
+def _tolerance(q, h, space: Space):
+    """Absolute distance tolerance (float scalar): rounding of coordinates."""
+    scale = jnp.max(jnp.abs(q) * h, initial=0.0)
+    if any(space.periodic):
+        scale = scale + jnp.max(jnp.where(jnp.asarray(space.periodic),
+                                          jnp.asarray(space.period, q.dtype) * h,
+                                          0.0))
+    return _AGREE_ULPS * jnp.finfo(q.dtype).eps * scale
+
+
+def _deviation(position, i, j, metric_sq, g, h, space: Space,
+               slack=0.0):
+    """Signed excess of metric over model distance on pairs ``(i, j)``,
+    in units of the allowed rounding (|x| <= 1: they agree), the model
+    shortened by the relative ``slack`` first. float ``(M,)``."""
+    q = space.to_grid(position)
+    m = jnp.sqrt(jnp.maximum(jax.vmap(metric_sq)(position[i], position[j]), 0))
+    d = jnp.sqrt(jnp.maximum(model_sq(q[i], q[j], g, space), 0))
+    allowed = _AGREE_RELATIVE * jnp.maximum(m, d) + _tolerance(q, h, space)
+    return (m - (1.0 - slack) * d) / allowed, m, d, allowed
+
+
+def extreme_pairs(position, space: Space):
+    """int32 ``(dim,)`` twice: per axis, the particles with the smallest and
+    largest grid coordinate (the pair a wrong periodicity shortens most)."""
+    q = space.to_grid(position)
+    q = jnp.where(jnp.isfinite(q), q, 0.0)
+    return (jnp.argmin(q, axis=0).astype(jnp.int32),
+            jnp.argmax(q, axis=0).astype(jnp.int32))
+
+
+def extremes_disagree(position, metric_sq, g, h, space: Space,
+                      lower_bound_only: bool, slack: float = 0.0):
+    """Traced check: does the metric disagree with the model on the extreme
+    pairs (bool scalar)? With ``lower_bound_only`` (the metric decides every
+    pair), only a metric shorter than ``1 - slack`` times the model is a
+    disagreement."""
+    i, j = extreme_pairs(position, space)
+    dev = _deviation(position, i, j, metric_sq, g, h, space, slack)[0]
+    bad = dev < -1 if lower_bound_only else jnp.abs(dev) > 1
+    return jnp.any(bad | ~jnp.isfinite(dev))
+
+
+def sample_pairs(position, space: Space) -> tuple[np.ndarray, np.ndarray]:
+    """Eager: int ``(M,)`` twice, pairs to test the model on: the extremes
+    of each axis, neighbours in the order along each axis, random pairs."""
+    q = np.asarray(space.to_grid(jnp.asarray(position)), np.float64)
+    n, dim = q.shape
+    lo, hi = (np.asarray(x) for x in extreme_pairs(jnp.asarray(position),
+                                                   space))
+    first, second = [lo], [hi]
+    per_axis = _ADJACENT_SAMPLES // dim
+    for a in range(dim):
+        order = np.argsort(q[:, a], kind="stable")
+        take = np.linspace(0, n - 2, min(per_axis, max(n - 1, 0))).astype(int)
+        first.append(order[take])
+        second.append(order[np.minimum(take + 1, n - 1)])
+    rng = np.random.default_rng(0)
+    first.append(rng.integers(0, n, _RANDOM_SAMPLES))
+    second.append(rng.integers(0, n, _RANDOM_SAMPLES))
+    i, j = np.concatenate(first), np.concatenate(second)
+    keep = i != j
+    return i[keep], j[keep]
+
+
+def sample_deviation(position, metric_sq, g, h, space: Space):
+    """Eager: ``(deviation, slack, i, j)``: the sampled pairs' deviations
+    (float64 ``(M,)``, `_deviation`), the relative slack the grid needs
+    (`MAX_SLACK` or less, or None when the metric is shorter than that
+    allows) and the pairs."""
+    i, j = sample_pairs(position, space)
+    if len(i) == 0:
+        return np.zeros(0), 0.0, i, j
+    with jax.ensure_compile_time_eval():
+        dev, m, d, allowed = (np.asarray(x, np.float64) for x in _deviation(
+            jnp.asarray(position), jnp.asarray(i), jnp.asarray(j), metric_sq,
+            g, h, space))
+    # How much shorter than the model the metric is, beyond rounding:
+    # twice that (a sample is not every pair) lets the grid hold every
+    # neighbour of a metric that is noisy, e.g. jax-md's periodic_general,
+    # whose matrix product a GPU rounds to TF32 by default.
+    short = np.max((d - m - allowed) / np.maximum(d, 1e-30), initial=0.0)
+    slack = 0.0 if short <= 0 else 2.0 * short
+    return dev, (slack if slack <= MAX_SLACK else None), i, j
+
+
+def cutoff_fits(cutoff: float, height_times_period):
+    """Traced: is ``cutoff`` below half of every periodic height (with the
+    margin)? ``height_times_period``: float ``(dim,)``; free axes ignored."""
+    return cutoff < 0.5 * (1.0 - CUTOFF_MARGIN) * height_times_period
