@@ -535,8 +535,8 @@ def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray
                 f"periodic box's height on axis {a} (L/2 = {span[a] / 2:g}): "
                 "a neighbour list holds each pair once, through its nearest "
                 "image, and would drop the other images within the cutoff. "
-                "Use a larger box (replicate the cell), a smaller r_cutoff / "
-                "dr_threshold, or jaxrt.pairs for lists with lattice shifts.")
+                "Use a larger box (replicate the cell) or a smaller r_cutoff "
+                "/ dr_threshold.")
 
 
 def _shorter_metric_error(position, metric, g, grid, i, j, dev, box
