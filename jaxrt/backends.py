@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 from jax_md.partition import NeighborListFormat
 
+from jaxrt import _space
+
 Array = jax.Array
 
 
@@ -104,9 +106,9 @@ class Geometry:
 
     def grid_coordinates(self, position: Array) -> Array:
         """float ``(N, dim)``: ``position`` in the grid's Cartesian frame."""
-        if self.transform is not None:  # elementwise: no TF32 on GPUs
-            position = jnp.sum(self.transform.astype(position.dtype)
-                               * position[:, None, :], axis=-1)
+        if self.transform is not None:
+            position = _space.apply(self.transform.astype(position.dtype),
+                                    position)
         return position * self.scale.astype(position.dtype)
 
 
@@ -151,9 +153,17 @@ class SearchResult(NamedTuple):
 
 
 class Backend(Protocol):
-    """``name``; optionally ``max_list_entries``, the largest int32 buffer
-    the backend can index (default ``2**31 - 1``): `jaxrt.neighbor_list`
-    refuses larger lists at ``allocate``."""
+    """``name``; optionally:
+
+    * ``max_list_entries``: the largest int32 buffer the backend can index
+      (default ``2**31 - 1``): `jaxrt.neighbor_list` refuses larger lists
+      at ``allocate``;
+    * ``decides_by_metric`` (default False): it honours
+      `Query.decide_by_metric` (a triclinic box, a metric that is not the
+      Euclidean minimum image); the front refuses such lists otherwise;
+    * ``exact_for_any_metric`` (default False): it asks the caller's metric
+      about every pair, so the front skips its checks of the metric.
+    """
 
     name: str
 

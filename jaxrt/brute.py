@@ -35,6 +35,8 @@ def _rows(position, metric_sq: MetricSq, *, width: int, query: Query):
 
 class AllPairs:
     name = "brute"
+    decides_by_metric = True
+    exact_for_any_metric = True
 
     def measure(self, position, geometry, query, metric_sq):
         _, count, lower = _rows(position, metric_sq, width=0, query=query)

@@ -627,6 +627,7 @@ class CellList:
     """
 
     name = "cell"
+    decides_by_metric = True
     # Candidate pass: "auto" (the `_cell_kernel` kernel on CUDA, windows of
     # array programs elsewhere), "xla" (windows everywhere) or "interpret"
     # (the kernel in Pallas' interpreter: tests on CPUs). Read when a list

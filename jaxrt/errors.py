@@ -1,7 +1,7 @@
 """Error bits carried by every neighbour list, and the host-side check.
 
 jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
-``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds one.
+``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds three.
 A non-finite position, a metric that disagrees with the box, or a box too
 small for the cutoff also sets the overflow bit, so that the usual loop
 (``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches

@@ -268,10 +268,10 @@ def neighbor_list(displacement_or_metric: Callable,
     if backend == "auto":
         backend = _auto_backend()
     search_backend = backends.get(backend)
-    # The all-pairs search asks the caller's metric about every pair, so it
-    # is exact for any metric; the grids need the model to hold.
-    any_metric = search_backend.name == "brute"
-    decides_by_metric = search_backend.name in ("brute", "cell")
+    # Capabilities (`jaxrt.backends.Backend`): the all-pairs search needs no
+    # model of the metric; the grids need it to hold.
+    any_metric = getattr(search_backend, "exact_for_any_metric", False)
+    decides_by_metric = getattr(search_backend, "decides_by_metric", False)
 
     cutoff = r_cutoff + dr_threshold
     threshold_sq = (dr_threshold / 2) ** 2
@@ -287,10 +287,10 @@ def neighbor_list(displacement_or_metric: Callable,
         grid = _grid_space(box, dim, fractional_coordinates, axes)
         has_box = any(part is not None for part in _box_parts(box, dim))
         if axes is None:
+            metric = MetricSq(fn, dict(kwargs))
             with jax.ensure_compile_time_eval():
-                g = np.asarray(_space.gram(MetricSq(fn, dict(kwargs)), grid,
-                                           jnp.float32))
-            axes = _infer_periodic(MetricSq(fn, dict(kwargs)), grid, has_box, g)
+                g = np.asarray(_space.gram(metric, grid, jnp.float32))
+            axes = _infer_periodic(metric, grid, has_box, g)
             grid = dataclasses.replace(grid, periodic=axes)
         if any(axes) and not has_box:
             raise ValueError("periodic axes need box: pass the box side(s) "
@@ -304,21 +304,6 @@ def neighbor_list(displacement_or_metric: Callable,
                       format=format)
         setups[dim] = (fn, grid, query)
         return setups[dim]
-
-    def model(grid: _space.Space, metric: MetricSq, dtype, diagonal: bool,
-              slack: float = 0.0):
-        """Geometry for the backends, Gram matrix and heights (traceable).
-        With ``slack`` (the metric decides every pair) the grid's distances
-        shrink by that fraction, so that it still holds every neighbour of
-        a metric up to that much shorter than its model."""
-        g = _space.gram(metric, grid, dtype)
-        h = _space.heights(g, diagonal)
-        grid_h = h * (1.0 - slack) if slack else h
-        transform = (None if grid.transform is None
-                     else jnp.asarray(grid.transform, dtype))
-        geometry = Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
-                            scale=grid_h, transform=transform)
-        return geometry, g, h
 
     def check_kwargs(kwargs, allocating: bool):
         extra = set(kwargs) - {"box"}
@@ -376,14 +361,14 @@ def neighbor_list(displacement_or_metric: Callable,
         metric_decides = not diagonal
         slack = 0.0
         if not any_metric:
+            # A positive slack means some pair deviates (|dev| > 1), so it
+            # only ever comes with metric_decides.
             dev, slack, i, j = _space.sample_deviation(position, metric, g, h,
                                                        grid)
             if slack is None:
                 raise _shorter_metric_error(position, metric, g, grid, i, j,
                                             dev, box)
             metric_decides |= bool(np.any(np.abs(dev) > 1))
-            if not metric_decides:
-                slack = 0.0
         if metric_decides and not decides_by_metric:
             raise ValueError(
                 f"backend={search_backend.name!r} computes Euclidean "
@@ -393,7 +378,7 @@ def neighbor_list(displacement_or_metric: Callable,
                 "; use backend='cell' (its grid then lets the metric decide "
                 "every pair) or backend='brute'.")
         query = dataclasses.replace(query, decide_by_metric=metric_decides)
-        geometry, _, _ = model(grid, metric, position.dtype, diagonal, slack)
+        geometry = _geometry(grid, h, position.dtype, slack)
         if custom_mask_function is None:
             sizes = search_backend.measure(position, geometry, query, metric)
         else:
@@ -463,8 +448,9 @@ def neighbor_list(displacement_or_metric: Callable,
         query = dataclasses.replace(query,
                                     decide_by_metric=capacity.metric_decides)
         metric = MetricSq(fn, dict(kwargs))
-        geometry, g, h = model(grid, metric, position.dtype,
-                               capacity.orthorhombic, capacity.slack)
+        g = _space.gram(metric, grid, position.dtype)
+        h = _space.heights(g, capacity.orthorhombic)
+        geometry = _geometry(grid, h, position.dtype, capacity.slack)
         code = neighbors.error.code | nonfinite_code(position)
         # A box passed here may have shrunk below twice the cutoff.
         too_small = jnp.any(jnp.asarray(grid.periodic) & ~_space.cutoff_fits(
@@ -502,6 +488,19 @@ def neighbor_list(displacement_or_metric: Callable,
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
 
     return NeighborListFns(allocate, update)
+
+
+def _geometry(grid: _space.Space, h, dtype, slack: float) -> Geometry:
+    """The backends' `Geometry` from the heights ``h`` (float ``(dim,)``,
+    `jaxrt._space.heights`); traceable. With ``slack`` (the metric decides
+    every pair) the grid's distances shrink by that fraction, so that it
+    still holds every neighbour of a metric up to that much shorter than
+    its model."""
+    grid_h = h * (1.0 - slack) if slack else h
+    transform = (None if grid.transform is None
+                 else jnp.asarray(grid.transform, dtype))
+    return Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
+                    scale=grid_h, transform=transform)
 
 
 def _check_unknown_keywords(unknown: dict) -> None:
