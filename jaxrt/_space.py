@@ -32,6 +32,7 @@ axis ``a``, and the cutoff must stay below half of it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -108,6 +109,10 @@ def apply(matrix, vectors):
     return jnp.sum(matrix * vectors[..., None, :], axis=-1)
 
 
+# The model's functions are jitted (``space`` static, hashed by identity):
+# called eagerly at allocate, op by op, their dozens of tiny programs took
+# 1.7 s to compile at N = 1e5 on the CPU, most of a cold allocate's extra.
+@functools.partial(jax.jit, static_argnames=("space", "dtype"))
 def gram(metric_sq, space: Space, dtype):
     """``G``: float ``(dim, dim)`` in ``dtype``, the Gram matrix of
     ``metric_sq`` (`jaxrt.backends.MetricSq`) in grid coordinates. Traceable
@@ -142,19 +147,25 @@ def gram(metric_sq, space: Space, dtype):
     return jnp.stack(rows).astype(dtype)
 
 
+def _off_diagonal(g, xp):
+    """Does the Gram matrix have off-diagonal entries (bool)? ``xp`` is
+    numpy (eager: no program to compile) or jax.numpy (traced)."""
+    d = xp.sqrt(xp.abs(xp.diagonal(g)))
+    off = xp.abs(g - xp.diag(xp.diagonal(g)))
+    return xp.any(off > _DIAGONAL_TOLERANCE * d[:, None] * d[None, :])
+
+
 def is_diagonal(g) -> bool:
     """Eager: is the (concrete) Gram matrix diagonal?"""
-    with jax.ensure_compile_time_eval():
-        return not bool(off_diagonal(jnp.asarray(g)))
+    return not bool(_off_diagonal(np.asarray(g, np.float64), np))
 
 
 def off_diagonal(g):
     """Traced: does the Gram matrix have off-diagonal entries (bool scalar)?"""
-    d = jnp.sqrt(jnp.abs(jnp.diagonal(g)))
-    off = jnp.abs(g - jnp.diag(jnp.diagonal(g)))
-    return jnp.any(off > _DIAGONAL_TOLERANCE * d[:, None] * d[None, :])
+    return _off_diagonal(g, jnp)
 
 
+@functools.partial(jax.jit, static_argnames=("diagonal",))
 def heights(g, diagonal: bool):
     """``h``: float ``(dim,)``, metric length per unit grid step across each
     axis (module docstring). ``diagonal`` (static) takes the exact
@@ -208,6 +219,7 @@ def _tolerance(q, h, space: Space):
     return _AGREE_ULPS * jnp.finfo(q.dtype).eps * scale
 
 
+@functools.partial(jax.jit, static_argnames=("space", "slack"))
 def _deviation(position, i, j, metric_sq, g, h, space: Space,
                slack=0.0):
     """Signed excess of metric over model distance on pairs ``(i, j)``,
