@@ -121,12 +121,20 @@ def gram(metric_sq, space: Space, dtype):
     From values of the metric, not its derivatives: jax-md's fractional
     spaces give ``transform`` a custom JVP (forces in real space), so
     autodiff sees the identity. Steps are powers of two well inside half a
-    period, so that jax-md's wrap and a box side times a step are exact:
+    period (and below the gap between L/2 and the next power of two), so
+    that jax-md's wrap and a box side times a step are exact:
     a Cartesian metric gives the identity and a fractional orthorhombic one
     the squared sides, bit for bit.
     """
     dim = space.dim
-    steps = 2.0 ** np.floor(np.log2(np.asarray(space.period, np.float64) / 64))
+    period = np.asarray(space.period, np.float64)
+    # jax-md's space.periodic wraps as mod(d + L/2, L) - L/2, exact only
+    # while L/2 + step stays below the next power of two (L = 3.9764 with
+    # a step of 1/32 rounded, and its box looked sheared by 4e-6).
+    half = period / 2
+    gap = 2.0 ** np.ceil(np.log2(half)) - half
+    limit = np.where(gap > 0, np.minimum(period / 64, gap / 2), period / 64)
+    steps = 2.0 ** np.floor(np.log2(limit))
     origin = jnp.zeros((dim,), dtype)
 
     def squared(q):
