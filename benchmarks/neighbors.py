@@ -2,48 +2,64 @@
 
 Scenes (DESIGN.md, issue 2):
   uniform   random particles in a periodic cube, density 1, rc = 2.5
-  sphere    points on a unit sphere surface with ~30 neighbours, free space;
-            jax-md gets a box of side 30 (it needs one), jaxrt none.
+  sphere    N points on a unit sphere surface, free space, cutoff C for
+            ~30 neighbours (C = sqrt(4·30 / N)); as in seed 001, the points
+            are shifted by 1 + C into the box that just holds them, of side
+            2 + 2C, and every method (jax-md included) gets that box.
 
-Each row runs in its own subprocess, so peak RSS is that row's alone. Times
-are the jitted ``update`` (dr_threshold = 0: every call rebuilds), warm,
-median of repeats over three rotating input sets. ``xla_temp_mb`` is XLA's
-own temp-buffer size for the compiled update; ``peak_mb`` is the device's
-peak bytes in use (GPU) or the process's peak RSS (CPU);
-``peak_above_baseline_mb`` (CPU) is that peak minus the peak reached after
-imports and input creation, before any list is built.
+Each row runs in its own worker process (`_harness`), so peak RSS is that
+row's alone and a row that runs out of memory or time is written as such.
+Times are the jitted ``update`` (dr_threshold = 0: every call searches
+again), warm-up excluded, median / min / max of the repeats over three
+rotating input sets (the scene and two copies jittered by 1e-3).
+``xla_temp_mb`` is XLA's temp-buffer size for the compiled update;
+``peak_mb`` is the device's peak bytes in use (GPU) or the process's peak
+RSS (CPU); ``peak_above_baseline_mb`` (CPU) is that peak minus the peak
+reached after imports and input creation, before any list is built. For the
+ray-traced backends ``bvh_updates`` counts what the kept BVH did during the
+timed calls (`jaxrt.rt.ffi.update_counts`: build / rebuild / refit).
+
+Methods are backend labels (`_harness.parse_backend`): ``cell``,
+``cell[xla]`` (the portable array programs), ``cell[pallas]`` (the GPU
+kernel, `jaxrt._cell_kernel`), ``cell[interpret]`` (that kernel in Pallas'
+interpreter), ``bvh``, ``bvh[unsorted]``, ... passed as
+``backend=jaxrt.backends.Cell(kernel="xla")`` etc.; ``jax-md`` is
+``jax_md.partition.neighbor_list``. Rows of ``cell`` that run the kernel
+(on a GPU, or ``cell[interpret]``) say whether their list equals the
+``cell[xla]`` list (``same_as_xla``: sorted rows compared entry by entry).
 
     python benchmarks/neighbors.py                 # CPU sizes
-    python benchmarks/neighbors.py --sizes 100000 1000000 --backends cell bvh
-
-A method ``cell:xla`` is the backend ``cell`` with its candidate pass forced
-to the portable array programs (on a GPU, ``cell`` runs `_cell_kernel`);
-rows of ``cell`` then say whether its list equals that path's
-(``same_as_xla``: sorted rows compared entry by entry).
+    python benchmarks/neighbors.py --sizes 1000000 --sphere-n 1000000 \\
+        --backends "cell[pallas]" "cell[xla]" bvh  # the H200 rows
+    python benchmarks/neighbors.py --quick         # CPU smoke, N = 2000
 """
 from __future__ import annotations
 
 import argparse
-import json
+import importlib
 import os
 import resource
-import subprocess
 import sys
 import time
 
-os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
+
+SPHERE_K = 30
 
 
 def scene(name: str, n: int, seed: int):
+    """float32 positions (N, 3), box side, cutoff, periodic."""
     import numpy as np
     rng = np.random.default_rng(seed)
     if name == "uniform":
         side = n ** (1 / 3)
         return rng.uniform(0, side, (n, 3)).astype(np.float32), side, 2.5, True
-    # sphere surface: k = N * pi r^2 / (4 pi)  =>  r = sqrt(4 k / N)
+    # sphere surface: k = N * pi C^2 / (4 pi)  =>  C = sqrt(4 k / N)
+    cutoff = float(np.sqrt(4 * SPHERE_K / n))
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
-    return (v + 15.0).astype(np.float32), 30.0, float(np.sqrt(4 * 30 / n)), False
+    return (v + 1.0 + cutoff).astype(np.float32), 2.0 + 2.0 * cutoff, cutoff, False
 
 
 def _rss_mb() -> float:
@@ -51,37 +67,39 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
+def _list_fns(method: str, disp, side: float, cutoff: float):
+    from jax_md import partition
+    if method == "jax-md":
+        return partition.neighbor_list(disp, side, cutoff)
+    import jaxrt
+    return jaxrt.neighbor_list(disp, side, cutoff,
+                               backend=_harness.backend(method))
+
+
+def run_row(job: dict) -> dict:
+    """One (scene, method, N) row, in a worker."""
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from jax_md import partition, space
+    from jax_md import space
 
-    sys.path.insert(0, os.path.dirname(__file__))
-    from _provenance import median_ms
-
+    method, scene_name, n = job["method"], job["scene"], job["N"]
     R, side, cutoff, periodic = scene(scene_name, n, 0)
     disp, _ = space.periodic(side) if periodic else space.free()
-    backend, _, kernel = method.partition(":")
-    if method != "jax-md":
-        import jaxrt  # noqa: F401  (before the baseline: its imports are not the list's)
-        if kernel:
-            jaxrt.backends.get(backend).kernel = kernel
+    name, opts = _harness.parse_backend(method)
+    if method != "jax-md":  # before the baseline: its imports are not the list's
+        importlib.import_module("jaxrt")
     jitter = np.random.default_rng(1)
     inputs = []
     for _ in range(3):
         moved = R + jitter.normal(0, 1e-3, R.shape).astype(np.float32)
-        if periodic:
-            moved = np.mod(moved, side).astype(np.float32)
-        inputs.append(jnp.asarray(moved))
+        moved = (np.mod(moved, side) if periodic else
+                 np.clip(moved, 0, np.nextafter(np.float32(side), 0)))
+        inputs.append(jnp.asarray(moved.astype(np.float32)))
     first = jnp.asarray(R)
     jax.block_until_ready((first, inputs))
     baseline_mb = _rss_mb()
-    if method == "jax-md":
-        fns = partition.neighbor_list(disp, side, cutoff)
-    else:
-        fns = jaxrt.neighbor_list(disp, side if periodic else None, cutoff,
-                                  backend=backend)
+    fns = _list_fns(method, disp, side, cutoff)
     t = time.perf_counter()
     nbrs = fns.allocate(first)
     jax.block_until_ready(nbrs.idx)
@@ -94,10 +112,16 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
         temp_mb = temp.temp_size_in_bytes / 2**20
     except Exception:  # noqa: BLE001 - not every backend reports it
         temp_mb = float("nan")
-    ms = median_ms(lambda x: update(x, nbrs).idx, inputs, repeats)
+    counts = None
+    if name.startswith("bvh"):
+        from jaxrt.rt import ffi
+        before = ffi.update_counts.copy()
+    timing = _harness.time_calls(lambda x: update(x, nbrs).idx, inputs,
+                                 repeats=job["repeats"], warmup=job["warmup"])
+    if name.startswith("bvh"):
+        counts = dict(ffi.update_counts - before)
     overflow = bool(update(inputs[0], nbrs).did_buffer_overflow)
     dev = jax.devices()[0]
-    same_as_xla = None
     if dev.platform == "cpu":
         peak_mb = _rss_mb()
         # the process's peak minus its peak before any list was built
@@ -106,75 +130,76 @@ def one_row(method: str, scene_name: str, n: int, repeats: int) -> dict:
     else:
         peak_mb = dev.memory_stats().get("peak_bytes_in_use", 0) / 2**20
         above_mb = float("nan")
-    if method == "cell" and dev.platform != "cpu":
+    same_as_xla = None
+    kernel = opts.get("kernel", "auto")
+    if name == "cell" and kernel != "xla" and (dev.platform != "cpu"
+                                               or kernel == "interpret"):
         got = np.sort(np.asarray(update(inputs[0], nbrs).idx), axis=1)
-        # A new list: each traces its search once, with the kernel then set.
-        jaxrt.backends.get("cell").kernel = "xla"
-        portable = jaxrt.neighbor_list(disp, side if periodic else None,
-                                       cutoff, backend="cell")
+        portable = _list_fns("cell[xla]", disp, side, cutoff)
         want = np.asarray(jax.jit(portable.update)(inputs[0], nbrs).idx)
         same_as_xla = bool(np.array_equal(got, np.sort(want, axis=1)))
-        jaxrt.backends.get("cell").kernel = "auto"
-    return {"scene": scene_name, "method": method, "N": n, "k": round(k, 1),
+    return {"N": n, "k": round(k, 1), "cutoff": cutoff, "box": side,
             "capacity": int(idx.shape[-1]), "allocate_s": allocate_s,
-            "update_ms": ms, "repeats": repeats, "xla_temp_mb": temp_mb,
-            "peak_mb": peak_mb, "peak_above_baseline_mb": above_mb,
-            "overflow": overflow, "same_as_xla": same_as_xla}
+            "update_ms": timing.median_ms, **timing.columns(),
+            "xla_temp_mb": temp_mb, "peak_mb": peak_mb,
+            "peak_above_baseline_mb": above_mb, "overflow": overflow,
+            "same_as_xla": same_as_xla,
+            "bvh_updates": " ".join(f"{k}:{v}" for k, v in sorted(counts.items()))
+            if counts is not None else None}
+
+
+def add_ratios(rows: list[dict]) -> None:
+    """Speed-up and XLA temp ratio of every row over jax-md's, same scene
+    and N."""
+    for r in rows:
+        ref = next((x for x in rows if x["scene"] == r["scene"]
+                    and x["N"] == r["N"] and x["method"] == "jax-md"
+                    and x["status"] == "ok"), None)
+        if ref is None or r is ref or r["status"] != "ok":
+            continue
+        r["speedup"] = ref["update_ms"] / r["update_ms"]
+        r["temp_ratio"] = ref["xla_temp_mb"] / max(r["xla_temp_mb"], 1e-9)
+
+
+COLUMNS = ["scene", "method", "N", "k", "update_ms", "min_ms", "max_ms",
+           "speedup", "xla_temp_mb", "temp_ratio", "peak_mb",
+           "peak_above_baseline_mb", "allocate_s", "same_as_xla"]
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="\n".join(__doc__.split("\n")[1:]))
     parser.add_argument("--sizes", type=int, nargs="+",
-                        default=[1_000, 10_000, 100_000])
+                        default=[1_000, 10_000, 100_000],
+                        help="N of the uniform scene")
     parser.add_argument("--sphere-n", type=int, default=10_000)
-    parser.add_argument("--backends", nargs="+", default=["cell"])
+    parser.add_argument("--scenes", nargs="+", default=["uniform", "sphere"],
+                        choices=["uniform", "sphere"])
+    parser.add_argument("--backends", nargs="+", default=["cell"],
+                        help="backend labels: cell, cell[xla], cell[pallas], "
+                        "bvh, bvh[unsorted], ...")
     parser.add_argument("--no-jax-md", action="store_true")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--timeout", type=int, default=600)
-    parser.add_argument("--out", default=None)
-    parser.add_argument("--one", nargs=3, metavar=("METHOD", "SCENE", "N"),
-                        help=argparse.SUPPRESS)
+    parser.add_argument("--name", default="neighbors.csv",
+                        help="CSV file name (in --out's folder)")
+    parser.add_argument("--quick", action="store_true",
+                        help="CPU smoke: N = 2000, cell and jax-md, 3 repeats")
+    _harness.add_common_args(parser, repeats=10, warmup=3, timeout=600)
     args = parser.parse_args(argv)
-    if args.one:
-        method, scene_name, n = args.one
-        print(json.dumps(one_row(method, scene_name, int(n), args.repeats)))
-        return
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from _provenance import print_table, write_csv
+    if args.quick:
+        args.sizes, args.sphere_n, args.repeats = [2000], 2000, 3
+    for label in args.backends:
+        _harness.parse_backend(label)  # a typo fails here, not in a worker
     methods = args.backends + ([] if args.no_jax_md else ["jax-md"])
-    plan = [("uniform", n) for n in args.sizes] + [("sphere", args.sphere_n)]
-    rows = []
-    for scene_name, n in plan:
-        for method in methods:
-            cmd = [sys.executable, __file__, "--one", method, scene_name,
-                   str(n), "--repeats", str(args.repeats)]
-            try:
-                done = subprocess.run(cmd, capture_output=True, text=True,
-                                      timeout=args.timeout)
-                row = json.loads(done.stdout.strip().splitlines()[-1])
-            except subprocess.TimeoutExpired:
-                row = {"scene": scene_name, "method": method, "N": n,
-                       "failed": f"timeout {args.timeout}s"}
-            except (json.JSONDecodeError, IndexError):
-                tail = (done.stderr.strip().splitlines() or ["?"])[-1]
-                row = {"scene": scene_name, "method": method, "N": n,
-                       "failed": tail[:120]}
-            rows.append(row)
-            print(json.dumps(row), flush=True)
-    for scene_name, n in plan:  # speed-up and memory ratio over jax-md
-        ref = next((r for r in rows if r["scene"] == scene_name and r["N"] == n
-                    and r["method"] == "jax-md" and "update_ms" in r), None)
-        for r in rows:
-            if ref and r is not ref and r["scene"] == scene_name and r["N"] == n \
-                    and "update_ms" in r:
-                r["speedup"] = ref["update_ms"] / r["update_ms"]
-                r["temp_ratio"] = ref["xla_temp_mb"] / max(r["xla_temp_mb"], 1e-9)
-    print_table(rows, ["scene", "method", "N", "k", "update_ms", "speedup",
-                       "xla_temp_mb", "temp_ratio", "peak_mb",
-                       "peak_above_baseline_mb", "allocate_s",
-                       "failed"])
-    print("wrote", write_csv(rows, "neighbors.csv", args.out))
+    plan = [("uniform", n) for n in args.sizes if "uniform" in args.scenes]
+    plan += [("sphere", args.sphere_n)] if "sphere" in args.scenes else []
+    jobs = [{"scene": s, "method": m, "N": n, "repeats": args.repeats,
+             "warmup": args.warmup} for s, n in plan for m in methods]
+    _harness.run_jobs("neighbors:run_row", jobs, out=args.out, name=args.name,
+                      columns=COLUMNS, timeout=args.timeout,
+                      budget=args.budget, hard_stop=args.hard_stop,
+                      inject=args.inject, finish=add_ratios)
 
 
 if __name__ == "__main__":

@@ -1,38 +1,95 @@
-"""Sweep the cell list's stencil reach (module constant
-`jaxrt.cell_list._REACH` = (reach along x, reach across)) on a uniform
-periodic scene (density 1, rc = 2.5); prints ms per Dense update (warm,
-median of 7) and the internal buffer sizes.
+"""Sweep the cell list's stencil reach on a uniform periodic scene.
 
-    python benchmarks/tune_cell_list.py [N ...]
+The reach is the module constant `jaxrt.cell_list._REACH` = (reach along x,
+reach across): cells are cutoff / reach wide along those axes. Each row
+(N, reach) runs in its own worker process (`_harness`), which sets the
+constant (and `_RUN_SPAN`, derived from it at import) before building the
+list, so no row sees another's setting. Scene: density 1, rc = 2.5; times
+are the jitted Dense ``update`` (every call searches again), warm-up
+excluded, median / min / max over three rotating input sets. ``internal``
+holds the list's internal buffer sizes; ``same_list`` says whether a row's
+list (rows sorted) equals the first row's of the same N.
+
+    python benchmarks/tune_cell_list.py [N ...]          # default 100000
+    python benchmarks/tune_cell_list.py 2000 --reaches 4,1 8,1 --repeats 3
 """
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
 import sys
-import time
 
-import jax
-import numpy as np
-from jax_md import space
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
 
-import jaxrt
-import jaxrt.cell_list as cl
 
-sizes = [int(a) for a in sys.argv[1:]] or [100_000]
-for n in sizes:
+def run_row(job: dict) -> dict:
+    """One (N, reach) row, in a worker."""
+    import jax
+    import numpy as np
+    from jax_md import space
+
+    import jaxrt
+    import jaxrt.cell_list as cl
+
+    n, reach = job["N"], tuple(int(v) for v in job["reach"].split(","))
+    cl._REACH = reach
+    cl._RUN_SPAN = 2 * reach[0] + 2  # as cell_list derives it at import
     side = n ** (1 / 3)
     R = jax.random.uniform(jax.random.PRNGKey(0), (n, 3)) * side
     disp, _ = space.periodic(side)
-    for reach in [(1, 1), (2, 1), (4, 1), (8, 1)]:
-        cl._REACH = reach
-        jax.clear_caches()
-        fns = jaxrt.neighbor_list(disp, side, 2.5, backend="cell")
-        nbrs = fns.allocate(R)
-        update = jax.jit(fns.update)
-        inputs = [(R + 1e-3 * i) % side for i in range(3)]
-        for x in inputs:
-            update(x, nbrs).idx.block_until_ready()
-        times = []
-        for i in range(7):
-            t = time.perf_counter()
-            update(inputs[i % 3], nbrs).idx.block_until_ready()
-            times.append(time.perf_counter() - t)
-        print(n, reach, dict(nbrs.cell_list_capacity.internal),
-              f"{np.median(times) * 1e3:.1f} ms", flush=True)
+    fns = jaxrt.neighbor_list(disp, side, 2.5,
+                              backend=_harness.backend(job["backend"]))
+    nbrs = fns.allocate(R)
+    update = jax.jit(fns.update)
+    inputs = [(R + 1e-3 * i) % side for i in range(3)]
+    timing = _harness.time_calls(lambda x: update(x, nbrs).idx, inputs,
+                                 repeats=job["repeats"], warmup=job["warmup"])
+    idx = np.sort(np.asarray(update(inputs[0], nbrs).idx), axis=1)
+    return {"N": n, "k": round(float(np.mean(np.sum(idx < n, axis=1))), 1),
+            "internal": " ".join(f"{k}:{v}" for k, v in
+                                 nbrs.cell_list_capacity.internal),
+            "update_ms": timing.median_ms, **timing.columns(),
+            "list_sha1": hashlib.sha1(idx.tobytes()).hexdigest()[:12]}
+
+
+def same_lists(rows: list[dict]) -> None:
+    for r in rows:
+        ref = next((x for x in rows if x["N"] == r["N"] and x.get("list_sha1")),
+                   None)
+        if r.get("list_sha1") and ref is not None:
+            r["same_list"] = r["list_sha1"] == ref["list_sha1"]
+
+
+COLUMNS = ["N", "reach", "backend", "k", "update_ms", "min_ms", "max_ms",
+           "internal", "same_list"]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="\n".join(__doc__.split("\n")[1:]))
+    parser.add_argument("sizes", type=int, nargs="*", default=[100_000])
+    parser.add_argument("--reaches", nargs="+", default=["1,1", "2,1", "4,1",
+                                                         "8,1"],
+                        help="reach along x,reach across")
+    parser.add_argument("--backend", default="cell",
+                        help="backend label: cell, cell[xla], cell[pallas]")
+    parser.add_argument("--name", default="tune_cell_list.csv")
+    _harness.add_common_args(parser, repeats=7, warmup=3, timeout=600)
+    args = parser.parse_args(argv)
+    _harness.parse_backend(args.backend)
+    reaches = [",".join(str(int(v)) for v in r.split(",")) for r in args.reaches]
+    jobs = [{"N": n, "reach": r, "backend": args.backend,
+             "repeats": args.repeats, "warmup": args.warmup}
+            for n in args.sizes for r in reaches]
+    _harness.run_jobs("tune_cell_list:run_row", jobs, out=args.out,
+                      name=args.name, columns=COLUMNS, timeout=args.timeout,
+                      budget=args.budget, hard_stop=args.hard_stop,
+                      inject=args.inject, finish=same_lists)
+
+
+if __name__ == "__main__":
+    main()

@@ -2,10 +2,10 @@
 
 `jaxrt.cell_list` finds, for each particle, the runs of the cell-sorted order
 that hold its candidates. On CPUs it tests them as fixed windows of whole
-32-slot words and left-packs the hits with array programs; on an H100 that
-formulation is at XLA's floor (9 ms at N = 10**6): every particle reads
-windows sized by the longest run, two thirds of them past its own run, and
-the left-packing is a search per output slot. A kernel does neither: each
+32-slot words and left-packs the hits with array programs; on a GPU that
+formulation is at XLA's floor (`benchmarks/RESULTS.md`): every particle
+reads windows sized by the longest run, two thirds of them past its own
+run, and the left-packing is a search per output slot. A kernel does neither: each
 thread walks its particle's runs to their real ends and appends hits to its
 row as it finds them.
 
@@ -35,8 +35,8 @@ except (ImportError, AttributeError):  # an older JAX: the portable path
     pl = plgpu = None
 
 # Particles per program (one per thread) and warps per program: one warp
-# per program was the fastest of 32-256 particles and 1-8 warps on an H100
-# (N = 10**6: 3.2 ms against 3.9-4.4).
+# per program was the fastest of 32-256 particles and 1-8 warps on the GPU
+# (`benchmarks/results/h100/neighbors_cell_kernel.csv`).
 _BLOCK = 32
 _WARPS = 1
 
@@ -149,7 +149,7 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
     zero = jnp.zeros((_BLOCK,), jnp.int32)
 
     # One loop over runs, not one per run: a fifth of the interpreter's
-    # compile time, and the same speed on an H100 (3.34 against 3.30 ms).
+    # compile time, and the same speed on the GPU.
     def walk_run(r, counts):
         start = starts_ref[r, block]
         length = lengths_ref[r, block]

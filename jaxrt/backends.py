@@ -1,281 +1,91 @@
-"""The contract between `jaxrt.neighbor_list` and the search backends.
+"""The search backends, as values: ``backend=`` takes a name or one of these.
 
-A backend finds, for every particle ``i``, the particles ``j`` whose distance
-is strictly below the search radius, and writes them in one of jax-md's
-three layouts. The front (`jaxrt.neighbors`) owns everything else: argument
-checks, the skin, capacity sizing, ``custom_mask_function`` and errors.
+Each is a frozen, hashable dataclass of its options, so that options are
+static (part of what ``jit`` caches on) and no module state decides what a
+list does:
 
-Layouts (``N`` particles, padding index ``N`` everywhere):
+* `Cell` (``"cell"``, the default): the sorted cell list of
+  `jaxrt.cell_list`; ``kernel=`` picks its candidate pass.
+* `Brute` (``"brute"``, jax-md's ``disable_cell_list=True``): all pairs.
+* `Bvh` (``"bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
+  ray-traced custom AABB BVH of `jaxrt.rt.aabb`, kept across calls by the
+  list factory that owns it.
+* `Spheres`, `Squares` (``"spheres"``, ``"squares"``): seed 001's other
+  ray-traced methods (`jaxrt.rt.spheres`, `jaxrt.rt.squares`).
 
-* Dense: ``idx`` int32 ``(N, capacity)``, row ``i`` left-packed with the
-  neighbours of ``i``.
-* Sparse: ``idx`` int32 ``(2, capacity)`` = (receivers ``j``, senders ``i``),
-  valid edges a prefix, both directions present.
-* OrderedSparse: as Sparse, only edges with ``j < i``.
-
-A backend is a `Backend`: ``measure`` runs eagerly (from ``allocate``) and
-returns the exact sizes the static buffers need; ``search`` must be
-jit/scan/vmap-able and must count exactly even where it cannot store, so
-that overflow is never silent.
+A backend of one's own is any object following `Backend` (see
+`jaxrt._backend`, re-exported here with the layout helpers a backend
+needs), passed as ``backend=`` directly; no registration is needed.
 """
 from __future__ import annotations
 
-import dataclasses
-from typing import Callable, NamedTuple, Protocol
+from typing import Callable
 
-import jax
-import jax.numpy as jnp
-from jax_md.partition import NeighborListFormat
+from jaxrt._backend import (Backend, Capacity, Geometry, MetricSq, Query,
+                            SearchResult, bind, dense_to_sparse,
+                            format_dense_rows, pack_rows)
+from jaxrt.brute import Brute
+from jaxrt.cell_list import Cell
 
-from jaxrt import _space
+try:  # Warp is a dependency, but a broken install must not break the rest.
+    from jaxrt.rt.ffi import Bvh, Spheres, Squares
+except ImportError as _warp_error:
+    _WARP_ERROR: ImportError | None = _warp_error
+else:
+    _WARP_ERROR = None
 
-Array = jax.Array
+__all__ = ["Backend", "Brute", "Bvh", "Capacity", "Cell", "Geometry",
+           "MetricSq", "Query", "SearchResult", "Spheres", "Squares",
+           "available", "bind", "dense_to_sparse", "format_dense_rows",
+           "pack_rows", "resolve"]
 
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class MetricSq:
-    """The caller's squared metric as a pytree: ``metric_sq(Ra, Rb)``.
-
-    ``fn`` is static (part of the tree structure, so jit caches by it) and
-    ``kwargs`` are traced (e.g. a ``box=`` given to ``update``). Backends
-    that compute distances in JAX call it so that their pair decisions are
-    bit-identical to jax-md's; kernels may use their own arithmetic.
-
-    Attributes:
-      fn: ``fn(Ra, Rb, **kwargs)`` -> float scalar, Ra and Rb float ``(dim,)``.
-      kwargs: dict of arrays passed through to ``fn``.
-    """
-
-    fn: Callable = dataclasses.field(metadata=dict(static=True))
-    kwargs: dict = dataclasses.field(default_factory=dict)
-
-    def __call__(self, ra: Array, rb: Array) -> Array:
-        return self.fn(ra, rb, **self.kwargs)
-
-
-@dataclasses.dataclass(frozen=True)
-class Query:
-    """What to search for; static (hashable), one per `neighbor_list` call.
-
-    Attributes:
-      cutoff: search radius in Cartesian units (``r_cutoff + dr_threshold``).
-        Pairs with ``d(i, j)**2 < cutoff**2`` are neighbours.
-      periodic: one bool per spatial axis.
-      mask_self: drop ``i == i`` pairs.
-      format: the jax-md layout to write.
-      decide_by_metric: the caller's metric decides every candidate pair
-        (it is not the Euclidean minimum-image distance of ``Geometry``, or
-        the box is triclinic): the grid only proposes candidates, which
-        holds as long as the metric is never shorter than that distance.
-        Backends that cannot do this are refused by the front.
-    """
-
-    cutoff: float
-    periodic: tuple[bool, ...]
-    mask_self: bool
-    format: NeighborListFormat
-    decide_by_metric: bool = False
-
-    @property
-    def dim(self) -> int:
-        return len(self.periodic)
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Geometry:
-    """Where the particles live, as arrays (traced under jit).
-
-    Attributes:
-      side: float ``(dim,)``, the box side per axis in Cartesian units; only
-        read on periodic axes.
-      scale: float ``(dim,)``; Cartesian position = ``position * scale``
-        (ones, unless jax-md's ``fractional_coordinates`` is on, or the
-        metric is scaled per axis), after ``transform``.
-      transform: None, or float ``(dim, dim)`` ``T``: positions are first
-        mapped to ``position @ T.T`` (Cartesian positions in a triclinic
-        box, to fractional coordinates). Then ``side`` and ``scale`` are the
-        box's heights, and the grid's distance only bounds the metric's
-        from below (`Query.decide_by_metric` is set).
-    """
-
-    side: Array
-    scale: Array
-    transform: Array | None = None
-
-    def grid_coordinates(self, position: Array) -> Array:
-        """float ``(N, dim)``: ``position`` in the grid's Cartesian frame."""
-        if self.transform is not None:
-            position = _space.apply(self.transform.astype(position.dtype),
-                                    position)
-        return position * self.scale.astype(position.dtype)
-
-
-@dataclasses.dataclass(frozen=True)
-class Capacity:
-    """Static buffer sizes, chosen at ``allocate`` from `Backend.measure`.
-
-    Attributes:
-      neighbors: the layout's capacity (Dense row width, or Sparse edges).
-      internal: backend-specific sizes as sorted ``(name, size)`` pairs.
-      metric_decides: `Query.decide_by_metric`, as ``allocate`` found it.
-      orthorhombic: the metric's Gram matrix was diagonal at ``allocate``
-        (`jaxrt._space`); a shear appearing later sets an error bit.
-      slack: how much (relatively) farther the grid searches, for a metric
-        found up to that much shorter than its model (`jaxrt._space`).
-    """
-
-    neighbors: int
-    internal: tuple[tuple[str, int], ...] = ()
-    metric_decides: bool = False
-    orthorhombic: bool = True
-    slack: float = 0.0
-
-    def __getitem__(self, name: str) -> int:
-        return dict(self.internal)[name]
-
-
-class SearchResult(NamedTuple):
-    """What `Backend.search` returns.
-
-    Attributes:
-      idx: int32 neighbour indices in ``query.format`` (module docstring).
-      occupancy: int32 scalar, the exact size the layout needed: the largest
-        row count (Dense) or the number of edges (Sparse, OrderedSparse).
-      overflow: bool scalar, True when anything was dropped for lack of room,
-        in ``idx`` or in an internal buffer.
-    """
-
-    idx: Array
-    occupancy: Array
-    overflow: Array
-
-
-class Backend(Protocol):
-    """``name``; optionally:
-
-    * ``max_list_entries``: the largest int32 buffer the backend can index
-      (default ``2**31 - 1``): `jaxrt.neighbor_list` refuses larger lists
-      at ``allocate``;
-    * ``decides_by_metric`` (default False): it honours
-      `Query.decide_by_metric` (a triclinic box, a metric that is not the
-      Euclidean minimum image); the front refuses such lists otherwise;
-    * ``exact_for_any_metric`` (default False): it asks the caller's metric
-      about every pair, so the front skips its checks of the metric.
-    """
-
-    name: str
-
-    def measure(self, position: Array, geometry: Geometry, query: Query,
-                metric_sq: MetricSq) -> dict[str, int]:
-        """Exact sizes needed now: always ``"row"`` (largest row count) and
-        ``"edges"`` (edges in ``query.format``), plus any internal buffer
-        the backend sizes statically. Eager; may use host syncs."""
-
-    def search(self, position: Array, geometry: Geometry, query: Query,
-               capacity: Capacity, metric_sq: MetricSq) -> SearchResult:
-        """Neighbour list of ``position`` (float ``(N, dim)``). jit-able."""
-
-
-_REGISTRY: dict[str, Callable[[], Backend]] = {}
-
-
-def register(name: str, factory: Callable[[], Backend]) -> None:
-    """Make ``backend=name`` available; ``factory`` is called lazily, once."""
-    _REGISTRY[name] = factory
-
-
-_INSTANCES: dict[str, Backend] = {}
-
-
-def get(name: str) -> Backend:
-    if name not in _REGISTRY:
-        raise ValueError(
-            f"backend={name!r} is not known; choose one of {available()}.")
-    if name not in _INSTANCES:
-        _INSTANCES[name] = _REGISTRY[name]()
-    return _INSTANCES[name]
+_NAMED: dict[str, Callable[[], Backend]] = {
+    "brute": lambda: Brute(),
+    "cell": lambda: Cell(),
+}
+if _WARP_ERROR is None:
+    _NAMED.update({
+        "bvh": lambda: Bvh(),
+        "bvh-unsorted": lambda: Bvh(sort=False),
+        "spheres": lambda: Spheres(),
+        "squares": lambda: Squares(),
+    })
 
 
 def available() -> list[str]:
-    return sorted(_REGISTRY)
+    """The names ``backend=`` accepts (besides ``"auto"``)."""
+    return sorted(_NAMED)
 
 
-# ---------------------------------------------------------------------------
-# Layout helpers shared by backends that build Dense rows first.
+def resolve(backend: str | Backend) -> Backend:
+    """The backend a ``backend=`` argument names (``"auto"`` excluded).
 
-
-def pack_rows(idx: Array, keep: Array, capacity: int) -> tuple[Array, Array]:
-    """Left-pack the kept entries of each row into ``capacity`` columns.
-
-    Args:
-      idx: int32 ``(N, M)`` candidate neighbour indices.
-      keep: bool ``(N, M)``, which candidates are neighbours.
-      capacity: output width.
-    Returns:
-      int32 ``(N, capacity)`` padded with ``N``, and int32 ``(N,)`` exact
-      counts (which may exceed ``capacity``).
+    Raises:
+      ValueError: an unknown name, or a ray-traced one without Warp.
+      TypeError: an object that is not a `Backend`.
     """
-    n = idx.shape[0]
-    slot = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
-    slot = jnp.where(keep, slot, capacity)  # out of range: dropped
-    rows = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], idx.shape)
-    out = jnp.full((n, capacity), n, jnp.int32)
-    out = out.at[rows, slot].set(idx.astype(jnp.int32), mode="drop")
-    return out, jnp.sum(keep, axis=1, dtype=jnp.int32)
-
-
-def dense_to_sparse(dense: Array, capacity: int, ordered: bool
-                    ) -> tuple[Array, Array]:
-    """Convert a left-packed Dense list to jax-md's Sparse layout.
-
-    Args:
-      dense: int32 ``(N, M)`` padded with ``N``.
-      capacity: number of edge slots in the output.
-      ordered: keep only edges with ``j < i`` (OrderedSparse).
-    Returns:
-      int32 ``(2, capacity)`` = (receivers j, senders i), valid edges first,
-      padded with ``N``; and the exact int32 number of edges.
-    """
-    n = dense.shape[0]
-    senders = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None],
-                               dense.shape).reshape(-1)
-    receivers = dense.reshape(-1)
-    keep = receivers < n
-    if ordered:
-        keep = keep & (receivers < senders)
-    slot = jnp.cumsum(keep, dtype=jnp.int32) - 1
-    slot = jnp.where(keep, slot, capacity)
-    out = jnp.full((2, capacity), n, jnp.int32)
-    out = out.at[0, slot].set(receivers, mode="drop")
-    out = out.at[1, slot].set(senders, mode="drop")
-    return out, jnp.sum(keep, dtype=jnp.int32)
-
-
-def format_dense_rows(dense: Array, counts: Array, query: Query,
-                      capacity: Capacity) -> SearchResult:
-    """Turn exact Dense rows (wide enough for ``capacity["row"]``) into the
-    requested layout.
-
-    Args:
-      dense: int32 ``(N, capacity["row"])`` left-packed rows.
-      counts: int32 ``(N,)`` exact row counts (may exceed the width).
-    """
-    row_overflow = jnp.any(counts > dense.shape[1])
-    if query.format is NeighborListFormat.Dense:
-        occupancy = jnp.max(counts, initial=0)
-        width = capacity.neighbors
-        if width < dense.shape[1]:
-            dense = dense[:, :width]
-        elif width > dense.shape[1]:
-            pad = jnp.full((dense.shape[0], width - dense.shape[1]),
-                           dense.shape[0], jnp.int32)
-            dense = jnp.concatenate([dense, pad], axis=1)
-        return SearchResult(dense, occupancy.astype(jnp.int32),
-                            row_overflow | (occupancy > width))
-    # With truncated rows the edge count is a lower bound, but then
-    # ``row_overflow`` is already set and allocate re-measures exactly.
-    ordered = query.format is NeighborListFormat.OrderedSparse
-    idx, edges = dense_to_sparse(dense, capacity.neighbors, ordered)
-    return SearchResult(idx, edges, row_overflow | (edges > capacity.neighbors))
+    if isinstance(backend, str):
+        if backend in _NAMED:
+            return _NAMED[backend]()
+        if _WARP_ERROR is not None and backend in ("bvh", "bvh-unsorted",
+                                                   "spheres", "squares"):
+            raise ValueError(f"backend={backend!r} needs warp-lang, which "
+                             f"failed to import: {_WARP_ERROR}")
+        raise ValueError(
+            f"backend={backend!r} is not known; choose one of {available()}, "
+            "'auto', or pass an options object such as "
+            "jaxrt.backends.Cell(kernel='xla').")
+    missing = [a for a in ("name", "measure", "search")
+               if not hasattr(backend, a)]
+    if missing:
+        raise TypeError(
+            f"backend must be a name ({', '.join(available())}) or a backend "
+            f"object with name, measure and search (jaxrt.backends.Backend); "
+            f"got {type(backend).__name__}, which lacks {missing}.")
+    try:
+        hash(backend)
+    except TypeError as e:
+        raise TypeError(
+            f"backend {type(backend).__name__} must be hashable (a frozen "
+            "dataclass): its options are static under jit.") from e
+    return backend

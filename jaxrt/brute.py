@@ -5,14 +5,16 @@ included. Meant for small systems and as a reference.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import backends
-from jaxrt.backends import Capacity, MetricSq, Query
+from jaxrt import _backend
+from jaxrt._backend import Capacity, MetricSq, Query
 
 
 @functools.partial(jax.jit, static_argnames=("width", "query"))
@@ -29,14 +31,17 @@ def _rows(position, metric_sq: MetricSq, *, width: int, query: Query):
     i = j.T
     if query.mask_self:
         keep &= i != j
-    rows, count = backends.pack_rows(j, keep, width)
+    rows, count = _backend.pack_rows(j, keep, width)
     return rows, count, jnp.sum(keep & (j < i), axis=1, dtype=jnp.int32)
 
 
-class AllPairs:
-    name = "brute"
-    decides_by_metric = True
-    exact_for_any_metric = True
+@dataclasses.dataclass(frozen=True)
+class Brute:
+    """All pairs as a `jaxrt.backends.Backend` (``"brute"``); no options."""
+
+    name: ClassVar[str] = "brute"
+    decides_by_metric: ClassVar[bool] = True
+    exact_for_any_metric: ClassVar[bool] = True
 
     def measure(self, position, geometry, query, metric_sq):
         _, count, lower = _rows(position, metric_sq, width=0, query=query)
@@ -47,7 +52,5 @@ class AllPairs:
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
         rows, count, _ = _rows(position, metric_sq, width=capacity["row"],
                                query=query)
-        return backends.format_dense_rows(rows, count, query, capacity)
+        return _backend.format_dense_rows(rows, count, query, capacity)
 
-
-backends.register("brute", AllPairs)

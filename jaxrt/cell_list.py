@@ -53,16 +53,18 @@ sets the overflow flag.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import _cell_kernel, backends
-from jaxrt.backends import Capacity, Geometry, MetricSq, Query
+from jaxrt import _backend, _cell_kernel
+from jaxrt._backend import Capacity, Geometry, MetricSq, Query
 
 # Cells are made this much wider than their minimum so that a particle
 # binned one cell off by rounding still has all its neighbours in the stencil.
@@ -443,8 +445,7 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
         inside = slot < size1 + size2
         if query.mask_self:
             # The particle's own slot, a scalar per row (a per-slot index
-            # made XLA GPU write a slot < size1 mask to memory: 0.2 ms of
-            # 9.7 at N = 1e6).
+            # made XLA GPU write a slot < size1 mask to memory).
             own1, own2 = me - first1, me - first2
             own = jnp.where((own1 >= 0) & (own1 < size1), own1, jnp.where(
                 (own2 >= 0) & (own2 < size2), size1 + own2, -1))
@@ -616,8 +617,23 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     return rows, count, shell_sizes, overflow
 
 
-class CellList:
-    """The sorted cell list as a `jaxrt.backends.Backend`.
+_KERNELS = ("auto", "pallas", "xla", "interpret")
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    """The sorted cell list as a `jaxrt.backends.Backend` (``"cell"``).
+
+    Attributes:
+      kernel: the candidate pass (passes 3 and 4 of the module docstring).
+        ``"auto"``: the `jaxrt._cell_kernel` kernel on CUDA (chosen where
+        the program is lowered) and the windows of array programs
+        elsewhere, or wherever the kernel cannot serve the list (a metric
+        that decides every pair, buffers past its int32 offsets).
+        ``"pallas"``: the kernel, or an error at ``allocate`` where it
+        cannot run. ``"xla"``: the windows everywhere. ``"interpret"``:
+        the kernel in Pallas' interpreter (tests on CPUs). All four find
+        the same pairs.
 
     Internal capacities: ``"window"`` (longest run of one stencil row),
     ``"shell"`` (most pairs of one particle that the caller's metric
@@ -626,24 +642,85 @@ class CellList:
     layout).
     """
 
-    name = "cell"
-    decides_by_metric = True
-    # Candidate pass: "auto" (the `_cell_kernel` kernel on CUDA, windows of
-    # array programs elsewhere), "xla" (windows everywhere) or "interpret"
-    # (the kernel in Pallas' interpreter: tests on CPUs). Read when a list
-    # first traces its search: set it before calling `jaxrt.neighbor_list`.
-    kernel = "auto"
+    kernel: str = "auto"
+
+    name: ClassVar[str] = "cell"
+    decides_by_metric: ClassVar[bool] = True
+
+    def __post_init__(self):
+        if self.kernel not in _KERNELS:
+            raise ValueError(f"Cell(kernel={self.kernel!r}): choose one of "
+                             f"{_KERNELS}.")
+
+    def _engine(self, n: int, row_width: int, shell: int, query: Query,
+                platform: str | None) -> str:
+        """``"kernel"``, ``"interpret"``, ``"portable"`` or ``"lowering"``
+        (the kernel on CUDA, else portable, decided where the program is
+        lowered); ``platform``: where an eager call runs, None under jit.
+
+        Raises:
+          ValueError: ``kernel`` names the kernel where it cannot serve.
+        """
+        if self.kernel == "xla":
+            return "portable"
+        why = None
+        if query.decide_by_metric:
+            why = ("the caller's metric decides every pair here (a triclinic "
+                   "box, or a metric that is not the Euclidean minimum "
+                   "image), and the kernel computes its own distances")
+        elif not _cell_kernel.fits(n, row_width, shell):
+            why = ("this JAX has no Pallas Triton backend" if
+                   _cell_kernel.plgpu is None else
+                   f"N x row width = {n} x {max(row_width, shell)} is past "
+                   "the kernel's int32 offsets")
+        if self.kernel == "auto":
+            if why is not None or platform not in (None, "gpu", "cuda"):
+                return "portable"
+            return "lowering" if platform is None else "kernel"
+        if why is None and self.kernel == "pallas" and platform not in (
+                None, "gpu", "cuda"):
+            why = f"positions live on {platform!r}, not on a CUDA GPU"
+        if why is not None:
+            raise ValueError(
+                f"Cell(kernel={self.kernel!r}) cannot serve this list: {why}."
+                " Use Cell(kernel='auto') (the kernel where it can run) or "
+                "Cell(kernel='xla').")
+        return self.kernel if self.kernel == "interpret" else "kernel"
+
+    def _candidates(self, engine: str, position, geometry, metric_sq, *,
+                    window: int, **options):
+        """`_visit` or `_walk` per ``engine`` (`_engine`)."""
+        def portable():
+            return _visit(position, geometry, metric_sq, window=window,
+                          **options)
+
+        def kernel():
+            return _walk(position, geometry, metric_sq, **options)
+
+        if engine == "portable":
+            return portable()
+        if engine == "interpret":
+            return _walk(position, geometry, metric_sq, interpret=True,
+                         **options)
+        if engine == "kernel":
+            return kernel()
+        return jax.lax.platform_dependent(cuda=kernel, default=portable)
 
     def measure(self, position, geometry, query, metric_sq):
         _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
         window = max(int(np.max(len1 + len2, initial=0)), 1)
+        # Counting runs on the engine the search will use (the portable
+        # path at N = 1e6 would compile and run XLA's largest program).
+        platform = _platform_of(position)
         # A first guess that fits liquids (a few in a hundred have a shell).
         shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
         while True:  # enough room to count every shell pair exactly
-            _, count, (has, fullest), _ = _visit(
-                position, geometry, metric_sq, window=window, shell=shell,
-                shell_rows=shell_rows, row_width=0, query=query)
+            engine = self._engine(n, 1, shell, query, platform)
+            _, count, (has, fullest), _ = self._candidates(
+                engine, position, geometry, metric_sq, window=window,
+                shell=shell, shell_rows=shell_rows, query=query,
+                row_width=0 if engine == "portable" else 1)
             has, fullest = int(has), int(fullest)
             if has <= shell_rows and fullest <= shell:
                 break
@@ -661,45 +738,40 @@ class CellList:
                  "shell": max(2 * fullest, _MIN_SHELL),
                  "shell_rows": _shell_rows(max(has, liquid), n)}
         if query.format.name == "OrderedSparse":
-            rows, _, _, _ = _visit(position, geometry, metric_sq,
-                                   window=window, shell=shell,
-                                   shell_rows=shell_rows,
-                                   row_width=max(sizes["row"], 1), query=query)
+            width = max(sizes["row"], 1)
+            engine = self._engine(n, width, shell, query, platform)
+            rows, _, _, _ = self._candidates(
+                engine, position, geometry, metric_sq, window=window,
+                shell=shell, shell_rows=shell_rows, row_width=width,
+                query=query)
             rows = np.asarray(rows)
             sizes["edges"] = int(np.sum(rows < np.arange(len(rows))[:, None]))
         else:
             sizes["edges"] = int(count.sum())
+        # An explicit kernel that cannot hold the sized buffers fails here,
+        # at allocate, not at the first traced update.
+        self._engine(n, max(sizes["row"], 1), sizes["shell"], query, None)
         return sizes
 
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
         options = dict(shell=capacity["shell"],
                        shell_rows=capacity["shell_rows"],
                        row_width=max(capacity["row"], 1), query=query)
-
-        def portable():
-            return _visit(position, geometry, metric_sq,
-                          window=capacity["window"], **options)
-
-        def kernel(interpret=False):
-            return _walk(position, geometry, metric_sq, interpret=interpret,
-                         **options)
-
-        fits = _cell_kernel.fits(position.shape[0], options["row_width"],
-                                 options["shell"])
-        # The kernel computes its own Euclidean distances.
-        fits = fits and not query.decide_by_metric
-        if self.kernel == "interpret" and fits:
-            search = functools.partial(kernel, interpret=True)
-        elif self.kernel == "auto" and fits:
-            # Chosen where the program is lowered: the kernel on CUDA only.
-            def search():
-                return jax.lax.platform_dependent(cuda=kernel,
-                                                  default=portable)
-        else:
-            search = portable
-        rows, count, _, overflow = search()
-        result = backends.format_dense_rows(rows, count, query, capacity)
+        engine = self._engine(position.shape[0], options["row_width"],
+                              options["shell"], query, None)
+        rows, count, _, overflow = self._candidates(
+            engine, position, geometry, metric_sq, window=capacity["window"],
+            **options)
+        result = _backend.format_dense_rows(rows, count, query, capacity)
         return result._replace(overflow=result.overflow | overflow)
 
 
-backends.register("cell", CellList)
+def _platform_of(position) -> str:
+    """The platform an eager computation on ``position`` runs on."""
+    devices = getattr(position, "devices", None)
+    if callable(devices):
+        try:
+            return next(iter(devices())).platform
+        except Exception:  # noqa: BLE001 - a tracer or a deleted array
+            pass
+    return jax.default_backend()

@@ -5,13 +5,13 @@
         The same as ``jaxrt run lj-fluid --compare-jax-md``.
     jaxrt run SCENE.toml|NAME [--steps N] [--out DIR] [--chunk K]
               [--backend B] [--n N] [--compare-jax-md]
-    jaxrt scenes            built-in scene names, one line each
+    jaxrt scenes            the built-in scenes: name, default steps and
+                            what each is, one line each
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import math
 import pathlib
 import sys
@@ -39,7 +39,8 @@ def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="jaxrt", description=__doc__.split(
         "\n")[0])
     sub = ap.add_subparsers(dest="command", required=True)
-    sub.add_parser("scenes", help="list built-in scenes")
+    sub.add_parser("scenes", help="list the built-in scenes (for jaxrt "
+                   "run NAME): name, default steps, what each is")
     for name in ("run", "demo"):
         p = sub.add_parser(name, help="run a scene" if name == "run" else
                            "LJ fluid NVE, compared with jax-md's lists")
@@ -64,10 +65,11 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     args = _parser().parse_args(argv)
     warnings.filterwarnings("ignore", message="Explicitly requested dtype")
-    from jaxrt import scene as S
+    from jaxrt import sim
     if args.command == "scenes":
-        for name, (factory, steps) in S.BUILTIN.items():
-            print(f"{name:16s} {factory.__doc__.split(chr(10))[0]}")
+        for name, (factory, steps) in sim.BUILTIN.items():
+            summary = factory.__doc__.strip().split("\n")[0]
+            print(f"{name:16s} {steps:5d} steps  {summary}")
         return 0
     if args.command == "demo":
         args.scene, args.compare_jax_md = "lj-fluid", True
@@ -75,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         args.n = args.n or DEMO_N
     try:
         scene, default_steps = _load(args)
-    except S.SceneError as e:
+    except sim.SceneError as e:
         print(f"jaxrt: bad scene: {e}", file=sys.stderr)
         return 2
     steps = args.steps or default_steps
@@ -88,28 +90,31 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _load(args):
-    from jaxrt import scene as S
+    from jaxrt import sim
     kw = {}
     if args.backend:
         kw["backend"] = args.backend
-    if args.scene in S.BUILTIN:
+    if args.scene in sim.BUILTIN:
         if args.n is not None:
             if args.scene != "lj-fluid":
-                raise S.SceneError("--n: only lj-fluid takes a particle "
-                                   "count.")
+                raise sim.SceneError("--n: only lj-fluid takes a particle "
+                                     "count.")
             kw["n"] = args.n
-        return S.builtin(args.scene, **kw), S.BUILTIN[args.scene][1]
-    path = pathlib.Path(args.scene)
-    if not path.exists():
-        raise S.SceneError(f"{args.scene!r} is neither a file nor a built-in "
-                           f"scene ({', '.join(S.BUILTIN)}).")
-    if args.n is not None:
-        raise S.SceneError("--n: only for the built-in lj-fluid.")
-    scene = S.load(path)
-    if args.backend:
-        scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
-            scene.neighbors, backend=args.backend))
-    return scene, 1000
+        scene = sim.builtin(args.scene, **kw)
+        steps = sim.BUILTIN[args.scene][1]
+    else:
+        path = pathlib.Path(args.scene)
+        if not path.exists():
+            raise sim.SceneError(f"{args.scene!r} is neither a file nor a "
+                                 f"built-in scene ({', '.join(sim.BUILTIN)}).")
+        if args.n is not None:
+            raise sim.SceneError("--n: only for the built-in lj-fluid.")
+        scene, steps = sim.load(path), 1000
+        if args.backend:
+            scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
+                scene.neighbors, backend=args.backend))
+    sim.check_backend(scene)  # --backend, before any compiling
+    return scene, steps
 
 
 # ---------------------------------------------------------------------------
@@ -146,9 +151,9 @@ class _JaxMdCheck:
     def __init__(self, compiled):
         import jax
         from jax_md import partition
-        from jaxrt import scene as S
+        from jaxrt import sim
         sc = compiled.scene
-        fmt = S.FORMATS[sc.neighbors.format]
+        fmt = sim.FORMATS[sc.neighbors.format]
         box = np.asarray([s if s > 0 else 1.0 for s in sc.box.size])
         reach = sc.cutoff + sc.neighbors.skin
         # Cell lists in jax-md need a periodic box; elsewhere all pairs.
@@ -205,12 +210,12 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     ``out``. Returns the summary as a dict."""
     import jax
     from tqdm import tqdm
-    from jaxrt import scene as S
+    from jaxrt import sim
 
     _xyz_symbols(scene.particles)  # fail before the run, not after it
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    compiled = S.compile_scene(scene)
+    compiled = sim.compile_scene(scene)
     p = scene.particles
     n = p.n
     print(f"scene {scene.name!r}: {n} particles, {p.dim}D, "
@@ -226,7 +231,7 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
 
     state, nbrs = compiled.init()
     chunk = chunk or max(1, min(100, steps // 10))
-    stats = S.RunStats()
+    stats = sim.RunStats()
     frames = [np.asarray(state.position)]
     frame_velocities = [np.asarray(state.velocity)]
     frame_steps = [0]
@@ -243,8 +248,8 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     while done < steps:
         k = min(chunk, steps - done)
         t = time.perf_counter()
-        state, nbrs = S.run_chunk(compiled, state, nbrs, steps=k,
-                                  stats=stats)
+        state, nbrs = sim.run_chunk(compiled, state, nbrs, steps=k,
+                                    stats=stats)
         jax.block_until_ready(state.position)
         t_run += time.perf_counter() - t
         done += k
@@ -271,8 +276,7 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
             ("neighbour updates", f"{done if nbrs is not None else 0}"),
             ("list rebuilds", f"{stats.rebuilds}"),
             ("overflows (redone chunks)", f"{stats.overflows}")]
-    conservative = (scene.integrator.kind == "verlet" and not any(
-        x.kind.startswith("sph") for x in scene.effects))
+    conservative = compiled.conservative
     summary = dict(steps_per_s=done / t_run, rebuilds=stats.rebuilds,
                    overflows=stats.overflows, steps=done)
     if conservative:
@@ -283,7 +287,8 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     else:
         rows.append(("total mass (exact)",
                      f"{p.masses.sum():.6g} (constant by construction)"))
-    has_external = any(x.kind in ("gravity", "walls") for x in scene.effects)
+    # One-body effects (gravity, walls) are external forces.
+    has_external = any(not x.pairwise for x in scene.effects)
     dmom = np.abs(mom[-1] - mom[0]).max()
     rows.append(("momentum change |P_end - P_1|" +
                  (" (external forces)" if has_external else ""),

@@ -39,7 +39,7 @@ import difflib
 import functools
 import math
 import warnings
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -49,7 +49,7 @@ from jax_md.partition import (NeighborList, NeighborListFns,
                               NeighborListFormat, PartitionError)
 
 from jaxrt import _space, backends
-from jaxrt.backends import Capacity, Geometry, MetricSq, Query
+from jaxrt._backend import Capacity, Geometry, MetricSq, Query
 from jaxrt.errors import ErrorCode
 
 Dense = NeighborListFormat.Dense
@@ -196,7 +196,7 @@ def _check_position(position, dim: int | None = None) -> jax.Array:
     return jnp.asarray(position)
 
 
-def _check_positive(name: str, value, allow_zero: bool = False) -> float:
+def _static_positive(name: str, value, allow_zero: bool = False) -> float:
     if isinstance(value, jax.core.Tracer):
         raise TypeError(f"{name} must be a concrete number, not a traced value:"
                         " create the neighbour list outside jit.")
@@ -221,7 +221,7 @@ def neighbor_list(displacement_or_metric: Callable,
                   fractional_coordinates: bool = False,
                   format: NeighborListFormat = Dense,
                   *,
-                  backend: str = "auto",
+                  backend: str | backends.Backend = "auto",
                   periodic: bool | Sequence[bool] | None = None,
                   **unknown) -> NeighborListFns:
     """Neighbour lists with jax-md's interface and jaxrt's backends.
@@ -241,12 +241,51 @@ def neighbor_list(displacement_or_metric: Callable,
         returning them with masked entries set to ``N``.
       fractional_coordinates: positions in ``[0, 1)^dim`` scaled by ``box``.
       format: `Dense`, `Sparse` or `OrderedSparse`.
-      backend: ``"auto"`` or a name from `jaxrt.backends.available()`.
+      backend: ``"auto"``, a name from `jaxrt.backends.available()`, or a
+        backend value with its options, e.g.
+        ``jaxrt.backends.Cell(kernel="xla")`` (`jaxrt.backends`).
       periodic: bool or one bool per axis; None infers it (module docstring).
     Returns:
       jax-md's `NeighborListFns` (``allocate``, ``update``).
     """
     _check_unknown_keywords(unknown)
+    settings = _check_arguments(
+        displacement_or_metric, box=box, r_cutoff=r_cutoff,
+        dr_threshold=dr_threshold, capacity_multiplier=capacity_multiplier,
+        disable_cell_list=disable_cell_list, mask_self=mask_self,
+        custom_mask_function=custom_mask_function,
+        fractional_coordinates=fractional_coordinates, format=format,
+        backend=backend, periodic=periodic)
+    lists = _Lists(settings)
+    return NeighborListFns(lists.allocate, lists.update)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Settings:
+    """`neighbor_list`'s arguments, checked (`_check_arguments`)."""
+
+    metric: Callable
+    box: object
+    r_cutoff: float
+    dr_threshold: float
+    capacity_multiplier: float
+    mask_self: bool
+    custom_mask_function: Callable | None
+    fractional_coordinates: bool
+    format: NeighborListFormat
+    backend: backends.Backend
+    periodic: bool | Sequence[bool] | None
+
+    @property
+    def cutoff(self) -> float:
+        return self.r_cutoff + self.dr_threshold
+
+
+def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
+                     capacity_multiplier, disable_cell_list, mask_self,
+                     custom_mask_function, fractional_coordinates, format,
+                     backend, periodic) -> _Settings:
+    """Check `neighbor_list`'s arguments; raise naming the argument."""
     if not callable(displacement_or_metric):
         raise TypeError("displacement_or_metric must be a function d(Ra, Rb) "
                         "from jax_md.space.")
@@ -256,93 +295,237 @@ def neighbor_list(displacement_or_metric: Callable,
     if custom_mask_function is not None and not callable(custom_mask_function):
         raise TypeError("custom_mask_function must be a function of the "
                         "(N, m) int32 index array, or None.")
-    r_cutoff = _check_positive("r_cutoff", r_cutoff)
-    dr_threshold = _check_positive("dr_threshold", dr_threshold, allow_zero=True)
-    capacity_multiplier = _check_positive("capacity_multiplier",
-                                          capacity_multiplier)
     if disable_cell_list:
-        if backend not in ("auto", "brute"):
+        if not (backend == "auto" or backend == "brute"
+                or isinstance(backend, backends.Brute)):
             raise ValueError(f"disable_cell_list=True asks for the all-pairs "
                              f"search but backend={backend!r}; drop one.")
         backend = "brute"
-    if backend == "auto":
+    if isinstance(backend, str) and backend == "auto":
         backend = _auto_backend()
-    search_backend = backends.get(backend)
-    # Capabilities (`jaxrt.backends.Backend`): the all-pairs search needs no
-    # model of the metric; the grids need it to hold.
-    any_metric = getattr(search_backend, "exact_for_any_metric", False)
-    decides_by_metric = getattr(search_backend, "decides_by_metric", False)
+    return _Settings(
+        metric=displacement_or_metric, box=box,
+        r_cutoff=_static_positive("r_cutoff", r_cutoff),
+        dr_threshold=_static_positive("dr_threshold", dr_threshold,
+                                     allow_zero=True),
+        capacity_multiplier=_static_positive("capacity_multiplier",
+                                            capacity_multiplier),
+        mask_self=bool(mask_self), custom_mask_function=custom_mask_function,
+        fractional_coordinates=bool(fractional_coordinates), format=format,
+        backend=backends.resolve(backend), periodic=periodic)
 
-    cutoff = r_cutoff + dr_threshold
-    threshold_sq = (dr_threshold / 2) ** 2
-    setups: dict[int, tuple] = {}
 
-    def setup(dim: int, kwargs: dict):
-        """``(metric fn, Space, Query)`` for positions of dimension ``dim``,
-        fixed at the first ``allocate`` (its keywords reach the metric)."""
-        if dim in setups:
-            return setups[dim]
-        fn = _metric_sq_fn(displacement_or_metric, dim)
-        axes = None if periodic is None else _normalise_periodic(periodic, dim)
-        grid = _grid_space(box, dim, fractional_coordinates, axes)
-        has_box = any(part is not None for part in _box_parts(box, dim))
-        if axes is None:
-            metric = MetricSq(fn, dict(kwargs))
-            with jax.ensure_compile_time_eval():
-                g = np.asarray(_space.gram(metric, grid, jnp.float32))
-            axes = _infer_periodic(metric, grid, has_box, g)
-            grid = dataclasses.replace(grid, periodic=axes)
-        if any(axes) and not has_box:
-            raise ValueError("periodic axes need box: pass the box side(s) "
-                             "as box=L or box=(Lx, Ly[, Lz]).")
-        if grid.transform is not None and not all(axes):
-            raise ValueError(
-                "a triclinic box with Cartesian positions needs every axis "
-                "periodic (periodic=True); for a slab, use an orthorhombic "
-                "box or fractional_coordinates=True.")
-        query = Query(cutoff=cutoff, periodic=axes, mask_self=bool(mask_self),
-                      format=format)
-        setups[dim] = (fn, grid, query)
-        return setups[dim]
+class _Setup(NamedTuple):
+    """What the first ``allocate`` of a dimension fixes: the squared
+    metric ``fn(Ra, Rb, **kw)``, the grid's `jaxrt._space.Space` and the
+    `Query`."""
 
-    def check_kwargs(kwargs, allocating: bool):
-        extra = set(kwargs) - {"box"}
-        if extra:
-            raise TypeError(f"unexpected keyword argument(s) {sorted(extra)}; "
-                            "allocate/update accept only box= (passed to "
-                            "displacement_or_metric, as in jax-md).")
-        if "box" in kwargs and not fractional_coordinates and not allocating:
-            raise ValueError("box= may be passed to update only with "
-                             "fractional_coordinates=True (as in jax-md).")
+    metric_fn: Callable
+    grid: _space.Space
+    query: Query
 
-    def nonfinite_code(position):
-        bad = ~jnp.all(jnp.isfinite(position))
-        bits = ErrorCode.NONFINITE_POSITION | ErrorCode.NEIGHBOR_LIST_OVERFLOW
-        return jnp.where(bad, jnp.uint8(bits), jnp.uint8(0))
+
+def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
+    """Geometry and periodicity for positions of dimension ``dim`` (the
+    keywords of the first ``allocate`` reach the metric's probes)."""
+    fn = _metric_sq_fn(settings.metric, dim)
+    axes = (None if settings.periodic is None
+            else _normalise_periodic(settings.periodic, dim))
+    box = settings.box
+    grid = _grid_space(box, dim, settings.fractional_coordinates, axes)
+    has_box = any(part is not None for part in _box_parts(box, dim))
+    if axes is None:
+        metric = MetricSq(fn, dict(kwargs))
+        with jax.ensure_compile_time_eval():
+            g = np.asarray(_space.gram(metric, grid, jnp.float32))
+        axes = _infer_periodic(metric, grid, has_box, g)
+        grid = dataclasses.replace(grid, periodic=axes)
+    if any(axes) and not has_box:
+        raise ValueError("periodic axes need box: pass the box side(s) "
+                         "as box=L or box=(Lx, Ly[, Lz]).")
+    if grid.transform is not None and not all(axes):
+        raise ValueError(
+            "a triclinic box with Cartesian positions needs every axis "
+            "periodic (periodic=True); for a slab, use an orthorhombic "
+            "box or fractional_coordinates=True.")
+    query = Query(cutoff=settings.cutoff, periodic=axes,
+                  mask_self=settings.mask_self, format=settings.format)
+    return _Setup(fn, grid, query)
+
+
+class _Model(NamedTuple):
+    """The metric's model at ``allocate`` (`jaxrt._space`): its Gram matrix
+    ``g`` and heights ``h`` (float), whether it is ``diagonal``, whether
+    the metric must decide every pair, and the grid's ``slack``."""
+
+    g: jax.Array
+    h: jax.Array
+    diagonal: bool
+    metric_decides: bool
+    slack: float
+
+
+def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
+                       position, metric: MetricSq) -> _Model:
+    """Model the metric and check the model on sampled pairs; raise where
+    the grid would miss pairs or the backend cannot serve the metric."""
+    grid = setup.grid
+    g = _space.gram(metric, grid, position.dtype)
+    diagonal = grid.transform is None and _space.is_diagonal(g)
+    h = _space.heights(g, diagonal)
+    _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64))
+    metric_decides = not diagonal
+    slack = 0.0
+    if not getattr(searcher, "exact_for_any_metric", False):
+        # A positive slack means some pair deviates (|dev| > 1), so it
+        # only ever comes with metric_decides.
+        dev, slack, i, j = _space.sample_deviation(position, metric, g, h, grid)
+        if slack is None:
+            raise _shorter_metric_error(position, metric, g, grid, i, j, dev,
+                                        settings.box)
+        metric_decides |= bool(np.any(np.abs(dev) > 1))
+    if metric_decides and not getattr(searcher, "decides_by_metric", False):
+        raise ValueError(
+            f"backend={searcher.name!r} computes Euclidean "
+            "minimum-image distances in an orthorhombic box itself, but "
+            + ("the box is triclinic" if not diagonal else
+               "displacement_or_metric differs from that distance") +
+            "; use backend='cell' (its grid then lets the metric decide "
+            "every pair) or backend='brute'.")
+    return _Model(g, h, diagonal, metric_decides, slack)
+
+
+def _capacity(settings: _Settings, sizes: dict, n: int, extra: int
+              ) -> Capacity:
+    """Static buffer sizes from the backend's exact ``sizes`` (jax-md's
+    rule: times ``capacity_multiplier``, plus ``extra_capacity``)."""
+    fmt = settings.format
+    multiplier = settings.capacity_multiplier
+    occupancy = sizes["row"] if fmt is Dense else sizes["edges"]
+    neighbors = _layout_capacity(occupancy, n, extra, fmt, settings.mask_self,
+                                 multiplier)
+    row_sized = sizes.get("row_before_mask", sizes["row"])
+    row = _layout_capacity(row_sized, n, extra, Dense, settings.mask_self,
+                           multiplier)
+    if fmt is Dense and settings.custom_mask_function is None:
+        row = neighbors
+    internal = {k: min(max(math.ceil(v * multiplier), 1), n)
+                for k, v in sizes.items()
+                if k not in ("row", "edges", "row_before_mask")}
+    internal["row"] = row
+    return Capacity(neighbors, tuple(sorted(internal.items())))
+
+
+def _measure(settings: _Settings, searcher, position, geometry, query,
+             metric) -> dict[str, int]:
+    """The backend's exact sizes, after ``custom_mask_function`` if any."""
+    mask = settings.custom_mask_function
+    if mask is None:
+        return searcher.measure(position, geometry, query, metric)
+    dense_query = dataclasses.replace(query, format=Dense)
+    pre = searcher.measure(position, geometry, dense_query, metric)
+    internal = {k: v for k, v in pre.items() if k not in ("row", "edges")}
+    exact = Capacity(pre["row"], tuple(sorted({**internal,
+                                               "row": pre["row"]}.items())))
+    idx = searcher.search(position, geometry, dense_query, exact, metric).idx
+    masked = np.asarray(mask(idx))
+    n = position.shape[0]
+    keep = masked < n
+    i = np.arange(n)[:, None]
+    ordered = query.format is OrderedSparse
+    edges = (keep & (masked < i)).sum() if ordered else keep.sum()
+    return {**internal, "row": int(keep.sum(1).max(initial=0)),
+            "edges": int(edges), "row_before_mask": pre["row"]}
+
+
+def _make_build(searcher, custom_mask_function: Callable | None) -> Callable:
+    """The jitted search: ``build(position, geometry, metric, *, query,
+    capacity)`` -> (idx, overflow), the custom mask applied."""
 
     @functools.partial(jax.jit, static_argnames=("query", "capacity"))
     def build(position, geometry, metric, *, query, capacity):
-        """Search and apply the custom mask. Returns (idx, overflow)."""
         if custom_mask_function is None:
-            result = search_backend.search(position, geometry, query, capacity,
-                                           metric)
+            result = searcher.search(position, geometry, query, capacity,
+                                     metric)
             return result.idx, result.overflow
         dense_query = dataclasses.replace(query, format=Dense)
         pre = dataclasses.replace(capacity, neighbors=capacity["row"])
-        result = search_backend.search(position, geometry, dense_query, pre,
-                                       metric)
+        result = searcher.search(position, geometry, dense_query, pre, metric)
         masked = custom_mask_function(result.idx)
         n = position.shape[0]
         rows, counts = backends.pack_rows(masked, masked < n, capacity["row"])
         final = backends.format_dense_rows(rows, counts, query, capacity)
         return final.idx, final.overflow | result.overflow
 
-    def allocate(position, extra_capacity: int = 0, **kwargs) -> NeighborList:
+    return build
+
+
+def _bits(flag, code) -> jax.Array:
+    """uint8 ``code`` where ``flag``, else 0."""
+    return jnp.where(flag, jnp.uint8(code), jnp.uint8(0))
+
+
+_OVERFLOW = ErrorCode.NEIGHBOR_LIST_OVERFLOW
+
+
+def _input_errors(position, grid: _space.Space, h, cutoff: float) -> jax.Array:
+    """Error bits that need no search: non-finite positions, and a box
+    (passed to ``update``) shrunk below twice the cutoff."""
+    bad = ~jnp.all(jnp.isfinite(position))
+    too_small = jnp.any(jnp.asarray(grid.periodic) & ~_space.cutoff_fits(
+        cutoff, jnp.asarray(grid.period, position.dtype) * h))
+    return (_bits(bad, ErrorCode.NONFINITE_POSITION | _OVERFLOW)
+            | _bits(too_small, ErrorCode.BOX_TOO_SMALL | _OVERFLOW))
+
+
+def _metric_errors(position, metric, g, h, grid, capacity: Capacity
+                   ) -> jax.Array:
+    """Error bits of a rebuild: the extreme particles of each axis, where
+    the metric disagrees with its model fixed at ``allocate``."""
+    wrong = _space.extremes_disagree(position, metric, g, h, grid,
+                                     lower_bound_only=capacity.metric_decides,
+                                     slack=capacity.slack)
+    if capacity.orthorhombic:
+        wrong |= _space.off_diagonal(g)
+    return _bits(wrong, ErrorCode.METRIC_MISMATCH | _OVERFLOW)
+
+
+class _Lists:
+    """``allocate`` and ``update`` of one `neighbor_list` call: its checked
+    settings, the backend bound for it (`jaxrt.backends.bind`), the setup
+    of each dimension allocated so far, and the jitted search."""
+
+    def __init__(self, settings: _Settings):
+        self.settings = settings
+        self.searcher = backends.bind(settings.backend)
+        self.checks_metric = not getattr(self.searcher,
+                                         "exact_for_any_metric", False)
+        self.setups: dict[int, _Setup] = {}
+        self.build = _make_build(self.searcher, settings.custom_mask_function)
+
+    def setup(self, dim: int, kwargs: dict) -> _Setup:
+        if dim not in self.setups:
+            self.setups[dim] = _setup(self.settings, dim, kwargs)
+        return self.setups[dim]
+
+    def check_kwargs(self, kwargs: dict, allocating: bool) -> None:
+        extra = set(kwargs) - {"box"}
+        if extra:
+            raise TypeError(f"unexpected keyword argument(s) {sorted(extra)}; "
+                            "allocate/update accept only box= (passed to "
+                            "displacement_or_metric, as in jax-md).")
+        if ("box" in kwargs and not self.settings.fractional_coordinates
+                and not allocating):
+            raise ValueError("box= may be passed to update only with "
+                             "fractional_coordinates=True (as in jax-md).")
+
+    def allocate(self, position, extra_capacity: int = 0, **kwargs
+                 ) -> NeighborList:
         """Measure the list at ``position`` (float ``(N, dim)``) and size it.
 
         Eager (not jit-able): buffer sizes depend on the data.
         """
-        check_kwargs(kwargs, allocating=True)
+        self.check_kwargs(kwargs, allocating=True)
         position = _check_position(position)
         n, dim = position.shape
         if not bool(jnp.all(jnp.isfinite(position))):
@@ -352,84 +535,32 @@ def neighbor_list(displacement_or_metric: Callable,
         extra_capacity = int(extra_capacity)
         if extra_capacity < 0:
             raise ValueError("extra_capacity must be >= 0.")
-        fn, grid, query = setup(dim, kwargs)
-        metric = MetricSq(fn, dict(kwargs))
-        g = _space.gram(metric, grid, position.dtype)
-        diagonal = grid.transform is None and _space.is_diagonal(g)
-        h = _space.heights(g, diagonal)
-        _check_cutoff(cutoff, grid, np.asarray(h, np.float64))
-        metric_decides = not diagonal
-        slack = 0.0
-        if not any_metric:
-            # A positive slack means some pair deviates (|dev| > 1), so it
-            # only ever comes with metric_decides.
-            dev, slack, i, j = _space.sample_deviation(position, metric, g, h,
-                                                       grid)
-            if slack is None:
-                raise _shorter_metric_error(position, metric, g, grid, i, j,
-                                            dev, box)
-            metric_decides |= bool(np.any(np.abs(dev) > 1))
-        if metric_decides and not decides_by_metric:
-            raise ValueError(
-                f"backend={search_backend.name!r} computes Euclidean "
-                "minimum-image distances in an orthorhombic box itself, but "
-                + ("the box is triclinic" if not diagonal else
-                   "displacement_or_metric differs from that distance") +
-                "; use backend='cell' (its grid then lets the metric decide "
-                "every pair) or backend='brute'.")
-        query = dataclasses.replace(query, decide_by_metric=metric_decides)
-        geometry = _geometry(grid, h, position.dtype, slack)
-        if custom_mask_function is None:
-            sizes = search_backend.measure(position, geometry, query, metric)
-        else:
-            sizes = _measure_masked(position, geometry, query, metric)
-        capacity = _capacity(sizes, n, extra_capacity, query)
-        capacity = dataclasses.replace(capacity, metric_decides=metric_decides,
-                                       orthorhombic=diagonal, slack=slack)
-        _check_list_size(search_backend, n, capacity, query)
-        idx, overflow = build(position, geometry, metric, query=query,
-                              capacity=capacity)
-        code = jnp.where(overflow, jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
-                         jnp.uint8(0))
-        return NeighborList(idx, position, PartitionError(code), capacity,
-                            capacity.neighbors, format, None, None, update)
+        setup = self.setup(dim, kwargs)
+        metric = MetricSq(setup.metric_fn, dict(kwargs))
+        model = _model_at_allocate(self.settings, self.searcher, setup,
+                                   position, metric)
+        query = dataclasses.replace(setup.query,
+                                    decide_by_metric=model.metric_decides)
+        geometry = _geometry(setup.grid, model.h, position.dtype, model.slack)
+        sizes = _measure(self.settings, self.searcher, position, geometry,
+                         query, metric)
+        capacity = dataclasses.replace(
+            _capacity(self.settings, sizes, n, extra_capacity),
+            metric_decides=model.metric_decides, orthorhombic=model.diagonal,
+            slack=model.slack)
+        _check_list_size(self.searcher, n, capacity, query)
+        idx, overflow = self.build(position, geometry, metric, query=query,
+                                   capacity=capacity)
+        return NeighborList(idx, position,
+                            PartitionError(_bits(overflow, _OVERFLOW)),
+                            capacity, capacity.neighbors, self.settings.format,
+                            None, None, self.update)
 
-    def _measure_masked(position, geometry, query, metric):
-        dense_query = dataclasses.replace(query, format=Dense)
-        pre = search_backend.measure(position, geometry, dense_query, metric)
-        internal = {k: v for k, v in pre.items() if k not in ("row", "edges")}
-        exact = Capacity(pre["row"], tuple(sorted({**internal,
-                                                   "row": pre["row"]}.items())))
-        idx, _ = search_backend.search(position, geometry, dense_query, exact,
-                                       metric)[:2]
-        masked = np.asarray(custom_mask_function(idx))
-        n = position.shape[0]
-        keep = masked < n
-        i = np.arange(n)[:, None]
-        ordered = query.format is OrderedSparse
-        edges = (keep & (masked < i)).sum() if ordered else keep.sum()
-        return {**internal, "row": int(keep.sum(1).max(initial=0)),
-                "edges": int(edges), "row_before_mask": pre["row"]}
-
-    def _capacity(sizes: dict, n: int, extra: int, query: Query) -> Capacity:
-        occupancy = sizes["row"] if format is Dense else sizes["edges"]
-        neighbors = _layout_capacity(occupancy, n, extra, format, mask_self,
-                                     capacity_multiplier)
-        row_sized = sizes.get("row_before_mask", sizes["row"])
-        row = _layout_capacity(row_sized, n, extra, Dense, mask_self,
-                               capacity_multiplier)
-        if format is Dense and custom_mask_function is None:
-            row = neighbors
-        internal = {k: min(max(math.ceil(v * capacity_multiplier), 1), n)
-                    for k, v in sizes.items()
-                    if k not in ("row", "edges", "row_before_mask")}
-        internal["row"] = row
-        return Capacity(neighbors, tuple(sorted(internal.items())))
-
-    def update(position, neighbors: NeighborList, **kwargs) -> NeighborList:
+    def update(self, position, neighbors: NeighborList, **kwargs
+               ) -> NeighborList:
         """Rebuild ``neighbors`` at ``position`` if a particle moved more than
         half the skin since the last build. jit/scan/vmap-able."""
-        check_kwargs(kwargs, allocating=False)
+        self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
                             f"got {type(neighbors).__name__}.")
@@ -444,37 +575,23 @@ def neighbor_list(displacement_or_metric: Callable,
         if not isinstance(capacity, Capacity):
             raise TypeError("neighbors was not allocated by jaxrt; use the "
                             "update of the factory that allocated it.")
-        fn, grid, query = setup(position.shape[1], kwargs)
-        query = dataclasses.replace(query,
+        setup = self.setup(position.shape[1], kwargs)
+        query = dataclasses.replace(setup.query,
                                     decide_by_metric=capacity.metric_decides)
-        metric = MetricSq(fn, dict(kwargs))
-        g = _space.gram(metric, grid, position.dtype)
+        metric = MetricSq(setup.metric_fn, dict(kwargs))
+        g = _space.gram(metric, setup.grid, position.dtype)
         h = _space.heights(g, capacity.orthorhombic)
-        geometry = _geometry(grid, h, position.dtype, capacity.slack)
-        code = neighbors.error.code | nonfinite_code(position)
-        # A box passed here may have shrunk below twice the cutoff.
-        too_small = jnp.any(jnp.asarray(grid.periodic) & ~_space.cutoff_fits(
-            cutoff, jnp.asarray(grid.period, position.dtype) * h))
-        code = code | jnp.where(too_small, jnp.uint8(
-            ErrorCode.BOX_TOO_SMALL | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
-            jnp.uint8(0))
+        geometry = _geometry(setup.grid, h, position.dtype, capacity.slack)
+        code = neighbors.error.code | _input_errors(position, setup.grid, h,
+                                                    self.settings.cutoff)
 
         def rebuild(_):
-            idx, overflow = build(position, geometry, metric, query=query,
-                                  capacity=capacity)
-            bits = jnp.where(overflow,
-                             jnp.uint8(ErrorCode.NEIGHBOR_LIST_OVERFLOW),
-                             jnp.uint8(0))
-            if not any_metric:
-                wrong = _space.extremes_disagree(
-                    position, metric, g, h, grid,
-                    lower_bound_only=capacity.metric_decides,
-                    slack=capacity.slack)
-                if capacity.orthorhombic:
-                    wrong |= _space.off_diagonal(g)
-                bits = bits | jnp.where(wrong, jnp.uint8(
-                    ErrorCode.METRIC_MISMATCH
-                    | ErrorCode.NEIGHBOR_LIST_OVERFLOW), jnp.uint8(0))
+            idx, overflow = self.build(position, geometry, metric, query=query,
+                                       capacity=capacity)
+            bits = _bits(overflow, _OVERFLOW)
+            if self.checks_metric:
+                bits |= _metric_errors(position, metric, g, h, setup.grid,
+                                       capacity)
             return dataclasses.replace(neighbors, idx=idx,
                                        reference_position=position,
                                        error=PartitionError(code | bits))
@@ -482,12 +599,11 @@ def neighbor_list(displacement_or_metric: Callable,
         def keep(_):
             return dataclasses.replace(neighbors, error=PartitionError(code))
 
-        if dr_threshold == 0:
+        if self.settings.dr_threshold == 0:
             return rebuild(None)
+        threshold_sq = (self.settings.dr_threshold / 2) ** 2
         moved = jax.vmap(metric)(position, ref)
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
-
-    return NeighborListFns(allocate, update)
 
 
 def _geometry(grid: _space.Space, h, dtype, slack: float) -> Geometry:

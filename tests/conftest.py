@@ -1,5 +1,10 @@
 """Test-suite settings.
 
+Hypothesis is derandomised (each test's examples follow from its name, so
+a failure in CI is a failure on every machine) and keeps no example
+database; the ``slow`` tests run many more examples of the same
+properties.
+
 The suite compiles hundreds of small XLA programs and runs each once or a
 few times on tiny systems, so LLVM's optimisation passes cost far more than
 they save: the CPU backend is told not to run them (set before JAX starts;
@@ -20,3 +25,13 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 import jax  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
+
+try:  # a test dependency; GPU machines may run the suite's other files
+    import hypothesis  # noqa: E402
+except ImportError:
+    pass
+else:
+    hypothesis.settings.register_profile("jaxrt", derandomize=True,
+                                         database=None, deadline=None,
+                                         print_blob=True)
+    hypothesis.settings.load_profile("jaxrt")

@@ -189,8 +189,7 @@ def test_positions_outside_the_box_and_fractional_coordinates():
         fns.allocate(frac, box=jnp.full(3, 2.7))
 
 
-@hypothesis.settings(max_examples=10, deadline=None)
-@hypothesis.given(
+HYPOTHESIS_SCENES = dict(
     n=st.sampled_from([1, 2, 17, 120]),
     side=st.floats(3.2, 12.0),
     cutoff=st.floats(0.3, 1.55),
@@ -199,7 +198,22 @@ def test_positions_outside_the_box_and_fractional_coordinates():
     seed=st.integers(0, 2**16),
     mask_self=st.booleans(),
 )
+
+
+@hypothesis.settings(max_examples=10, deadline=None)
+@hypothesis.given(**HYPOTHESIS_SCENES)
 def test_hypothesis_scenes(n, side, cutoff, periodic, dim, seed, mask_self):
+    check_scene(n, side, cutoff, periodic, dim, seed, mask_self)
+
+
+@pytest.mark.slow
+@hypothesis.settings(max_examples=400, deadline=None)
+@hypothesis.given(**HYPOTHESIS_SCENES)
+def test_hypothesis_scenes_many(n, side, cutoff, periodic, dim, seed, mask_self):
+    check_scene(n, side, cutoff, periodic, dim, seed, mask_self)
+
+
+def check_scene(n, side, cutoff, periodic, dim, seed, mask_self):
     R = np.random.default_rng(seed).uniform(0, side, (n, dim)).astype(np.float32)
     disp = displacement(periodic, side)
     for fmt in FORMATS:
@@ -214,8 +228,8 @@ def test_hypothesis_scenes(n, side, cutoff, periodic, dim, seed, mask_self):
 # The backend directly: persistence, vmap, overflow
 
 
-def setup_backend(R, side, cutoff, periodic, fmt, name="bvh"):
-    backend = backends.get(name)
+def setup_backend(R, side, cutoff, periodic, fmt, backend="bvh"):
+    backend = backends.bind(backends.resolve(backend))
     dim = R.shape[1]
     query = Query(cutoff=cutoff, periodic=(periodic,) * dim, mask_self=True,
                   format=fmt)
@@ -227,36 +241,28 @@ def setup_backend(R, side, cutoff, periodic, fmt, name="bvh"):
     return backend, query, geometry, capacity
 
 
-@pytest.fixture(scope="module")
-def clustered():
-    """Backend "bvh-cluster5": one BVH box per run of 5 sorted particles (an
-    odd size, so the last cluster is partial). Registered only while this
-    module's tests run, so other modules do not enumerate it."""
-    backends.register("bvh-cluster5", lambda: ffi.AabbBackend(
-        "bvh-cluster5", sort=True, cluster_size=5))
-    yield "bvh-cluster5"
-    backends._REGISTRY.pop("bvh-cluster5")
-    backends._INSTANCES.pop("bvh-cluster5", None)
+# One BVH box per run of 5 sorted particles (an odd size, so the last
+# cluster is partial), with 3 boxes per leaf.
+CLUSTERED = backends.Bvh(cluster_size=5, leaf_size=3)
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
 @pytest.mark.parametrize("periodic", [True, False])
-def test_clustered_boxes_give_the_same_lists(fmt, periodic, clustered):
+def test_clustered_boxes_give_the_same_lists(fmt, periodic):
     R = jax.random.uniform(jax.random.PRNGKey(21), (303, 3)) * 8.0
-    check(R, 8.0, 1.7, periodic, fmt, backend="bvh-cluster5", jax_md_too=False)
+    check(R, 8.0, 1.7, periodic, fmt, backend=CLUSTERED, jax_md_too=False)
     # Ties at the cutoff, and particles on faces and corners.
-    check(lattice(8, 0.5), 4.0, 1.0, periodic, fmt, backend="bvh-cluster5",
+    check(lattice(8, 0.5), 4.0, 1.0, periodic, fmt, backend=CLUSTERED,
           jax_md_too=False)
     corners = np.array([[0, 0, 0], [3.999, 3.999, 3.999], [0, 3.999, 0],
                         [3.999, 0, 0.5], [2, 2, 2]], np.float32)
-    check(corners, 4.0, 1.5, periodic, fmt, backend="bvh-cluster5",
+    check(corners, 4.0, 1.5, periodic, fmt, backend=CLUSTERED,
           jax_md_too=False)
 
 
 @pytest.mark.parametrize("fmt,name", [(Dense, "bvh"), (OrderedSparse, "bvh"),
-                                      (Dense, "bvh-cluster5")])
-def test_scan_with_persistent_bvh_equals_fresh_build_every_step(fmt, name,
-                                                              clustered):
+                                      (Dense, CLUSTERED)])
+def test_scan_with_persistent_bvh_equals_fresh_build_every_step(fmt, name):
     n, side, cutoff = 250, 8.0, 1.7
     key = jax.random.PRNGKey(11)
     R0 = jax.random.uniform(key, (n, 3)) * side
@@ -382,12 +388,11 @@ def test_cutoff_too_large_for_the_periodic_box_is_refused():
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_generic_method_backend_wraps_any_rt_method(fmt):
-    backends.register("test-aabb-method",
-                      lambda: ffi.method_backend(aabb.AabbMethod()))
+    wrapped = ffi.method_backend(aabb.AabbMethod())
     R = jax.random.uniform(jax.random.PRNGKey(18), (200, 3)) * 6.0
-    check(R, 6.0, 1.4, True, fmt, backend="test-aabb-method", jax_md_too=False)
+    check(R, 6.0, 1.4, True, fmt, backend=wrapped, jax_md_too=False)
     backend, query, geometry, capacity = setup_backend(
-        R, 6.0, 1.4, True, fmt, name="test-aabb-method")
+        R, 6.0, 1.4, True, fmt, backend=wrapped)
     Rs = jnp.stack([R, R[::-1]])
     batched = jax.vmap(lambda R: backend.search(R, geometry, query, capacity,
                                                 None))(Rs)
@@ -429,3 +434,35 @@ def test_non_finite_position_is_flagged_not_fatal():
             assert all(3 not in pair for pair in list_pairs(broken))
         assert list_pairs(fns.update(R, nbrs)) == brute_pairs(R, 1.2, 5.0,
                                                               periodic)
+
+
+def test_each_list_factory_keeps_its_own_trees_and_frees_them():
+    """Ten live lists (more than the eight trees an LRU once kept) each
+    refit their own BVH on every later call, and a factory's trees are
+    freed with it (once JAX's caches, whose compiled programs may still
+    call them, let go of it too)."""
+    import gc
+    n, side = 120, 6.0
+    disp, _ = space.periodic(side)
+    R = jax.random.uniform(jax.random.PRNGKey(30), (n, 3)) * side
+    slots_before = len(ffi._SLOTS)
+    lists, cutoffs = [], [1.2 + 0.01 * k for k in range(10)]
+    for cutoff in cutoffs:
+        fns = jaxrt.neighbor_list(disp, side, cutoff, backend="bvh")
+        lists.append((fns, fns.allocate(R)))
+    step = [jax.jit(fns.update) for fns, _ in lists]
+    for update, (_, nbrs) in zip(step, lists):  # compile; the calls finish
+        jax.block_until_ready(update(R, nbrs))
+    before = ffi.update_counts.copy()
+    for _ in range(2):
+        for update, (_, nbrs), cutoff in zip(step, lists, cutoffs):
+            moved = jnp.mod(R + 0.001, side)
+            got = update(moved, nbrs)
+            assert list_pairs(got) == brute_pairs(moved, cutoff, side, True)
+    done = ffi.update_counts - before
+    assert done["refit"] == 20 and done["build"] == 0, done
+    assert len(ffi._SLOTS) > slots_before
+    del lists, step, update, nbrs, got, fns, _
+    jax.clear_caches()
+    gc.collect()
+    assert len(ffi._SLOTS) == slots_before

@@ -16,22 +16,27 @@ from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
 from test_neighbors import lattice
 
 
+INTERPRETED = backends.Cell(kernel="interpret")
+PORTABLE = backends.Cell(kernel="xla")
+
+
 @pytest.fixture
-def kernel(monkeypatch):
-    """Lists built in the test run the kernel in the interpreter."""
+def kernel():
+    """The cell list with its kernel run in Pallas' interpreter."""
     from jaxrt import _cell_kernel
     if not _cell_kernel.fits(1, 1, 1):
-        pytest.skip("this JAX has no Pallas Triton backend")
-    monkeypatch.setattr(backends.get("cell"), "kernel", "interpret")
+        pytest.skip("SKIPPED KERNEL TEST: this JAX has no Pallas Triton "
+                    "backend, so the cell list's kernel is untested here")
+    return INTERPRETED
 
 
 def kernel_list(R, side, cutoff, periodic, fmt=partition.Dense,
-                mask_self=True, metric=None):
+                mask_self=True, metric=None, backend=INTERPRETED):
     disp = metric or (space.periodic(side)[0] if periodic
                       else space.free()[0])
     nbrs = jaxrt.neighbor_list(disp, side if periodic else None, cutoff,
                                format=fmt, mask_self=mask_self,
-                               backend="cell").allocate(jnp.asarray(R))
+                               backend=backend).allocate(jnp.asarray(R))
     assert not nbrs.did_buffer_overflow
     assert_layout(nbrs)
     return nbrs
@@ -75,12 +80,10 @@ SCENES = {
 
 
 @pytest.mark.parametrize("name", SCENES)
-def test_kernel_matches_brute_force_and_the_portable_path(kernel, monkeypatch,
-                                                          name):
+def test_kernel_matches_brute_force_and_the_portable_path(kernel, name):
     R, side, cutoff, periodic = SCENES[name]
     got = check(R, side, cutoff, periodic)
-    monkeypatch.setattr(backends.get("cell"), "kernel", "xla")
-    portable = kernel_list(R, side, cutoff, periodic)
+    portable = kernel_list(R, side, cutoff, periodic, backend=PORTABLE)
     # the same sets; the kernel appends shell pairs after the sure ones
     assert np.array_equal(np.sort(np.asarray(got.idx), axis=1),
                           np.sort(np.asarray(portable.idx), axis=1))
@@ -123,7 +126,7 @@ def test_kernel_float64_pairs_a_hair_inside_and_outside(kernel):
 def test_kernel_overflow_is_flagged_and_fixed_by_reallocation(kernel):
     side = 6.0
     disp, _ = space.periodic(side)
-    fns = jaxrt.neighbor_list(disp, side, 1.2, backend="cell")
+    fns = jaxrt.neighbor_list(disp, side, 1.2, backend=kernel)
     R = jax.random.uniform(jax.random.PRNGKey(15), (150, 3)) * side
     nbrs = fns.allocate(R)
     # squeeze a third of the particles into a corner: rows outgrow capacity
@@ -139,7 +142,7 @@ def test_kernel_under_vmap_and_scan(kernel):
     side = 5.0
     disp, shift = space.periodic(side)
     fns = jaxrt.neighbor_list(disp, side, 1.1, capacity_multiplier=1.5,
-                              backend="cell")
+                              backend=kernel)
     Rs = jax.random.uniform(jax.random.PRNGKey(14), (3, 80, 3)) * side
     nbrs = fns.allocate(Rs[0])
     batch = jax.vmap(fns.update, in_axes=(0, None))(Rs, nbrs)
@@ -159,7 +162,7 @@ def test_kernel_under_vmap_and_scan(kernel):
     assert not last.did_buffer_overflow
 
 
-def test_kernel_list_update_inside_grad(kernel, monkeypatch):
+def test_kernel_list_update_inside_grad(kernel):
     """Differentiating through ``nbrs.update`` (forces inside a training
     loss) must not differentiate the kernel: the same gradient as the
     portable path."""
@@ -167,8 +170,8 @@ def test_kernel_list_update_inside_grad(kernel, monkeypatch):
     disp, _ = space.periodic(side)
     R = jax.random.uniform(jax.random.PRNGKey(21), (60, 3)) * side
 
-    def gradient():
-        fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+    def gradient(backend):
+        fns = jaxrt.neighbor_list(disp, side, 1.5, backend=backend)
         nbrs = fns.allocate(R)
 
         def loss(sigma_scale, R):
@@ -180,9 +183,8 @@ def test_kernel_list_update_inside_grad(kernel, monkeypatch):
 
         return jax.grad(loss, argnums=(0, 1))(1.0, R)
 
-    got = gradient()
-    monkeypatch.setattr(backends.get("cell"), "kernel", "xla")
-    want = gradient()
+    got = gradient(kernel)
+    want = gradient(PORTABLE)
     # Rows list the same neighbours in another order, so each entry is the
     # same float32 sum in another order: over at most ~64 terms of size up
     # to max|w| (|dr/dR| <= 1), reordering moves it by up to 64 eps max|w|,

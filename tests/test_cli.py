@@ -62,7 +62,7 @@ def test_trajectory_reads_in_ase(tmp_path, capsys, text):
     """
     import ase.io as ase_io  # a test dependency (pyproject: test extra)
     from test_scene import GOOD
-    from jaxrt import scene as S
+    from jaxrt import sim as S
     text = GOOD if text == "2d" else text
     p = tmp_path / "s.toml"
     p.write_text(text)

@@ -13,7 +13,7 @@ import warp as wp
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxrt import scenes
+from jaxrt import seed_distributions as scenes
 from jaxrt.rt.epsilon import (
     EPSILON_RELATIVE,
     ParticlesTooCloseError,
@@ -22,6 +22,7 @@ from jaxrt.rt.epsilon import (
     seed_epsilon,
     sphere_resolution,
 )
+from jaxrt.rt.periodic import CUTOFF_MARGIN
 from jaxrt.rt.spheres import SpheresMethod
 from jaxrt.rt.squares import SquaresMethod
 from oracle import brute_pairs
@@ -227,12 +228,28 @@ def test_two_dimensional_padded_with_zero(method, dtype):
     assert_exact(method, grid.astype(dtype), 1.5)
 
 
+COARSE_GRIDS = dict(
+    cells=st.lists(st.tuples(*[st.integers(0, 4)] * 3), min_size=2, max_size=40),
+    cutoff=st.sampled_from([0.5, 1.0, 1.5, 2.0, math.sqrt(2.0), np.nextafter(1.0, 2.0)]),
+    dtype_name=st.sampled_from(sorted(DTYPES)), mask_self=st.booleans())
+
+
 @settings(max_examples=40, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(cells=st.lists(st.tuples(*[st.integers(0, 4)] * 3), min_size=2, max_size=40),
-       cutoff=st.sampled_from([0.5, 1.0, 1.5, 2.0, math.sqrt(2.0), np.nextafter(1.0, 2.0)]),
-       dtype_name=st.sampled_from(sorted(DTYPES)), mask_self=st.booleans())
+@given(**COARSE_GRIDS)
 def test_coarse_grid_property(method, cells, cutoff, dtype_name, mask_self):
+    check_coarse_grid(method, cells, cutoff, dtype_name, mask_self)
+
+
+@pytest.mark.slow
+@settings(max_examples=1000, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(**COARSE_GRIDS)
+def test_coarse_grid_property_many(method, cells, cutoff, dtype_name, mask_self):
+    check_coarse_grid(method, cells, cutoff, dtype_name, mask_self)
+
+
+def check_coarse_grid(method, cells, cutoff, dtype_name, mask_self):
     """Random points on a coarse grid (ties on every axis, duplicates
     allowed): squares are exact; spheres are exact or report the
     duplicates as the ε contract says."""
@@ -265,7 +282,12 @@ def test_periodic_faces_and_corners(method, dtype):
     coordinates = [0.0, 0.25, 1.0, 2.0, 3.0, 3.75, np.nextafter(dtype(4.0), dtype(0.0))]
     grid = np.stack(np.meshgrid(*[coordinates] * 3, indexing="ij"), -1).reshape(-1, 3)
     grid = grid.astype(dtype)
-    for cutoff in (0.25, 0.5, 1.0, 2.0):
+    # Half the side itself is refused (the rule of every ray-traced method,
+    # `jaxrt.rt.periodic.cutoff_fits`); the largest cutoff it admits is not.
+    with pytest.raises(ValueError, match="below half the periodic box side 4 on axis 0"):
+        find_rows(method, grid, 2.0, periodic=(True,) * 3, side=side)
+    largest = np.nextafter(0.5 * 4.0 * (1.0 - CUTOFF_MARGIN), 0.0)
+    for cutoff in (0.25, 0.5, 1.0, largest):
         if method.name == "spheres" and dtype == np.float64:  # 1 ulp < 2ε
             with pytest.raises(ParticlesTooCloseError):
                 find_rows(method, grid, cutoff, periodic=(True,) * 3, side=side)
@@ -403,8 +425,8 @@ def test_bad_arguments(method):
     expect(ValueError, "needs side", periodic=(True, False, False))
     expect(ValueError, r"side\[1\] must be", periodic=(False, True, False),
            side=(1.0, -1.0, 1.0))
-    expect(ValueError, r"cutoff=0.5 exceeds side\[2\]/2", periodic=FREE[:2] + (True,),
-           side=(1.0, 1.0, 0.9))
+    expect(ValueError, "= 0.5 must be below half the periodic box side 0.9 on axis 2",
+           periodic=FREE[:2] + (True,), side=(1.0, 1.0, 0.9))
     with pytest.raises(TypeError, match="unexpected keyword"):
         method.find(points, **good, skin=0.1)
 

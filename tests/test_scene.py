@@ -1,13 +1,17 @@
-"""Scenes: only the asked-for effects are compiled; conservation; TOML."""
+"""Scenes: only the asked-for effects are compiled; conservation; TOML;
+an effect defined outside the package, in one class."""
 import dataclasses
+import math
 import warnings
+from typing import ClassVar
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxrt
-from jaxrt import scene as S
+from jaxrt import sim as S
 
 warnings.filterwarnings("ignore", message="Explicitly requested dtype")
 
@@ -18,7 +22,7 @@ def _jaxpr(compiled) -> str:
 
 
 def _gas(effects, boundary=("periodic",) * 3, n=64, side=6.0, skin=0.2,
-         radius=None, integrator=None):
+         radius=None):
     rng = np.random.default_rng(1)
     pos = (np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1)
            .reshape(-1, 3) + 0.5) * side / 4 + 0.05 * rng.standard_normal(
@@ -27,7 +31,7 @@ def _gas(effects, boundary=("periodic",) * 3, n=64, side=6.0, skin=0.2,
         particles=S.make_particles(positions=pos, temperature=0.5,
                                    radius=radius),
         box=S.Box((side,) * 3, boundary), effects=tuple(effects),
-        integrator=integrator or S.Integrator(dt=0.002),
+        integrator=S.Integrator(dt=0.002),
         neighbors=S.Neighbors(skin=skin, capacity_multiplier=2.0))
 
 
@@ -35,13 +39,16 @@ LJ = S.LJ(r_cutoff=2.5, r_onset=2.0)
 
 
 class Counting:
-    """A neighbor_list factory that counts how often it is asked for."""
+    """A neighbor_list factory that counts how often it is asked for and
+    records the cutoffs it is asked for."""
 
     def __init__(self):
         self.calls = 0
+        self.cutoffs = []
 
     def __call__(self, *a, **kw):
         self.calls += 1
+        self.cutoffs.append(a[2])  # (displacement, box, r_cutoff, skin)
         return jaxrt.neighbor_list(*a, **kw)
 
 
@@ -49,7 +56,7 @@ def test_lj_only_has_no_sph():
     text = _jaxpr(S.compile_scene(_gas([LJ])))
     assert "name=lj" in text
     assert "random_bits" not in text  # NVE: no thermostat noise
-    assert "sph_density" not in text and "sph_forces" not in text
+    assert "sph_density" not in text and "sph_pressure" not in text
 
 
 def test_sph_scene_has_sph_and_conserves_momentum():
@@ -57,8 +64,8 @@ def test_sph_scene_has_sph_and_conserves_momentum():
                S.SPHViscosity(alpha=0.1)])
     c = S.compile_scene(sc)
     text = _jaxpr(c)
-    assert "name=sph_density" in text and "name=sph_forces" in text
-    assert "name=lj" not in text
+    assert "name=sph_density" in text and "name=sph_pressure" in text
+    assert "name=sph_viscosity" in text and "name=lj" not in text
     # Periodic, no walls or gravity: momentum is conserved.
     _, state, stats = _run(sc, 10)
     mom = np.concatenate(stats.momentum)
@@ -94,16 +101,36 @@ def test_wall_box_does_no_periodic_image_work():
 def test_one_list_at_largest_cutoff():
     count = Counting()
     sc = _gas([S.LJ(r_cutoff=1.5), S.SPHDensity(h=1.0)], side=8.0)
-    c = S.compile_scene(sc, neighbor_list_fn=count)
-    assert count.calls == 1 and sc.cutoff == 2.0  # cubic spline: 2h
+    S.compile_scene(sc, neighbor_list_fn=count)
+    assert count.calls == 1 and count.cutoffs == [2.0]  # cubic spline: 2h
+
+
+def _init_accel(sc) -> np.ndarray:
+    return np.asarray(S.compile_scene(sc).init()[0].accel)
 
 
 def test_equal_radii_no_radius_handling():
-    eq = S.compile_scene(_gas([LJ], radius=0.5))
+    """Equal radii r act as the scalar sigma = 2r; radii that differ as
+    sigma_ij = r_i + r_j, here checked against the same sigmas given as a
+    species matrix (one species per particle)."""
+    eq = S.compile_scene(_gas([LJ], radius=0.55))
     assert any("equal radii" in line for line in eq.plan)
+    np.testing.assert_array_equal(
+        np.asarray(eq.init()[0].accel),
+        _init_accel(_gas([S.LJ(r_cutoff=2.5, r_onset=2.0, sigma=1.1)])))
     rng = np.random.default_rng(0)
-    neq = S.compile_scene(_gas([LJ], radius=0.45 + 0.1 * rng.random(64)))
+    r = 0.45 + 0.1 * rng.random(64)
+    neq = S.compile_scene(_gas([LJ], radius=r))
     assert any("per-particle radii" in line for line in neq.plan)
+    base = _gas([LJ])
+    matrix = dataclasses.replace(
+        base, particles=dataclasses.replace(base.particles,
+                                            species=np.arange(64)),
+        effects=(S.LJ(r_cutoff=2.5, r_onset=2.0,
+                      sigma=(r[:, None] + r[None, :]).tolist()),))
+    a = np.asarray(neq.init()[0].accel)
+    assert np.abs(a).max() > 1  # the gas is dense enough to feel LJ
+    np.testing.assert_allclose(a, _init_accel(matrix), rtol=1e-4, atol=1e-4)
 
 
 def _run(sc, steps):
@@ -123,10 +150,22 @@ def test_builtin_lj_conserves_energy():
 
 
 def test_builtin_dam_break_mass_and_walls():
+    """The 1 x 2 m column of water (1000 kg/m^2 in 2D) at dx = 0.1 is 10 x 20
+    particles of 10 kg: 2000 kg, and the summation density inside the
+    column (beyond the kernel support 2h = 0.26 from its edges) is rho0."""
     sc = S.dam_break(dx=0.1)
-    _, state, stats = _run(sc, 20)
+    assert sc.particles.n == 200
+    np.testing.assert_allclose(sc.particles.masses, 10.0)
+    assert sc.particles.masses.sum() == pytest.approx(1000.0 * 1.0 * 2.0)
+    c = S.compile_scene(sc)
+    state, nbrs = c.init()
+    x0 = sc.particles.positions
+    inner = ((x0 > 0.26) & (x0 < np.array([1.0, 2.0]) - 0.26)).all(1)
+    assert inner.sum() == 56
+    np.testing.assert_allclose(np.asarray(state.rho)[inner], 1000.0,
+                               rtol=1e-3)
+    state, nbrs = S.run_chunk(c, state, nbrs, steps=20)
     x = np.asarray(state.position)
-    assert sc.particles.masses.sum() == S.dam_break(dx=0.1).particles.masses.sum()
     assert (x > -0.05).all() and (x[:, 0] < 4.05).all()
 
 
@@ -135,19 +174,78 @@ def test_builtin_sphere_surface_momentum():
     _, state, stats = _run(sc, 20)
     mom = np.concatenate(stats.momentum)
     assert np.abs(mom - mom[0]).max() < 1e-5
-    assert stats.rebuilds >= 0
 
 
-def test_langevin_runs_and_is_random():
-    sc = _gas([LJ], integrator=S.Integrator(dt=0.002, kind="langevin",
-                                            kT=1.0, gamma=1.0))
+@pytest.mark.parametrize("skin, rebuilds", [(0.25, 3), (0.0, 50)])
+def test_rebuild_count(skin, rebuilds):
+    """One particle moves at speed 1 (dt = 0.01), the other rests 10 away
+    (no force). The list is rebuilt when a particle moved more than skin/2
+    since the last build: with skin 0.25 at steps 13, 26 and 39 of 50
+    (0.13 > 0.125, 0.12 is not); with skin 0 at every step. Two chunks of
+    25: the count carries across chunks."""
+    sc = S.Scene(
+        particles=S.make_particles(positions=[[5.0, 10, 10], [15.0, 10, 10]],
+                                   velocities=[[1.0, 0, 0], [0, 0, 0]]),
+        box=S.Box((20.0,) * 3, ("free",) * 3), effects=(LJ,),
+        integrator=S.Integrator(dt=0.01), neighbors=S.Neighbors(skin=skin))
     c = S.compile_scene(sc)
-    assert "random_bits" in _jaxpr(c)
+    state, nbrs = c.init()
+    stats = S.RunStats()
+    for _ in range(2):
+        state, nbrs = S.run_chunk(c, state, nbrs, steps=25, stats=stats)
+    # float32: 50 additions of 0.01 to 5.0
+    np.testing.assert_allclose(np.asarray(state.position)[0, 0], 5.5,
+                               atol=1e-4)
+    assert stats.rebuilds == rebuilds and stats.overflows == 0
 
+
+def test_langevin_reaches_kT():
+    """Langevin on an ideal gas (no forces, so each velocity component is
+    exactly an Ornstein-Uhlenbeck process, c = exp(-gamma dt) per step),
+    started at a tenth of kT, masses from 0.5 to 2.
+
+    With d = N dim components and T = sum m v^2 / d:
+    * after n steps, E[T] = c^2n T_0 + (1 - c^2n) kT and
+      Var[T] = (4 c^2n (1 - c^2n) kT T_0 + 2 (1 - c^2n)^2 kT^2) / d
+      (checked at c^2n = 1/e: this is the friction's rate);
+    * over M steps of the second half (transient e^-2 gamma t < 1e-40),
+      each m v^2 / kT is chi-square with 1 degree of freedom and
+      autocorrelation c^2k, so the mean has standard deviation
+      kT sqrt(2 (1 + c^2) / ((1 - c^2) d M)).
+    Both are sums of d = 1536 independent terms (near normal): 4 standard
+    deviations.
+    """
+    n, dim, kT, gamma, dt, steps = 512, 3, 1.0, 5.0, 0.01, 2000
+    rng = np.random.default_rng(3)
+    sc = S.Scene(
+        particles=S.make_particles(positions=rng.random((n, dim)) * 10,
+                                   masses=0.5 + 1.5 * rng.random(n),
+                                   temperature=0.1 * kT, seed=4),
+        box=S.Box((10.0,) * dim, ("free",) * dim), effects=(),
+        integrator=S.Integrator(dt=dt, kind="langevin", kT=kT, gamma=gamma,
+                                seed=5))
+    c, _, stats = _run(sc, steps)
+    # The positive control of test_lj_only_has_no_sph's "no random_bits".
+    assert "random_bits" in _jaxpr(c)
+    d = n * dim
+    temp = 2 * np.concatenate(stats.kinetic).astype(np.float64) / d
+    p = sc.particles
+    t0 = float(np.sum(p.masses[:, None] * p.velocities ** 2)) / d
+    assert abs(t0 - 0.1 * kT) < 0.02  # far from kT at the start
+    c2 = math.exp(-2 * gamma * dt)
+    k = round(1 / (2 * gamma * dt))  # c^2k = 1/e
+    e = c2 ** k
+    mean_k = e * t0 + (1 - e) * kT
+    sd_k = math.sqrt((4 * e * (1 - e) * kT * t0 + 2 * (1 - e) ** 2 * kT ** 2)
+                     / d)
+    assert abs(temp[k - 1] - mean_k) < 4 * sd_k  # temp[i]: after step i + 1
+    late = temp[steps // 2:]
+    sd = kT * math.sqrt(2 * (1 + c2) / ((1 - c2) * d * late.size))
+    assert abs(late.mean() - kT) < 4 * sd, (late.mean(), sd)
 
 
 def test_mixed_boundaries_wrap_periodic_axis_only():
-    """``["periodic", "wall", "free"]`` (the module docstring's example)
+    """``["periodic", "wall", "free"]`` (the example of `jaxrt.sim.toml`)
     used to fail at init: the free axis made the scene pass no box at all,
     and the list needs the periodic side. A pair straddles each face; only
     the periodic one may interact (the others are 7.6 and 7.8 apart, 0.4
@@ -181,9 +279,9 @@ def test_mixed_boundaries_wrap_periodic_axis_only():
 
 def test_toml_round_trip():
     sc = _gas([LJ, S.Gravity(g=(0.0, 0.0, -1.0))])
-    text = sc.to_toml()
-    back = S.Scene.from_toml(text)
-    assert back.to_toml() == text
+    text = S.to_toml(sc)
+    back = S.from_toml(text)
+    assert S.to_toml(back) == text
     np.testing.assert_array_equal(back.particles.positions,
                                   sc.particles.positions)
     assert back.effects == sc.effects and back.box == sc.box
@@ -226,7 +324,83 @@ def test_bad_toml_names_field(edit, field, line):
     if field == "particles.positions":  # only outside a *walled* box
         text = text.replace('"periodic"', '"wall"')
     with pytest.raises(S.SceneError) as e:
-        S.Scene.from_toml(text)
+        S.from_toml(text)
     assert field in str(e.value)
     if line is not None:
         assert f"line {line}" in str(e.value)
+
+
+# --- An effect from outside the package: one class, one registration ------
+
+@dataclasses.dataclass(frozen=True)
+class Tether:
+    """A spring from every particle to the origin: U = k/2 sum |R_i|^2."""
+    k: float
+    kind: ClassVar[str] = "tether"
+    pairwise: ClassVar[bool] = False
+    cutoff: ClassVar[float] = 0.0
+
+    def validate(self, scene, where):
+        if not self.k > 0:
+            raise S.SceneError.at(f"{where}.k", "must be > 0.")
+
+    def term(self, ctx):
+        def tether(R, nbrs):
+            return 0.5 * self.k * jnp.sum(R * R)
+        return S.Term(energy=tether)
+
+
+TETHERED = """
+[box]
+size = [10.0, 10.0]
+boundary = "free"
+
+[particles]
+positions = [[1.0, 0.0], [0.0, -0.5], [0.3, 0.4]]
+velocities = [[0.0, 0.5], [0.2, 0.0], [0.0, 0.0]]
+masses = [1.0, 2.0, 4.0]
+
+[[effects]]
+kind = "tether"
+k = 4.0
+
+[integrator]
+dt = 0.001
+"""
+
+
+def test_new_effect_from_toml_is_harmonic():
+    """Three independent harmonic oscillators, omega = sqrt(k / m) = 2,
+    sqrt 2, 1: x(t) = x0 cos wt + v0/w sin wt. Velocity Verlet's phase
+    error is w t (w dt)^2 / 24 < 1e-6 here, so float32 rounding sets the
+    tolerance."""
+    effects = S.EFFECTS.extended(Tether)  # the package's registry untouched
+    sc = S.from_toml(TETHERED, effects=effects)
+    assert sc.effects == (Tether(k=4.0),)
+    c, state, stats = _run(sc, 1000)
+    assert c.neighbor_fn is None and c.conservative
+    p = sc.particles
+    w = np.sqrt(4.0 / p.masses)[:, None]
+    t = 1000 * 0.001
+    x = p.positions * np.cos(w * t) + p.velocities / w * np.sin(w * t)
+    v = -p.positions * w * np.sin(w * t) + p.velocities * np.cos(w * t)
+    np.testing.assert_allclose(np.asarray(state.position), x, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(state.velocity), v, atol=1e-5)
+    u = np.concatenate(stats.potential)
+    assert u[-1] == pytest.approx(0.5 * 4.0 * np.sum(x * x), rel=1e-5)
+    # It writes and reads back like any effect.
+    assert S.from_toml(S.to_toml(sc), effects=effects).effects == sc.effects
+
+
+def test_registering_is_explicit_and_scoped():
+    with pytest.raises(S.SceneError, match="unknown effect 'tether'"):
+        S.from_toml(TETHERED)
+    with S.registered(Tether):
+        assert S.from_toml(TETHERED).effects == (Tether(k=4.0),)
+        with pytest.raises(ValueError, match="already registered"):
+            S.register(Tether)
+        with pytest.raises(S.SceneError, match=r"effects\[0\]\.k.*line 13"):
+            S.from_toml(TETHERED.replace("k = 4.0", "k = -4.0"))
+    assert "tether" not in S.EFFECTS
+    with pytest.raises(ValueError, match="already registered"):
+        S.register(S.LJ)  # the package's own are there once

@@ -49,6 +49,7 @@ from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
 from jax.ops import segment_sum
 
+from jaxrt.energy._checks import concrete
 from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
 from jaxrt.energy._rows import dense_pair_energy
@@ -57,15 +58,6 @@ Array = jax.Array
 
 TRUNCATIONS = ("smooth", "shifted", "truncated")
 GRADIENTS = ("rows", "autodiff")
-
-
-def _concrete(x) -> np.ndarray | None:
-    """``x`` as a NumPy array when its value is known now; None if traced."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    if isinstance(x, (int, float, np.ndarray, np.generic, jax.Array)):
-        return np.asarray(x)
-    return None
 
 
 def lennard_jones(dr: Array, sigma: Array = 1.0, epsilon: Array = 1.0
@@ -153,7 +145,7 @@ def _truncation_error(truncation) -> str:
 
 def _check_parameter(name: str, value, species) -> None:
     """Shapes (and, when known, signs) of sigma / epsilon against species."""
-    v = _concrete(value)
+    v = concrete(value)
     shape = tuple(np.shape(value)) if v is None else v.shape
     if species is None:
         if len(shape) > 2:
@@ -170,7 +162,7 @@ def _check_parameter(name: str, value, species) -> None:
                 "of species a, b (per-particle vectors are not combined "
                 "with species).")
         if len(shape) == 2:
-            s = _concrete(species)
+            s = concrete(species)
             if s is not None and s.size and int(s.max()) >= shape[0]:
                 raise ValueError(
                     f"species has values up to {int(s.max())} but {name} is "
@@ -203,23 +195,52 @@ def _check_species(species) -> None:
         raise ValueError(
             f"species must be an integer (N,) array; got shape {shape} and "
             f"dtype {dtype}. Pass one integer type per particle.")
-    s = _concrete(species)
+    s = concrete(species)
     if s is not None and s.size and s.min() < 0:
         raise ValueError("species has negative entries; use 0, 1, ..., S-1.")
 
 
 def _check_cutoffs(r_onset, r_cutoff, truncation) -> None:
-    rc = _concrete(r_cutoff)
+    rc = concrete(r_cutoff)
     if rc is not None and (rc.ndim or not rc > 0 or not np.isfinite(rc)):
         raise ValueError(f"r_cutoff must be a finite scalar > 0; got "
                          f"{r_cutoff}.")
-    ro = _concrete(r_onset)
+    ro = concrete(r_onset)
     if truncation == "smooth" and ro is not None and rc is not None:
         if ro.ndim or not 0 <= ro < rc:
             raise ValueError(
                 f"r_onset={r_onset} must be a scalar with 0 <= r_onset < "
                 f"r_cutoff={r_cutoff}: the smooth switch divides by "
                 "r_cutoff**2 - r_onset**2.")
+
+
+def _check_overrides(p: dict, species, n: int) -> None:
+    """Shapes of the energy function's ``sigma`` and ``epsilon`` (in ``p``)
+    against ``species`` (int ``(N,)`` or None) and ``n`` particles."""
+    if species is not None and species.shape[0] != n:
+        raise ValueError(f"species has {species.shape[0]} entries but R "
+                         f"has {n} particles; pass one type per particle.")
+    for name in ("sigma", "epsilon"):
+        # Overrides are usually being differentiated (and finite
+        # differences perturb them asymmetrically), so only their shapes
+        # are checked, never their values.
+        shape = np.shape(p[name])
+        if species is not None and shape and (
+                len(shape) != 2 or shape[0] != shape[1]):
+            raise ValueError(
+                f"{name} has shape {shape} but species was given: pass a "
+                f"scalar or a square (S, S) matrix.")
+        s = None if species is None else concrete(species)
+        if len(shape) == 2 and s is not None and s.size and (
+                int(s.max()) >= shape[0]):
+            raise ValueError(
+                f"species has values up to {int(s.max())} but {name} is "
+                f"{shape[0]}x{shape[0]}: make {name} (S, S) with "
+                f"S > max(species).")
+        if species is None and len(shape) >= 1 and shape[0] != n:
+            raise ValueError(
+                f"{name} has shape {shape} but R has {n} particles: "
+                f"per-particle {name} must be (N,) or (N, N).")
 
 
 def lennard_jones_pair_neighbor_list(
@@ -319,30 +340,7 @@ def lennard_jones_pair_neighbor_list(
         else:
             _check_species(species)
         n = R.shape[0]
-        if species is not None and species.shape[0] != n:
-            raise ValueError(f"species has {species.shape[0]} entries but R "
-                             f"has {n} particles; pass one type per particle.")
-        for name in ("sigma", "epsilon"):
-            # Overrides are usually being differentiated (and finite
-            # differences perturb them asymmetrically), so only their shapes
-            # are checked, never their values.
-            shape = np.shape(p[name])
-            if species is not None and shape and (
-                    len(shape) != 2 or shape[0] != shape[1]):
-                raise ValueError(
-                    f"{name} has shape {shape} but species was given: pass a "
-                    f"scalar or a square (S, S) matrix.")
-            s = None if species is None else _concrete(species)
-            if len(shape) == 2 and s is not None and s.size and (
-                    int(s.max()) >= shape[0]):
-                raise ValueError(
-                    f"species has values up to {int(s.max())} but {name} is "
-                    f"{shape[0]}x{shape[0]}: make {name} (S, S) with "
-                    f"S > max(species).")
-            if species is None and len(shape) >= 1 and shape[0] != n:
-                raise ValueError(
-                    f"{name} has shape {shape} but R has {n} particles: "
-                    f"per-particle {name} must be (N,) or (N, N).")
+        _check_overrides(p, species, n)
 
         if (neighbor.format is partition.Dense and not per_particle
                 and gradient == "rows"):
@@ -427,7 +425,7 @@ def lennard_jones_neighbor_list(
     """
     if neighbor_list_fn is None:
         from jaxrt.neighbors import neighbor_list as neighbor_list_fn
-    s = _concrete(sigma)
+    s = concrete(sigma)
     if s is None:
         raise ValueError("sigma must be concrete (not traced) here: it sets "
                          "the cutoff of the neighbour list. Pass traced "

@@ -41,25 +41,10 @@ import numpy as np
 from jax.ops import segment_sum
 from jax_md import partition
 
+from jaxrt.energy._checks import check_positive, concrete
 from jaxrt.energy._keywords import reject_unknown
 
 Array = jax.Array
-
-
-def _concrete(x) -> np.ndarray | None:
-    """``x`` as a NumPy array when its value is known now; None if traced."""
-    if isinstance(x, jax.core.Tracer):
-        return None
-    if isinstance(x, (int, float, np.ndarray, np.generic, jax.Array)):
-        return np.asarray(x)
-    return None
-
-
-def _check_positive(name: str, value, fix: str) -> None:
-    v = _concrete(value)
-    if v is not None and (v.size == 0 or not np.all(np.isfinite(v))
-                          or np.any(v <= 0)):
-        raise ValueError(f"{name} must be finite and > 0; got {value}. {fix}")
 
 
 # ---------------------------------------------------------------------------
@@ -94,9 +79,9 @@ class _Kernel:
                 f"dim={self.dim!r} is not supported by "
                 f"{type(self).__name__}; use one of "
                 f"{sorted(self._normalisation)}.")
-        _check_positive("h", self.h,
-                        "Pass the smoothing length, e.g. 1.2-1.3 times the "
-                        "particle spacing.")
+        check_positive("h", self.h,
+                       "Pass the smoothing length, e.g. 1.2-1.3 times the "
+                       "particle spacing.")
 
     @property
     def cutoff(self) -> Array:
@@ -270,9 +255,9 @@ class Tait:
 
     def __post_init__(self):
         for name in ("rho0", "c0", "gamma"):
-            _check_positive(name, getattr(self, name),
-                            "The Tait equation of state needs positive "
-                            "parameters.")
+            check_positive(name, getattr(self, name),
+                           "The Tait equation of state needs positive "
+                           "parameters.")
 
     def pressure(self, rho: Array) -> Array:
         """Pressure.
@@ -300,7 +285,7 @@ class Tait:
 
 
 def _check_density(rho) -> None:
-    v = _concrete(rho)
+    v = concrete(rho)
     if v is not None and np.any(v < 0):
         raise ValueError(
             f"rho has negative entries (min {v.min()}); densities must be "
@@ -511,7 +496,7 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
       traced. ``neighbor``: any layout, cutoff >= ``kernel.cutoff``.
     """
     for name, value in (("alpha", alpha), ("beta", beta)):
-        v = _concrete(value)
+        v = concrete(value)
         if v is not None and (v.ndim or v < 0):
             raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
     _check_displacement(displacement, kernel.dim)

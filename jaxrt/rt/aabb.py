@@ -14,10 +14,9 @@ room, so counts are exact and overflow is never silent.
 Clusters (an extension, ``cluster_size`` g > 1): one box around each run of
 g consecutive Morton-sorted particles, grown by the cutoff, so the BVH has
 g times fewer leaves and a ray that lands in a box tests the g particles
-exactly. The result is the same. On the H100 (no RT cores) it did not pay:
-the query at N = 10⁶ took 16–17 ms with g = 8–32 against 10.5 ms with the
-seed's g = 1 (`benchmarks/results/h100/rt_neighbors.csv`), so g = 1 is the
-default and clusters stay an option for other hardware.
+exactly. The result is the same. On a GPU without RT cores it did not pay
+(`benchmarks/RESULTS.md`), so g = 1 is the default and clusters stay an
+option for other hardware.
 
 The BVH is float32 (Warp's only kind). float64 positions get float32 boxes
 padded beyond float32 rounding and a float64 distance test, so float64 lists
@@ -36,6 +35,9 @@ import numpy as np
 import warp as wp
 
 from jaxrt.rt import periodic as gamma
+# The one cutoff rule of the ray-traced methods (also `jaxrt.rt.ffi`'s
+# ``aabb.check_cutoff``).
+from jaxrt.rt.periodic import check_cutoff
 
 # Bit-compatibility with jax-md: no FMA contraction in ``dx*dx + dy*dy + dz*dz``.
 wp.set_module_options({"fuse_fp": False})
@@ -316,6 +318,10 @@ def load(device) -> None:
     wp.load_module(module=__name__, device=device)
 
 
+# Warp's BVH constructors (wp.Bvh(constructor=...)); "cubql" needs CUDA.
+BUILDERS = ("sah", "median", "lbvh", "cubql")
+
+
 @dataclasses.dataclass(frozen=True)
 class RebuildPolicy:
     """When to rebuild the BVH instead of refitting it.
@@ -556,13 +562,6 @@ class AabbSearch:
         with wp.ScopedDevice(self.device):
             wp.launch(_pad_pairs_kernel, pairs.shape[1],
                       inputs=[total, self.n, pairs])
-
-
-def check_cutoff(cutoff: float, side, periodic) -> None:
-    """Raise ValueError unless ``cutoff`` is below half of every periodic side."""
-    for a, p in enumerate(periodic):
-        if p and not gamma.cutoff_fits(cutoff, float(side[a])):
-            raise ValueError(gamma.cutoff_error(cutoff, float(side[a]), a))
 
 
 class AabbMethod:

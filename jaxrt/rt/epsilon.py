@@ -1,4 +1,12 @@
-"""What the sphere and double-square methods share: their ε, checks, images.
+"""The ε of the sphere and double-square methods, and what follows from it.
+
+This module holds the seed's ε (`seed_epsilon`) and the sphere method's
+resolution (`sphere_resolution`), the padding of the float32 BVH geometry
+(`bvh_padding`, `geometry_point`), the survey of the points' scale that sets
+both (`survey`), and the separation check (`pair_below`,
+`closest_pair_below`, `ParticlesTooCloseError`). ``find``'s argument checks
+live with the protocol (`jaxrt.rt._method`), the periodic images with the
+gamma rays (`jaxrt.rt.periodic`).
 
 Seed 001 (Algis & Bramas), §4.2, §4.3 and Appendix 7: the sphere method
 gives each particle a sphere of radius ``r = C·√2/√3 + ε`` and casts three
@@ -44,8 +52,10 @@ import dataclasses
 import math
 from typing import Any
 
-import numpy as np
 import warp as wp
+
+from jaxrt.rt._method import FindArguments, describe
+from jaxrt.rt.periodic import wrap_into_box
 
 EPSILON_RELATIVE = 2.0 ** -40
 """ε as a fraction of the data's scale (module docstring)."""
@@ -99,27 +109,7 @@ def bvh_padding(scale: float) -> float:
 
 
 # ---------------------------------------------------------------------------
-# Positions as the kernels see them.
-
-
-@wp.func
-def wrap_into_box(p: wp.vec3d, side: wp.vec3d, periodic: wp.vec3i) -> wp.vec3d:
-    """``p`` wrapped into ``[0, side)`` on periodic axes (callers pass
-    positions unwrapped). Points already in the box are returned bit for bit,
-    so their pair tests round exactly as the float64 oracle's. Non-finite
-    coordinates stay non-finite: every exact test on them is false."""
-    wrapped = p
-    for axis in range(3):
-        if periodic[axis] != 0:
-            v = p[axis]
-            if v < wp.float64(0.0) or v >= side[axis]:
-                v = v - side[axis] * wp.floor(v / side[axis])
-                if v < wp.float64(0.0):
-                    v = v + side[axis]
-                if v >= side[axis]:
-                    v = wp.float64(0.0)
-            wrapped[axis] = v
-    return wrapped
+# The float32 geometry of the BVH.
 
 
 @wp.func
@@ -130,6 +120,10 @@ def geometry_point(p: wp.vec3d) -> wp.vec3:
     if not wp.isfinite(p):
         return wp.vec3(0.0)
     return wp.vec3(p)
+
+
+# ---------------------------------------------------------------------------
+# The survey: the points' scale, hence ε and the padding.
 
 
 @wp.kernel
@@ -168,99 +162,6 @@ class Survey:
     padding: float
 
 
-@dataclasses.dataclass(frozen=True)
-class FindArguments:
-    """The arguments of ``RTMethod.find``, checked and normalised.
-
-    Attributes:
-      cutoff: the search radius C (> 0, finite).
-      side: box side per axis; zeros on axes that are not periodic.
-      periodic: one bool per axis.
-      mask_self: drop ``i == i`` pairs.
-    """
-
-    cutoff: float
-    side: tuple[float, float, float]
-    periodic: tuple[bool, bool, bool]
-    mask_self: bool
-
-    @property
-    def side_vec(self) -> wp.vec3d:
-        return wp.vec3d(*self.side)
-
-    @property
-    def periodic_vec(self) -> wp.vec3i:
-        return wp.vec3i(*(int(p) for p in self.periodic))
-
-
-def check_find_arguments(method: str, points: wp.array, cutoff: float,
-                         side, periodic, mask_self, out_idx: wp.array,
-                         out_count: wp.array) -> FindArguments:
-    """Validate ``find``'s arguments; raise a clear error naming the bad one.
-
-    Args:
-      method: the method's name, for messages.
-      points: ``(N,)`` wp.vec3 or wp.vec3d.
-      out_idx: int32 ``(N, width)``; out_count: int32 ``(N,)``, same device.
-    """
-    if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d) \
-            or points.ndim != 1:
-        raise TypeError(
-            f"{method}.find: points must be a 1-D wp.array of wp.vec3 (float32) or "
-            f"wp.vec3d (float64); got {_describe(points)}. Pad 2-D positions with z = 0.")
-    n = points.shape[0]
-    if not isinstance(out_idx, wp.array) or out_idx.dtype != wp.int32 or out_idx.ndim != 2 \
-            or out_idx.shape[0] != n:
-        raise TypeError(
-            f"{method}.find: out_idx must be a wp.array2d of int32 with shape (N, width) = "
-            f"({n}, width); got {_describe(out_idx)}.")
-    if not isinstance(out_count, wp.array) or out_count.dtype != wp.int32 \
-            or out_count.shape != (n,):
-        raise TypeError(
-            f"{method}.find: out_count must be a wp.array of int32 with shape ({n},); "
-            f"got {_describe(out_count)}.")
-    for name, array in (("out_idx", out_idx), ("out_count", out_count)):
-        if array.device != points.device:
-            raise ValueError(
-                f"{method}.find: {name} is on {array.device} but points are on "
-                f"{points.device}; allocate it on the points' device.")
-    if isinstance(cutoff, (bool, np.bool_)) \
-            or not isinstance(cutoff, (int, float, np.floating, np.integer)) \
-            or not math.isfinite(cutoff) or cutoff <= 0:
-        raise ValueError(f"{method}.find: cutoff must be a finite number > 0; got {cutoff!r}.")
-    cutoff = float(cutoff)
-    if not isinstance(mask_self, (bool, np.bool_)):
-        raise TypeError(f"{method}.find: mask_self must be a bool; got {mask_self!r}.")
-    periodic = tuple(periodic)
-    if len(periodic) != 3 or not all(isinstance(p, (bool, np.bool_)) for p in periodic):
-        raise ValueError(
-            f"{method}.find: periodic must be three bools (x, y, z; pad 2-D with False); "
-            f"got {periodic!r}.")
-    periodic = tuple(bool(p) for p in periodic)
-    if not any(periodic):
-        return FindArguments(cutoff, (0.0, 0.0, 0.0), periodic, bool(mask_self))
-    if side is None or len(tuple(side)) != 3:
-        raise ValueError(
-            f"{method}.find: periodic={periodic} needs side=(Lx, Ly, Lz), the box side "
-            f"per axis; got side={side!r}.")
-    side = tuple(float(s) for s in side)
-    for axis in range(3):
-        if not periodic[axis]:
-            continue
-        if not (math.isfinite(side[axis]) and side[axis] > 0):
-            raise ValueError(
-                f"{method}.find: side[{axis}] must be finite and > 0 on a periodic axis; "
-                f"got {side[axis]!r}.")
-        if cutoff > side[axis] / 2:
-            raise ValueError(
-                f"{method}.find: cutoff={cutoff} exceeds side[{axis}]/2 = {side[axis] / 2}. "
-                f"The periodic images (seed 003 §3.3 gamma rays) assume at most one image "
-                f"of a particle within the cutoff; use backend='cell' or 'brute' for boxes "
-                f"this small.")
-    side = tuple(s if p else 0.0 for s, p in zip(side, periodic))
-    return FindArguments(cutoff, side, periodic, bool(mask_self))
-
-
 def survey(points: wp.array, args: FindArguments) -> Survey:
     """The points' scale, hence ε and the BVH padding (a Warp reduction;
     reads one float64 back to the host, a device sync)."""
@@ -271,61 +172,6 @@ def survey(points: wp.array, args: FindArguments) -> Survey:
                   inputs=[points, args.side_vec, args.periodic_vec], outputs=[max_abs])
     scale = max(args.cutoff, float(max_abs.numpy()[0]), *args.side)
     return Survey(scale=scale, epsilon=seed_epsilon(scale), padding=bvh_padding(scale))
-
-
-def _describe(value) -> str:
-    if isinstance(value, wp.array):
-        return f"wp.array(dtype={wp.types.type_repr(value.dtype)}, shape={value.shape})"
-    return type(value).__name__
-
-
-# ---------------------------------------------------------------------------
-# Periodic images: the gamma rays of seed 003 §3.3.
-#
-# A target within the cutoff of a periodic face also casts its rays from its
-# image one box away (on every combination of such axes: up to 7 images).
-# With ``cutoff <= side / 2`` at most one image of a target lies within the
-# cutoff of a source, so each pair is still found once per direction.
-
-
-@wp.func
-def image_shifts(target: wp.vec3d, cutoff: wp.float64, side: wp.vec3d,
-                 periodic: wp.vec3i, slack: wp.float64) -> wp.vec3d:
-    """The shift of the target's image on each axis, 0 where none is cast.
-
-    ``slack`` (ε) casts images a hair early: the pair test rounds
-    ``(s − t) − shift`` in float64 and may accept a pair that exact
-    arithmetic puts exactly at the cutoff. Splitting at ``side / 2`` keeps a
-    target from casting both a +side and a −side image.
-    """
-    shifts = wp.vec3d(wp.float64(0.0))
-    for axis in range(3):
-        if periodic[axis] != 0:
-            if target[axis] < wp.float64(0.5) * side[axis]:
-                if target[axis] < cutoff + slack:
-                    shifts[axis] = side[axis]
-            else:
-                if target[axis] > side[axis] - cutoff - slack:
-                    shifts[axis] = -side[axis]
-    return shifts
-
-
-@wp.func
-def image_is_cast(image: int, shifts: wp.vec3d) -> bool:
-    """Image ``image`` (bit k set: shifted on axis k) exists for these shifts."""
-    for axis in range(3):
-        if (image >> axis) & 1 == 1 and shifts[axis] == wp.float64(0.0):
-            return False
-    return True
-
-
-@wp.func
-def image_offset(image: int, shifts: wp.vec3d) -> wp.vec3d:
-    offset = wp.vec3d(wp.float64(0.0))
-    for axis in range(3):
-        if (image >> axis) & 1 == 1:
-            offset[axis] = shifts[axis]
-    return offset
 
 
 # ---------------------------------------------------------------------------
@@ -377,7 +223,7 @@ def pair_below(points: wp.array, distance: float) -> tuple[int, int] | None:
     """
     if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d):
         raise TypeError(f"pair_below: points must be a wp.array of wp.vec3 or wp.vec3d; "
-                        f"got {_describe(points)}.")
+                        f"got {describe(points)}.")
     if not (math.isfinite(distance) and distance >= 0):
         raise ValueError(f"pair_below: distance must be finite and >= 0; got {distance!r}.")
     n = points.shape[0]

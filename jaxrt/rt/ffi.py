@@ -3,13 +3,17 @@ Warp's JAX interop (``wp.jax_callable``, XLA FFI; CPU and CUDA).
 
 Two ways in:
 
-* `AabbBackend` (``backend="bvh"`` and ``"bvh-unsorted"``): the custom AABB
-  method of `jaxrt.rt.aabb` with a BVH kept across calls (refit or rebuilt,
-  see `jaxrt.rt.aabb.choose_update`), Dense rows written directly and
-  Sparse / OrderedSparse edges by count, scan and fill.
-* `method_backend`: any `jaxrt.rt._method.RTMethod` (spheres, double
-  squares, ...) as a backend, through Dense rows and
+* `Bvh` (``backend="bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
+  custom AABB method of `jaxrt.rt.aabb` with a BVH kept across calls
+  (refit or rebuilt, see `jaxrt.rt.aabb.choose_update`), Dense rows
+  written directly and Sparse / OrderedSparse edges by count, scan and
+  fill.
+* `Spheres`, `Squares`, and `method_backend` for any other
+  `jaxrt.rt._method.RTMethod`: a backend through Dense rows and
   `jaxrt.backends.format_dense_rows`.
+
+The backends are frozen options; ``bind`` (called by `jaxrt.neighbor_list`)
+returns the searcher of one list factory, which owns that factory's BVHs.
 
 How the Warp calls behave under JAX:
 
@@ -17,17 +21,20 @@ How the Warp calls behave under JAX:
   custom calls. The BVH backend's calls are marked ``has_side_effect`` so
   XLA neither hoists them out of loops nor drops them.
 * Persistence: every traced call site gets its own *slot*, and each slot
-  owns one `jaxrt.rt.aabb.AabbSearch` (LRU, at most `MAX_KEPT_TREES`). A
-  compiled loop body calls the same slot every step, so its BVH is refit or
-  rebuilt in place. Lists never depend on the kept state being right for
-  them: every call refits or rebuilds to the positions it is given.
+  keeps one `jaxrt.rt.aabb.AabbSearch`. A compiled loop body calls the
+  same slot every step, so its BVH is refit or rebuilt in place. Slots
+  belong to the `TreeOwner` of the list factory whose trace made them and
+  are freed with it (so as many lists as the caller keeps alive keep their
+  trees; nothing is evicted behind their back). Lists never depend on the
+  kept state being right for them: every call refits or rebuilds to the
+  positions it is given.
 * ``vmap``: `jax.custom_batching.custom_vmap` runs the systems one after
   the other, each through its own call site (own slot, own BVH), so no
   system sees another's particles. Beyond `MAX_UNROLLED_SYSTEMS` systems
   one call site is looped with ``lax.map`` (one BVH, rebuilt per system).
 * Graph capture is off (``graph_mode=NONE``): the refit/rebuild decision
   reads one flag back to the host, and building a new ``wp.Bvh`` inside a
-  CUDA graph crashed (DESIGN.md).
+  CUDA graph crashed.
 * float64 positions (``jax_enable_x64``) run the float64 kernels: exact
   float64 distance test on a padded float32 BVH.
 
@@ -36,8 +43,10 @@ own arithmetic (``periodic_displacement`` then ``square_distance``); the
 caller's ``metric_sq`` is not called.
 """
 import collections
+import dataclasses
 import itertools
-from typing import Callable
+import weakref
+from typing import Callable, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -45,18 +54,18 @@ import numpy as np
 import warp as wp
 from jax_md.partition import NeighborListFormat
 
-from jaxrt import backends
-from jaxrt.backends import Capacity, Geometry, MetricSq, Query, SearchResult
+from jaxrt import _backend
+from jaxrt._backend import Capacity, Geometry, MetricSq, Query, SearchResult
 from jaxrt.rt import aabb, periodic as gamma
 from jaxrt.rt._method import RTMethod
+from jaxrt.rt.spheres import SpheresMethod
+from jaxrt.rt.squares import SquaresMethod
 
-# Kept BVHs (one per traced call site and system); the oldest is dropped.
-MAX_KEPT_TREES = 8
 # vmap over more systems than this loops one call site instead of unrolling.
 MAX_UNROLLED_SYSTEMS = 16
 # Warp kernels compute byte offsets in 32-bit ints (warp/native/array.h):
 # an int32 output of 2**29 entries or more would wrap (seen as an illegal
-# address on the H100 at N = 8.4e6, k = 288).
+# address on the GPU at N = 8.4e6, k = 288).
 MAX_LIST_ENTRIES = 2 ** 29 - 1
 
 Dense = NeighborListFormat.Dense
@@ -65,39 +74,89 @@ OrderedSparse = NeighborListFormat.OrderedSparse
 _VECTORS = {np.dtype(np.float32): wp.vec3f, np.dtype(np.float64): wp.vec3d}
 
 # ---------------------------------------------------------------------------
-# Persistent state (touched only inside FFI callbacks, which Warp serialises).
+# Persistent state (touched only inside FFI callbacks, which Warp serialises,
+# and by TreeOwner at trace time).
 
-_TREES: "collections.OrderedDict[tuple, aabb.AabbSearch]" = collections.OrderedDict()
-_SLOTS = itertools.count()
+
+@dataclasses.dataclass
+class _Slot:
+    """One traced call site: the options its tree is built with, whether
+    the tree is kept between calls, and the tree once a call has built it."""
+
+    options: "Bvh"
+    keep: bool = True
+    tree: "aabb.AabbSearch | None" = None
+
+
+_SLOTS: dict[int, _Slot] = {}
+_SLOT_IDS = itertools.count()
 # What the kept trees did, for tests and benchmarks: {"build": .., ...}.
 update_counts: collections.Counter = collections.Counter()
 
 
-def _new_slot() -> int:
-    return next(_SLOTS)
+def _release(slots: list[int]) -> None:
+    for slot in slots:
+        _SLOTS.pop(slot, None)
+    slots.clear()
+
+
+class TreeOwner:
+    """The BVHs of one list factory: one slot per traced call site (and
+    per system under ``vmap``), freed when the factory is garbage
+    collected. JAX's caches of compiled programs hold the factory (through
+    the programs' static arguments), so its trees live exactly as long as a
+    program that may call them.
+
+    Attributes:
+      options: the `Bvh` its trees are built with.
+      keep: keep each slot's tree between calls (False: every call builds
+        a fresh tree, as ``allocate``'s measurements do).
+      slots: the slot ids it owns.
+    """
+
+    def __init__(self, options: "Bvh", *, keep: bool = True):
+        self.options = options
+        self.keep = keep
+        self.slots: list[int] = []
+        # Not at interpreter exit: programs dispatched before may still run.
+        weakref.finalize(self, _release, self.slots).atexit = False
+
+    def new_slot(self) -> int:
+        slot = next(_SLOT_IDS)
+        _SLOTS[slot] = _Slot(self.options, self.keep)
+        self.slots.append(slot)
+        return slot
+
+    def release(self) -> None:
+        """Free the slots now (their calls must have completed)."""
+        _release(self.slots)
+
+    def trees(self) -> "list[aabb.AabbSearch]":
+        """The trees kept so far (for tests and benchmarks)."""
+        return [_SLOTS[s].tree for s in self.slots
+                if s in _SLOTS and _SLOTS[s].tree is not None]
 
 
 def forget_trees() -> None:
     """Drop every kept BVH (frees their memory; the next calls rebuild)."""
-    _TREES.clear()
+    for record in _SLOTS.values():
+        record.tree = None
 
 
-def _tree(slot: int, n: int, vector, device, sort: bool,
-          policy: aabb.RebuildPolicy, cluster: int) -> aabb.AabbSearch:
-    """The BVH kept for ``slot`` (a fresh, unkept one for slot < 0)."""
-    def new():
-        return aabb.AabbSearch(n, vector, device, sort=sort, policy=policy,
-                               cluster_size=cluster)
-
-    if slot < 0:
-        return new()
-    key = (slot, n, vector, str(device), sort, policy, cluster)
-    tree = _TREES.pop(key, None)
-    if tree is None:
-        tree = new()
-    _TREES[key] = tree
-    while len(_TREES) > MAX_KEPT_TREES:
-        _TREES.popitem(last=False)
+def _tree(slot: int, n: int, vector, device) -> aabb.AabbSearch:
+    """The BVH kept for ``slot``, (re)made for these particles if needed."""
+    record = _SLOTS.get(slot)
+    if record is None:
+        raise RuntimeError(
+            f"BVH slot {slot} was freed with the neighbour-list factory that "
+            "owned it, yet a program still calls it; keep the factory (the "
+            "object jaxrt.neighbor_list returned) alive while its lists run.")
+    tree = record.tree
+    if (tree is None or tree.n != n or tree.vector is not vector
+            or tree.device != wp.get_device(device)):
+        tree = record.options.search_structure(n, vector, device)
+        if record.keep:
+            record.tree = tree
     return tree
 
 
@@ -123,23 +182,19 @@ def _aabb_callables(vector):
 
     def dense(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
               cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
-              sort: wp.int32, drift: wp.float64, cluster: wp.int32,
               slot: wp.int32, rows: wp.array2d(dtype=wp.int32),
               count: wp.array(dtype=wp.int32)):
-        tree = _tree(int(slot), points.shape[0], vector, points.device,
-                     bool(sort), aabb.RebuildPolicy(float(drift)), int(cluster))
+        tree = _tree(int(slot), points.shape[0], vector, points.device)
         update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
         tree.query_dense(side, mask_self=bool(mask_self), rows=rows, count=count)
 
     def sparse(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
                cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
-               lower_only: wp.int32, sort: wp.int32, drift: wp.float64,
-               cluster: wp.int32, slot: wp.int32,
+               lower_only: wp.int32, slot: wp.int32,
                pairs: wp.array2d(dtype=wp.int32),
                count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int32),
                total: wp.array(dtype=wp.int32)):
-        tree = _tree(int(slot), points.shape[0], vector, points.device,
-                     bool(sort), aabb.RebuildPolicy(float(drift)), int(cluster))
+        tree = _tree(int(slot), points.shape[0], vector, points.device)
         update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
         tree.query_sparse(side, mask_self=bool(mask_self),
                           lower_only=bool(lower_only), pairs=pairs, count=count,
@@ -158,11 +213,14 @@ def _aabb_callables(vector):
 _METHOD_CALLABLES: dict = {}
 
 
-def _method_callable(method: RTMethod, vector):
-    """jax callable running ``method.find`` on positions of type ``vector``."""
-    key = (id(method), vector)
+def _method_callable(backend: "MethodBackend", vector):
+    """jax callable running the method of ``backend`` (hashable options, one
+    method object per value: it keeps nothing that changes results) on
+    positions of type ``vector``."""
+    key = (backend, vector)
     if key in _METHOD_CALLABLES:
         return _METHOD_CALLABLES[key][1]
+    method = backend.method()
 
     def find(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
              cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
@@ -232,14 +290,14 @@ def _points(position, geometry: Geometry, query: Query):
     return cart, side[None, :], axes, too_large
 
 
-def _sequential_vmap(call: Callable) -> Callable:
+def _sequential_vmap(call: Callable, owner: "TreeOwner | None") -> Callable:
     """``call(points, side, slot)`` -> tuple of arrays, as a function of
     ``(points, side)`` whose ``vmap`` runs one system after the other, each
-    through its own call site (own slot)."""
+    through its own call site (own slot of ``owner``; -1 without one)."""
 
     @jax.custom_batching.custom_vmap
     def one_system(points, side):
-        return call(points, side, _new_slot())
+        return call(points, side, -1 if owner is None else owner.new_slot())
 
     @one_system.def_vmap
     def systems(axis_size, in_batched, points, side):
@@ -258,32 +316,88 @@ def _sequential_vmap(call: Callable) -> Callable:
     return one_system
 
 
-class AabbBackend:
-    """Backend over `jaxrt.rt.aabb`: custom AABB BVH, kept across calls.
+@dataclasses.dataclass(frozen=True)
+class Bvh:
+    """Options of the custom AABB BVH backend (`jaxrt.rt.aabb`), kept
+    across calls by the list factory that owns it (`TreeOwner`).
+
+    None of the options changes the list, only the speed
+    (`benchmarks/rt_neighbors.py` sweeps them).
 
     Attributes:
-      name: the ``backend=`` name.
       sort: Morton-sort particles at each build (the seed's sorted AABB).
-      policy: when to rebuild rather than refit (`jaxrt.rt.aabb.RebuildPolicy`).
-      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 1,
-        the seed's box per particle, was the fastest in every measured case
-        (`benchmarks/rt_neighbors.py`).
+      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 1 is
+        the seed's box per particle.
+      leaf_size: boxes per BVH leaf.
+      builder: Warp's BVH constructor (``"lbvh"``, ``"sah"``, ``"median"``;
+        ``"cubql"`` on CUDA), or None for Warp's choice per device.
+      policy: when to rebuild rather than refit
+        (`jaxrt.rt.aabb.RebuildPolicy`).
     """
+
+    sort: bool = True
+    cluster_size: int = 1
+    leaf_size: int = 1
+    builder: "str | None" = None
+    policy: aabb.RebuildPolicy = aabb.RebuildPolicy()
+
+    max_list_entries: ClassVar[int] = MAX_LIST_ENTRIES
+
+    def __post_init__(self):
+        if not isinstance(self.sort, bool):
+            raise TypeError(f"Bvh(sort={self.sort!r}): must be a bool.")
+        for name in ("cluster_size", "leaf_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"Bvh({name}={value!r}): must be an int >= 1.")
+        if self.builder not in (None,) + aabb.BUILDERS:
+            raise ValueError(f"Bvh(builder={self.builder!r}): choose one of "
+                             f"{aabb.BUILDERS}, or None for Warp's default.")
+        if not isinstance(self.policy, aabb.RebuildPolicy):
+            raise TypeError("Bvh(policy=...) must be a "
+                            "jaxrt.rt.aabb.RebuildPolicy.")
+
+    @property
+    def name(self) -> str:
+        return "bvh" if self.sort else "bvh-unsorted"
+
+    def search_structure(self, n: int, vector, device) -> aabb.AabbSearch:
+        """A fresh `jaxrt.rt.aabb.AabbSearch` with these options."""
+        return aabb.AabbSearch(n, vector, device, sort=self.sort,
+                               policy=self.policy, constructor=self.builder,
+                               leaf_size=self.leaf_size,
+                               cluster_size=self.cluster_size)
+
+    def bind(self) -> "BvhSearch":
+        _load_kernels()
+        return BvhSearch(self, TreeOwner(self))
+
+    # A Bvh used without bind (not through jaxrt.neighbor_list) searches
+    # with trees of its own call; the front always binds.
+    def measure(self, position, geometry, query, metric_sq):
+        return self.bind().measure(position, geometry, query, metric_sq)
+
+    def search(self, position, geometry, query, capacity, metric_sq):
+        return self.bind().search(position, geometry, query, capacity,
+                                  metric_sq)
+
+
+class BvhSearch:
+    """The `Bvh` searcher of one list factory: its options and the
+    `TreeOwner` of its trees."""
 
     max_list_entries = MAX_LIST_ENTRIES
 
-    def __init__(self, name: str, *, sort: bool,
-                 policy: aabb.RebuildPolicy = aabb.RebuildPolicy(),
-                 cluster_size: int = 1):
-        if int(cluster_size) < 1:
-            raise ValueError(f"cluster_size must be >= 1; got {cluster_size}.")
-        self.name = name
-        self.sort = sort
-        self.policy = policy
-        self.cluster_size = int(cluster_size)
-        _load_kernels()
+    def __init__(self, options: Bvh, owner: TreeOwner):
+        self.options = options
+        self.owner = owner
 
-    def _dense(self, points, side, query: Query, axes, width: int, slot=None):
+    @property
+    def name(self) -> str:
+        return self.options.name
+
+    def _dense(self, points, side, query: Query, axes, width: int,
+               owner: TreeOwner):
         """Dense rows int32 ``(N, width)`` and exact counts int32 ``(N,)``."""
         dense, _ = _aabb_callables(_vector_of(points))
         n = points.shape[0]
@@ -291,19 +405,14 @@ class AabbBackend:
 
         def call(points, side, slot):
             return tuple(dense(points, side, query.cutoff, _bits(axes),
-                               int(query.mask_self), int(self.sort),
-                               self.policy.drift_fraction, self.cluster_size,
-                               slot,
+                               int(query.mask_self), slot,
                                output_dims={"rows": (n, stored), "count": (n,)}))
 
-        if slot is not None:
-            rows, count = call(points, side, slot)
-        else:
-            rows, count = _sequential_vmap(call)(points, side)
+        rows, count = _sequential_vmap(call, owner)(points, side)
         return rows[:, :width], count
 
     def _sparse(self, points, side, query: Query, axes, capacity: int,
-                lower_only: bool, slot=None):
+                lower_only: bool, owner: TreeOwner):
         """Edges int32 ``(2, capacity)``, counts int32 ``(N,)``, int32 total."""
         _, sparse = _aabb_callables(_vector_of(points))
         n = points.shape[0]
@@ -311,33 +420,35 @@ class AabbBackend:
 
         def call(points, side, slot):
             return tuple(sparse(points, side, query.cutoff, _bits(axes),
-                                int(query.mask_self), int(lower_only),
-                                int(self.sort), self.policy.drift_fraction,
-                                self.cluster_size, slot,
+                                int(query.mask_self), int(lower_only), slot,
                                 output_dims={"pairs": (2, stored), "count": (n,),
                                              "offset": (n,), "total": (1,)}))
 
-        if slot is not None:
-            pairs, count, _, total = call(points, side, slot)
-        else:
-            pairs, count, _, total = _sequential_vmap(call)(points, side)
+        pairs, count, _, total = _sequential_vmap(call, owner)(points, side)
         return pairs[:, :capacity], count, total[..., 0]
 
     def measure(self, position, geometry: Geometry, query: Query,
                 metric_sq: MetricSq) -> dict[str, int]:
-        """Exact ``row`` and ``edges`` at ``position`` (eager).
+        """Exact ``row`` and ``edges`` at ``position`` (eager, on trees of
+        its own that are freed on return).
 
         Raises ValueError when the cutoff is not below half a periodic side.
         """
         del metric_sq  # distances use jax-md's arithmetic in the kernel
         points, side, axes, _ = _points(jnp.asarray(position), geometry, query)
         aabb.check_cutoff(query.cutoff, np.asarray(side)[0], axes)
-        _, count, _ = self._sparse(points, side, query, axes, 0, False, slot=-1)
-        sizes = {"row": int(np.max(np.asarray(count), initial=0)),
-                 "edges": int(np.sum(np.asarray(count)))}
-        if query.format is OrderedSparse:
-            _, _, total = self._sparse(points, side, query, axes, 0, True, slot=-1)
-            sizes["edges"] = int(total)
+        scratch = TreeOwner(self.options, keep=False)
+        try:
+            _, count, _ = self._sparse(points, side, query, axes, 0, False,
+                                       scratch)
+            sizes = {"row": int(np.max(np.asarray(count), initial=0)),
+                     "edges": int(np.sum(np.asarray(count)))}
+            if query.format is OrderedSparse:
+                _, _, total = self._sparse(points, side, query, axes, 0, True,
+                                           scratch)
+                sizes["edges"] = int(total)
+        finally:
+            scratch.release()
         return sizes
 
     def search(self, position, geometry: Geometry, query: Query,
@@ -348,11 +459,13 @@ class AabbBackend:
         points, side, axes, too_large = _points(position, geometry, query)
         width = capacity.neighbors
         if query.format is Dense:
-            rows, count = self._dense(points, side, query, axes, width)
+            rows, count = self._dense(points, side, query, axes, width,
+                                      self.owner)
             occupancy = jnp.max(count, initial=0, axis=-1)
             return SearchResult(rows, occupancy, (occupancy > width) | too_large)
         pairs, _, total = self._sparse(points, side, query, axes, width,
-                                       query.format is OrderedSparse)
+                                       query.format is OrderedSparse,
+                                       self.owner)
         return SearchResult(pairs, total, (total > width) | too_large)
 
 
@@ -360,20 +473,19 @@ class MethodBackend:
     """Any `RTMethod` as a backend: Dense rows from ``method.find`` (no
     state kept), other layouts by `jaxrt.backends.format_dense_rows`.
 
-    Attributes:
-      name: the ``backend=`` name.
-      method: the wrapped `RTMethod`.
+    Subclasses are frozen dataclasses of the method's options with a
+    ``name`` and a ``method()`` that makes the `RTMethod`.
     """
 
-    max_list_entries = MAX_LIST_ENTRIES
+    max_list_entries: ClassVar[int] = MAX_LIST_ENTRIES
+    name: ClassVar[str]
 
-    def __init__(self, method: RTMethod, name: str):
-        self.method = method
-        self.name = name
+    def method(self) -> RTMethod:
+        raise NotImplementedError
 
     def _rows(self, points, side, query: Query, axes, width: int):
         """Dense rows int32 ``(N, width)`` (padded with N) and counts ``(N,)``."""
-        find = _method_callable(self.method, _vector_of(points))
+        find = _method_callable(self, _vector_of(points))
         n = points.shape[0]
         stored = max(width, 1)
 
@@ -384,7 +496,7 @@ class MethodBackend:
                               int(query.mask_self), rows,
                               output_dims={"count": (n,)}))
 
-        rows, count = _sequential_vmap(call)(points, side)
+        rows, count = _sequential_vmap(call, None)(points, side)
         return rows[:, :width], count
 
     def measure(self, position, geometry: Geometry, query: Query,
@@ -408,11 +520,53 @@ class MethodBackend:
         points, side, axes, too_large = _points(position, geometry, query)
         width = capacity.neighbors if query.format is Dense else capacity["row"]
         rows, count = self._rows(points, side, query, axes, width)
-        result = backends.format_dense_rows(rows, count, query, capacity)
+        result = _backend.format_dense_rows(rows, count, query, capacity)
         return result._replace(overflow=result.overflow | too_large)
 
 
+@dataclasses.dataclass(frozen=True)
+class Spheres(MethodBackend):
+    """Seed 001 §4.2's spheres (`jaxrt.rt.spheres`) as a backend.
+
+    Attributes:
+      check_separation: raise when two particles are closer than the
+        method's resolution (`jaxrt.rt.spheres.SpheresMethod`).
+    """
+
+    check_separation: bool = True
+    name: ClassVar[str] = "spheres"
+
+    def method(self) -> RTMethod:
+        return SpheresMethod(check_separation=self.check_separation)
+
+
+@dataclasses.dataclass(frozen=True)
+class Squares(MethodBackend):
+    """Seed 001 §4.3's double squares (`jaxrt.rt.squares`) as a backend."""
+
+    name: ClassVar[str] = "squares"
+
+    def method(self) -> RTMethod:
+        return SquaresMethod()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Wrapped(MethodBackend):
+    """An `RTMethod` object as a backend (`method_backend`)."""
+
+    wrapped: RTMethod = dataclasses.field(hash=False, compare=False)
+    label: str = ""
+    identity: int = 0
+
+    @property
+    def name(self) -> str:  # type: ignore[override]
+        return self.label
+
+    def method(self) -> RTMethod:
+        return self.wrapped
+
+
 def method_backend(method: RTMethod, name: str | None = None) -> MethodBackend:
-    """``method`` as a jaxrt backend, e.g.
-    ``backends.register("spheres", lambda: method_backend(SpheresMethod()))``."""
-    return MethodBackend(method, method.name if name is None else name)
+    """``method`` (an `RTMethod` object) as a jaxrt backend, to pass as
+    ``backend=``."""
+    return _Wrapped(method, method.name if name is None else name, id(method))

@@ -9,10 +9,11 @@ faces it is near: up to 7 extra rays at a 3D corner (the seed's
 
 Each pair must be reported once. For a cutoff below half the box side only
 one image of ``j`` can be within reach of ``i``; to make that hold under
-rounding as well, a hit is kept only from the ray whose shift is the
-pair's *canonical image*, a deterministic function of the two box centres
-(`is_canonical_image`). That ray is always cast when the pair is in range
-(`ray_is_cast`), so no pair is lost and none is doubled.
+rounding as well, the custom AABB method (`jaxrt.rt.aabb`) keeps a hit only
+from the ray whose shift is the pair's *canonical image*, a deterministic
+function of the two box centres (`is_canonical_image`). That ray is always
+cast when the pair is in range (`ray_is_cast`), so no pair is lost and none
+is doubled.
 
 Items refitted rather than rebuilt may sit up to ``drift`` outside the box
 (they follow their nearest image, see `jaxrt.rt.aabb`); rays account for
@@ -21,8 +22,21 @@ the cutoff below half the side, a pair at minimum-image displacement ``m``
 (``|m| < cutoff``) has centre difference ``m + kL`` with ``k`` in
 ``{-1, 0, 1}``, so the canonical rule picks ``k``, whose ray is cast.
 
+The seed-001 methods (`jaxrt.rt.spheres`, `jaxrt.rt.squares`) number and
+place their gamma rays the same way (`ray_shift`, `shifted`) but choose
+which to cast differently (`near_faces`, `crosses_near_faces`): in float64,
+split at half the side so that a particle casts at most one image per axis,
+and a hair early (by their ε) so that the float64 pair test, which may round
+a pair at exactly the cutoff in, always has the ray it needs. They need no
+canonical-image filter: with the cutoff below half the side at most one
+image of a target is within the cutoff of a source.
+
+All three methods refuse the same cutoffs with the same message:
+`check_cutoff` (the rule `cutoff_fits`, the message `cutoff_error`).
+
 Warp functions here are generic over the position type (``wp.vec3`` or
-``wp.vec3d``); ``box`` is a vector of the same type.
+``wp.vec3d``), with ``box`` a vector of the same type, except those of the
+seed-001 methods, which are float64 (their ε contract needs it).
 """
 from __future__ import annotations
 
@@ -50,6 +64,36 @@ def cutoff_error(cutoff: float, side: float, axis: int) -> str:
             "or backend='cell'.")
 
 
+def check_cutoff(cutoff: float, side, periodic) -> None:
+    """Raise ValueError unless ``cutoff`` is below half of every periodic side
+    (`cutoff_fits`), naming the first axis where it is not."""
+    for a, p in enumerate(periodic):
+        if p and not cutoff_fits(cutoff, float(side[a])):
+            raise ValueError(cutoff_error(cutoff, float(side[a]), a))
+
+
+# ---------------------------------------------------------------------------
+# Positions wrapped into the box: one formula (`_wrap_coordinate`), two
+# variants. The AABB method's (`wrap_point`, float32 or float64) turns
+# non-finite coordinates into 0, since its boxes must not be NaN. The
+# seed-001 methods' (`wrap_into_box`, float64) keeps them non-finite, so that
+# their exact tests reject every pair of such a particle, and leaves points
+# already in the box untouched, so that their pair tests round as the float64
+# oracle's by construction.
+
+
+@wp.func
+def _wrap_coordinate(v: Any, side: Any):
+    """``v`` in ``[0, side)``: ``v - side * floor(v / side)``, with the
+    rounding of that expression folded back into the interval."""
+    w = v - side * wp.floor(v / side)
+    if w < type(w)(0.0):
+        w = w + side
+    if w >= side:
+        w = type(w)(0.0)
+    return w
+
+
 @wp.func
 def wrap_point(x: Any, box: Any, periodic: wp.vec3i):
     """``x`` wrapped into ``[0, box)`` on periodic axes; non-finite
@@ -59,15 +103,28 @@ def wrap_point(x: Any, box: Any, periodic: wp.vec3i):
     for a in range(3):
         v = x[a]
         if periodic[a] != 0:
-            v = v - box[a] * wp.floor(v / box[a])
-            if v < type(v)(0.0):
-                v = v + box[a]
-            if v >= box[a]:
-                v = type(v)(0.0)
+            v = _wrap_coordinate(v, box[a])
         if not wp.isfinite(v):
             v = type(v)(0.0)
         w[a] = v
     return w
+
+
+@wp.func
+def wrap_into_box(p: wp.vec3d, side: wp.vec3d, periodic: wp.vec3i) -> wp.vec3d:
+    """``p`` wrapped into ``[0, side)`` on periodic axes, for the seed-001
+    methods (callers pass positions unwrapped). Points already in the box are
+    returned bit for bit, so their pair tests round exactly as the float64
+    oracle's. Non-finite coordinates stay non-finite: every exact test on
+    them is false."""
+    wrapped = p
+    for axis in range(3):
+        if periodic[axis] != 0:
+            v = p[axis]
+            if v < wp.float64(0.0) or v >= side[axis]:
+                v = _wrap_coordinate(v, side[axis])
+            wrapped[axis] = v
+    return wrapped
 
 
 @wp.func
@@ -93,6 +150,10 @@ def largest_side(box: Any, periodic: wp.vec3i):
     return largest
 
 
+# ---------------------------------------------------------------------------
+# The gamma rays: numbered and placed alike by all three methods.
+
+
 @wp.func
 def ray_shift(ray: int):
     """Shift, in box sides per axis, of ray ``ray`` in ``[0, 27)``: base-3
@@ -110,11 +171,35 @@ def ray_shift(ray: int):
 
 
 @wp.func
+def shifted(u: Any, shift: wp.vec3i, box: Any):
+    """Origin of the ray with ``shift``: ``u + shift * box`` (``u`` itself on
+    unshifted axes)."""
+    out = u
+    for a in range(3):
+        if shift[a] != 0:
+            out[a] = u[a] + type(u[a])(shift[a]) * box[a]
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Which gamma rays are cast: two rules, side by side.
+#
+# The AABB method (`ray_is_cast`) tests in float32 against ``face_reach``
+# (its box reach plus the drift of refitted items), may cast both a +1 and a
+# -1 ray on one axis, and keeps each pair from one ray only through
+# `is_canonical_image`. The seed-001 methods (`near_faces`,
+# `crosses_near_faces`) test in float64 against ``cutoff + ε``, split at half
+# the side so that at most one image per axis is cast, and keep every hit of
+# their exact tests: their rows must equal the float64 oracle's bit for bit.
+
+
+@wp.func
 def ray_is_cast(shift: wp.vec3i, u: Any, box: Any, periodic: wp.vec3i,
                 face_reach: wp.float32):
-    """Is the ray shifted by ``shift`` cast for a particle at ``u``? Only
-    across periodic faces that ``u`` is within ``face_reach`` of: a shift of
-    +1 side serves particles near the low face, -1 those near the high face."""
+    """AABB method: is the ray shifted by ``shift`` cast for a particle at
+    ``u``? Only across periodic faces that ``u`` is within ``face_reach`` of:
+    a shift of +1 side serves particles near the low face, -1 those near the
+    high face."""
     cast = True
     for a in range(3):
         if shift[a] != 0:
@@ -130,13 +215,38 @@ def ray_is_cast(shift: wp.vec3i, u: Any, box: Any, periodic: wp.vec3i,
 
 
 @wp.func
-def shifted(u: Any, shift: wp.vec3i, box: Any):
-    """Origin of the ray with ``shift``: ``u + shift * box``."""
-    out = u
+def near_faces(u: wp.vec3d, cutoff: wp.float64, box: wp.vec3d, periodic: wp.vec3i,
+               slack: wp.float64) -> wp.vec3i:
+    """Seed-001 methods: per axis, the shift (+1, -1 or 0 sides) of the one
+    image that a target at ``u`` (wrapped) casts across that axis's faces.
+
+    +1 within ``cutoff + slack`` of the low face, -1 within it of the high
+    face, 0 elsewhere and on free axes. ``slack`` (ε) casts images a hair
+    early: the pair test rounds ``(s − t) − shift`` in float64 and may accept
+    a pair that exact arithmetic puts exactly at the cutoff. Splitting at
+    ``box / 2`` keeps a target from casting both a +1 and a -1 image.
+    """
+    faces = wp.vec3i(0, 0, 0)
     for a in range(3):
-        if shift[a] != 0:
-            out[a] = u[a] + type(u[a])(shift[a]) * box[a]
-    return out
+        if periodic[a] != 0:
+            if u[a] < wp.float64(0.5) * box[a]:
+                if u[a] < cutoff + slack:
+                    faces[a] = 1
+            else:
+                if u[a] > box[a] - cutoff - slack:
+                    faces[a] = -1
+    return faces
+
+
+@wp.func
+def crosses_near_faces(shift: wp.vec3i, faces: wp.vec3i) -> bool:
+    """Seed-001 methods: is the ray shifted by ``shift`` cast, given the
+    target's `near_faces`? Every shifted axis must be a near face, in that
+    direction. Ray 0 (no shift) always is; of the 27, at most 8 are."""
+    for a in range(3):
+        if shift[a] != 0 and shift[a] != faces[a]:
+            return False
+    return True
 
 
 @wp.func

@@ -31,7 +31,8 @@ Resolved ambiguities (each also noted where it is coded):
   row, without atomics.
 * Ties between axes (``|dx| = |dy|``, ...) go to the lowest axis, as a
   plain ``argmin`` of Algorithm 1's ``dist_axis_squared`` does.
-* Periodic boxes: seed 003 §3.3's gamma rays (`jaxrt.rt.epsilon`).
+* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.rt.periodic`
+  says for the seed-001 methods (float64, at most one image per axis).
 """
 from __future__ import annotations
 
@@ -40,20 +41,15 @@ from typing import Any
 
 import warp as wp
 
+from jaxrt.rt import periodic as gamma
+from jaxrt.rt._method import check_find_arguments
 from jaxrt.rt.epsilon import (
     ParticlesTooCloseError,
     Survey,
-    check_find_arguments,
-    image_is_cast,
-    image_offset,
     geometry_point,
-    image_shifts,
     sphere_resolution,
     survey,
-    wrap_into_box,
 )
-
-_IMAGES = wp.constant(8)  # the target itself and its shifts on every subset of 3 axes
 
 
 @wp.kernel
@@ -62,7 +58,7 @@ def _sphere_boxes_kernel(points: wp.array(dtype=Any), side: wp.vec3d, periodic: 
                          lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
     """Bounding box of each source's sphere, widened by the BVH padding."""
     i = wp.tid()
-    centre = geometry_point(wrap_into_box(wp.vec3d(points[i]), side, periodic))
+    centre = geometry_point(gamma.wrap_into_box(wp.vec3d(points[i]), side, periodic))
     lowers[i] = centre - wp.vec3(half_width)
     uppers[i] = centre + wp.vec3(half_width)
 
@@ -123,7 +119,7 @@ def _sphere_rays_kernel(
     target = wp.tid()
     n = points.shape[0]
     width = out_idx.shape[1]
-    position = wrap_into_box(wp.vec3d(points[target]), side, periodic)
+    position = gamma.wrap_into_box(wp.vec3d(points[target]), side, periodic)
     cutoff_sq = cutoff * cutoff
     max_dist = float(wp.float64(2.0) * half_length) + wp.float32(2.0) * padding
     count = int(0)
@@ -131,16 +127,17 @@ def _sphere_rays_kernel(
         if count < width:
             out_idx[target, count] = target
         count += 1
-    shifts = image_shifts(position, cutoff, side, periodic, epsilon)
+    faces = gamma.near_faces(position, cutoff, side, periodic, epsilon)
     # A non-finite target casts no rays: it has no neighbours but itself.
-    images = _IMAGES
+    images = gamma.RAYS_PER_PARTICLE  # image 0 is the target itself
     if not wp.isfinite(position):
         images = 0
     for image in range(images):
-        if not image_is_cast(image, shifts):
+        shift = gamma.ray_shift(image)
+        if not gamma.crosses_near_faces(shift, faces):
             continue
-        shift = image_offset(image, shifts)
-        centre = position + shift
+        translation = gamma.shifted(wp.vec3d(wp.float64(0.0)), shift, side)  # ±side per axis
+        centre = position + translation
         for axis in range(3):
             direction = wp.vec3(0.0)
             direction[axis] = 1.0
@@ -151,10 +148,10 @@ def _sphere_rays_kernel(
             query = wp.bvh_query_ray(bvh, ray_start, direction)
             source = int(0)
             while wp.bvh_query_next(query, source, max_dist):
-                # (s − t) − shift: the rounding of the float64 oracle's
+                # (s − t) − translation: the rounding of the float64 oracle's
                 # minimum-image difference, so boundary pairs agree bit for bit.
-                source_position = wrap_into_box(wp.vec3d(points[source]), side, periodic)
-                offset = source_position - position - shift
+                source_position = gamma.wrap_into_box(wp.vec3d(points[source]), side, periodic)
+                offset = source_position - position - translation
                 offset_sq = wp.cw_mul(offset, offset)
                 dist_sq = offset_sq[0] + offset_sq[1] + offset_sq[2]
                 if dist_sq < resolution_sq and (source != target or image != 0):
@@ -222,7 +219,8 @@ class SpheresMethod:
             wrapped or not (wrapped here on periodic axes). A non-finite
             particle gets no neighbours (only itself when ``mask_self`` is
             False) and is nobody's neighbour.
-          cutoff: C > 0, at most ``side / 2`` on periodic axes.
+          cutoff: C > 0, below ``side / 2`` on periodic axes
+            (`jaxrt.rt.periodic.cutoff_fits`, as for every RT method).
           side: box side per axis, read on periodic axes only.
           periodic: three bools.
           mask_self: False lists ``i`` as its own neighbour.

@@ -53,7 +53,8 @@ Resolved ambiguities (each also noted where it is coded):
   no separation limit (`jaxrt.rt.epsilon`).
 * "Reported once" is per direction: target t finds s and s finds t, so
   each target's thread writes its own complete row, without atomics.
-* Periodic boxes: seed 003 §3.3's gamma rays (`jaxrt.rt.epsilon`).
+* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.rt.periodic`
+  says for the seed-001 methods (float64, at most one image per axis).
 """
 from __future__ import annotations
 
@@ -61,18 +62,14 @@ from typing import Any
 
 import warp as wp
 
+from jaxrt.rt import periodic as gamma
+from jaxrt.rt._method import check_find_arguments
 from jaxrt.rt.epsilon import (
     Survey,
-    check_find_arguments,
-    image_is_cast,
-    image_offset,
     geometry_point,
-    image_shifts,
     survey,
-    wrap_into_box,
 )
 
-_IMAGES = wp.constant(8)  # the target itself and its shifts on every subset of 3 axes
 _TRIANGLES_PER_PARTICLE = wp.constant(4)
 _RAYS_PER_TARGET = wp.constant(4)
 
@@ -86,7 +83,7 @@ def _triangle_boxes_kernel(points: wp.array(dtype=Any), side: wp.vec3d, periodic
     The two triangles of a square share its bounding box.
     """
     i = wp.tid()
-    p = wp.vec3d(geometry_point(wrap_into_box(wp.vec3d(points[i]), side, periodic)))
+    p = wp.vec3d(geometry_point(gamma.wrap_into_box(wp.vec3d(points[i]), side, periodic)))
     for square in range(2):
         plane = p[0] - half_cutoff
         if square == 1:
@@ -164,7 +161,7 @@ def _square_rays_kernel(
     target = wp.tid()
     n = points.shape[0]
     width = out_idx.shape[1]
-    position = wrap_into_box(wp.vec3d(points[target]), side, periodic)
+    position = gamma.wrap_into_box(wp.vec3d(points[target]), side, periodic)
     cutoff_sq = cutoff * cutoff
     half_cutoff = wp.float64(0.5) * cutoff
     half_side = half_cutoff + epsilon
@@ -175,16 +172,17 @@ def _square_rays_kernel(
         if count < width:
             out_idx[target, count] = target
         count += 1
-    shifts = image_shifts(position, cutoff, side, periodic, epsilon)
+    faces = gamma.near_faces(position, cutoff, side, periodic, epsilon)
     # A non-finite target casts no rays: it has no neighbours but itself.
-    images = _IMAGES
+    images = gamma.RAYS_PER_PARTICLE  # image 0 is the target itself
     if not wp.isfinite(position):
         images = 0
     for image in range(images):
-        if not image_is_cast(image, shifts):
+        shift = gamma.ray_shift(image)
+        if not gamma.crosses_near_faces(shift, faces):
             continue
-        shift = image_offset(image, shifts)
-        centre = position + shift
+        translation = gamma.shifted(wp.vec3d(wp.float64(0.0)), shift, side)  # ±side per axis
+        centre = position + translation
         for ray in range(_RAYS_PER_TARGET):
             sign_y = wp.float64(1.0)
             if ray & 1 == 1:
@@ -200,10 +198,10 @@ def _square_rays_kernel(
             primitive = int(0)
             while wp.bvh_query_next(query, primitive, max_dist):
                 source = primitive // _TRIANGLES_PER_PARTICLE
-                # (s − t) − shift: the rounding of the float64 oracle's
+                # (s − t) − translation: the rounding of the float64 oracle's
                 # minimum-image difference, so boundary pairs agree bit for bit.
-                source_position = wrap_into_box(wp.vec3d(points[source]), side, periodic)
-                offset = source_position - position - shift
+                source_position = gamma.wrap_into_box(wp.vec3d(points[source]), side, periodic)
+                offset = source_position - position - translation
                 if not ray_hits_triangle(offset, primitive % _TRIANGLES_PER_PARTICLE,
                                          sign_y, sign_z, half_side):
                     continue
@@ -256,7 +254,8 @@ class SquaresMethod:
             wrapped or not (wrapped here on periodic axes). A non-finite
             particle gets no neighbours (only itself when ``mask_self`` is
             False) and is nobody's neighbour.
-          cutoff: C > 0, at most ``side / 2`` on periodic axes.
+          cutoff: C > 0, below ``side / 2`` on periodic axes
+            (`jaxrt.rt.periodic.cutoff_fits`, as for every RT method).
           side: box side per axis, read on periodic axes only.
           periodic: three bools.
           mask_self: False lists ``i`` as its own neighbour.

@@ -1,0 +1,54 @@
+"""Simulations of scenes: what to simulate, compiled to only what it needs.
+
+Modules, each depending only on those above it:
+
+  spec      the `Scene` and its parts (frozen dataclasses), the `Effect`
+            protocol, `SceneError`; checks on construction; imports nothing
+            else from jaxrt
+  effects   the effects (LJ, SPH density / pressure / viscosity, gravity,
+            walls), one class each, and their `Registry` (``EFFECTS``)
+  validate  the check that needs the installation (the neighbour backend)
+  toml      reading (`from_toml`, `load`) and writing (`to_toml`) TOML
+  compile   `compile_scene`: a scene to jitted steps (`State`, `Trace`,
+            `Compiled`)
+  run       `run_chunk`: chunks of steps, redone on list overflow
+  builtin   the built-in scenes (`BUILTIN`, `builtin`)
+
+A run::
+
+    scene = jaxrt.sim.load("scene.toml")  # or jaxrt.sim.builtin("lj-fluid")
+    compiled = jaxrt.sim.compile_scene(scene)
+    state, nbrs = compiled.init()
+    stats = jaxrt.sim.RunStats()
+    state, nbrs = jaxrt.sim.run_chunk(compiled, state, nbrs, steps=100,
+                                      stats=stats)
+"""
+from jaxrt.sim.spec import (BOUNDARIES, Box, Context, Effect, Integrator,
+                            Neighbors, Particles, Scene, SceneError, Term,
+                            check_reach, make_particles)
+from jaxrt.sim.effects import (EFFECTS, LJ, Gravity, Registry, SPHDensity,
+                               SPHPressure, SPHViscosity, Walls, register,
+                               registered, unregister)
+from jaxrt.sim.validate import check_backend
+from jaxrt.sim.toml import from_toml, load, to_toml
+from jaxrt.sim.compile import FORMATS, Compiled, State, Trace, compile_scene
+from jaxrt.sim.run import RunStats, run_chunk
+from jaxrt.sim.builtin import (BUILTIN, builtin, dam_break, lj_fluid,
+                               sphere_surface)
+
+__all__ = [
+    # spec
+    "BOUNDARIES", "Box", "Context", "Effect", "Integrator", "Neighbors",
+    "Particles", "Scene", "SceneError", "Term", "check_reach",
+    "make_particles",
+    # effects
+    "EFFECTS", "LJ", "Gravity", "Registry", "SPHDensity", "SPHPressure",
+    "SPHViscosity", "Walls", "register", "registered", "unregister",
+    # validate, toml
+    "check_backend", "from_toml", "load", "to_toml",
+    # compile, run
+    "FORMATS", "Compiled", "State", "Trace", "compile_scene", "RunStats",
+    "run_chunk",
+    # builtin
+    "BUILTIN", "builtin", "dam_break", "lj_fluid", "sphere_surface",
+]

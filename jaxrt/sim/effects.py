@@ -1,0 +1,360 @@
+"""The effects a scene can name, one class each, and their registry.
+
+Each class here is a complete effect (the `jaxrt.sim.spec.Effect`
+protocol): a frozen dataclass whose fields are its TOML parameters, its
+``kind``, whether it reads the shared neighbour list (``pairwise``), its
+``cutoff``, its checks (``validate``) and its contribution to the step
+(``term``, from `jaxrt.energy`). ``@register`` makes it readable from TOML
+by its ``kind``.
+
+Adding an effect is one class (here, or in your own module) and one
+``@register`` line; a Python-built `Scene` takes an unregistered effect as
+well. To register one for a while only, use ``registered(cls)`` (a context
+manager), or pass ``effects=EFFECTS.extended(cls)`` to the TOML reader.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import Any, ClassVar, Iterator
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrt.energy import lj as _lj
+from jaxrt.energy import sph as _sph
+from jaxrt.sim.spec import Context, SceneError, Term, check_reach
+
+
+class Registry:
+    """Effect classes by ``kind``, in registration order.
+
+    ``register`` refuses a kind that is already there and ``unregister``
+    removes one: registering never replaces an effect silently.
+    """
+
+    def __init__(self, classes=()):
+        self._classes: dict[str, type] = {}
+        for cls in classes:
+            self.register(cls)
+
+    def register(self, cls: type) -> type:
+        """Add ``cls`` under ``cls.kind``; returns ``cls`` (a decorator)."""
+        if not dataclasses.is_dataclass(cls):
+            raise TypeError(f"{cls.__qualname__} is not a dataclass; an "
+                            "effect's dataclass fields are its parameters.")
+        kind = getattr(cls, "kind", None)
+        if not isinstance(kind, str):
+            raise TypeError(f"{cls.__qualname__} has no kind (str).")
+        if kind in self._classes:
+            raise ValueError(f"an effect of kind {kind!r} is already "
+                             f"registered ({self._classes[kind].__qualname__})"
+                             "; unregister it first.")
+        self._classes[kind] = cls
+        return cls
+
+    def unregister(self, kind: str) -> type:
+        """Remove the effect of ``kind``; returns its class."""
+        if kind not in self._classes:
+            raise KeyError(f"no effect of kind {kind!r} is registered.")
+        return self._classes.pop(kind)
+
+    @contextlib.contextmanager
+    def registered(self, *classes: type) -> Iterator["Registry"]:
+        """Register ``classes`` for the ``with`` block only."""
+        done = []
+        try:
+            for cls in classes:
+                done.append(self.register(cls))
+            yield self
+        finally:
+            for cls in done:
+                self.unregister(cls.kind)
+
+    def extended(self, *classes: type) -> "Registry":
+        """A new registry: these effects and ``classes``."""
+        return Registry((*self._classes.values(), *classes))
+
+    def __getitem__(self, kind: str) -> type:
+        return self._classes[kind]
+
+    def __contains__(self, kind) -> bool:
+        return kind in self._classes
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._classes)
+
+    def __len__(self) -> int:
+        return len(self._classes)
+
+
+EFFECTS = Registry()
+"""The effects the TOML reader knows by default."""
+register = EFFECTS.register
+unregister = EFFECTS.unregister
+registered = EFFECTS.registered
+
+
+def _positive(effect, where: str, *names: str) -> None:
+    for k in names:
+        if not getattr(effect, k) > 0:
+            raise SceneError.at(f"{where}.{k}", "must be > 0.")
+
+
+def _needs(scene, where: str, kind: str, why: str) -> None:
+    if scene.effect(kind) is None:
+        raise SceneError.at(f"{where}.kind", why)
+
+
+# ---------------------------------------------------------------------------
+# Pair effects
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class LJ:
+    """Lennard-Jones (`jaxrt.energy.lj`), absolute ``r_cutoff`` /
+    ``r_onset`` (default ``0.8 r_cutoff``), ``truncation`` one of
+    `jaxrt.energy.lj.TRUNCATIONS`.
+
+    ``sigma`` / ``epsilon``: float, or ``(S, S)`` nested lists with
+    ``particles.species``. Per-particle radii that differ replace sigma by
+    ``sigma_ij = r_i + r_j``; equal radii give the scalar ``2 r``.
+    """
+    r_cutoff: float
+    sigma: Any = 1.0
+    epsilon: Any = 1.0
+    r_onset: float | None = None
+    truncation: str = "smooth"
+    kind: ClassVar[str] = "lj"
+    pairwise: ClassVar[bool] = True
+
+    @property
+    def cutoff(self) -> float:
+        return float(self.r_cutoff)
+
+    def validate(self, scene, where: str) -> None:
+        p = scene.particles
+        if self.truncation not in _lj.TRUNCATIONS:
+            raise SceneError.at(f"{where}.truncation",
+                                f"one of {_lj.TRUNCATIONS}.")
+        _positive(self, where, "r_cutoff")
+        if self.r_onset is not None and not 0 <= self.r_onset < self.r_cutoff:
+            raise SceneError.at(f"{where}.r_onset", "needs 0 <= r_onset < "
+                                "r_cutoff.")
+        sig = np.asarray(self.sigma, float)
+        if sig.ndim == 2 and p.species is None:
+            raise SceneError.at(f"{where}.sigma", "a matrix needs "
+                                "particles.species.")
+        if p.radius is not None and np.ptp(p.radius) > 0 and sig.ndim:
+            raise SceneError.at(f"{where}.sigma", "per-particle radii set "
+                                "sigma (r_i + r_j); give no sigma matrix "
+                                "with them.")
+        check_reach(scene, self.cutoff, f"{where}.r_cutoff")
+
+    def _sigma(self, radius, dtype):
+        """sigma for the energy, and the plan's note on radii."""
+        if radius is not None and np.ptp(radius) > 0:
+            # sigma_ij = (sigma_i + sigma_j) / 2 = r_i + r_j.
+            return (jnp.asarray(2 * radius, dtype),
+                    ("per-particle radii: sigma_ij = r_i + r_j",))
+        if radius is not None:
+            return (float(2 * radius[0]),
+                    ("equal radii: scalar sigma, no radius handling",))
+        if np.ndim(self.sigma) == 2:
+            return jnp.asarray(self.sigma, dtype), ()
+        return self.sigma, ()
+
+    def term(self, ctx: Context) -> Term:
+        p = ctx.scene.particles
+        sigma, notes = self._sigma(p.radius, ctx.dtype)
+        epsilon = self.epsilon
+        if np.ndim(epsilon) == 2:
+            epsilon = jnp.asarray(epsilon, ctx.dtype)
+        # Species only index a matrix: without one they are not gathered.
+        species = (None if p.species is None or
+                   (np.ndim(sigma) < 2 and np.ndim(epsilon) < 2)
+                   else jnp.asarray(p.species))
+        r_onset = 0.8 * self.r_cutoff if self.r_onset is None else self.r_onset
+        energy = _lj.lennard_jones_pair_neighbor_list(
+            ctx.displacement, species=species, sigma=sigma, epsilon=epsilon,
+            r_onset=r_onset, r_cutoff=self.r_cutoff,
+            truncation=self.truncation)
+
+        def lj(R, nbrs):
+            return energy(R, nbrs)
+        return Term(energy=lj, notes=notes)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class SPHDensity:
+    """Summation density with kernel ``kernel`` (one of
+    `jaxrt.energy.sph.KERNELS`) of smoothing length ``h``; the list's
+    cutoff is the kernel's support (``2h`` or ``3h``)."""
+    h: float
+    kernel: str = "cubic_spline"
+    kind: ClassVar[str] = "sph_density"
+    pairwise: ClassVar[bool] = True
+
+    @property
+    def cutoff(self) -> float:
+        return float(_sph.KERNELS[self.kernel].support * self.h)
+
+    def smoothing_kernel(self, dim: int):
+        """The `jaxrt.energy.sph` kernel in ``dim`` dimensions."""
+        return _sph.kernel(self.kernel, self.h, dim=dim)
+
+    def validate(self, scene, where: str) -> None:
+        _positive(self, where, "h")
+        if self.kernel not in _sph.KERNELS:
+            raise SceneError.at(f"{where}.kernel",
+                                f"one of {list(_sph.KERNELS)}.")
+        if scene.particles.dim not in (2, 3):
+            raise SceneError.at(f"{where}", "SPH needs 2D or 3D positions.")
+        check_reach(scene, self.cutoff, f"{where}.h")
+
+    def term(self, ctx: Context) -> Term:
+        density = _sph.density(
+            ctx.displacement, self.smoothing_kernel(ctx.scene.particles.dim),
+            mass=ctx.mass)
+
+        def sph_density(R, nbrs):
+            return density(R, nbrs)
+        return Term(density=sph_density)
+
+
+def _sph_acceleration(ctx: Context, **viscosity):
+    """`jaxrt.energy.sph.acceleration` with the scene's kernel and equation
+    of state (from its sph_density and sph_pressure effects)."""
+    kern = ctx.scene.effect("sph_density").smoothing_kernel(
+        ctx.scene.particles.dim)
+    eos = ctx.scene.effect("sph_pressure").equation_of_state()
+    return _sph.acceleration(ctx.displacement, kern, eos, mass=ctx.mass,
+                             **viscosity)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class SPHPressure:
+    """Symmetric pressure force, Tait's equation of state (``rho0``, ``c0``,
+    ``gamma``); ``clip_negative``: no tension (a free surface cannot pull).
+    Needs sph_density (kernel and densities)."""
+    rho0: float
+    c0: float
+    gamma: float = 7.0
+    clip_negative: bool = True
+    kind: ClassVar[str] = "sph_pressure"
+    pairwise: ClassVar[bool] = True
+    cutoff: ClassVar[float] = 0.0  # reads sph_density's pairs
+
+    def equation_of_state(self):
+        return _sph.Tait(rho0=self.rho0, c0=self.c0, gamma=self.gamma)
+
+    def validate(self, scene, where: str) -> None:
+        _positive(self, where, "rho0", "c0", "gamma")
+        _needs(scene, where, "sph_density", "sph_pressure needs an "
+               "sph_density effect (it sets h and the kernel).")
+
+    def term(self, ctx: Context) -> Term:
+        eos = self.equation_of_state()
+        # No viscosity here (alpha = 0): sph_viscosity adds its own term.
+        accel = _sph_acceleration(ctx, alpha=0.0, beta=0.0)
+
+        def sph_pressure(R, V, nbrs, rho):
+            pr = eos.pressure(rho)
+            if self.clip_negative:
+                pr = jnp.maximum(pr, 0)
+            return accel(R, V, nbrs, rho=rho, pressure=pr).pressure
+        return Term(accel=sph_pressure)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class SPHViscosity:
+    """Monaghan's artificial viscosity (``alpha``, ``beta``); needs
+    sph_density and sph_pressure (its c0 gives the sound speed)."""
+    alpha: float
+    beta: float = 0.0
+    kind: ClassVar[str] = "sph_viscosity"
+    pairwise: ClassVar[bool] = True
+    cutoff: ClassVar[float] = 0.0  # reads sph_density's pairs
+
+    def validate(self, scene, where: str) -> None:
+        if not (self.alpha >= 0 and self.beta >= 0):
+            raise SceneError.at(f"{where}.alpha", "alpha and beta must be "
+                                ">= 0.")
+        _needs(scene, where, "sph_density", "sph_viscosity needs an "
+               "sph_density effect (it sets h and the kernel).")
+        _needs(scene, where, "sph_pressure", "sph_viscosity needs "
+               "sph_pressure (its c0 gives the sound speed).")
+
+    def term(self, ctx: Context) -> Term:
+        accel = _sph_acceleration(ctx, alpha=self.alpha, beta=self.beta)
+
+        def sph_viscosity(R, V, nbrs, rho):
+            return accel(R, V, nbrs, rho=rho).viscosity
+        return Term(accel=sph_viscosity)
+
+
+# ---------------------------------------------------------------------------
+# One-body effects (external forces: they change the total momentum)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class Gravity:
+    """Uniform acceleration ``g``, float, one entry per axis (a tuple; a
+    list or a scalar is converted)."""
+    g: tuple[float, ...]
+    kind: ClassVar[str] = "gravity"
+    pairwise: ClassVar[bool] = False
+    cutoff: ClassVar[float] = 0.0
+
+    def __post_init__(self):
+        # TOML gives a list: a tuple keeps the effect hashable and equal to
+        # the one written.
+        object.__setattr__(self, "g", tuple(float(x) for x in
+                                            np.atleast_1d(self.g)))
+
+    def validate(self, scene, where: str) -> None:
+        if len(self.g) != scene.particles.dim:
+            raise SceneError.at(f"{where}.g", f"needs "
+                                f"{scene.particles.dim} entries.")
+
+    def term(self, ctx: Context) -> Term:
+        gvec = np.asarray(self.g, float)
+        m = ctx.mass_column
+
+        def gravity(R, nbrs):
+            return -jnp.sum(m * R * jnp.asarray(gvec, R.dtype))
+        return Term(energy=gravity)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class Walls:
+    """``U = k/2 sum (distance outside [0, L])**2`` on every "wall" axis of
+    the box, ``k`` = ``stiffness``."""
+    stiffness: float
+    kind: ClassVar[str] = "walls"
+    pairwise: ClassVar[bool] = False
+    cutoff: ClassVar[float] = 0.0
+
+    def validate(self, scene, where: str) -> None:
+        _positive(self, where, "stiffness")
+        if "wall" not in scene.box.boundary:
+            raise SceneError.at(f"{where}.kind", "walls need a 'wall' axis "
+                                "in box.boundary.")
+
+    def term(self, ctx: Context) -> Term:
+        box = ctx.scene.box
+        axes = np.flatnonzero(np.asarray(box.boundary) == "wall")
+        hi = np.asarray(box.size)[axes]
+        k = self.stiffness
+
+        def walls(R, nbrs):
+            x = R[:, axes]
+            out = jnp.maximum(-x, 0) + jnp.maximum(x - hi.astype(x.dtype), 0)
+            return 0.5 * k * jnp.sum(out * out)
+        return Term(energy=walls)
