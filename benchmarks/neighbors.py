@@ -1,6 +1,6 @@
 """Neighbour-list rebuild time and memory: jaxrt backends against jax-md.
 
-Scenes (DESIGN.md, issue 2):
+Scenes (the project's measured anchors; seed 001 §5.3 for the sphere):
   uniform   random particles in a periodic cube, density 1, rc = 2.5
   sphere    N points on a unit sphere surface, free space, cutoff C for
             ~30 neighbours (C = sqrt(4·30 / N)); as in seed 001, the points

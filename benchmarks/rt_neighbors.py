@@ -1,6 +1,6 @@
 """Benchmark: the ray-traced backend "bvh" against jax-md and Warp's HashGrid.
 
-Scenes (seed 001 §5, DESIGN.md "Measured anchors"):
+Scenes (seed 001 §5; the results in benchmarks/RESULTS.md):
   uniform  N particles uniform in a periodic cube of side N^(1/3) (rho = 1),
            cutoff 2.5 (k ~ 65 neighbours); three independent draws.
   sphere   N points uniform on the unit sphere's surface, free space, cutoff

@@ -84,7 +84,7 @@ _MIN_SHELL = 4
 # Prefix sums over at most this many words per particle are a matrix product.
 _MATMUL_PREFIX = 64
 # Particles whose shell pairs are decided: twice as many as had one at
-# allocate (or would have in a liquid, `CellList.measure`), and at least
+# allocate (or would have in a liquid, `Cell.measure`), and at least
 # this many (capped at N).
 _MIN_SHELL_ROWS = 64
 

@@ -445,7 +445,6 @@ def test_each_list_factory_keeps_its_own_trees_and_frees_them():
     n, side = 120, 6.0
     disp, _ = space.periodic(side)
     R = jax.random.uniform(jax.random.PRNGKey(30), (n, 3)) * side
-    slots_before = len(ffi._SLOTS)
     lists, cutoffs = [], [1.2 + 0.01 * k for k in range(10)]
     for cutoff in cutoffs:
         fns = jaxrt.neighbor_list(disp, side, cutoff, backend="bvh")
@@ -461,8 +460,10 @@ def test_each_list_factory_keeps_its_own_trees_and_frees_them():
             assert list_pairs(got) == brute_pairs(moved, cutoff, side, True)
     done = ffi.update_counts - before
     assert done["refit"] == 20 and done["build"] == 0, done
-    assert len(ffi._SLOTS) > slots_before
+    owned = [s for fns, _ in lists
+             for s in fns.update.__self__.searcher.owner.slots]
+    assert len(owned) == 10 and all(s in ffi._SLOTS for s in owned)
     del lists, step, update, nbrs, got, fns, _
     jax.clear_caches()
     gc.collect()
-    assert len(ffi._SLOTS) == slots_before
+    assert not any(s in ffi._SLOTS for s in owned)

@@ -475,3 +475,28 @@ def test_radii():
         scenes.radii("LN", 10, seed=0)
     with pytest.raises(ValueError, match="beta must be"):
         scenes.uniform(beta=0, p=1, seed=0)
+
+
+def test_all_three_methods_refuse_the_same_cutoffs_alike():
+    """The custom AABB, spheres and squares share one rule for the cutoff
+    against half a periodic side (`jaxrt.rt.periodic.cutoff_fits`): the
+    largest cutoff that fits works in all three, the next float and L/2
+    are refused by all three with the same message."""
+    from jaxrt.rt import aabb, periodic as gamma
+    side = 0.9
+    largest = 0.5 * side * (1.0 - gamma.CUTOFF_MARGIN)
+    while not gamma.cutoff_fits(largest, side):
+        largest = np.nextafter(largest, 0.0)
+    positions = np.random.default_rng(3).random((30, 3)) * side
+    methods = [aabb.AabbMethod(), SpheresMethod(), SquaresMethod()]
+    for method in methods:
+        find_rows(method, positions, float(largest), width=30,
+                  periodic=(True,) * 3, side=(side,) * 3)
+    for cutoff in (float(np.nextafter(largest, 1.0)), side / 2):
+        messages = set()
+        for method in methods:
+            with pytest.raises(ValueError) as refused:
+                find_rows(method, positions, cutoff, width=30,
+                          periodic=(True,) * 3, side=(side,) * 3)
+            messages.add(str(refused.value))
+        assert len(messages) == 1, messages

@@ -19,10 +19,7 @@ def make_scene(scene: str, param: int, p: int):
     box that just holds it, side ``2 + 2C``, the points shifted by ``1 + C``.
     Every method gets that box (jax-md's grid is sized by it)."""
     import numpy as np
-    try:
-        from jaxrt import seed_distributions as scenes
-    except ImportError:  # before the rename of jaxrt.scenes
-        from jaxrt import scenes
+    from jaxrt import seed_distributions as scenes
     if scene == "uniform":
         pos, cutoff = scenes.uniform(param, p, seed=0)
         box = 1.0
