@@ -18,7 +18,7 @@ repeats the previous one:
   bvh jit Dense (refit)         the same on inputs jittered by 1 % of the
                                 cutoff: the kept BVH is refit
   bvh[always-rebuild] jit Dense
-                                ``Bvh(policy=RebuildPolicy(0.0))``: never
+                                ``Bvh(policy="rebuild")``: never
                                 refits, so never reads the drift back
   bvh jit OrderedSparse (rebuild)
                                 count, scan, fill path
@@ -155,11 +155,10 @@ def plan_rows(jit_clusters, builders) -> list[dict]:
 
 def _bvh_options(label: str):
     """`jaxrt.backends.Bvh` of a row label; ``bvh[always-rebuild]`` is
-    ``Bvh(policy=RebuildPolicy(0.0))``."""
+    ``Bvh(policy="rebuild")``."""
     import jaxrt
-    from jaxrt.rt import aabb
     if label == "bvh[always-rebuild]":
-        return jaxrt.backends.Bvh(policy=aabb.RebuildPolicy(0.0))
+        return jaxrt.backends.Bvh(policy="rebuild")
     name, opts = _harness.parse_backend(label)
     return jaxrt.backends.Bvh(**opts)
 

@@ -15,11 +15,12 @@ backends through `jaxrt.rt.ffi.method_backend`.
 import warp as _wp  # noqa: F401  (ImportError here: Warp absent, no RT backends)
 
 from jaxrt.rt._method import RTMethod
-from jaxrt.rt.aabb import AabbMethod, RebuildPolicy
+from jaxrt.rt import policy
+from jaxrt.rt.aabb import AabbMethod
 from jaxrt.rt.ffi import Bvh, MethodBackend, Spheres, Squares, method_backend
 from jaxrt.rt.spheres import SpheresMethod
 from jaxrt.rt.squares import SquaresMethod
 
-__all__ = ["AabbMethod", "Bvh", "MethodBackend", "RTMethod", "RebuildPolicy",
+__all__ = ["AabbMethod", "Bvh", "MethodBackend", "RTMethod", "policy",
            "Spheres", "SpheresMethod", "Squares", "SquaresMethod",
            "method_backend"]

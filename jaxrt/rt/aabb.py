@@ -28,13 +28,15 @@ Pure Warp: nothing here knows of JAX (`jaxrt.rt.ffi` wraps it).
 """
 from __future__ import annotations
 
-import dataclasses
+import math
+import time
 from typing import Any
 
 import numpy as np
 import warp as wp
 
 from jaxrt.rt import periodic as gamma
+from jaxrt.rt import policy as _policy
 # The one cutoff rule of the ray-traced methods (also `jaxrt.rt.ffi`'s
 # ``aabb.check_cutoff``).
 from jaxrt.rt.periodic import check_cutoff
@@ -322,44 +324,54 @@ def load(device) -> None:
 BUILDERS = ("sah", "median", "lbvh", "cubql")
 
 
-@dataclasses.dataclass(frozen=True)
-class RebuildPolicy:
-    """When to rebuild the BVH instead of refitting it.
-
-    Refitting keeps the tree's topology and only recomputes node boxes, so
-    it is always exact; it only slows queries as particles wander from where
-    the tree was built. The tree is rebuilt when a particle drifted more
-    than ``drift_fraction * cutoff`` from its position at the last build
-    (on periodic axes, to its nearest image: crossing a face is no drift).
-
-    Attributes:
-      drift_fraction: largest drift, in units of the cutoff, that a refit
-        tolerates. 0 rebuilds on every call; must be below 0.25 so that
-        gamma rays of drifted items still cover the pairs (see
-        `jaxrt.rt.periodic`).
-    """
-
-    drift_fraction: float = 0.2
-
-    def __post_init__(self):
-        if not 0.0 <= self.drift_fraction < 0.25:
-            raise ValueError("drift_fraction must be in [0, 0.25); got "
-                             f"{self.drift_fraction}.")
-
-    def drift_limit(self, cutoff: float) -> float:
-        return self.drift_fraction * cutoff
+# Drift bound of a refit, in cutoffs: below 0.25 so that the gamma rays of
+# drifted items still cover their pairs (`jaxrt.rt.periodic`).
+MAX_DRIFT_FRACTION = 0.25
 
 
-def choose_update(policy: RebuildPolicy, has_tree: bool, moved_far: bool) -> str:
-    """The one place that decides how the BVH follows the particles.
+def check_drift_fraction(drift_fraction: float) -> float:
+    if not 0.0 <= drift_fraction < MAX_DRIFT_FRACTION:
+        raise ValueError(f"drift_fraction must be in [0, {MAX_DRIFT_FRACTION})"
+                         f"; got {drift_fraction}.")
+    return float(drift_fraction)
 
-    Returns "build" (no tree yet), "rebuild" (a particle drifted beyond
-    ``policy``) or "refit". An adaptive policy (seed 003 §3.1, *gradient*)
-    replaces this function.
-    """
-    if not has_tree:
-        return "build"
-    return "rebuild" if moved_far else "refit"
+
+class _Timer:
+    """Times of the tree's updates and queries for the rebuild policy, read
+    one call late so that the host never waits for the device: CUDA events
+    on a GPU, the host clock on a CPU (Warp's CPU launches are synchronous),
+    or ``clock`` (seconds) when one is injected (tests)."""
+
+    def __init__(self, device, clock=None):
+        self.device = device
+        self.clock = clock
+        self.events = device.is_cuda and clock is None
+        self.spans: dict[str, list] = {"action": [], "query": []}
+
+    def start(self):
+        if self.events:
+            event = wp.Event(self.device, enable_timing=True)
+            wp.record_event(event)
+            return event
+        return (self.clock or time.perf_counter)()
+
+    def stop(self, kind: str, started) -> None:
+        self.spans[kind].append((started, self.start()))
+
+    def collect(self) -> tuple[float, float]:
+        """(action seconds, query seconds) since the last collect; NaN
+        where nothing was timed."""
+        out = []
+        for kind in ("action", "query"):
+            spans, self.spans[kind] = self.spans[kind], []
+            if not spans:
+                out.append(float("nan"))
+            elif self.events:
+                out.append(sum(wp.get_event_elapsed_time(a, b)
+                               for a, b in spans) / 1e3)
+            else:
+                out.append(sum(b - a for a, b in spans))
+        return out[0], out[1]
 
 
 class AabbSearch:
@@ -391,9 +403,9 @@ class AabbSearch:
     """
 
     def __init__(self, n: int, vector, device, *, sort: bool,
-                 policy: RebuildPolicy = RebuildPolicy(),
+                 policy=_policy.Drift(), drift_fraction: float = 0.2,
                  constructor: str | None = None, leaf_size: int = 1,
-                 cluster_size: int = 1):
+                 cluster_size: int = 1, clock=None):
         if n < 1:
             raise ValueError(f"need at least one particle; got n={n}.")
         for name, value in (("leaf_size", leaf_size), ("cluster_size", cluster_size)):
@@ -404,7 +416,12 @@ class AabbSearch:
         self.scalar = scalar_type(vector)
         self.device = wp.get_device(device)
         self.sort = sort
-        self.policy = policy
+        self.policy = _policy.resolve(policy)
+        self.state = self.policy.start()
+        self.may_refit = not isinstance(self.policy, _policy.Rebuild)
+        self.drift_fraction = check_drift_fraction(drift_fraction)
+        self._timer = (_Timer(self.device, clock) if self.policy.needs_timing
+                       else None)
         self._constructor = constructor
         self.leaf_size = int(leaf_size)
         self.cluster_size = int(cluster_size)
@@ -435,7 +452,7 @@ class AabbSearch:
 
     def update(self, points: wp.array, side: wp.array, periodic: tuple[bool, bool, bool],
                cutoff: float) -> str:
-        """Fit the BVH to ``points``: build, refit or rebuild (`choose_update`).
+        """Fit the BVH to ``points``: build, refit or rebuild (`jaxrt.rt.policy`).
 
         Args:
           points: ``vector`` ``(N,)`` Cartesian positions.
@@ -450,21 +467,27 @@ class AabbSearch:
                              f"{points.shape[0]} {points.dtype.__name__}.")
         flags = wp.vec3i(*(int(bool(p)) for p in periodic))
         half_width = float(np.float32(cutoff))
-        drift_limit = self.policy.drift_limit(cutoff)
+        drift_limit = self.drift_limit(cutoff)
         # A tree built for another cutoff or periodicity has wrong boxes.
         same_setup = (self._cutoff, self._periodic) == (cutoff, tuple(periodic))
+        if self.last_update is not None:
+            times = ((math.nan, math.nan) if self._timer is None
+                     else self._timer.collect())
+            self.state.record(self.last_update, *times)
         with wp.ScopedDevice(self.device):
+            started = None if self._timer is None else self._timer.start()
             self.extent.zero_()
             wp.launch(_extent_kernel, self.n, inputs=[points, self.extent])
             moved_far = True
             # Only a policy that may refit needs the drift, and reading it
             # back stalls the host until the GPU has caught up.
-            if self.bvh is not None and same_setup and self.policy.drift_fraction > 0:
+            if self.bvh is not None and same_setup and drift_limit > 0:
                 self.moved_far.zero_()
                 self._place(points, side, flags, True, drift_limit)
                 moved_far = bool(self.moved_far.numpy()[0])
-            action = choose_update(self.policy, self.bvh is not None and same_setup,
-                                   moved_far)
+            action = _policy.choose(self.state,
+                                    has_tree=self.bvh is not None and same_setup,
+                                    moved_far=moved_far)
             if action == "refit":
                 self._boxes(side, flags, half_width)
                 self.bvh.refit()
@@ -486,9 +509,16 @@ class AabbSearch:
                 else:
                     self.bvh.rebuild(self.constructor)
                     action = "rebuild"
+            if started is not None:
+                self._timer.stop("action", started)
         self._cutoff, self._periodic = cutoff, tuple(periodic)
         self.last_update = action
         return action
+
+    def drift_limit(self, cutoff: float) -> float:
+        """How far an item may drift from its build-time position before
+        a refit is unsafe (0 for a policy that never refits)."""
+        return self.drift_fraction * cutoff if self.may_refit else 0.0
 
     def _place(self, points, side, flags, has_reference, drift_limit):
         wp.launch(_place_kernel, self.n,
@@ -519,6 +549,7 @@ class AabbSearch:
         if self.bvh is None:
             raise RuntimeError("query before update: call update(points, ...) first.")
         with wp.ScopedDevice(self.device):
+            started = None if self._timer is None else self._timer.start()
             empty2 = wp.empty((1, 0), dtype=wp.int32)
             empty1 = wp.empty(0, dtype=wp.int32)
             flags = wp.vec3i(*(int(p) for p in self._periodic))
@@ -527,12 +558,14 @@ class AabbSearch:
                               self.order, side, flags,
                               self.scalar(float(self._cutoff) ** 2),
                               float(np.float32(self._cutoff)), self.extent,
-                              self.policy.drift_limit(self._cutoff),
+                              self.drift_limit(self._cutoff),
                               int(mask_self), int(lower_only), int(mode),
                               self.cluster_size,
                               empty2 if rows is None else rows,
                               empty1 if row_offset is None else row_offset,
                               empty2 if pairs is None else pairs, count])
+            if started is not None:
+                self._timer.stop("query", started)
 
     def query_dense(self, side, *, mask_self: bool, rows: wp.array, count: wp.array):
         """Dense rows: int32 ``rows`` ``(N, width)`` and exact ``count`` ``(N,)``."""

@@ -5,7 +5,7 @@ Two ways in:
 
 * `Bvh` (``backend="bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
   custom AABB method of `jaxrt.rt.aabb` with a BVH kept across calls
-  (refit or rebuilt, see `jaxrt.rt.aabb.choose_update`), Dense rows
+  (refit or rebuilt, see `jaxrt.rt.policy`), Dense rows
   written directly and Sparse / OrderedSparse edges by count, scan and
   fill.
 * `Spheres`, `Squares`, and `method_backend` for any other
@@ -57,6 +57,7 @@ from jax_md.partition import NeighborListFormat
 from jaxrt import _backend
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query, SearchResult
 from jaxrt.rt import aabb, periodic as gamma
+from jaxrt.rt import policy as _policy
 from jaxrt.rt._method import RTMethod
 from jaxrt.rt.spheres import SpheresMethod
 from jaxrt.rt.squares import SquaresMethod
@@ -331,15 +332,20 @@ class Bvh:
       leaf_size: boxes per BVH leaf.
       builder: Warp's BVH constructor (``"lbvh"``, ``"sah"``, ``"median"``;
         ``"cubql"`` on CUDA), or None for Warp's choice per device.
-      policy: when to rebuild rather than refit
-        (`jaxrt.rt.aabb.RebuildPolicy`).
+      policy: when to rebuild rather than refit: ``"drift"`` (refit while
+        safe), ``"rebuild"``, ``"fixed"``, ``"avg"``, ``"gradient"``, or a
+        value of `jaxrt.rt.policy` (e.g. ``policy.Fixed(k=50)``); each tree
+        keeps its own policy state.
+      drift_fraction: how far (in cutoffs, below 0.25) a particle may drift
+        from where the tree was built before every policy must rebuild.
     """
 
     sort: bool = True
     cluster_size: int = 1
     leaf_size: int = 1
     builder: "str | None" = None
-    policy: aabb.RebuildPolicy = aabb.RebuildPolicy()
+    policy: object = "drift"
+    drift_fraction: float = 0.2
 
     max_list_entries: ClassVar[int] = MAX_LIST_ENTRIES
 
@@ -353,9 +359,9 @@ class Bvh:
         if self.builder not in (None,) + aabb.BUILDERS:
             raise ValueError(f"Bvh(builder={self.builder!r}): choose one of "
                              f"{aabb.BUILDERS}, or None for Warp's default.")
-        if not isinstance(self.policy, aabb.RebuildPolicy):
-            raise TypeError("Bvh(policy=...) must be a "
-                            "jaxrt.rt.aabb.RebuildPolicy.")
+        object.__setattr__(self, "policy", _policy.resolve(self.policy))
+        object.__setattr__(self, "drift_fraction",
+                           aabb.check_drift_fraction(self.drift_fraction))
 
     @property
     def name(self) -> str:
@@ -364,7 +370,9 @@ class Bvh:
     def search_structure(self, n: int, vector, device) -> aabb.AabbSearch:
         """A fresh `jaxrt.rt.aabb.AabbSearch` with these options."""
         return aabb.AabbSearch(n, vector, device, sort=self.sort,
-                               policy=self.policy, constructor=self.builder,
+                               policy=self.policy,
+                               drift_fraction=self.drift_fraction,
+                               constructor=self.builder,
                                leaf_size=self.leaf_size,
                                cluster_size=self.cluster_size)
 
