@@ -159,13 +159,12 @@ class Timing:
     warmup: int
     first: Any = dataclasses.field(default=None, repr=False)
 
-    def columns(self, prefix: str = "") -> dict:
-        """``{prefix}median_ms``, ``_min_ms``, ``_max_ms``, ``_repeats``,
-        ``_warmup`` for a row."""
-        p = prefix
-        return {f"{p}median_ms": self.median_ms, f"{p}min_ms": self.min_ms,
-                f"{p}max_ms": self.max_ms, f"{p}repeats": self.repeats,
-                f"{p}warmup": self.warmup}
+    def columns(self) -> dict:
+        """``median_ms``, ``min_ms``, ``max_ms``, ``repeats``, ``warmup``
+        for a row."""
+        return {"median_ms": self.median_ms, "min_ms": self.min_ms,
+                "max_ms": self.max_ms, "repeats": self.repeats,
+                "warmup": self.warmup}
 
 
 def summarize(samples_ms: list[float], warmup: int, first=None) -> Timing:
@@ -679,7 +678,7 @@ def read_csv(path: str | Path) -> list[dict]:
         rows = list(csv.DictReader(f))
     for r in rows:
         for k, v in r.items():
-            if k in PROVENANCE or k == "git_sha" or v in (None, ""):
+            if k in PROVENANCE or v in (None, ""):
                 continue
             try:
                 r[k] = float(v) if not v.lstrip("-").isdigit() else int(v)
@@ -724,9 +723,23 @@ def print_table(rows: list[dict], columns: list[str], width: int = 60) -> None:
 # Command-line pieces every script shares
 
 
-def add_common_args(parser: argparse.ArgumentParser, *, repeats: int = 10,
-                    warmup: int = 2, timeout: float = 600.0) -> None:
+def make_parser(doc: str) -> argparse.ArgumentParser:
+    """A script's parser: ``doc``'s first line as the description, the
+    rest, as written, as the epilog of ``--help``."""
+    first, _, rest = doc.partition("\n")
+    return argparse.ArgumentParser(
+        description=first, epilog=rest,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def add_common_args(parser: argparse.ArgumentParser, *, name: str,
+                    repeats: int = 10, warmup: int = 2,
+                    timeout: float = 600.0) -> None:
+    """The options every `run_jobs` script has (`run_options` reads them back);
+    ``name``: the default CSV file name."""
     g = parser.add_argument_group("harness")
+    g.add_argument("--name", default=name,
+                   help="CSV file name (in --out's folder)")
     g.add_argument("--repeats", type=int, default=repeats,
                    help="timed calls per row (median, min, max)")
     g.add_argument("--warmup", type=int, default=warmup,
@@ -747,6 +760,13 @@ def add_common_args(parser: argparse.ArgumentParser, *, repeats: int = 10,
                    "(KIND in crash hang error oom)")
 
 
+def run_options(args: argparse.Namespace) -> dict:
+    """`run_jobs`'s keywords from the options of `add_common_args`."""
+    return dict(out=args.out, name=args.name, timeout=args.timeout,
+                budget=args.budget, hard_stop=args.hard_stop,
+                inject=args.inject)
+
+
 # ---------------------------------------------------------------------------
 # Options of jaxrt's backends, from and to row labels
 
@@ -758,12 +778,14 @@ _SHORTHAND = {("cell", "auto"): {"kernel": "auto"},
               ("cell", "xla"): {"kernel": "xla"},
               ("cell", "interpret"): {"kernel": "interpret"},
               ("bvh", "unsorted"): {"sort": False},
-              ("bvh", "sorted"): {"sort": True}}
+              ("bvh", "sorted"): {"sort": True},
+              ("bvh", "always-rebuild"): {"policy": "rebuild"}}
 
 
 def parse_backend(label: str) -> tuple[str, dict]:
     """``"cell[xla]"`` -> ``("cell", {"kernel": "xla"})``; also
-    ``"bvh[unsorted]"``, ``"bvh[cluster_size=8,leaf_size=4]"``, the old
+    ``"bvh[unsorted]"``, ``"bvh[always-rebuild]"`` (``policy="rebuild"``),
+    ``"bvh[cluster_size=8,leaf_size=4]"``, the old
     ``"cell:xla"`` and the name ``"bvh-unsorted"``; a plain name -> no
     options."""
     if label == "bvh-unsorted":

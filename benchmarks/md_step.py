@@ -31,7 +31,6 @@ A label in ``--only`` without ``/`` selects both formats.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -220,10 +219,7 @@ def plan(args) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.split("\n")[1:]))
+    parser = _harness.make_parser(__doc__)
     parser.add_argument("--n", type=int, default=4096,
                         help="particles (rounded to a cube / square)")
     parser.add_argument("--steps", type=int, default=20,
@@ -234,12 +230,11 @@ def main(argv=None) -> None:
                         choices=["lj", "sph"])
     parser.add_argument("--list", action="store_true",
                         help="print the default labels and exit")
-    parser.add_argument("--name", default="md_step.csv",
-                        help="CSV file name (in --out's folder)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 1000, LJ, jax-md/Dense and "
                         "jaxrt:cell/Dense, 2 repeats of 5 steps")
-    _harness.add_common_args(parser, repeats=5, warmup=2, timeout=600)
+    _harness.add_common_args(parser, name="md_step.csv", repeats=5,
+                             warmup=2, timeout=600)
     args = parser.parse_args(argv)
     if args.list:
         for system in args.systems:
@@ -248,10 +243,8 @@ def main(argv=None) -> None:
     if args.quick:
         args.n, args.steps, args.repeats, args.systems = 1000, 5, 2, ["lj"]
         args.only = args.only or ["jax-md/Dense", "jaxrt:cell/Dense"]
-    _harness.run_jobs("md_step:run_row", plan(args), out=args.out,
-                      name=args.name, columns=COLUMNS, timeout=args.timeout,
-                      budget=args.budget, hard_stop=args.hard_stop,
-                      inject=args.inject)
+    _harness.run_jobs("md_step:run_row", plan(args), columns=COLUMNS,
+                      **_harness.run_options(args))
 
 
 if __name__ == "__main__":

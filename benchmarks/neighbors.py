@@ -35,7 +35,6 @@ interpreter), ``bvh``, ``bvh[unsorted]``, ... passed as
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import resource
@@ -120,7 +119,8 @@ def run_row(job: dict) -> dict:
                                  repeats=job["repeats"], warmup=job["warmup"])
     if name.startswith("bvh"):
         counts = dict(ffi.update_counts - before)
-    overflow = bool(update(inputs[0], nbrs).did_buffer_overflow)
+    last = update(inputs[0], nbrs)  # untimed: overflow, same_as_xla
+    overflow = bool(last.did_buffer_overflow)
     dev = jax.devices()[0]
     if dev.platform == "cpu":
         peak_mb = _rss_mb()
@@ -134,7 +134,7 @@ def run_row(job: dict) -> dict:
     kernel = opts.get("kernel", "auto")
     if name == "cell" and kernel != "xla" and (dev.platform != "cpu"
                                                or kernel == "interpret"):
-        got = np.sort(np.asarray(update(inputs[0], nbrs).idx), axis=1)
+        got = np.sort(np.asarray(last.idx), axis=1)
         portable = _list_fns("cell[xla]", disp, side, cutoff)
         want = np.asarray(jax.jit(portable.update)(inputs[0], nbrs).idx)
         same_as_xla = bool(np.array_equal(got, np.sort(want, axis=1)))
@@ -167,10 +167,7 @@ COLUMNS = ["scene", "method", "N", "k", "update_ms", "min_ms", "max_ms",
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.split("\n")[1:]))
+    parser = _harness.make_parser(__doc__)
     parser.add_argument("--sizes", type=int, nargs="+",
                         default=[1_000, 10_000, 100_000],
                         help="N of the uniform scene")
@@ -181,11 +178,10 @@ def main(argv=None) -> None:
                         help="backend labels: cell, cell[xla], cell[pallas], "
                         "bvh, bvh[unsorted], ...")
     parser.add_argument("--no-jax-md", action="store_true")
-    parser.add_argument("--name", default="neighbors.csv",
-                        help="CSV file name (in --out's folder)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 2000, cell and jax-md, 3 repeats")
-    _harness.add_common_args(parser, repeats=10, warmup=3, timeout=600)
+    _harness.add_common_args(parser, name="neighbors.csv", repeats=10,
+                             warmup=3, timeout=600)
     args = parser.parse_args(argv)
     if args.quick:
         args.sizes, args.sphere_n, args.repeats = [2000], 2000, 3
@@ -196,10 +192,8 @@ def main(argv=None) -> None:
     plan += [("sphere", args.sphere_n)] if "sphere" in args.scenes else []
     jobs = [{"scene": s, "method": m, "N": n, "repeats": args.repeats,
              "warmup": args.warmup} for s, n in plan for m in methods]
-    _harness.run_jobs("neighbors:run_row", jobs, out=args.out, name=args.name,
-                      columns=COLUMNS, timeout=args.timeout,
-                      budget=args.budget, hard_stop=args.hard_stop,
-                      inject=args.inject, finish=add_ratios)
+    _harness.run_jobs("neighbors:run_row", jobs, columns=COLUMNS,
+                      finish=add_ratios, **_harness.run_options(args))
 
 
 if __name__ == "__main__":

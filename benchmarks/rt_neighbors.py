@@ -52,7 +52,6 @@ Usage:
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import math
 import os
@@ -154,13 +153,10 @@ def plan_rows(jit_clusters, builders) -> list[dict]:
 
 
 def _bvh_options(label: str):
-    """`jaxrt.backends.Bvh` of a row label; ``bvh[always-rebuild]`` is
-    ``Bvh(policy="rebuild")``."""
+    """`jaxrt.backends.Bvh` of a row label (a plain ``bvh`` too: the Warp
+    rows need its `search_structure`)."""
     import jaxrt
-    if label == "bvh[always-rebuild]":
-        return jaxrt.backends.Bvh(policy="rebuild")
-    name, opts = _harness.parse_backend(label)
-    return jaxrt.backends.Bvh(**opts)
+    return jaxrt.backends.Bvh(**_harness.parse_backend(label)[1])
 
 
 # ---------------------------------------------------------------------------
@@ -342,10 +338,7 @@ COLUMNS = ["scene", "N", "k", "method", "median_ms", "min_ms", "max_ms",
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.split("\n")[1:]))
+    parser = _harness.make_parser(__doc__)
     parser.add_argument("--quick", "--small", dest="quick", action="store_true",
                         help="N = 2000 only, 3 repeats (CPU smoke run)")
     parser.add_argument("--sizes", type=int, nargs="+",
@@ -361,8 +354,8 @@ def main(argv=None) -> None:
                         help="run only these rows (labels: --list)")
     parser.add_argument("--list", action="store_true",
                         help="print the row labels and exit")
-    parser.add_argument("--name", default="rt_neighbors.csv")
-    _harness.add_common_args(parser, repeats=10, warmup=3, timeout=300)
+    _harness.add_common_args(parser, name="rt_neighbors.csv", repeats=10,
+                             warmup=3, timeout=300)
     args = parser.parse_args(argv)
     rows = plan_rows(args.jit_clusters, args.builders)
     if args.list:
@@ -381,11 +374,8 @@ def main(argv=None) -> None:
              "warmup": args.warmup, "_scratch": scratch}
             for s in args.scenes for n in sizes for r in rows]
     try:
-        _harness.run_jobs("rt_neighbors:run_row", jobs, out=args.out,
-                          name=args.name, columns=COLUMNS,
-                          timeout=args.timeout, budget=args.budget,
-                          hard_stop=args.hard_stop, inject=args.inject,
-                          finish=compare_counts)
+        _harness.run_jobs("rt_neighbors:run_row", jobs, columns=COLUMNS,
+                          finish=compare_counts, **_harness.run_options(args))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
 

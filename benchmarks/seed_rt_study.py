@@ -31,10 +31,7 @@ COLUMNS = ["scene", "param", "p", "N", "tier", "cutoff", "method", "init_ms",
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        description=seed_rt.__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(seed_rt.__doc__.split("\n")[1:]))
+    parser = _harness.make_parser(seed_rt.__doc__)
     parser.add_argument("--plan", action="store_true",
                         help="print the job order with N and an H100 time guess; run nothing")
     parser.add_argument("--small", action="store_true",
@@ -105,7 +102,7 @@ def jobs_of(planned: list[dict], args) -> list[dict]:
 def main(argv=None) -> None:
     args = parse_args(argv)
     if args.plot_only:
-        rows = report.read_csv(args.plot_only)
+        rows = _harness.read_csv(args.plot_only)
         folder = Path(args.out) if args.out else Path(args.plot_only).parent
         folder.mkdir(parents=True, exist_ok=True)
         report.report(rows, folder)
@@ -141,7 +138,7 @@ def main(argv=None) -> None:
         hard_stop=args.hard_stop, reuse_worker=True,
         startup_timeout=args.startup_timeout, finish=finish, t0=t0,
         table=False)
-    report.report(report.read_csv(str(path)), path.parent)
+    report.report(_harness.read_csv(str(path)), path.parent)
     print(f"elapsed {time.monotonic() - t0:.0f} s")
 
 

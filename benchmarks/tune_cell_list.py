@@ -15,7 +15,6 @@ list (rows sorted) equals the first row's of the same N.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 import sys
@@ -67,28 +66,23 @@ COLUMNS = ["N", "reach", "backend", "k", "update_ms", "min_ms", "max_ms",
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n")[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="\n".join(__doc__.split("\n")[1:]))
+    parser = _harness.make_parser(__doc__)
     parser.add_argument("sizes", type=int, nargs="*", default=[100_000])
     parser.add_argument("--reaches", nargs="+", default=["1,1", "2,1", "4,1",
                                                          "8,1"],
                         help="reach along x,reach across")
     parser.add_argument("--backend", default="cell",
                         help="backend label: cell, cell[xla], cell[pallas]")
-    parser.add_argument("--name", default="tune_cell_list.csv")
-    _harness.add_common_args(parser, repeats=7, warmup=3, timeout=600)
+    _harness.add_common_args(parser, name="tune_cell_list.csv", repeats=7,
+                             warmup=3, timeout=600)
     args = parser.parse_args(argv)
     _harness.parse_backend(args.backend)
     reaches = [",".join(str(int(v)) for v in r.split(",")) for r in args.reaches]
     jobs = [{"N": n, "reach": r, "backend": args.backend,
              "repeats": args.repeats, "warmup": args.warmup}
             for n in args.sizes for r in reaches]
-    _harness.run_jobs("tune_cell_list:run_row", jobs, out=args.out,
-                      name=args.name, columns=COLUMNS, timeout=args.timeout,
-                      budget=args.budget, hard_stop=args.hard_stop,
-                      inject=args.inject, finish=same_lists)
+    _harness.run_jobs("tune_cell_list:run_row", jobs, columns=COLUMNS,
+                      finish=same_lists, **_harness.run_options(args))
 
 
 if __name__ == "__main__":

@@ -39,17 +39,17 @@ __all__ = ["Backend", "Brute", "Bvh", "Capacity", "Cell", "Geometry",
            "available", "bind", "dense_to_sparse", "format_dense_rows",
            "pack_rows", "resolve"]
 
+_RAY_TRACED: dict[str, Callable[[], Backend]] = {
+    "bvh": lambda: Bvh(),
+    "bvh-unsorted": lambda: Bvh(sort=False),
+    "spheres": lambda: Spheres(),
+    "squares": lambda: Squares(),
+}
 _NAMED: dict[str, Callable[[], Backend]] = {
     "brute": lambda: Brute(),
     "cell": lambda: Cell(),
+    **(_RAY_TRACED if _WARP_ERROR is None else {}),
 }
-if _WARP_ERROR is None:
-    _NAMED.update({
-        "bvh": lambda: Bvh(),
-        "bvh-unsorted": lambda: Bvh(sort=False),
-        "spheres": lambda: Spheres(),
-        "squares": lambda: Squares(),
-    })
 
 
 def available() -> list[str]:
@@ -67,8 +67,7 @@ def resolve(backend: str | Backend) -> Backend:
     if isinstance(backend, str):
         if backend in _NAMED:
             return _NAMED[backend]()
-        if _WARP_ERROR is not None and backend in ("bvh", "bvh-unsorted",
-                                                   "spheres", "squares"):
+        if backend in _RAY_TRACED:  # named, but Warp failed to import
             raise ValueError(f"backend={backend!r} needs warp-lang, which "
                              f"failed to import: {_WARP_ERROR}")
         raise ValueError(

@@ -256,9 +256,10 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
         bar.update(k)
         if checker is not None:
             checker.compare(nbrs, n)
-        if not np.all(np.isfinite(np.asarray(state.position))):
+        position = np.asarray(state.position)  # one copy to the host
+        if not np.all(np.isfinite(position)):
             raise RuntimeError(f"positions became non-finite by step {done}")
-        frames.append(np.asarray(state.position))
+        frames.append(position)
         frame_velocities.append(np.asarray(state.velocity))
         frame_steps.append(done)
     bar.close()
@@ -276,10 +277,9 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
             ("neighbour updates", f"{done if nbrs is not None else 0}"),
             ("list rebuilds", f"{stats.rebuilds}"),
             ("overflows (redone chunks)", f"{stats.overflows}")]
-    conservative = compiled.conservative
     summary = dict(steps_per_s=done / t_run, rebuilds=stats.rebuilds,
                    overflows=stats.overflows, steps=done)
-    if conservative:
+    if compiled.conservative:
         drift = (e[-1] - e[0]) / n
         rows.append(("energy drift (E_end - E_1) / N", f"{drift:+.3e}"))
         rows.append(("max |E - E_1| / N", f"{np.abs(e - e[0]).max() / n:.3e}"))

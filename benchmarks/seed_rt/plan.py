@@ -28,7 +28,6 @@ def n_of(param: int, p: int) -> int:
     return p * param ** 3
 
 
-
 def p_max(param: int, ps: list[int], max_n: float) -> int | None:
     fit = [p for p in ps if n_of(param, p) <= max_n]
     return max(fit) if fit else None

@@ -1,8 +1,8 @@
 """The seed study's report: speed-ups, the headline table (markdown) and
-the seed-style bar plots, from the rows (or from a CSV, ``--plot-only``)."""
+the seed-style bar plots, from the rows (or from a CSV read by
+`_harness.read_csv`, ``--plot-only``)."""
 from __future__ import annotations
 
-import csv
 import math
 from pathlib import Path
 
@@ -211,21 +211,6 @@ def plot(rows: list[dict], folder: Path) -> list[Path]:
         plt.close(fig)
         paths.append(path)
     return paths
-
-
-FLOAT_COLS = ("init_ms", "compute_ms", "search_ms", "total_ms", "speedup_vs_jaxmd",
-              "speedup_vs_cell", "k_mean", "cutoff")
-
-
-def read_csv(path: str) -> list[dict]:
-    """The study's CSV, its time and ratio columns as floats."""
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    for r in rows:
-        for k in FLOAT_COLS:
-            if r.get(k) not in (None, ""):
-                r[k] = float(r[k])
-    return rows
 
 
 def report(rows: list[dict], folder: Path) -> None:

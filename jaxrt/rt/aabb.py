@@ -339,21 +339,22 @@ def check_drift_fraction(drift_fraction: float) -> float:
 class _Timer:
     """Times of the tree's updates and queries for the rebuild policy, read
     one call late so that the host never waits for the device: CUDA events
-    on a GPU, the host clock on a CPU (Warp's CPU launches are synchronous),
-    or ``clock`` (seconds) when one is injected (tests)."""
+    on a GPU (reused from call to call), the host clock on a CPU (Warp's
+    CPU launches are synchronous)."""
 
-    def __init__(self, device, clock=None):
+    def __init__(self, device):
         self.device = device
-        self.clock = clock
-        self.events = device.is_cuda and clock is None
+        self.events = device.is_cuda
         self.spans: dict[str, list] = {"action": [], "query": []}
+        self._spare: list = []
 
     def start(self):
-        if self.events:
-            event = wp.Event(self.device, enable_timing=True)
-            wp.record_event(event)
-            return event
-        return (self.clock or time.perf_counter)()
+        if not self.events:
+            return time.perf_counter()
+        event = (self._spare.pop() if self._spare
+                 else wp.Event(self.device, enable_timing=True))
+        wp.record_event(event)
+        return event
 
     def stop(self, kind: str, started) -> None:
         self.spans[kind].append((started, self.start()))
@@ -365,10 +366,11 @@ class _Timer:
         for kind in ("action", "query"):
             spans, self.spans[kind] = self.spans[kind], []
             if not spans:
-                out.append(float("nan"))
+                out.append(math.nan)
             elif self.events:
                 out.append(sum(wp.get_event_elapsed_time(a, b)
                                for a, b in spans) / 1e3)
+                self._spare.extend(e for span in spans for e in span)
             else:
                 out.append(sum(b - a for a, b in spans))
         return out[0], out[1]
@@ -405,7 +407,7 @@ class AabbSearch:
     def __init__(self, n: int, vector, device, *, sort: bool,
                  policy=_policy.Drift(), drift_fraction: float = 0.2,
                  constructor: str | None = None, leaf_size: int = 1,
-                 cluster_size: int = 1, clock=None):
+                 cluster_size: int = 1):
         if n < 1:
             raise ValueError(f"need at least one particle; got n={n}.")
         for name, value in (("leaf_size", leaf_size), ("cluster_size", cluster_size)):
@@ -420,7 +422,7 @@ class AabbSearch:
         self.state = self.policy.start()
         self.may_refit = not isinstance(self.policy, _policy.Rebuild)
         self.drift_fraction = check_drift_fraction(drift_fraction)
-        self._timer = (_Timer(self.device, clock) if self.policy.needs_timing
+        self._timer = (_Timer(self.device) if self.policy.needs_timing
                        else None)
         self._constructor = constructor
         self.leaf_size = int(leaf_size)

@@ -560,15 +560,11 @@ class Squares(MethodBackend):
 
 @dataclasses.dataclass(frozen=True)
 class _Wrapped(MethodBackend):
-    """An `RTMethod` object as a backend (`method_backend`)."""
+    """An `RTMethod` object as a backend (`method_backend`); equal and
+    hashed by the object's identity, as RTMethods define no ``__eq__``."""
 
-    wrapped: RTMethod = dataclasses.field(hash=False, compare=False)
-    label: str = ""
-    identity: int = 0
-
-    @property
-    def name(self) -> str:  # type: ignore[override]
-        return self.label
+    wrapped: RTMethod
+    name: str  # type: ignore[misc]
 
     def method(self) -> RTMethod:
         return self.wrapped
@@ -577,4 +573,4 @@ class _Wrapped(MethodBackend):
 def method_backend(method: RTMethod, name: str | None = None) -> MethodBackend:
     """``method`` (an `RTMethod` object) as a jaxrt backend, to pass as
     ``backend=``."""
-    return _Wrapped(method, method.name if name is None else name, id(method))
+    return _Wrapped(method, method.name if name is None else name)

@@ -128,18 +128,18 @@ def _displacement_shift(box: Box):
     if not per.any():
         # Plain difference: no rounding, no modulo (tested through the jaxpr).
         return (lambda ra, rb, **kw: ra - rb), (lambda r, dr, **kw: r + dr)
-    side = np.where(per, np.asarray(box.size, float), 1.0)
     axes = np.flatnonzero(per)
+    side = np.asarray(box.size, float)[axes]  # the periodic sides
 
     def displacement(ra, rb, **kw):
         d = ra - rb
-        L = jnp.asarray(side[axes], d.dtype)
+        L = jnp.asarray(side, d.dtype)
         wrapped = d[..., axes] - L * jnp.round(d[..., axes] / L)
         return d.at[..., axes].set(wrapped)
 
     def shift(r, dr, **kw):
         x = r + dr
-        L = jnp.asarray(side[axes], x.dtype)
+        L = jnp.asarray(side, x.dtype)
         return x.at[..., axes].set(jnp.mod(x[..., axes], L))
 
     return displacement, shift

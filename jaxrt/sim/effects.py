@@ -84,9 +84,6 @@ class Registry:
     def __iter__(self) -> Iterator[str]:
         return iter(self._classes)
 
-    def __len__(self) -> int:
-        return len(self._classes)
-
 
 EFFECTS = Registry()
 """The effects the TOML reader knows by default."""
