@@ -3,7 +3,9 @@
 
 A backend finds, for every particle ``i``, the particles ``j`` whose distance
 is strictly below the search radius, and writes them in one of jax-md's
-three layouts. The front (`jaxrt.neighbors`) owns everything else: argument
+three layouts. With per-particle radii (`Geometry.reach`, seed 003 §3) the
+radius of a pair is ``max(reach_i, reach_j)``: a symmetric rule, so both
+directions of every pair are listed. The front (`jaxrt.neighbors`) owns everything else: argument
 checks, the skin, capacity sizing, ``custom_mask_function`` and errors.
 
 Layouts (``N`` particles, padding index ``N`` everywhere):
@@ -102,11 +104,17 @@ class Geometry:
         box, to fractional coordinates). Then ``side`` and ``scale`` are the
         box's heights, and the grid's distance only bounds the metric's
         from below (`Query.decide_by_metric` is set).
+      reach: None (every pair's radius is `Query.cutoff`), or float
+        ``(N,)`` per-particle search radii (``radii + dr_threshold``, in
+        Cartesian units, at most `Query.cutoff`): ``i`` and ``j`` are
+        neighbours iff ``d(i, j)**2 < max(reach_i, reach_j)**2``. Only
+        backends with ``supports_radii`` get one.
     """
 
     side: Array
     scale: Array
     transform: Array | None = None
+    reach: Array | None = None
 
     def grid_coordinates(self, position: Array) -> Array:
         """float ``(N, dim)``: ``position`` in the grid's Cartesian frame."""
@@ -128,6 +136,7 @@ class Capacity:
         (`jaxrt._space`); a shear appearing later sets an error bit.
       slack: how much (relatively) farther the grid searches, for a metric
         found up to that much shorter than its model (`jaxrt._space`).
+      radii: the list was allocated with per-particle radii.
     """
 
     neighbors: int
@@ -135,6 +144,7 @@ class Capacity:
     metric_decides: bool = False
     orthorhombic: bool = True
     slack: float = 0.0
+    radii: bool = False
 
     def __getitem__(self, name: str) -> int:
         return dict(self.internal)[name]
@@ -167,6 +177,11 @@ class Backend(Protocol):
       Euclidean minimum image); the front refuses such lists otherwise;
     * ``exact_for_any_metric`` (default False): it asks the caller's metric
       about every pair, so the front skips its checks of the metric;
+    * ``supports_radii`` (default False): it honours `Geometry.reach`;
+      the front refuses ``radii=`` otherwise;
+    * ``fixed_sizes`` (default ``()``): names of internal sizes from
+      ``measure`` that are counts of things, not buffers, so the front
+      takes them as measured (no ``capacity_multiplier``, no cap at N);
     * ``bind()``: called once per `jaxrt.neighbor_list` call; returns the
       backend that searches for that factory's lists (a stateful backend
       returns a fresh object owning its state; default: the backend itself).

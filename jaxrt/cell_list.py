@@ -63,7 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import _backend, _cell_kernel
+from jaxrt import _backend, _cell_kernel, radius_classes
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query
 
 # Cells are made this much wider than their minimum so that a particle
@@ -98,7 +98,8 @@ def _shell_rows(measured: int, n: int) -> int:
 _CELLS_PER_PARTICLE = 4
 
 
-def _grid(cart: jax.Array, geometry: Geometry, query: Query):
+def _grid(cart: jax.Array, geometry: Geometry, query: Query,
+          reach: tuple[int, int] = _REACH):
     """Cell coordinates of each particle.
 
     Cells are as small as the stencil allows, unless that makes more than
@@ -107,6 +108,8 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
 
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
+      reach: stencil reach in cells (along x, across): cells are
+        ``query.cutoff / reach`` wide, or wider.
     Returns:
       float ``(N, dim)`` positions wrapped into ``[0, side)`` on periodic
       axes; int32 ``(N, dim)`` cell coordinates; int32 ``(dim,)`` cells per
@@ -125,7 +128,7 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query):
     extent = jnp.where(periodic, geometry.side,
                        jnp.max(wrapped, axis=0) - origin)
     min_size = query.cutoff * (1.0 + _CELL_MARGIN) / np.array(
-        [_REACH[a > 0] for a in range(dim)])
+        [reach[a > 0] for a in range(dim)])
 
     def cells(coarsen):  # float (dim,): cells per axis
         size = min_size * coarsen
@@ -634,6 +637,10 @@ class Cell:
         cannot run. ``"xla"``: the windows everywhere. ``"interpret"``:
         the kernel in Pallas' interpreter (tests on CPUs). All four find
         the same pairs.
+      radius_classes: with per-particle radii (``radii=``), how many radius
+        classes get a grid each (`jaxrt.radius_classes`): None, as many as
+        the radii at ``allocate`` need; 1, one grid of cells of the largest
+        radius (the plain scheme, for comparison).
 
     Internal capacities: ``"window"`` (longest run of one stencil row),
     ``"shell"`` (most pairs of one particle that the caller's metric
@@ -643,14 +650,32 @@ class Cell:
     """
 
     kernel: str = "auto"
+    radius_classes: int | None = None
 
     name: ClassVar[str] = "cell"
     decides_by_metric: ClassVar[bool] = True
+    supports_radii: ClassVar[bool] = True
+    fixed_sizes: ClassVar[tuple[str, ...]] = ("classes",)
 
     def __post_init__(self):
         if self.kernel not in _KERNELS:
             raise ValueError(f"Cell(kernel={self.kernel!r}): choose one of "
                              f"{_KERNELS}.")
+        k = self.radius_classes
+        if k is not None and (isinstance(k, bool) or not isinstance(k, int)
+                              or not 1 <= k <= radius_classes.MAX_CLASSES):
+            raise ValueError(
+                f"Cell(radius_classes={k!r}): must be None (as many as the "
+                "radii need) or an int in 1.."
+                f"{radius_classes.MAX_CLASSES} (1: cells of the largest "
+                "radius).")
+
+    def _check_radii_kernel(self):
+        if self.kernel in ("pallas", "interpret"):
+            raise ValueError(
+                f"Cell(kernel={self.kernel!r}) has no per-particle radii: "
+                "lists with radii= run on the radius classes of "
+                "jaxrt.radius_classes; use Cell(kernel='auto') or 'xla'.")
 
     def _engine(self, n: int, row_width: int, shell: int, query: Query,
                 platform: str | None) -> str:
@@ -707,6 +732,10 @@ class Cell:
         return jax.lax.platform_dependent(cuda=kernel, default=portable)
 
     def measure(self, position, geometry, query, metric_sq):
+        if geometry.reach is not None:
+            self._check_radii_kernel()
+            return radius_classes.measure(position, geometry, query,
+                                          metric_sq, self.radius_classes)
         _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
         window = max(int(np.max(len1 + len2, initial=0)), 1)
@@ -754,6 +783,10 @@ class Cell:
         return sizes
 
     def search(self, position, geometry, query, capacity: Capacity, metric_sq):
+        if geometry.reach is not None:
+            self._check_radii_kernel()
+            return radius_classes.search(position, geometry, query, capacity,
+                                         metric_sq)
         options = dict(shell=capacity["shell"],
                        shell_rows=capacity["shell_rows"],
                        row_width=max(capacity["row"], 1), query=query)

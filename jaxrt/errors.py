@@ -1,9 +1,9 @@
 """Error bits carried by every neighbour list, and the host-side check.
 
 jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
-``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds three.
-A non-finite position, a metric that disagrees with the box, or a box too
-small for the cutoff also sets the overflow bit, so that the usual loop
+``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds four.
+A non-finite position, a metric that disagrees with the box, a box too
+small for the cutoff, or bad radii also set the overflow bit, so that the usual loop
 (``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches
 ``allocate``, which raises a clear error instead of carrying on with a list
 that silently lacks the bad particle's pairs.
@@ -24,6 +24,7 @@ class ErrorCode(enum.IntFlag):
     NONFINITE_POSITION = 1 << 4
     METRIC_MISMATCH = 1 << 5
     BOX_TOO_SMALL = 1 << 6
+    BAD_RADII = 1 << 7
 
 
 _MESSAGES = {
@@ -41,6 +42,10 @@ _MESSAGES = {
         "the box passed to update shrank so that r_cutoff + dr_threshold is "
         "no longer below half its height on a periodic axis: the list would "
         "drop periodic images. Use a larger box or a smaller cutoff.",
+    ErrorCode.BAD_RADII:
+        "the radii passed to update had a NaN, infinite or negative entry, "
+        "or one above r_cutoff (which sizes the search); the list may lack "
+        "those particles' pairs. Pass radii in [0, r_cutoff].",
     ErrorCode.NEIGHBOR_LIST_OVERFLOW:
         "the neighbour buffer overflowed: reallocate with "
         "neighbor_fn.allocate(position) (a larger capacity_multiplier "

@@ -28,6 +28,9 @@ Where jaxrt differs from jax-md, on purpose (the README's table):
 * Bad input raises at ``allocate``; under ``jit`` a non-finite position, a
   metric that disagrees with the box, or a box shrunk below twice the
   cutoff sets an error bit (see `jaxrt.errors`) that also reads as overflow.
+* Per-particle radii (``radii=``, seed 003 §3, a jaxrt extension): ``i``
+  and ``j`` are neighbours iff ``d(i, j) < max(r_i, r_j) + dr_threshold``;
+  ``r_cutoff`` bounds every radius and sizes the search.
 * ``NeighborList.cell_list_capacity`` holds a `jaxrt.backends.Capacity`
   (static buffer sizes), not an int; ``cell_size`` and ``cell_list_fn``
   are None.
@@ -59,7 +62,7 @@ OrderedSparse = NeighborListFormat.OrderedSparse
 _ARGUMENTS = ("displacement_or_metric", "box", "r_cutoff", "dr_threshold",
               "capacity_multiplier", "disable_cell_list", "mask_self",
               "custom_mask_function", "fractional_coordinates", "format",
-              "backend", "periodic")
+              "backend", "periodic", "radii")
 
 
 def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
@@ -223,6 +226,7 @@ def neighbor_list(displacement_or_metric: Callable,
                   *,
                   backend: str | backends.Backend = "auto",
                   periodic: bool | Sequence[bool] | None = None,
+                  radii=None,
                   **unknown) -> NeighborListFns:
     """Neighbour lists with jax-md's interface and jaxrt's backends.
 
@@ -245,6 +249,17 @@ def neighbor_list(displacement_or_metric: Callable,
         backend value with its options, e.g.
         ``jaxrt.backends.Cell(kernel="xla")`` (`jaxrt.backends`).
       periodic: bool or one bool per axis; None infers it (module docstring).
+      radii: None, or float ``(N,)`` per-particle radii in ``[0, r_cutoff]``
+        (concrete): ``i`` and ``j`` are neighbours iff ``d(i, j) <
+        max(r_i, r_j) + dr_threshold``, both rows of a Dense list (both
+        directions of a Sparse one, OrderedSparse once) holding the pair.
+        ``r_cutoff`` must be at least ``max(radii)``: it sizes what depends
+        on the largest radius (cells, ray reach, the half-box check).
+        ``allocate`` and ``update`` take ``radii=`` too, replacing these for
+        that call (``update``'s may be traced: it then always rebuilds, as
+        it cannot tell whether they changed; bad values set
+        `jaxrt.errors.ErrorCode.BAD_RADII`). Backends ``"brute"``,
+        ``"cell"`` and ``"bvh"`` support radii.
     Returns:
       jax-md's `NeighborListFns` (``allocate``, ``update``).
     """
@@ -255,7 +270,7 @@ def neighbor_list(displacement_or_metric: Callable,
         disable_cell_list=disable_cell_list, mask_self=mask_self,
         custom_mask_function=custom_mask_function,
         fractional_coordinates=fractional_coordinates, format=format,
-        backend=backend, periodic=periodic)
+        backend=backend, periodic=periodic, radii=radii)
     lists = _Lists(settings)
     return NeighborListFns(lists.allocate, lists.update)
 
@@ -275,6 +290,7 @@ class _Settings:
     format: NeighborListFormat
     backend: backends.Backend
     periodic: bool | Sequence[bool] | None
+    radii: np.ndarray | None = None
 
     @property
     def cutoff(self) -> float:
@@ -284,7 +300,7 @@ class _Settings:
 def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
                      capacity_multiplier, disable_cell_list, mask_self,
                      custom_mask_function, fractional_coordinates, format,
-                     backend, periodic) -> _Settings:
+                     backend, periodic, radii=None) -> _Settings:
     """Check `neighbor_list`'s arguments; raise naming the argument."""
     if not callable(displacement_or_metric):
         raise TypeError("displacement_or_metric must be a function d(Ra, Rb) "
@@ -303,16 +319,75 @@ def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
         backend = "brute"
     if isinstance(backend, str) and backend == "auto":
         backend = _auto_backend()
+    backend = backends.resolve(backend)
+    r_cutoff = _static_positive("r_cutoff", r_cutoff)
+    if radii is not None:
+        _check_radii_backend(backend)
+        radii = _concrete_radii(radii, r_cutoff, "neighbor_list")
     return _Settings(
         metric=displacement_or_metric, box=box,
-        r_cutoff=_static_positive("r_cutoff", r_cutoff),
+        r_cutoff=r_cutoff,
         dr_threshold=_static_positive("dr_threshold", dr_threshold,
                                      allow_zero=True),
         capacity_multiplier=_static_positive("capacity_multiplier",
                                             capacity_multiplier),
         mask_self=bool(mask_self), custom_mask_function=custom_mask_function,
         fractional_coordinates=bool(fractional_coordinates), format=format,
-        backend=backends.resolve(backend), periodic=periodic)
+        backend=backend, periodic=periodic, radii=radii)
+
+
+def _check_radii_backend(backend) -> None:
+    if not getattr(backend, "supports_radii", False):
+        raise ValueError(
+            f"backend={backend.name!r} has no per-particle radii (its search "
+            "radius is one number); use backend='bvh', 'cell' or 'brute' "
+            "with radii=.")
+
+
+def _radii_array(radii, where: str):
+    """``radii`` as an array (float ``(N,)`` checked later), or TypeError."""
+    if not hasattr(radii, "shape") or not hasattr(radii, "dtype"):
+        radii = np.asarray(radii)
+    if not jnp.issubdtype(radii.dtype, jnp.floating) and not jnp.issubdtype(
+            radii.dtype, jnp.integer):
+        raise TypeError(f"{where}: radii must be a float (N,) array; got "
+                        f"dtype {radii.dtype}.")
+    if radii.ndim != 1:
+        raise ValueError(f"{where}: radii must be a float (N,) array, one "
+                         f"radius per particle; got shape {radii.shape}.")
+    return radii
+
+
+def _concrete_radii(radii, r_cutoff: float, where: str,
+                    n: int | None = None) -> np.ndarray:
+    """Check concrete radii (shape, finite, in ``[0, r_cutoff]``); float64."""
+    radii = _radii_array(radii, where)
+    if isinstance(radii, jax.core.Tracer):
+        raise TypeError(f"{where}: radii must be concrete here (not traced); "
+                        "pass traced radii to update.")
+    if n is not None and radii.shape[0] != n:
+        raise ValueError(f"{where}: radii has {radii.shape[0]} entries but "
+                         f"position has {n} particles; pass one radius per "
+                         "particle.")
+    r = np.asarray(radii, np.float64)
+    bad = ~np.isfinite(r) | (r < 0)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"{where}: radii[{k}] = {r[k]}; radii must be "
+                         "finite and >= 0.")
+    if r.size and r.max() > r_cutoff:
+        k = int(np.argmax(r))
+        raise ValueError(
+            f"{where}: radii[{k}] = {r[k]:g} is above r_cutoff = "
+            f"{r_cutoff:g}, which sizes the search for the largest radius; "
+            "pass r_cutoff >= max(radii).")
+    return r
+
+
+def _radii_errors(radii, r_cutoff: float) -> jax.Array:
+    """Error bits of traced radii (update's): NaN, negative, too large."""
+    bad = ~jnp.all(jnp.isfinite(radii) & (radii >= 0) & (radii <= r_cutoff))
+    return _bits(bad, ErrorCode.BAD_RADII | _OVERFLOW)
 
 
 class _Setup(NamedTuple):
@@ -395,8 +470,8 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
     return _Model(g, h, diagonal, metric_decides, slack)
 
 
-def _capacity(settings: _Settings, sizes: dict, n: int, extra: int
-              ) -> Capacity:
+def _capacity(settings: _Settings, sizes: dict, n: int, extra: int,
+              fixed: tuple = ()) -> Capacity:
     """Static buffer sizes from the backend's exact ``sizes`` (jax-md's
     rule: times ``capacity_multiplier``, plus ``extra_capacity``)."""
     fmt = settings.format
@@ -409,7 +484,10 @@ def _capacity(settings: _Settings, sizes: dict, n: int, extra: int
                            multiplier)
     if fmt is Dense and settings.custom_mask_function is None:
         row = neighbors
-    internal = {k: min(max(math.ceil(v * multiplier), 1), n)
+    # A size that fits in N (a window, rows with a shell) stays within N;
+    # larger ones (edge buffers) grow freely.
+    internal = {k: v if k in fixed else max(math.ceil(v * multiplier), 1)
+                if v > n else min(max(math.ceil(v * multiplier), 1), n)
                 for k, v in sizes.items()
                 if k not in ("row", "edges", "row_before_mask")}
     internal["row"] = row
@@ -513,21 +591,30 @@ class _Lists:
         if extra:
             raise TypeError(f"unexpected keyword argument(s) {sorted(extra)}; "
                             "allocate/update accept only box= (passed to "
-                            "displacement_or_metric, as in jax-md).")
+                            "displacement_or_metric, as in jax-md) and "
+                            "radii=.")
         if ("box" in kwargs and not self.settings.fractional_coordinates
                 and not allocating):
             raise ValueError("box= may be passed to update only with "
                              "fractional_coordinates=True (as in jax-md).")
 
-    def allocate(self, position, extra_capacity: int = 0, **kwargs
-                 ) -> NeighborList:
-        """Measure the list at ``position`` (float ``(N, dim)``) and size it.
+    def allocate(self, position, extra_capacity: int = 0, *, radii=None,
+                 **kwargs) -> NeighborList:
+        """Measure the list at ``position`` (float ``(N, dim)``) and size it;
+        ``radii``: float ``(N,)``, replacing the factory's for this call.
 
         Eager (not jit-able): buffer sizes depend on the data.
         """
         self.check_kwargs(kwargs, allocating=True)
         position = _check_position(position)
         n, dim = position.shape
+        if radii is None:
+            radii = self.settings.radii
+        else:
+            _check_radii_backend(self.searcher)
+        if radii is not None:
+            radii = _concrete_radii(radii, self.settings.r_cutoff,
+                                    "allocate", n)
         if not bool(jnp.all(jnp.isfinite(position))):
             bad = np.argwhere(~np.isfinite(np.asarray(position)))[0]
             raise ValueError(f"position has a non-finite value at particle "
@@ -541,13 +628,15 @@ class _Lists:
                                    position, metric)
         query = dataclasses.replace(setup.query,
                                     decide_by_metric=model.metric_decides)
-        geometry = _geometry(setup.grid, model.h, position.dtype, model.slack)
+        geometry = _geometry(setup.grid, model.h, position.dtype, model.slack,
+                             self.reach(radii, position.dtype))
         sizes = _measure(self.settings, self.searcher, position, geometry,
                          query, metric)
         capacity = dataclasses.replace(
-            _capacity(self.settings, sizes, n, extra_capacity),
+            _capacity(self.settings, sizes, n, extra_capacity,
+                      getattr(self.searcher, "fixed_sizes", ())),
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
-            slack=model.slack)
+            slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
         idx, overflow = self.build(position, geometry, metric, query=query,
                                    capacity=capacity)
@@ -556,10 +645,18 @@ class _Lists:
                             capacity, capacity.neighbors, self.settings.format,
                             None, None, self.update)
 
-    def update(self, position, neighbors: NeighborList, **kwargs
-               ) -> NeighborList:
+    def reach(self, radii, dtype):
+        """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
+        if radii is None:
+            return None
+        return jnp.asarray(radii, dtype) + jnp.asarray(
+            self.settings.dr_threshold, dtype)
+
+    def update(self, position, neighbors: NeighborList, *, radii=None,
+               **kwargs) -> NeighborList:
         """Rebuild ``neighbors`` at ``position`` if a particle moved more than
-        half the skin since the last build. jit/scan/vmap-able."""
+        half the skin since the last build, or whenever ``radii`` (float
+        ``(N,)``, may be traced) is given. jit/scan/vmap-able."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
@@ -575,15 +672,35 @@ class _Lists:
         if not isinstance(capacity, Capacity):
             raise TypeError("neighbors was not allocated by jaxrt; use the "
                             "update of the factory that allocated it.")
+        given_radii = radii is not None
+        if given_radii:
+            _check_radii_backend(self.searcher)
+            radii = _radii_array(radii, "update")
+            if radii.shape[0] != position.shape[0]:
+                raise ValueError(
+                    f"update: radii has {radii.shape[0]} entries but position "
+                    f"has {position.shape[0]} particles.")
+        else:
+            radii = self.settings.radii
+        if (radii is not None) != capacity.radii:
+            raise ValueError(
+                "the list was allocated " + ("with" if capacity.radii else
+                                             "without") + " per-particle radii"
+                " but update got " + ("none" if capacity.radii else "radii") +
+                ": pass radii= to both, or give them to neighbor_list once.")
         setup = self.setup(position.shape[1], kwargs)
         query = dataclasses.replace(setup.query,
                                     decide_by_metric=capacity.metric_decides)
         metric = MetricSq(setup.metric_fn, dict(kwargs))
         g = _space.gram(metric, setup.grid, position.dtype)
         h = _space.heights(g, capacity.orthorhombic)
-        geometry = _geometry(setup.grid, h, position.dtype, capacity.slack)
+        geometry = _geometry(setup.grid, h, position.dtype, capacity.slack,
+                             self.reach(radii, position.dtype))
         code = neighbors.error.code | _input_errors(position, setup.grid, h,
                                                     self.settings.cutoff)
+        if given_radii:
+            code |= _radii_errors(jnp.asarray(radii),
+                                  self.settings.r_cutoff)
 
         def rebuild(_):
             idx, overflow = self.build(position, geometry, metric, query=query,
@@ -599,24 +716,25 @@ class _Lists:
         def keep(_):
             return dataclasses.replace(neighbors, error=PartitionError(code))
 
-        if self.settings.dr_threshold == 0:
+        if self.settings.dr_threshold == 0 or given_radii:
             return rebuild(None)
         threshold_sq = (self.settings.dr_threshold / 2) ** 2
         moved = jax.vmap(metric)(position, ref)
         return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
 
 
-def _geometry(grid: _space.Space, h, dtype, slack: float) -> Geometry:
+def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
+              ) -> Geometry:
     """The backends' `Geometry` from the heights ``h`` (float ``(dim,)``,
     `jaxrt._space.heights`); traceable. With ``slack`` (the metric decides
     every pair) the grid's distances shrink by that fraction, so that it
     still holds every neighbour of a metric up to that much shorter than
-    its model."""
+    its model. ``reach``: None or float ``(N,)`` (`Geometry.reach`)."""
     grid_h = h * (1.0 - slack) if slack else h
     transform = (None if grid.transform is None
                  else jnp.asarray(grid.transform, dtype))
     return Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
-                    scale=grid_h, transform=transform)
+                    scale=grid_h, transform=transform, reach=reach)
 
 
 def _check_unknown_keywords(unknown: dict) -> None:

@@ -28,6 +28,25 @@ def brute_pairs(position, cutoff, side=None, periodic=False, mask_self=True):
     return set(zip(i.tolist(), j.tolist()))
 
 
+def brute_pairs_radii(position, radii, side=None, periodic=False,
+                      mask_self=True):
+    """Set of (i, j) with |r_i - r_j| < max(radii_i, radii_j), float64."""
+    r = np.asarray(position, np.float64)
+    n, dim = r.shape
+    per = np.broadcast_to(np.asarray(periodic, bool), (dim,))
+    d = r[:, None, :] - r[None, :, :]
+    if per.any():
+        L = np.broadcast_to(np.asarray(side, np.float64), (dim,))
+        d = np.where(per, d - L * np.round(d / np.where(per, L, 1.0)), d)
+    d2 = np.sum(d * d, axis=-1)
+    reach = np.asarray(radii, np.float64)
+    keep = d2 < np.maximum(reach[:, None], reach[None, :]) ** 2
+    if mask_self:
+        np.fill_diagonal(keep, False)
+    i, j = np.nonzero(keep)
+    return set(zip(i.tolist(), j.tolist()))
+
+
 def list_pairs(nbrs) -> set[tuple[int, int]]:
     """Set of (i, j) (i the centre, j its neighbour) in any jax-md layout."""
     idx = np.asarray(nbrs.idx)

@@ -39,14 +39,17 @@ from jax_md import space, util
 Array = jax.Array
 
 
-def row_parameter(value, idx: Array, species: Array | None):
+def row_parameter(value, idx: Array, species: Array | None,
+                  combine: Callable | None = None):
     """A pair parameter laid out like the Dense list, as jax-md's ``smap``.
 
     Args:
-      value: float scalar; ``(N,)`` per particle (combined by the arithmetic
-        mean); ``(N, N)`` per pair; or with ``species`` an ``(S, S)`` matrix.
+      value: float scalar; ``(N,)`` per particle (combined by ``combine``,
+        default the arithmetic mean, as jax-md's default); ``(N, N)`` per
+        pair; or with ``species`` an ``(S, S)`` matrix.
       idx: int32 ``(N, capacity)`` Dense list.
       species: int ``(N,)`` or None.
+      combine: ``combine(value_i, value_j)`` for per-particle values.
     Returns:
       The scalar, or float ``(N, capacity)``.
     """
@@ -54,6 +57,8 @@ def row_parameter(value, idx: Array, species: Array | None):
     if value.ndim == 0:
         return value
     if value.ndim == 1:
+        if combine is not None:
+            return combine(value[:, None], value[idx])
         return 0.5 * (value[:, None] + value[idx])
     if species is None:
         rows = jnp.arange(idx.shape[0], dtype=jnp.int32)[:, None]
@@ -61,19 +66,22 @@ def row_parameter(value, idx: Array, species: Array | None):
     return value[species[:, None], species[idx]]
 
 
-def _pair_energies(pair: Callable, metric: Callable, centre: Array,
-                   neighbour: Array, idx: Array, params: dict,
+def _pair_energies(pair: Callable, metric: Callable, combine: tuple,
+                   centre: Array, neighbour: Array, idx: Array, params: dict,
                    species: Array | None, metric_kwargs: dict) -> Array:
     """``u(d(centre_i, neighbour_ic))`` masked to real entries: float
-    ``(N, capacity)``. ``neighbour`` is float ``(N, capacity, dim)``."""
+    ``(N, capacity)``. ``neighbour`` is float ``(N, capacity, dim)``;
+    ``combine``: ``(name, fn)`` pairs, how per-particle parameters combine."""
     distance = space.map_neighbor(lambda a, b: metric(a, b, **metric_kwargs))
     dr = distance(centre, neighbour)
-    row_params = {k: row_parameter(v, idx, species) for k, v in params.items()}
+    how = dict(combine)
+    row_params = {k: row_parameter(v, idx, species, how.get(k))
+                  for k, v in params.items()}
     return pair(dr, **row_params) * (idx < centre.shape[0])
 
 
-def _total(pair, metric, R, idx, params, species, metric_kwargs):
-    e = _pair_energies(pair, metric, R, R[idx], idx, params, species,
+def _total(pair, metric, combine, R, idx, params, species, metric_kwargs):
+    e = _pair_energies(pair, metric, combine, R, R[idx], idx, params, species,
                        metric_kwargs)
     # The same sum as jax-md's smap, so totals agree bit for bit.
     return util.high_precision_sum(e) / 2
@@ -90,20 +98,21 @@ def _is_zero(tree) -> bool:
         tree, is_leaf=lambda t: isinstance(t, SymbolicZero)))
 
 
-_dense_total = jax.custom_jvp(_total, nondiff_argnums=(0, 1))
+_dense_total = jax.custom_jvp(_total, nondiff_argnums=(0, 1, 2))
 
 
-def _dense_total_jvp(pair, metric, primals, tangents):
+def _dense_total_jvp(pair, metric, combine, primals, tangents):
     R, idx, params, species, metric_kwargs = primals
     dR, _, dparams, _, dkwargs = tangents
-    energy = _total(pair, metric, R, idx, params, species, metric_kwargs)
+    energy = _total(pair, metric, combine, R, idx, params, species,
+                    metric_kwargs)
     tangent = jnp.zeros_like(energy)
     if not isinstance(dR, SymbolicZero):
         neighbour = R[idx]
 
         def row_sums(centre):
-            e = _pair_energies(pair, metric, centre, neighbour, idx, params,
-                               species, metric_kwargs)
+            e = _pair_energies(pair, metric, combine, centre, neighbour, idx,
+                               params, species, metric_kwargs)
             return jnp.sum(e)
 
         force = jax.grad(row_sums)(R)  # = dE/dR for a symmetric list
@@ -114,7 +123,7 @@ def _dense_total_jvp(pair, metric, primals, tangents):
         dkwargs = jax.tree.map(_instantiate, dkwargs, metric_kwargs,
                                is_leaf=lambda t: isinstance(t, SymbolicZero))
         _, t = jax.jvp(
-            lambda p, k: _total(pair, metric, R, idx, p, species, k),
+            lambda p, k: _total(pair, metric, combine, R, idx, p, species, k),
             (params, metric_kwargs), (dparams, dkwargs))
         tangent = tangent + t
     return energy, tangent
@@ -125,7 +134,8 @@ _dense_total.defjvp(_dense_total_jvp, symbolic_zeros=True)
 
 def dense_pair_energy(pair: Callable, metric: Callable, R: Array, idx: Array,
                       params: dict, species: Array | None = None,
-                      metric_kwargs: dict | None = None) -> Array:
+                      metric_kwargs: dict | None = None,
+                      combine: tuple = ()) -> Array:
     """Total pair energy on a Dense list, with the scatter-free gradient.
 
     Args:
@@ -140,8 +150,10 @@ def dense_pair_energy(pair: Callable, metric: Callable, R: Array, idx: Array,
       species: int ``(N,)`` or None.
       metric_kwargs: extra keyword arrays for ``metric`` (e.g. ``box``);
         differentiable.
+      combine: static ``(name, fn)`` pairs: per-particle ``params[name]``
+        combine as ``fn(p_i, p_j)`` (symmetric), not the mean.
     Returns:
       float scalar, ``1/2 sum_i sum_c u``, in the dtype of the pair energies.
     """
-    return _dense_total(pair, metric, R, idx, params, species,
+    return _dense_total(pair, metric, tuple(combine), R, idx, params, species,
                         {} if metric_kwargs is None else metric_kwargs)

@@ -14,7 +14,11 @@ the smooth switch (`jax_md.energy.multiplicative_isotropic_cutoff`), so with ``t
 * gradients that stay finite when two particles coincide (padding entries
   and self pairs included), by the double-``where`` trick instead of
   jax-md's ``nan_to_num``;
-* clear errors for malformed ``species`` / ``sigma`` / ``epsilon``.
+* clear errors for malformed ``species`` / ``sigma`` / ``epsilon``;
+* per-particle radii (``radii=``, seed 003 §3): pair ``ij`` is cut at
+  ``r_c,ij = max(r_i, r_j)`` (the lists' rule), and its potential is the
+  factory's stretched by ``s_ij = r_c,ij / r_cutoff``: ``sigma_ij = sigma
+  s_ij``, ``r_onset,ij = r_onset s_ij`` (`lennard_jones_radii`).
 
 Forces are ``-jax.grad(energy_fn)`` (e.g. `jax_md.quantity.force`).
 
@@ -128,14 +132,48 @@ def lennard_jones_truncated(dr: Array, sigma: Array = 1.0,
     return jnp.where((dr > 0) & (dr < r_cutoff), e, 0)
 
 
+def lennard_jones_radii(dr: Array, sigma: Array = 1.0, epsilon: Array = 1.0,
+                        radius: Array = 1.0, *, r_onset: Array,
+                        r_cutoff: Array, truncation: str = "smooth") -> Array:
+    """`lennard_jones_truncated` stretched to a pair's radius.
+
+    Seed 003 §3 cuts pair ``ij`` at ``radius = max(r_i, r_j)`` and leaves
+    sigma unspecified; here the whole potential scales with the cut:
+    ``s = radius / r_cutoff``, sigma ``sigma s``, onset ``r_onset s``, cut
+    ``radius`` (with the defaults sigma = 1, r_cutoff = 2.5: ``sigma_ij =
+    max(r_i, r_j) / 2.5``, the usual cut at 2.5 sigma). epsilon is not
+    scaled.
+
+    Args:
+      dr: float, any shape: distances.
+      sigma, epsilon, radius: float, broadcastable to ``dr``; ``radius`` is
+        the pair's ``max(r_i, r_j)`` (zero: no interaction).
+      r_onset, r_cutoff: float scalars, the reference potential's.
+    Returns:
+      Energies, shape of ``dr``; zero for ``dr >= radius``.
+    """
+    positive = radius > 0
+    scale = jnp.where(positive, radius, r_cutoff) / r_cutoff
+    e = lennard_jones_truncated(dr, sigma * scale, epsilon,
+                                r_onset=r_onset * scale,
+                                r_cutoff=r_cutoff * scale,
+                                truncation=truncation)
+    return jnp.where(positive, e, 0)
+
+
 # One pair function per truncation, made once: the row-gradient path keys
 # its custom JVP on the function object.
 _PAIRS = {t: functools.partial(lennard_jones_truncated, truncation=t)
           for t in TRUNCATIONS}
+_RADII_PAIRS = {t: functools.partial(lennard_jones_radii, truncation=t)
+                for t in TRUNCATIONS}
+# The pair's radius is max(r_i, r_j), not jax-md's default mean.
+_RADIUS_COMBINE = (("radius", jnp.maximum),)
 
 
 # The energy function's own keywords (lennard_jones_pair_neighbor_list).
-_ENERGY_KEYWORDS = ("sigma", "epsilon", "r_onset", "r_cutoff", "species")
+_ENERGY_KEYWORDS = ("sigma", "epsilon", "r_onset", "r_cutoff", "species",
+                    "radii")
 
 
 def _truncation_error(truncation) -> str:
@@ -184,6 +222,18 @@ def _check_parameter(name: str, value, species) -> None:
                 f"{name}[b, a] (an asymmetric matrix gives different energies "
                 "for Dense / Sparse and OrderedSparse lists); symmetrise it, "
                 f"e.g. ({name} + {name}.T) / 2.")
+
+
+def _check_radii(radii, n: int | None = None) -> None:
+    """Shape (and, when concrete, values) of per-particle radii."""
+    shape = np.shape(radii)
+    if len(shape) != 1 or (n is not None and shape[0] != n):
+        want = "(N,)" if n is None else f"({n},)"
+        raise ValueError(f"radii must be a float {want} array, one radius per "
+                         f"particle; got shape {shape}.")
+    r = concrete(radii)
+    if r is not None and not np.all(np.isfinite(r) & (r >= 0)):
+        raise ValueError("radii must be finite and >= 0.")
 
 
 def _check_species(species) -> None:
@@ -254,6 +304,7 @@ def lennard_jones_pair_neighbor_list(
     truncation: str = "smooth",
     per_particle: bool = False,
     gradient: str = "rows",
+    radii: Array | None = None,
 ) -> Callable[..., Array]:
     """Lennard-Jones energy on any jax-md neighbour list (absolute units).
 
@@ -283,10 +334,16 @@ def lennard_jones_pair_neighbor_list(
         ``"autodiff"``: plain reverse mode through the gather (use it with a
         ``custom_mask_function`` that masks one direction only). Other
         layouts and ``per_particle`` always use ``"autodiff"``.
+      radii: None, or float ``(N,)`` per-particle radii (seed 003 §3): pair
+        ``ij`` is cut at ``r_c,ij = max(r_i, r_j)`` and its potential is
+        stretched by ``s_ij = r_c,ij / r_cutoff``, so ``sigma_ij = sigma
+        s_ij`` and ``r_onset,ij = r_onset s_ij`` (`lennard_jones_radii`).
+        Use a list built with the same ``radii=`` (and ``r_cutoff >=
+        max(radii)``).
 
     Returns:
       ``energy_fn(R, neighbor, *, sigma=None, epsilon=None, r_onset=None,
-      r_cutoff=None, species=None, **metric_kwargs)``. ``R`` is float
+      r_cutoff=None, species=None, radii=None, **metric_kwargs)``. ``R`` is float
       ``(N, dim)``, ``neighbor`` a jax-md `NeighborList` in any layout. The
       keyword parameters, when given, replace the factory's (same shapes,
       may be traced: differentiate with respect to them; only their shapes
@@ -312,16 +369,20 @@ def lennard_jones_pair_neighbor_list(
     _check_parameter("sigma", sigma, species)
     _check_parameter("epsilon", epsilon, species)
     _check_cutoffs(r_onset, r_cutoff, truncation)
+    if radii is not None:
+        _check_radii(radii)
     metric = space.canonicalize_displacement_or_metric(displacement_or_metric)
     metric_keywords = displacement_keywords(displacement_or_metric)
     defaults = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
                     r_cutoff=r_cutoff)
     default_species = species
+    default_radii = radii
 
     def energy_fn(R: Array, neighbor: partition.NeighborList, *,
                   sigma: Array | None = None, epsilon: Array | None = None,
                   r_onset: Array | None = None, r_cutoff: Array | None = None,
-                  species: Array | None = None, **metric_kwargs) -> Array:
+                  species: Array | None = None, radii: Array | None = None,
+                  **metric_kwargs) -> Array:
         # Names are static, so this raises at trace time under jit too.
         reject_unknown("energy_fn", metric_kwargs, _ENERGY_KEYWORDS,
                        metric_keywords, SIMULATE_KEYWORDS)
@@ -341,17 +402,31 @@ def lennard_jones_pair_neighbor_list(
             _check_species(species)
         n = R.shape[0]
         _check_overrides(p, species, n)
+        if radii is None:
+            radii = default_radii
+        elif default_radii is None:
+            raise ValueError(
+                "radii was given to the energy function but not to the "
+                "factory: pass radii to lennard_jones_pair_neighbor_list.")
+        pairs, pair_params, combine = _PAIRS, {}, ()
+        if radii is not None:
+            _check_radii(radii, n)
+            pairs, combine = _RADII_PAIRS, _RADIUS_COMBINE
+            pair_params = {"radius": jnp.asarray(radii)}
 
         if (neighbor.format is partition.Dense and not per_particle
                 and gradient == "rows"):
             return dense_pair_energy(
-                _PAIRS[truncation], metric, R, neighbor.idx,
+                pairs[truncation], metric, R, neighbor.idx,
                 {"sigma": p["sigma"], "epsilon": p["epsilon"],
-                 "r_onset": p["r_onset"], "r_cutoff": p["r_cutoff"]},
-                species, metric_kwargs)
+                 "r_onset": p["r_onset"], "r_cutoff": p["r_cutoff"],
+                 **pair_params},
+                species, metric_kwargs, combine)
 
-        pair = functools.partial(_PAIRS[truncation], r_onset=p["r_onset"],
+        pair = functools.partial(pairs[truncation], r_onset=p["r_onset"],
                                  r_cutoff=p["r_cutoff"])
+        # jax-md's smap combines per-particle parameters given as (fn, value).
+        pair_params = {k: (dict(combine)[k], v) for k, v in pair_params.items()}
         ordered = neighbor.format is partition.OrderedSparse
         if not per_particle:
             reduce_axis = None
@@ -364,7 +439,7 @@ def lennard_jones_pair_neighbor_list(
         mapped = smap.pair_neighbor_list(
             pair, metric, species=species, reduce_axis=reduce_axis,
             ignore_unused_parameters=True, sigma=p["sigma"],
-            epsilon=p["epsilon"])
+            epsilon=p["epsilon"], **pair_params)
         out = mapped(R, neighbor, **metric_kwargs)
         if per_particle and ordered:
             # Each unordered pair appears once: give half to each end. The
@@ -393,6 +468,7 @@ def lennard_jones_neighbor_list(
     truncation: str = "smooth",
     gradient: str = "rows",
     neighbor_list_fn: Callable | None = None,
+    radii: Array | None = None,
     **neighbor_kwargs,
 ) -> tuple[partition.NeighborListFns, Callable[..., Array]]:
     """Drop-in for `jax_md.energy.lennard_jones_neighbor_list`.
@@ -417,6 +493,10 @@ def lennard_jones_neighbor_list(
       neighbor_list_fn: the list factory; default `jaxrt.neighbor_list`
         (``backend="auto"``). Give ``functools.partial(jaxrt.neighbor_list,
         backend=...)`` or ``jax_md.partition.neighbor_list``.
+      radii: None, or float ``(N,)`` per-particle radii, given to both the
+        list (whose ``r_cutoff`` is then ``max(radii)``) and the energy
+        (`lennard_jones_pair_neighbor_list`: pairs cut at ``max(r_i, r_j)``,
+        the potential stretched from the reference cut ``r_cutoff``).
       neighbor_kwargs: forwarded to ``neighbor_list_fn`` (jaxrt rejects
         names it does not know).
 
@@ -436,12 +516,22 @@ def lennard_jones_neighbor_list(
     scale_like = jnp.max(sigma) if isinstance(sigma, jax.Array) else scale
     if not (float(r_cutoff) > 0 and math.isfinite(float(r_cutoff))):
         raise ValueError(f"r_cutoff must be finite and > 0; got {r_cutoff}.")
+    list_cutoff = float(r_cutoff) * scale
+    if radii is not None:
+        _check_radii(radii)
+        r = concrete(radii)
+        if r is None:
+            raise ValueError("radii must be concrete here: the largest sets "
+                             "the neighbour list's cutoff.")
+        list_cutoff = float(np.max(r, initial=0.0))
+        neighbor_kwargs["radii"] = radii
     neighbor_fn = neighbor_list_fn(
-        displacement_or_metric, box_size, float(r_cutoff) * scale,
+        displacement_or_metric, box_size, list_cutoff,
         dr_threshold, fractional_coordinates=fractional_coordinates,
         format=format, **neighbor_kwargs)
     energy_fn = lennard_jones_pair_neighbor_list(
         displacement_or_metric, species=species, sigma=sigma, epsilon=epsilon,
         r_onset=r_onset * scale_like, r_cutoff=r_cutoff * scale_like,
-        truncation=truncation, per_particle=per_particle, gradient=gradient)
+        truncation=truncation, per_particle=per_particle, gradient=gradient,
+        radii=radii)
     return neighbor_fn, energy_fn

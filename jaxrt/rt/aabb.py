@@ -143,24 +143,38 @@ def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
 def _cluster_box_kernel(item_coords: wp.array(dtype=Any), side: wp.array(dtype=Any),
                         periodic: wp.vec3i, cluster_size: wp.int32,
                         half_width: wp.float32, extent: wp.array(dtype=wp.float32),
+                        has_radii: wp.int32, item_reach: wp.array(dtype=wp.float32),
                         lowers: wp.array(dtype=wp.vec3),
                         uppers: wp.array(dtype=wp.vec3)):
     """Box of cluster c: the union of the boxes of items
     [c * cluster_size, (c + 1) * cluster_size), i.e. their centres' bounds
-    grown by the reach. With cluster_size 1 it is the seed's box per particle."""
+    grown by the reach (each item's own with radii, seed 003 §3). With
+    cluster_size 1 it is the seed's box per particle."""
     c = wp.tid()
     first = c * cluster_size
     last = wp.min(first + cluster_size, item_coords.shape[0])
-    low = wp.vec3(item_coords[first])
-    high = low
-    for m in range(first + 1, last):
+    pad = _box_reach(half_width, extent[0], gamma.largest_side(side[0], periodic)) - half_width
+    low = wp.vec3(1.0e30, 1.0e30, 1.0e30)
+    high = -low
+    for m in range(first, last):
         u = wp.vec3(item_coords[m])
-        low = wp.min(low, u)
-        high = wp.max(high, u)
-    reach = _box_reach(half_width, extent[0], gamma.largest_side(side[0], periodic))
-    pad = wp.vec3(reach, reach, reach)
-    lowers[c] = low - pad
-    uppers[c] = high + pad
+        reach = half_width
+        if has_radii != 0:
+            reach = item_reach[m]
+        grow = wp.vec3(reach + pad, reach + pad, reach + pad)
+        low = wp.min(low, u - grow)
+        high = wp.max(high, u + grow)
+    lowers[c] = low
+    uppers[c] = high
+
+
+@wp.kernel
+def _item_reach_kernel(order: wp.array(dtype=wp.int32), reach: wp.array(dtype=Any),
+                       item_reach: wp.array(dtype=wp.float32)):
+    """item_reach[k] = reach of particle order[k], in float32 (the boxes'
+    pad absorbs the rounding)."""
+    k = wp.tid()
+    item_reach[k] = wp.float32(reach[order[k]])
 
 
 @wp.func
@@ -208,6 +222,91 @@ def _visit(item: int, i: int, shift: wp.vec3i, xi: Any, ui: Any,
             pairs[0, slot] = j
             pairs[1, slot] = i
     return n + 1
+
+
+@wp.func
+def _store(row: int, value: int, mode: wp.int32, rows: wp.array2d(dtype=wp.int32),
+           row_offset: wp.array(dtype=wp.int32), pairs: wp.array2d(dtype=wp.int32),
+           count: wp.array(dtype=wp.int32)):
+    """Append ``value`` to ``row`` through the row's atomic cursor (rows
+    are written from both ends of a pair, by different threads)."""
+    slot = wp.atomic_add(count, row, 1)
+    if mode == MODE_DENSE:
+        if slot < rows.shape[1]:
+            rows[row, slot] = value
+    elif mode == MODE_FILL:
+        s = row_offset[row] + slot
+        if s < pairs.shape[1]:
+            pairs[0, s] = value
+            pairs[1, s] = row
+
+
+@wp.func
+def _visit_radii(item: int, i: int, shift: wp.vec3i, xi: Any, ui: Any,
+                 item_points: wp.array(dtype=Any), item_coords: wp.array(dtype=Any),
+                 order: wp.array(dtype=wp.int32), reach: wp.array(dtype=Any),
+                 box: Any, periodic: wp.vec3i, any_periodic: bool,
+                 mask_self: wp.int32, lower_only: wp.int32, mode: wp.int32,
+                 rows: wp.array2d(dtype=wp.int32), row_offset: wp.array(dtype=wp.int32),
+                 pairs: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+    """The intersection program with per-particle radii (seed 003 §3): the
+    ray of i lies in j's box, so i finds j when d < r_j. The pair's rule is
+    d < max(r_i, r_j); when d >= r_i, j's ray will not find i, so i also
+    writes itself into j's row and the pair is never one-sided."""
+    j = order[item]
+    if mask_self != 0 and j == i:
+        return
+    if any_periodic and not gamma.is_canonical_image(shift, ui, item_coords[item],
+                                                     box, periodic):
+        return
+    d2 = _square_distance(xi, item_points[item], box, periodic)
+    rj = reach[j]
+    if not (d2 < rj * rj):
+        return
+    if lower_only == 0 or j < i:
+        _store(i, j, mode, rows, row_offset, pairs, count)
+    ri = reach[i]
+    if not (d2 < ri * ri):
+        if lower_only == 0 or i < j:
+            _store(j, i, mode, rows, row_offset, pairs, count)
+
+
+@wp.kernel
+def _query_radii_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
+                        item_coords: wp.array(dtype=Any),
+                        order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
+                        periodic: wp.vec3i, reach: wp.array(dtype=Any),
+                        half_width: wp.float32, extent: wp.array(dtype=wp.float32),
+                        drift_limit: wp.float32, mask_self: wp.int32,
+                        lower_only: wp.int32, mode: wp.int32, cluster_size: wp.int32,
+                        rows: wp.array2d(dtype=wp.int32),
+                        row_offset: wp.array(dtype=wp.int32),
+                        pairs: wp.array2d(dtype=wp.int32),
+                        count: wp.array(dtype=wp.int32)):
+    """`_query_kernel` with per-particle radii: rows are appended to with
+    atomics (count zeroed, Dense rows filled with N before the launch).
+    Gamma rays reach the largest radius (``half_width``, §3.3): a small
+    particle near a face must still find a large one across it."""
+    k = wp.tid()
+    n_particles = item_points.shape[0]
+    i = order[k]
+    xi = item_points[k]
+    ui = item_coords[k]
+    box = side[0]
+    face_reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic)) + drift_limit
+    any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
+    for ray in range(gamma.RAYS_PER_PARTICLE):
+        shift = gamma.ray_shift(ray)
+        if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
+            origin = wp.vec3(gamma.shifted(ui, shift, box))
+            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            hit = int(0)
+            while wp.bvh_query_next(query, hit, 0.0):
+                first = hit * cluster_size
+                for item in range(first, wp.min(first + cluster_size, n_particles)):
+                    _visit_radii(item, i, shift, xi, ui, item_points, item_coords,
+                                 order, reach, box, periodic, any_periodic, mask_self,
+                                 lower_only, mode, rows, row_offset, pairs, count)
 
 
 @wp.kernel
@@ -285,12 +384,14 @@ def _pad_pairs_kernel(total: wp.array(dtype=wp.int32), n_particles: wp.int32,
         pairs[1, s] = n_particles
 
 
-def _instantiate(kernel, vectors=(), scalars=()):
+def _instantiate(kernel, vectors=(), scalars=(), scalar_arrays=()):
     """Overload ``kernel`` for float32 and float64: ``vectors`` name arrays
-    of positions, ``scalars`` name position-precision scalars."""
+    of positions, ``scalars`` name position-precision scalars,
+    ``scalar_arrays`` arrays of them."""
     for scalar, vector in ((wp.float32, wp.vec3f), (wp.float64, wp.vec3d)):
         types = {name: wp.array(dtype=vector) for name in vectors}
         types.update({name: scalar for name in scalars})
+        types.update({name: wp.array(dtype=scalar) for name in scalar_arrays})
         wp.overload(kernel, types)
 
 
@@ -300,6 +401,9 @@ _instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coor
 _instantiate(_cluster_box_kernel, vectors=("item_coords", "side"))
 _instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
              scalars=("cutoff_sq",))
+_instantiate(_query_radii_kernel, vectors=("item_points", "item_coords", "side"),
+             scalar_arrays=("reach",))
+_instantiate(_item_reach_kernel, scalar_arrays=("reach",))
 
 
 def vector_type(points: wp.array):
@@ -402,6 +506,9 @@ class AabbSearch:
         changes the result, only the speed (`benchmarks/rt_neighbors.py`
         sweeps them).
       last_update: "build", "rebuild" or "refit": what the last `update` did.
+      history: None, or a list to which every call appends ``(action,
+        t_action, t_query)`` (seconds, NaN where the policy times nothing),
+        one call late (`flush_history` adds the last); for benchmarks.
     """
 
     def __init__(self, n: int, vector, device, *, sort: bool,
@@ -433,6 +540,7 @@ class AabbSearch:
             self.item_points = wp.empty(n, dtype=vector)
             self.item_coords = wp.empty(n, dtype=vector)
             self.reference = wp.zeros(n, dtype=wp.vec3)
+            self.item_reach = wp.empty(n, dtype=wp.float32)
             self.lowers = wp.empty(n_clusters, dtype=wp.vec3)
             self.uppers = wp.empty(n_clusters, dtype=wp.vec3)
             self.extent = wp.zeros(1, dtype=wp.float32)
@@ -444,6 +552,8 @@ class AabbSearch:
         self.last_update = None
         self._cutoff = None
         self._periodic = None
+        self._reach = None
+        self.history = None
 
     @property
     def constructor(self) -> str:
@@ -453,14 +563,18 @@ class AabbSearch:
         return "lbvh" if self.device.is_cuda else "sah"
 
     def update(self, points: wp.array, side: wp.array, periodic: tuple[bool, bool, bool],
-               cutoff: float) -> str:
+               cutoff: float, reach: wp.array | None = None) -> str:
         """Fit the BVH to ``points``: build, refit or rebuild (`jaxrt.rt.policy`).
 
         Args:
           points: ``vector`` ``(N,)`` Cartesian positions.
           side: ``vector`` ``(1,)``, box sides (read on periodic axes).
           periodic: one bool per axis.
-          cutoff: box half-width (the search radius).
+          cutoff: box half-width (the search radius); with ``reach``, the
+            largest radius (it sets the gamma rays' reach and the drift).
+          reach: None, or position-precision scalars ``(N,)`` in caller
+            order: per-particle radii (seed 003 §3), each item's box
+            half-width; a pair is listed when ``d < max(r_i, r_j)``.
         Returns:
           what was done: "build", "rebuild" or "refit".
         """
@@ -470,12 +584,18 @@ class AabbSearch:
         flags = wp.vec3i(*(int(bool(p)) for p in periodic))
         half_width = float(np.float32(cutoff))
         drift_limit = self.drift_limit(cutoff)
-        # A tree built for another cutoff or periodicity has wrong boxes.
-        same_setup = (self._cutoff, self._periodic) == (cutoff, tuple(periodic))
+        # A tree built for another cutoff or periodicity has wrong boxes
+        # (radii may change from call to call: a refit resizes the boxes).
+        setup = (cutoff, tuple(periodic), reach is None)
+        same_setup = (self._cutoff, self._periodic, self._reach is None) == setup
+        if self.history is not None and self._timer is None:
+            self._timer = _Timer(self.device)  # a benchmark times every policy
         if self.last_update is not None:
             times = ((math.nan, math.nan) if self._timer is None
                      else self._timer.collect())
             self.state.record(self.last_update, *times)
+            if self.history is not None:
+                self.history.append((self.last_update, *times))
         with wp.ScopedDevice(self.device):
             started = None if self._timer is None else self._timer.start()
             self.extent.zero_()
@@ -490,7 +610,9 @@ class AabbSearch:
             action = _policy.choose(self.state,
                                     has_tree=self.bvh is not None and same_setup,
                                     moved_far=moved_far)
+            self._reach = reach
             if action == "refit":
+                self._item_reach()
                 self._boxes(side, flags, half_width)
                 self.bvh.refit()
             else:
@@ -503,6 +625,7 @@ class AabbSearch:
                                               end_bit=30)
                     wp.copy(self.order, self.values, count=self.n)
                 self._place(points, side, flags, False, drift_limit)
+                self._item_reach()
                 self._boxes(side, flags, half_width)
                 if self.bvh is None:
                     self.bvh = wp.Bvh(self.lowers, self.uppers,
@@ -517,6 +640,13 @@ class AabbSearch:
         self.last_update = action
         return action
 
+    def flush_history(self) -> None:
+        """Append the last call's times to `history` (waits for the device)."""
+        if self.history is not None and self.last_update is not None:
+            times = ((math.nan, math.nan) if self._timer is None
+                     else self._timer.collect())
+            self.history.append((self.last_update, *times))
+
     def drift_limit(self, cutoff: float) -> float:
         """How far an item may drift from its build-time position before
         a refit is unsafe (0 for a policy that never refits)."""
@@ -528,10 +658,16 @@ class AabbSearch:
                           int(has_reference), drift_limit, self.reference,
                           self.item_points, self.item_coords, self.moved_far])
 
+    def _item_reach(self):
+        if self._reach is not None:
+            wp.launch(_item_reach_kernel, self.n,
+                      inputs=[self.order, self._reach, self.item_reach])
+
     def _boxes(self, side, flags, half_width):
         wp.launch(_cluster_box_kernel, self.lowers.shape[0],
                   inputs=[self.item_coords, side, flags, self.cluster_size,
-                          half_width, self.extent, self.lowers, self.uppers])
+                          half_width, self.extent, int(self._reach is not None),
+                          self.item_reach, self.lowers, self.uppers])
 
     def query(self, side: wp.array, *, mask_self: bool, lower_only: bool, mode: int,
               rows: wp.array | None = None, row_offset: wp.array | None = None,
@@ -555,17 +691,33 @@ class AabbSearch:
             empty2 = wp.empty((1, 0), dtype=wp.int32)
             empty1 = wp.empty(0, dtype=wp.int32)
             flags = wp.vec3i(*(int(p) for p in self._periodic))
-            wp.launch(_query_kernel, self.n,
-                      inputs=[wp.uint64(self.bvh.id), self.item_points, self.item_coords,
-                              self.order, side, flags,
-                              self.scalar(float(self._cutoff) ** 2),
-                              float(np.float32(self._cutoff)), self.extent,
-                              self.drift_limit(self._cutoff),
-                              int(mask_self), int(lower_only), int(mode),
-                              self.cluster_size,
-                              empty2 if rows is None else rows,
-                              empty1 if row_offset is None else row_offset,
-                              empty2 if pairs is None else pairs, count])
+            if self._reach is not None:
+                # Rows grow from both ends of a pair: cursors from zero.
+                count.zero_()
+                if mode == MODE_DENSE:
+                    rows.fill_(self.n)
+                wp.launch(_query_radii_kernel, self.n,
+                          inputs=[wp.uint64(self.bvh.id), self.item_points,
+                                  self.item_coords, self.order, side, flags,
+                                  self._reach, float(np.float32(self._cutoff)),
+                                  self.extent, self.drift_limit(self._cutoff),
+                                  int(mask_self), int(lower_only), int(mode),
+                                  self.cluster_size,
+                                  empty2 if rows is None else rows,
+                                  empty1 if row_offset is None else row_offset,
+                                  empty2 if pairs is None else pairs, count])
+            else:
+                wp.launch(_query_kernel, self.n,
+                          inputs=[wp.uint64(self.bvh.id), self.item_points, self.item_coords,
+                                  self.order, side, flags,
+                                  self.scalar(float(self._cutoff) ** 2),
+                                  float(np.float32(self._cutoff)), self.extent,
+                                  self.drift_limit(self._cutoff),
+                                  int(mask_self), int(lower_only), int(mode),
+                                  self.cluster_size,
+                                  empty2 if rows is None else rows,
+                                  empty1 if row_offset is None else row_offset,
+                                  empty2 if pairs is None else pairs, count])
             if started is not None:
                 self._timer.stop("query", started)
 

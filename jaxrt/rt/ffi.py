@@ -87,6 +87,7 @@ class _Slot:
     options: "Bvh"
     keep: bool = True
     tree: "aabb.AabbSearch | None" = None
+    history: "list | None" = None
 
 
 _SLOTS: dict[int, _Slot] = {}
@@ -119,14 +120,27 @@ class TreeOwner:
         self.options = options
         self.keep = keep
         self.slots: list[int] = []
+        self.history: list | None = None
         # Not at interpreter exit: programs dispatched before may still run.
         weakref.finalize(self, _release, self.slots).atexit = False
 
     def new_slot(self) -> int:
         slot = next(_SLOT_IDS)
-        _SLOTS[slot] = _Slot(self.options, self.keep)
+        _SLOTS[slot] = _Slot(self.options, self.keep, history=self.history)
         self.slots.append(slot)
         return slot
+
+    def keep_history(self) -> list:
+        """From now on, every tree of this owner appends ``(action,
+        t_action, t_query)`` per call to the returned list
+        (`jaxrt.rt.aabb.AabbSearch.history`); for benchmarks."""
+        self.history = []
+        for s in self.slots:
+            if s in _SLOTS:
+                _SLOTS[s].history = self.history
+                if _SLOTS[s].tree is not None:
+                    _SLOTS[s].tree.history = self.history
+        return self.history
 
     def release(self) -> None:
         """Free the slots now (their calls must have completed)."""
@@ -136,6 +150,18 @@ class TreeOwner:
         """The trees kept so far (for tests and benchmarks)."""
         return [_SLOTS[s].tree for s in self.slots
                 if s in _SLOTS and _SLOTS[s].tree is not None]
+
+
+def owner_of(neighbor_fns) -> TreeOwner:
+    """The `TreeOwner` of a ``jaxrt.neighbor_list(..., backend="bvh")``
+    factory (its trees, their history); for tests and benchmarks."""
+    searcher = getattr(getattr(neighbor_fns.allocate, "__self__", None),
+                       "searcher", None)
+    owner = getattr(searcher, "owner", None)
+    if not isinstance(owner, TreeOwner):
+        raise TypeError("neighbor_fns is not a jaxrt.neighbor_list factory "
+                        "with a BVH backend.")
+    return owner
 
 
 def forget_trees() -> None:
@@ -156,6 +182,7 @@ def _tree(slot: int, n: int, vector, device) -> aabb.AabbSearch:
     if (tree is None or tree.n != n or tree.vector is not vector
             or tree.device != wp.get_device(device)):
         tree = record.options.search_structure(n, vector, device)
+        tree.history = record.history
         if record.keep:
             record.tree = tree
     return tree
@@ -180,23 +207,31 @@ def _aabb_callables(vector):
     """(dense, sparse) jax callables for positions of type ``vector``."""
     if vector in _CALLABLES:
         return _CALLABLES[vector]
+    scalar = aabb.scalar_type(vector)
+
+    def fit(slot, points, side, cutoff, periodic, reach, has_radii):
+        tree = _tree(int(slot), points.shape[0], vector, points.device)
+        action = tree.update(points, side, _axes(periodic), float(cutoff),
+                             reach if int(has_radii) else None)
+        update_counts[action] += 1
+        return tree
 
     def dense(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
-              cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
+              reach: wp.array(dtype=scalar), cutoff: wp.float64,
+              periodic: wp.int32, mask_self: wp.int32, has_radii: wp.int32,
               slot: wp.int32, rows: wp.array2d(dtype=wp.int32),
               count: wp.array(dtype=wp.int32)):
-        tree = _tree(int(slot), points.shape[0], vector, points.device)
-        update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
+        tree = fit(slot, points, side, cutoff, periodic, reach, has_radii)
         tree.query_dense(side, mask_self=bool(mask_self), rows=rows, count=count)
 
     def sparse(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
-               cutoff: wp.float64, periodic: wp.int32, mask_self: wp.int32,
+               reach: wp.array(dtype=scalar), cutoff: wp.float64,
+               periodic: wp.int32, mask_self: wp.int32, has_radii: wp.int32,
                lower_only: wp.int32, slot: wp.int32,
                pairs: wp.array2d(dtype=wp.int32),
                count: wp.array(dtype=wp.int32), offset: wp.array(dtype=wp.int32),
                total: wp.array(dtype=wp.int32)):
-        tree = _tree(int(slot), points.shape[0], vector, points.device)
-        update_counts[tree.update(points, side, _axes(periodic), float(cutoff))] += 1
+        tree = fit(slot, points, side, cutoff, periodic, reach, has_radii)
         tree.query_sparse(side, mask_self=bool(mask_self),
                           lower_only=bool(lower_only), pairs=pairs, count=count,
                           offset=offset, total=total)
@@ -292,26 +327,25 @@ def _points(position, geometry: Geometry, query: Query):
 
 
 def _sequential_vmap(call: Callable, owner: "TreeOwner | None") -> Callable:
-    """``call(points, side, slot)`` -> tuple of arrays, as a function of
-    ``(points, side)`` whose ``vmap`` runs one system after the other, each
-    through its own call site (own slot of ``owner``; -1 without one)."""
+    """``call(*arrays, slot)`` -> tuple of arrays, as a function of the
+    arrays (positions, sides, ...) whose ``vmap`` runs one system after the
+    other, each through its own call site (own slot of ``owner``; -1
+    without one)."""
 
     @jax.custom_batching.custom_vmap
-    def one_system(points, side):
-        return call(points, side, -1 if owner is None else owner.new_slot())
+    def one_system(*arrays):
+        return call(*arrays, -1 if owner is None else owner.new_slot())
 
     @one_system.def_vmap
-    def systems(axis_size, in_batched, points, side):
-        points_batched, side_batched = in_batched
-        if not points_batched:
-            points = jnp.broadcast_to(points, (axis_size,) + points.shape)
-        if not side_batched:
-            side = jnp.broadcast_to(side, (axis_size,) + side.shape)
+    def systems(axis_size, in_batched, *arrays):
+        arrays = [a if batched else jnp.broadcast_to(a, (axis_size,) + a.shape)
+                  for a, batched in zip(arrays, in_batched)]
         if axis_size <= MAX_UNROLLED_SYSTEMS:
-            outs = [one_system(points[b], side[b]) for b in range(axis_size)]
+            outs = [one_system(*(a[b] for a in arrays))
+                    for b in range(axis_size)]
             out = jax.tree.map(lambda *xs: jnp.stack(xs), *outs)
         else:
-            out = jax.lax.map(lambda ps: one_system(*ps), (points, side))
+            out = jax.lax.map(lambda xs: one_system(*xs), tuple(arrays))
         return out, jax.tree.map(lambda _: True, out)
 
     return one_system
@@ -348,6 +382,7 @@ class Bvh:
     drift_fraction: float = 0.2
 
     max_list_entries: ClassVar[int] = MAX_LIST_ENTRIES
+    supports_radii: ClassVar[bool] = True
 
     def __post_init__(self):
         if not isinstance(self.sort, bool):
@@ -390,11 +425,20 @@ class Bvh:
                                   metric_sq)
 
 
+def _reach(points, geometry: Geometry):
+    """(float ``(N,)`` per-particle radii in the positions' dtype, or one
+    placeholder, and 1 or 0: whether they are radii)."""
+    if geometry.reach is None:
+        return jnp.zeros((1,), points.dtype), 0
+    return jax.lax.stop_gradient(geometry.reach.astype(points.dtype)), 1
+
+
 class BvhSearch:
     """The `Bvh` searcher of one list factory: its options and the
     `TreeOwner` of its trees."""
 
     max_list_entries = MAX_LIST_ENTRIES
+    supports_radii = True
 
     def __init__(self, options: Bvh, owner: TreeOwner):
         self.options = options
@@ -404,35 +448,41 @@ class BvhSearch:
     def name(self) -> str:
         return self.options.name
 
-    def _dense(self, points, side, query: Query, axes, width: int,
+    def _dense(self, points, side, reach, query: Query, axes, width: int,
                owner: TreeOwner):
-        """Dense rows int32 ``(N, width)`` and exact counts int32 ``(N,)``."""
+        """Dense rows int32 ``(N, width)`` and exact counts int32 ``(N,)``;
+        ``reach``: `_reach`."""
         dense, _ = _aabb_callables(_vector_of(points))
         n = points.shape[0]
         stored = max(width, 1)  # XLA may hand out no buffer for empty outputs
+        reach, has_radii = reach
 
-        def call(points, side, slot):
-            return tuple(dense(points, side, query.cutoff, _bits(axes),
-                               int(query.mask_self), slot,
+        def call(points, side, reach, slot):
+            return tuple(dense(points, side, reach, query.cutoff, _bits(axes),
+                               int(query.mask_self), has_radii, slot,
                                output_dims={"rows": (n, stored), "count": (n,)}))
 
-        rows, count = _sequential_vmap(call, owner)(points, side)
+        rows, count = _sequential_vmap(call, owner)(points, side, reach)
         return rows[:, :width], count
 
-    def _sparse(self, points, side, query: Query, axes, capacity: int,
+    def _sparse(self, points, side, reach, query: Query, axes, capacity: int,
                 lower_only: bool, owner: TreeOwner):
-        """Edges int32 ``(2, capacity)``, counts int32 ``(N,)``, int32 total."""
+        """Edges int32 ``(2, capacity)``, counts int32 ``(N,)``, int32 total;
+        ``reach``: `_reach`."""
         _, sparse = _aabb_callables(_vector_of(points))
         n = points.shape[0]
         stored = max(capacity, 1)
+        reach, has_radii = reach
 
-        def call(points, side, slot):
-            return tuple(sparse(points, side, query.cutoff, _bits(axes),
-                                int(query.mask_self), int(lower_only), slot,
+        def call(points, side, reach, slot):
+            return tuple(sparse(points, side, reach, query.cutoff, _bits(axes),
+                                int(query.mask_self), has_radii,
+                                int(lower_only), slot,
                                 output_dims={"pairs": (2, stored), "count": (n,),
                                              "offset": (n,), "total": (1,)}))
 
-        pairs, count, _, total = _sequential_vmap(call, owner)(points, side)
+        pairs, count, _, total = _sequential_vmap(call, owner)(points, side,
+                                                               reach)
         return pairs[:, :capacity], count, total[..., 0]
 
     def measure(self, position, geometry: Geometry, query: Query,
@@ -445,15 +495,16 @@ class BvhSearch:
         del metric_sq  # distances use jax-md's arithmetic in the kernel
         points, side, axes, _ = _points(jnp.asarray(position), geometry, query)
         aabb.check_cutoff(query.cutoff, np.asarray(side)[0], axes)
+        reach = _reach(points, geometry)
         scratch = TreeOwner(self.options, keep=False)
         try:
-            _, count, _ = self._sparse(points, side, query, axes, 0, False,
-                                       scratch)
+            _, count, _ = self._sparse(points, side, reach, query, axes, 0,
+                                       False, scratch)
             sizes = {"row": int(np.max(np.asarray(count), initial=0)),
                      "edges": int(np.sum(np.asarray(count)))}
             if query.format is OrderedSparse:
-                _, _, total = self._sparse(points, side, query, axes, 0, True,
-                                           scratch)
+                _, _, total = self._sparse(points, side, reach, query, axes, 0,
+                                           True, scratch)
                 sizes["edges"] = int(total)
         finally:
             scratch.release()
@@ -465,13 +516,14 @@ class BvhSearch:
         ``query.format``; jit/scan/vmap-able."""
         del metric_sq
         points, side, axes, too_large = _points(position, geometry, query)
+        reach = _reach(points, geometry)
         width = capacity.neighbors
         if query.format is Dense:
-            rows, count = self._dense(points, side, query, axes, width,
+            rows, count = self._dense(points, side, reach, query, axes, width,
                                       self.owner)
             occupancy = jnp.max(count, initial=0, axis=-1)
             return SearchResult(rows, occupancy, (occupancy > width) | too_large)
-        pairs, _, total = self._sparse(points, side, query, axes, width,
+        pairs, _, total = self._sparse(points, side, reach, query, axes, width,
                                        query.format is OrderedSparse,
                                        self.owner)
         return SearchResult(pairs, total, (total > width) | too_large)
