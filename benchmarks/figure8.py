@@ -265,6 +265,10 @@ def main(argv=None) -> None:
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: n = 3000, 60 steps, 20 s per run")
     parser.add_argument("--plot", metavar="CSV", help="only redraw from a run")
+    parser.add_argument("--skip", nargs="+", default=(), metavar="SCENE/RADII",
+                        help="configurations not to run (written as skipped "
+                        "with --skip-reason)")
+    parser.add_argument("--skip-reason", default="not run")
     _harness.add_common_args(parser, name="figure8.csv", timeout=900.0)
     args = parser.parse_args(argv)
     if args.plot:
@@ -289,9 +293,25 @@ def main(argv=None) -> None:
                              "steps": args.steps, "seconds": args.job_seconds,
                              "dynamics": DYNAMICS,
                              "trace": str(trace_dir / f"{tag}.csv"),
-                             "_group": f"{scene}/{radii}"})
+                             "_group": radii})
+    skip = {tuple(x.split("/")) for x in args.skip}
+    planned = []
+    for job in jobs:
+        if (job["scene"], job["radii"]) in skip:
+            planned.append({**job, "_skip": args.skip_reason})
+        else:
+            planned.append(job)
+    jobs = [j for j in planned if "_skip" not in j]
+    skipped = [{k: v for k, v in j.items() if not k.startswith("_")
+                and k not in ("dynamics", "seconds", "trace")}
+               | {"status": "skipped", "failed": j["_skip"]}
+               for j in planned if "_skip" in j]
+    # One worker per radius kind: its three policies and scenes share the
+    # compiled kernels (a worker's start costs more than a short run).
     rows, path = _harness.run_jobs("figure8:run_row", jobs, columns=COLUMNS,
-                                   reuse_worker=False, **_harness.run_options(args))
+                                   reuse_worker=True, **_harness.run_options(args))
+    rows = rows + skipped
+    _harness.write_csv(rows, path)
     _finish(rows, path.parent, args.n, args.seed)
 
 
