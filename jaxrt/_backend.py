@@ -177,6 +177,8 @@ class Backend(Protocol):
       Euclidean minimum image); the front refuses such lists otherwise;
     * ``exact_for_any_metric`` (default False): it asks the caller's metric
       about every pair, so the front skips its checks of the metric;
+    * ``sparse_without_rows`` (default False): it writes Sparse layouts
+      without Dense rows first, so the front does not bound ``N x row``;
     * ``supports_radii`` (default False): it honours `Geometry.reach`;
       the front refuses ``radii=`` otherwise;
     * ``fixed_sizes`` (default ``()``): names of internal sizes from

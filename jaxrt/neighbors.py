@@ -801,7 +801,9 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
     limit = getattr(backend, "max_list_entries", 2 ** 31 - 1)
     entries = {"idx": n * capacity.neighbors if query.format is Dense
                else 2 * capacity.neighbors}
-    if "row" in dict(capacity.internal):
+    rows_first = query.format is Dense or not getattr(
+        backend, "sparse_without_rows", False)
+    if "row" in dict(capacity.internal) and rows_first:
         entries["rows before conversion"] = n * capacity["row"]
     name, largest = max(entries.items(), key=lambda kv: kv[1])
     if largest > limit:

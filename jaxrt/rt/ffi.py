@@ -439,6 +439,8 @@ class BvhSearch:
 
     max_list_entries = MAX_LIST_ENTRIES
     supports_radii = True
+    # Sparse layouts are counted, scanned and filled: no Dense rows first.
+    sparse_without_rows = True
 
     def __init__(self, options: Bvh, owner: TreeOwner):
         self.options = options
