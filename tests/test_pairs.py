@@ -14,6 +14,8 @@ random systems here have none (checked).
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -87,14 +89,13 @@ def fe_bcc_rattled():
 
 
 def triclinic(seed=0, n=7):
-    """A strongly skewed random cell, atoms partly outside it."""
+    """A strongly skewed random cell (angles far from 90°, heights 2-3 Å),
+    atoms partly outside it."""
     rng = np.random.default_rng(seed)
     cell = np.array([[4.0, 0, 0], [3.1, 3.5, 0], [-2.7, 1.9, 3.2]])
     cell = cell + rng.uniform(-0.3, 0.3, (3, 3))
     frac = rng.uniform(-0.5, 1.7, (n, 3))
-    return Atoms("H" * n, scaled_positions=frac % 1, cell=cell, pbc=True) \
-        if False else Atoms("H" * n, positions=frac @ cell, cell=cell,
-                            pbc=True)
+    return Atoms("H" * n, positions=frac @ cell, cell=cell, pbc=True)
 
 
 def slab():
@@ -122,6 +123,8 @@ def mixed_slab_zero_row():
                  pbc=(True, True, False))
 
 
+SLOW = pytest.mark.slow
+
 SYSTEMS = {
     "si2_rc5": (si2, 5.0),
     "si2_rc9": (si2, 9.0),
@@ -129,6 +132,7 @@ SYSTEMS = {
     "fe_bcc_rc4": (fe_bcc_rattled, 4.0),
     "triclinic_rc4": (triclinic, 4.0),
     "triclinic_rc7": (lambda: triclinic(1, 5), 7.0),
+    "triclinic_rc11": (lambda: triclinic(8, 4), 11.0),
     "slab_rc5": (slab, 5.0),
     "benzene_rc3": (benzene, 3.0),
     "slab_zero_row_rc4.5": (mixed_slab_zero_row, 4.5),
@@ -136,8 +140,15 @@ SYSTEMS = {
 }
 
 
+# Every case in CI; its variants (a larger cutoff, another seed) with the
+# slow tests.
+_SLOW_SYSTEMS = {"si2_rc9", "triclinic_rc7", "triclinic_rc11", "fe_bcc_rc4"}
+
+
 @pytest.mark.parametrize("backend", ["brute", "cell"])
-@pytest.mark.parametrize("name", list(SYSTEMS))
+@pytest.mark.parametrize("name", [
+    pytest.param(name, marks=SLOW) if name in _SLOW_SYSTEMS else name
+    for name in SYSTEMS])
 def test_same_pairs_as_ase_and_brute_force(name, backend, x64):
     build, cutoff = SYSTEMS[name]
     atoms = build()
@@ -165,8 +176,9 @@ def test_same_pairs_as_ase_and_brute_force(name, backend, x64):
     assert np.all(d < cutoff)
 
 
-@pytest.mark.parametrize("name", ["si2_rc5", "triclinic_rc4", "slab_rc5",
-                                  "si_216_rc5"])
+@pytest.mark.parametrize("name", ["si2_rc5", "triclinic_rc4",
+                                  pytest.param("slab_rc5", marks=SLOW),
+                                  pytest.param("si_216_rc5", marks=SLOW)])
 def test_float32_pairs_and_distances(name):
     build, cutoff = SYSTEMS[name]
     atoms = build()
@@ -383,9 +395,13 @@ def test_forces_and_cell_gradient_match_finite_differences(x64):
     h = jnp.asarray(np.asarray(atoms.cell))
     sizes = jaxrt.pairs_sizes(r, CUT, cell=h)
     sizes = jaxrt.PairSizes(sizes.capacity + 32, sizes.max_shift)
-    e = jax.jit(lambda r, h: energy_of(r, h, sizes))
-    g_r, g_h = jax.jit(jax.grad(lambda r, h: energy_of(r, h, sizes),
-                                argnums=(0, 1)))(r, h)
+    both = jax.jit(jax.value_and_grad(lambda r, h: energy_of(r, h, sizes),
+                                      argnums=(0, 1)))
+
+    def e(r, h):
+        return both(r, h)[0]
+
+    g_r, g_h = both(r, h)[1]
     eps = 1e-6
     for (a, b) in [(0, 0), (2, 1), (4, 2)]:
         dr = np.zeros(r.shape)
@@ -411,18 +427,19 @@ def test_stress_from_the_strain_derivative_is_the_virial(x64):
         f = jnp.eye(3) + eps
         return energy_of(r @ f, h @ f, sizes)
 
-    stress = jax.grad(strained)(jnp.zeros((3, 3))) / volume
+    both = jax.jit(jax.value_and_grad(strained))
+    stress = both(jnp.zeros((3, 3)))[1] / volume
     # The virial: sum over the list of d ⊗ dE/dd.
     result = jaxrt.pairs(r, CUT, cell=h, **sizes.kwargs)
     vec = result.vectors(r, h)
-    de_dd = jax.grad(energy_of_vectors)(vec, result.valid)
+    de_dd = jax.jit(jax.grad(energy_of_vectors))(vec, result.valid)
     virial = jnp.einsum("pa,pb->ab", vec, de_dd) / volume
     np.testing.assert_allclose(stress, virial, rtol=1e-10, atol=1e-14)
     # And by finite differences of the strain.
     eps = 1e-6
     de = np.zeros((3, 3))
     de[0, 1] = eps
-    fd = (strained(de) - strained(-de)) / (2 * eps) / volume
+    fd = (both(de)[0] - both(-de)[0]) / (2 * eps) / volume
     assert abs(fd - stress[0, 1]) < 1e-7 * max(1.0, abs(float(fd)))
 
 
@@ -451,3 +468,16 @@ def test_auto_switches_from_brute_force_to_the_cell_grid():
     assert not plan(216, (True,) * 3, (1, 1, 1), "auto")[0]
     assert plan(216, (True,) * 3, (1, 1, 1), "brute")[0]
     assert not plan(2, (True,) * 3, (2, 2, 2), "cell")[0]
+
+
+def test_graph_energy_example_trains(x64):
+    spec = importlib.util.spec_from_file_location(
+        "graph_energy", pathlib.Path(__file__).resolve().parents[1]
+        / "examples" / "graph_energy.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    history, _, sizes = example.train(steps=12, n_train=3, log_every=12,
+                                      learning_rate=0.05)
+    assert sizes.max_shift == (2, 2, 2)  # the 2-atom cells' images
+    (_, loss0, _, _), (_, loss, _, _) = history[0], history[-1]
+    assert np.isfinite(loss) and loss < 0.5 * loss0, history
