@@ -50,10 +50,14 @@ candidates, in one vectorised step for small systems. ``"auto"`` takes it
 while that is at most `BRUTE_CANDIDATES` (about 200 atoms in a cell taller
 than the cutoff), and the cell grid above it.
 
-What is static: ``cutoff``, ``pbc``, ``capacity`` and ``max_shift`` (the
-reach ``r``). Outside ``jit`` (a concrete cell) ``max_shift`` is computed
-from the cell and ``capacity=None`` runs a counting pass first and sizes the
-list exactly. Under ``jit`` / ``vmap`` pass both (`pairs_sizes` measures
+What is static: ``pbc``, ``capacity``, ``max_shift`` (the reach ``r``)
+and ``cutoff`` as a Python float (it sets the reach; inside the program it
+is traced, so one compiled program serves every cutoff). Outside ``jit`` (a
+concrete cell) ``max_shift`` is computed from the cell, and
+``capacity=None`` sizes the list exactly: it searches with a power-of-two
+capacity above an estimate of the count (again with the count's power of
+two when that was short: the count is exact either way) and cuts the
+arrays to the count, so most calls compile and run one program. Under ``jit`` / ``vmap`` pass both (`pairs_sizes` measures
 them on a data set); anything that leaves the list incomplete (more pairs
 than ``capacity``, a cell that needs more shifts than ``max_shift``, a
 non-finite position, a singular cell) sets ``overflow`` and a bit of
@@ -129,7 +133,8 @@ class Pairs:
       overflow: bool scalar, the list is incomplete (`error` says why).
       error: int32 scalar, `ErrorBit` bits, 0 for a complete list.
 
-    Entries are grouped by ``i``'s cell, not sorted; `pairs_to_ase` sorts.
+    Entries are in search order, each pair next to its reverse ``(j, i,
+    -S)``; `pairs_to_ase` sorts.
     """
 
     i: jax.Array
@@ -151,13 +156,15 @@ class Pairs:
     def vectors(self, positions, cell=None):
         """float ``(capacity, 3)`` ``R[j] - R[i] + S @ cell`` in the
         positions' dtype, zero where padded; differentiable in ``positions``
-        and ``cell`` (stress through the cell)."""
-        return _vectors(self, *_arrays(positions, cell))
+        (float ``(N, 3)``) and ``cell`` (stress through the cell). One
+        system: call it inside ``vmap`` for a batch. ``cell`` is needed
+        wherever the list has shifts (raised outside ``jit``)."""
+        return _vectors(self, *_arrays(self, positions, cell))
 
     def distances(self, positions, cell=None):
         """float ``(capacity,)`` ``|d_ij|``, zero where padded, with a finite
         (zero) gradient where ``d = 0`` (padding, coincident atoms)."""
-        return _distances(self, *_arrays(positions, cell))
+        return _distances(self, *_arrays(self, positions, cell))
 
     def check(self) -> "Pairs":
         """Raise `PairsError` if the list (or any list of a batch) is
@@ -177,9 +184,13 @@ def _explain(code: int, result=None) -> str:
     return "jaxrt.pairs: the list is incomplete: " + "; ".join(why) + extra
 
 
-def _arrays(positions, cell):
+def _arrays(result: Pairs, positions, cell):
     """JAX arrays of the helpers' arguments (an ASE ``Cell`` included)."""
     positions = jnp.asarray(positions)
+    if cell is None and _is_concrete(result.shift) and np.any(
+            np.asarray(result.shift)):
+        raise ValueError("Pairs.vectors / distances: the list has lattice "
+                         "shifts, so pass the cell (cell=) they refer to.")
     return positions, (None if cell is None else
                        jnp.asarray(np.asarray(cell) if not hasattr(
                            cell, "dtype") else cell, positions.dtype))
@@ -192,7 +203,7 @@ def _vectors(result: Pairs, positions, cell):
     valid = result.i < n
     ii = jnp.minimum(result.i, n - 1)
     jj = jnp.minimum(result.j, n - 1)
-    d = positions[..., jj, :] - positions[..., ii, :]
+    d = positions[jj] - positions[ii]
     if cell is not None:
         d = d + _shift_vectors(result.shift.astype(positions.dtype),
                                _as_cell_matrix(cell))
@@ -601,8 +612,10 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
         a batch); padded atoms have no pairs.
       max_shift: static int or three: per periodic axis, the largest lattice
         shift between wrapped atoms the search reaches, ``ceil(cutoff /
-        height)`` (1 for any cell taller than the cutoff). None: from a
-        concrete cell; required with a traced one (`pairs_sizes`).
+        height)`` (1 for any cell taller than the cutoff; values below 1
+        on periodic axes count as 1, free axes are ignored). None: from a
+        concrete cell; required with a traced one (`pairs_sizes`). A larger
+        value is correct, only slower.
       backend: ``"auto"``, ``"brute"`` or ``"cell"`` (module docstring).
 
     Returns:
