@@ -427,11 +427,18 @@ def _is_concrete(x) -> bool:
     return x is None or not isinstance(x, jax.core.Tracer)
 
 
-def _check_cutoff(cutoff) -> float:
+def _check_cutoff(cutoff, traced_ok: bool = False):
+    """A Python float > 0; or, with ``traced_ok`` (capacity and max_shift
+    given: nothing static depends on it), a traced float scalar as is."""
     if isinstance(cutoff, jax.core.Tracer):
-        raise TypeError("jaxrt.pairs: cutoff must be a Python float (it is "
-                        "static: it sets the grid and the stencil); got a "
-                        "traced value. Close over it or mark it static.")
+        if traced_ok and cutoff.shape == () and jnp.issubdtype(
+                cutoff.dtype, jnp.floating):
+            return cutoff
+        raise TypeError("jaxrt.pairs: cutoff must be a Python float (it "
+                        "sets the stencil's reach and the capacity); got a "
+                        "traced value. Close over a float, or pass "
+                        "max_shift= and capacity= as well (then a traced "
+                        "float scalar is fine).")
     try:
         value = float(cutoff)
     except (TypeError, ValueError):
@@ -558,9 +565,9 @@ def _plan(n: int, pbc, max_shift, backend: str):
     return brute, reach, chunk
 
 
-def _inputs(positions, cutoff, cell, pbc, mask):
-    """Checked arguments: positions, cutoff, pbc, cell matrix, concrete
-    cell (or None), mask. ``positions`` may have leading batch axes."""
+def _inputs(positions, cutoff, cell, pbc, mask, traced_cutoff=False):
+    """Checked arguments: positions, cutoff, pbc, mask. ``positions`` may
+    have leading batch axes."""
     if not hasattr(positions, "dtype"):
         positions = np.asarray(positions)
     if not jnp.issubdtype(positions.dtype, jnp.floating):
@@ -570,7 +577,7 @@ def _inputs(positions, cutoff, cell, pbc, mask):
     if positions.ndim < 2 or positions.shape[-1] != 3:
         raise ValueError(f"jaxrt.pairs: positions must be (N, 3), got shape "
                          f"{positions.shape}.")
-    cutoff = _check_cutoff(cutoff)
+    cutoff = _check_cutoff(cutoff, traced_cutoff)
     pbc = _check_pbc(pbc, cell is not None)
     if mask is None:
         mask = jnp.ones(positions.shape[:-1], bool)
@@ -599,7 +606,8 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
         outside the cell on periodic axes are found as they are, and their
         shifts refer to the positions given, as ASE's do). The search and
         the decisions run in this dtype.
-      cutoff: Python float > 0 (static). Strict ``<``, as ASE.
+      cutoff: Python float > 0. Strict ``<``, as ASE. May be a traced
+        float scalar where ``capacity`` and ``max_shift`` are given.
       cell: ``(3, 3)`` lattice vectors as rows (ASE's convention), ``(3,)``
         sides of an orthorhombic cell, or None for free space. May be traced
         (then pass ``max_shift``). Zero rows on free axes are completed as
@@ -622,8 +630,9 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
       `Pairs`. Outside ``jit`` an incomplete list raises `PairsError`;
       under ``jit`` its ``overflow`` is set (``check()`` raises).
     """
-    positions, cutoff, pbc, mask = _inputs(positions, cutoff, cell, pbc,
-                                           mask)
+    positions, cutoff, pbc, mask = _inputs(
+        positions, cutoff, cell, pbc, mask,
+        traced_cutoff=capacity is not None and max_shift is not None)
     if positions.ndim != 2:
         raise ValueError(f"jaxrt.pairs: positions must be (N, 3) for one "
                          f"system, got {positions.shape}; jax.vmap over a "

@@ -200,6 +200,45 @@ def test_float32_pairs_and_distances(name):
     assert max(abs(got[k] - want[k]) for k in want) <= tol
 
 
+def random_cells(count, n, seed):
+    """Random cells: general triclinic (some nearly flat), atoms anywhere
+    in [-1, 2) fractional, mixed pbc."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(count):
+        cell = rng.normal(size=(3, 3)) * rng.uniform(2.0, 6.0)
+        while abs(np.linalg.det(cell)) < 2.0:
+            cell = rng.normal(size=(3, 3)) * 4.0
+        pbc = (True, True, True) if k % 3 else tuple(rng.random(3) < 0.6)
+        frac = rng.uniform(-1, 2, (n, 3))
+        out.append(Atoms("H" * n, positions=frac @ cell, cell=cell, pbc=pbc))
+    return out
+
+
+@pytest.mark.parametrize("backend", ["brute", "cell"])
+def test_random_cells_under_jit_match_ase(backend, x64):
+    # One program per backend and pbc (static capacity and max_shift): the
+    # cell and the cutoff are traced.
+    systems = random_cells(12, 6, seed=11)
+    programs = {}
+    for k, atoms in enumerate(systems):
+        cutoff = [2.5, 4.0, 6.0][k % 3]
+        cell = atoms.cell.array
+        pbc = tuple(bool(p) for p in atoms.pbc)
+        need = pairs_module._shift_for_cell(cell, cutoff, pbc)
+        if max(need) > 4:
+            continue  # too flat for the program's reach
+        if pbc not in programs:
+            programs[pbc] = jax.jit(lambda r, c, rc, pbc=pbc: jaxrt.pairs(
+                r, rc, cell=c, pbc=pbc, capacity=1201, max_shift=4,
+                backend=backend))
+        got = programs[pbc](atoms.positions, cell, cutoff)
+        assert not bool(got.overflow)
+        assert as_set(got) == ase_set(atoms, cutoff) | {("pad", 6)}, k
+        assert brute_pairs_shifts(atoms.positions, cell, pbc, cutoff) == \
+            ase_set(atoms, cutoff)
+
+
 def test_exactly_at_the_cutoff_is_out_as_in_ase(x64):
     # Exact arithmetic: 2.5 = 0.5 * 5 and 7.5 - 10 + ... are representable,
     # so |d| == cutoff exactly; ASE keeps |d| < cutoff (strict), and so do we.
