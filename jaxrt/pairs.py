@@ -250,7 +250,7 @@ def _inverse(h):
     a, b, c = h[0], h[1], h[2]
     adj = jnp.stack([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)],
                     axis=1)  # columns: inv(h) = adj / det
-    det = jnp.dot(a, adj[:, 0])
+    det = jnp.sum(a * adj[:, 0])  # elementwise: no TF32 dot on GPUs
     return adj / det, det
 
 
@@ -379,21 +379,23 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
             flat = keep.reshape(-1)
             at = total + jnp.cumsum(flat, dtype=jnp.int32) - 1
             i = jnp.broadcast_to(atoms[:, None, None], j.shape)[..., None]
-            rows = jnp.concatenate([i, j[..., None], s, j[..., None], i, -s],
-                                   axis=-1).reshape(-1, 10)
+            rows = jnp.concatenate([i, j[..., None], s], axis=-1)
             out = out.at[jnp.where(flat, at, half_capacity)].set(
-                rows, mode="drop")
+                rows.reshape(-1, 5), mode="drop")
         return total + jnp.sum(keep, dtype=jnp.int32), out
 
     steps = (jnp.max(length, initial=0) + chunk - 1) // chunk
-    pad = jnp.array([n, n, 0, 0, 0] * 2, jnp.int32)
-    out = jnp.broadcast_to(pad, (half_capacity, 10))
+    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    out = jnp.broadcast_to(pad, (half_capacity, 5))
     total, out = jax.lax.fori_loop(0, steps, step,
                                    (jnp.zeros((), jnp.int32), out))
     total = 2 * total
     error = error | jnp.where(total > capacity, ErrorBit.CAPACITY, 0)
-    return (out.reshape(2 * half_capacity, 5)[:capacity], total,
-            error.astype(jnp.int32))
+    # Each pair next to its reverse (j, i, -S): built after the loop, so the
+    # scatter moves half the data.
+    reverse = jnp.concatenate([out[:, 1:2], out[:, 0:1], -out[:, 2:]], axis=1)
+    out = jnp.stack([out, reverse], axis=1).reshape(2 * half_capacity, 5)
+    return out[:capacity], total, error.astype(jnp.int32)
 
 
 def _half(offsets: np.ndarray) -> np.ndarray:

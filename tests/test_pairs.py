@@ -406,6 +406,17 @@ def test_free_space_and_empty_systems(x64):
     assert int(lonely.count) == 0
 
 
+def test_cell_as_sides_and_sizes_of_a_batch_of_sides(x64):
+    atoms = fe_bcc_rattled()
+    sides = np.diag(atoms.cell.array)
+    by_sides = jaxrt.pairs(atoms.positions, 4.0, cell=sides)
+    assert as_set(by_sides) == ase_set(atoms, 4.0)
+    batch = np.stack([atoms.positions, atoms.positions * 1.01])
+    sizes = jaxrt.pairs_sizes(batch, 4.0, cell=np.stack([sides, sides * 1.01]))
+    assert sizes.capacity == int(by_sides.count)
+    assert sizes.max_shift == (1, 1, 1)
+
+
 # --- gradients -----------------------------------------------------------------
 
 CUT = 4.5
