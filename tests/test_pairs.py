@@ -215,7 +215,8 @@ def random_cells(count, n, seed):
     return out
 
 
-@pytest.mark.parametrize("backend", ["brute", "cell"])
+@pytest.mark.parametrize("backend", [pytest.param("brute", marks=SLOW),
+                                     "cell"])
 def test_random_cells_under_jit_match_ase(backend, x64):
     # One program per backend and pbc (static capacity and max_shift): the
     # cell and the cutoff are traced.
