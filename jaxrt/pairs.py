@@ -617,7 +617,7 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
       pbc: per axis, or one bool; None: all periodic with a cell, all free
         without. A slab is ``(True, True, False)``.
       capacity: static int, the length of the arrays; None (outside ``jit``
-        only) counts first and sizes exactly.
+        only): sized exactly, the arrays hold ``count`` pairs.
       mask: bool ``(N,)``, the real atoms of a padded system (``vmap`` over
         a batch); padded atoms have no pairs.
       max_shift: static int or three: per periodic axis, the largest lattice
@@ -641,8 +641,10 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
                          f"batch (with mask= for padded atoms).")
     capacity = _check_capacity(capacity)
     h, concrete_cell = _check_cell(cell, pbc, positions.dtype)
-    if max_shift is None:
-        if concrete_cell is None and any(pbc):
+    if max_shift is None and not any(pbc):
+        shift = (0, 0, 0)  # free space: no shifts, any cell
+    elif max_shift is None:
+        if concrete_cell is None:
             raise ValueError(
                 "jaxrt.pairs: the cell is traced, so the lattice shifts the "
                 "search must reach are not known: pass max_shift= (an int or "
