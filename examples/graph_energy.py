@@ -27,7 +27,7 @@ data set. The gradient reaches the model's parameters through
 come the same way). After training the host checks that no graph
 overflowed.
 
-    python examples/graph_energy.py            # about 30 s on 2 CPU cores
+    python examples/graph_energy.py            # about 15 s on 2 CPU cores
     python examples/graph_energy.py --steps 2000
 """
 from __future__ import annotations

@@ -254,6 +254,7 @@ def test_exactly_at_the_cutoff_is_out_as_in_ase(x64):
     assert as_set(run(atoms, 2.5, backend="cell")) == want
 
 
+@SLOW  # the triclinic systems have atoms up to a cell outside already
 def test_positions_far_outside_the_cell_shift_as_ase(x64):
     atoms = triclinic(5, 6)
     atoms.positions[0] += 3 * atoms.cell[0] - 2 * atoms.cell[2]
