@@ -18,11 +18,12 @@ Methods:
   matscipy       matscipy.neighbours.neighbour_list("ijS", ...)
   vesin          vesin.NeighborList(cutoff, full_list=True).compute(...)
   nvalchemiops   nvalchemiops' torch neighbor_list on CUDA (COO list with
-                 shifts), if installed
+                 shifts), if installed (nvalchemi-toolkit-ops and torch)
+  nvalchemiops[jax]  its JAX binding's neighbor_list (eager dispatcher)
 
     python benchmarks/pairs.py                    # CPU: 1e3..1e5, all CPU methods
     python benchmarks/pairs.py --sizes 1000000 --methods jaxrt vesin matscipy
-    python benchmarks/pairs.py --gpu              # CUDA: jaxrt, nvalchemiops, 1e3..1e6
+    python benchmarks/pairs.py --gpu              # CUDA: jaxrt, nvalchemiops (torch, jax), 1e3..1e6
     python benchmarks/pairs.py --quick            # smoke: N = 1000, 2 repeats
 """
 from __future__ import annotations
@@ -36,7 +37,7 @@ import _harness  # noqa: E402
 CUTOFF = 5.0
 LATTICE = 5.43
 CPU_METHODS = ["jaxrt", "jaxrt[eager]", "ase", "matscipy", "vesin"]
-GPU_METHODS = ["jaxrt", "jaxrt[eager]", "nvalchemiops"]
+GPU_METHODS = ["jaxrt", "jaxrt[eager]", "nvalchemiops", "nvalchemiops[jax]"]
 
 
 def scene(n: int, seed: int = 0):
@@ -109,6 +110,25 @@ def _vesin(inputs, cell):
         (lambda out: out), (lambda out: len(out[0]))
 
 
+def _probe(call, x, cell, pbc):
+    """Call nvalchemiops with one cell and pbc ((3, 3), (3,)) or, where that
+    release wants them per system, ((1, 3, 3), (1, 3)); returns the pair
+    that worked."""
+    try:
+        call(x, cell, pbc)
+        return cell, pbc
+    except (TypeError, ValueError, RuntimeError, IndexError):
+        cell, pbc = cell.reshape(1, 3, 3), pbc.reshape(1, 3)
+        call(x, cell, pbc)
+        return cell, pbc
+
+
+def _count_pairs(out):
+    """nvalchemiops' COO list (return_neighbor_list=True): (2, P) first."""
+    first = out[0] if isinstance(out, (tuple, list)) else out
+    return int(first.shape[-1])
+
+
 def _nvalchemiops(inputs, cell, dtype):
     import torch
     try:  # the module moved between releases
@@ -118,22 +138,34 @@ def _nvalchemiops(inputs, cell, dtype):
     torch_dtype = getattr(torch, dtype)
     xs = [torch.as_tensor(x, dtype=torch_dtype, device="cuda")
           for x in inputs]
-    c = torch.as_tensor(cell, dtype=torch_dtype, device="cuda").reshape(
-        1, 3, 3)
-    pbc = torch.ones((1, 3), dtype=torch.bool, device="cuda")
 
-    def call(x):
-        return neighbor_list(x, CUTOFF, cell=c, pbc=pbc,
+    def nl(x, c, p):
+        return neighbor_list(x, CUTOFF, cell=c, pbc=p,
                              return_neighbor_list=True)
+
+    c, p = _probe(nl, xs[0], torch.as_tensor(cell, dtype=torch_dtype,
+                                             device="cuda"),
+                  torch.ones(3, dtype=torch.bool, device="cuda"))
 
     def sync(out):
         torch.cuda.synchronize()
         return out
+    return (lambda x: nl(x, c, p)), xs, sync, _count_pairs
 
-    def count(out):
-        first = out[0] if isinstance(out, (tuple, list)) else out
-        return int(first.shape[-1])
-    return call, xs, sync, count
+
+def _nvalchemiops_jax(inputs, cell, dtype):
+    """nvalchemiops' JAX binding (its eager dispatcher: the documented entry
+    point; not a jit boundary)."""
+    import jax.numpy as jnp
+    from nvalchemiops.jax.neighbors import neighbor_list
+    xs = [jnp.asarray(x, dtype) for x in inputs]
+
+    def nl(x, c, p):
+        return neighbor_list(x, CUTOFF, cell=c, pbc=p,
+                             return_neighbor_list=True)
+
+    c, p = _probe(nl, xs[0], jnp.asarray(cell, dtype), jnp.ones(3, bool))
+    return (lambda x: nl(x, c, p)), xs, None, _count_pairs
 
 
 def run_row(job: dict) -> dict:
@@ -148,6 +180,11 @@ def run_row(job: dict) -> dict:
                                        dtype)
     elif method == "nvalchemiops":
         call, xs, sync, count = _nvalchemiops(inputs, cell, dtype)
+    elif method == "nvalchemiops[jax]":
+        import jax
+        if dtype == "float64":
+            jax.config.update("jax_enable_x64", True)
+        call, xs, sync, count = _nvalchemiops_jax(inputs, cell, dtype)
     else:
         call, xs, sync, count = {"ase": _ase, "matscipy": _matscipy,
                                  "vesin": _vesin}[method](inputs, cell)
@@ -181,7 +218,7 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", type=int, nargs="+",
                         default=[1_000, 10_000, 100_000])
     parser.add_argument("--methods", nargs="+", default=None,
-                        choices=CPU_METHODS + ["nvalchemiops"])
+                        choices=CPU_METHODS + GPU_METHODS[2:])
     parser.add_argument("--dtype", default="float64",
                         choices=["float32", "float64"],
                         help="jaxrt's and nvalchemiops' dtype (ASE, matscipy "
