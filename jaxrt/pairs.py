@@ -362,24 +362,32 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     image = image + wi[:, None, :]
     atoms = jnp.arange(n, dtype=jnp.int32)
     half_capacity = (capacity + 1) // 2
+    # One gather per candidate: the sorted atoms' positions and wraps side
+    # by side (w holds small whole numbers: exact in the dtype). Candidates
+    # are named by their sorted index p until the loop ends (j = order[p]
+    # then, on the stored pairs only); within the atom's own cell a pair is
+    # kept from the atom that sorts first.
+    table = jnp.concatenate([positions[order], w[order]], axis=1)
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(atoms)
 
     def step(t, carry):
         total, out = carry
         slot = t * chunk + jnp.arange(chunk, dtype=jnp.int32)
         valid = slot[None, None, :] < length[:, :, None]  # (N, K, B)
-        j = order[jnp.clip(start[:, :, None] + slot, 0, n - 1)]
-        s = image[:, :, None, :] - wi[j]
-        d = (positions[j] - positions[:, None, None, :]) + _shift_vectors(
+        p = jnp.clip(start[:, :, None] + slot, 0, n - 1)
+        row = table[p]
+        s = image[:, :, None, :] - row[..., 3:].astype(jnp.int32)
+        d = (row[..., :3] - positions[:, None, None, :]) + _shift_vectors(
             s.astype(dtype), cell)
         dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
                         + d[..., 2] * d[..., 2])
-        once = ~own[None, :, None] | (j > atoms[:, None, None])
+        once = ~own[None, :, None] | (p > rank[:, None, None])
         keep = valid & (dist < cutoff) & once
         if capacity > 0:
             flat = keep.reshape(-1)
             at = total + jnp.cumsum(flat, dtype=jnp.int32) - 1
-            i = jnp.broadcast_to(atoms[:, None, None], j.shape)[..., None]
-            rows = jnp.concatenate([i, j[..., None], s], axis=-1)
+            i = jnp.broadcast_to(atoms[:, None, None], p.shape)[..., None]
+            rows = jnp.concatenate([i, p[..., None], s], axis=-1)
             out = out.at[jnp.where(flat, at, half_capacity)].set(
                 rows.reshape(-1, 5), mode="drop")
         return total + jnp.sum(keep, dtype=jnp.int32), out
@@ -391,6 +399,9 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
                                    (jnp.zeros((), jnp.int32), out))
     total = 2 * total
     error = error | jnp.where(total > capacity, ErrorBit.CAPACITY, 0)
+    stored = out[:, 0] < n
+    out = out.at[:, 1].set(jnp.where(stored, order[jnp.where(
+        stored, out[:, 1], 0)], n))
     # Each pair next to its reverse (j, i, -S): built after the loop, so the
     # scatter moves half the data.
     reverse = jnp.concatenate([out[:, 1:2], out[:, 0:1], -out[:, 2:]], axis=1)
