@@ -42,7 +42,10 @@ How it searches (`_search`, one jitted program):
    lexicographic; ``j > i`` within the atom's own cell): each pair kept is
    written as ``(i, j, S)`` and ``(j, i, -S)``, and the two are one
    decision (``|-d| = |d|`` bit for bit), so the list is full and
-   symmetric with half the candidates.
+   symmetric with half the candidates. A candidate costs one gather (its
+   position and wrap from a table in sorted order); the scatter stores
+   ``(i, p, S)`` once per pair and the loop's end turns sorted indices
+   ``p`` into atoms and adds the reverses.
 
 ``backend="brute"`` is the same program with one cell per axis (every atom
 is a candidate of every atom, in every image): ``N² · Π(2 r_k + 1)``
