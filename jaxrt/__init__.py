@@ -7,16 +7,24 @@ Public API:
   backends                 the backends as options values (Cell, Brute, Bvh, ...)
   available_backends()     names usable as backend=
   Scene                    a simulation of only the effects it names (jaxrt.sim)
+  pairs, Pairs, pairs_sizes, PairsError   pairs with lattice shifts (i, j, S)
+                           in any cell, jit/vmap/grad-able (jaxrt.pairs)
+  pairs_from_ase, pairs_to_ase, ase_neighbor_list   ASE in and out
 """
 from jaxrt import backends
 from jaxrt.backends import available as available_backends
 from jaxrt.errors import ErrorCode, NeighborListError, check
+from jaxrt.ase_bridge import neighbor_list as ase_neighbor_list
+from jaxrt.ase_bridge import pairs_from_ase, pairs_to_ase
 from jaxrt.neighbors import Dense, OrderedSparse, Sparse, neighbor_list
+from jaxrt.pairs import Pairs, PairsError, PairSizes, pairs, pairs_sizes
 from jaxrt.sim import Scene
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Dense", "ErrorCode", "NeighborListError", "OrderedSparse", "Scene", "Sparse",
-    "available_backends", "backends", "check", "neighbor_list",
+    "Dense", "ErrorCode", "NeighborListError", "OrderedSparse", "PairSizes",
+    "Pairs", "PairsError", "Scene", "Sparse", "ase_neighbor_list",
+    "available_backends", "backends", "check", "neighbor_list", "pairs",
+    "pairs_from_ase", "pairs_sizes", "pairs_to_ase",
 ]

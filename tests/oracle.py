@@ -110,3 +110,29 @@ def brute_pairs_general(fractional, box, cutoff, mask_self=True):
         np.fill_diagonal(keep, False)
     i, j = np.nonzero(keep)
     return set(zip(i.tolist(), j.tolist()))
+
+
+def brute_pairs_shifts(position, cell, pbc, cutoff):
+    """Set of (i, j, S0, S1, S2) with |R[j] - R[i] + S @ cell| < cutoff, in
+    float64, every image: S_k over ``ceil(cutoff / h_k) + 1`` plus the whole
+    cells any atom lies outside the cell (free axes S_k = 0). ``cell`` has
+    lattice vectors as rows (ASE's convention); (i, i, 0) is left out.
+    """
+    r = np.asarray(position, np.float64)
+    h = np.asarray(cell, np.float64)
+    f = r @ np.linalg.inv(h)
+    heights = 1 / np.linalg.norm(np.linalg.inv(h), axis=0)
+    spread = np.ceil(np.max(f, axis=0) - np.min(f, axis=0)) if len(r) else 0
+    reach = [int(np.ceil(cutoff / heights[k]) + 1 + spread[k]) if pbc[k]
+             else 0 for k in range(3)]
+    found = set()
+    grid = np.meshgrid(*(np.arange(-m, m + 1) for m in reach), indexing="ij")
+    shifts = np.stack([g.ravel() for g in grid], axis=1)
+    for s in shifts:
+        d = r[None, :, :] - r[:, None, :] + s @ h
+        keep = np.sqrt(np.sum(d * d, axis=-1)) < cutoff
+        if not s.any():
+            np.fill_diagonal(keep, False)
+        for i, j in zip(*np.nonzero(keep)):
+            found.add((int(i), int(j), *map(int, s)))
+    return found
