@@ -149,6 +149,26 @@ def run_row(job: dict) -> dict:
             "status": "ok", "dtype": "float32"}
 
 
+def _merge_traces(rows: list[dict], path: Path) -> None:
+    """All per-run traces in one CSV beside the figure (the per-run files,
+    written by the workers, are removed)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["scene", "radii", "policy", "call", "action", "update_ms",
+                    "query_ms"])
+        for r in rows:
+            trace = Path(str(r.get("trace") or ""))
+            if r.get("status") != "ok" or not trace.is_file():
+                continue
+            with open(trace, newline="") as t:
+                for line in csv.DictReader(t):
+                    w.writerow([r["scene"], r["radii"], r["policy"],
+                                line["call"], line["action"],
+                                line["update_ms"], line["query_ms"]])
+            r["trace"] = f"{path.name}#{r['scene']}/{r['radii']}/{r['policy']}"
+            trace.unlink()
+
+
 def _read_trace(path) -> list[tuple[str, float]]:
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
@@ -326,6 +346,7 @@ def _finish(rows, folder: Path, n: int | None = None, seed: int = 0) -> None:
                                  "avg_rebuilds", "fixed_rebuilds", "vs_avg",
                                  "vs_fixed", "vs_second_best", "paper", "note"])
     plot(rows, folder / "figure8.png")
+    _merge_traces(rows, folder / "figure8_traces.csv")
     histogram(n or int(rows[0]["N"]), seed, folder / "figure8_ln_radii.png")
     print("wrote", folder / "figure8.png", "and", folder / "figure8_ratios.csv")
 
