@@ -218,7 +218,7 @@ def _visit(item: int, i: int, shift: wp.vec3i, xi: Any, ui: Any,
             rows[i, n] = j
     elif mode == MODE_FILL:
         slot = base + n
-        if slot < pairs.shape[1]:
+        if slot >= 0 and slot < pairs.shape[1]:
             pairs[0, slot] = j
             pairs[1, slot] = i
     return n + 1
@@ -236,7 +236,9 @@ def _store(row: int, value: int, mode: wp.int32, rows: wp.array2d(dtype=wp.int32
             rows[row, slot] = value
     elif mode == MODE_FILL:
         s = row_offset[row] + slot
-        if s < pairs.shape[1]:
+        # Offsets wrap past 2**31 edges (the front refuses such lists at
+        # allocate, after this count): never write through a wrapped one.
+        if s >= 0 and s < pairs.shape[1]:
             pairs[0, s] = value
             pairs[1, s] = row
 

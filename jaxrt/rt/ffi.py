@@ -503,11 +503,12 @@ class BvhSearch:
             _, count, _ = self._sparse(points, side, reach, query, axes, 0,
                                        False, scratch)
             sizes = {"row": int(np.max(np.asarray(count), initial=0)),
-                     "edges": int(np.sum(np.asarray(count)))}
+                     "edges": int(np.sum(np.asarray(count), dtype=np.int64))}
             if query.format is OrderedSparse:
-                _, _, total = self._sparse(points, side, reach, query, axes, 0,
+                _, lower, _ = self._sparse(points, side, reach, query, axes, 0,
                                            True, scratch)
-                sizes["edges"] = int(total)
+                # Summed in int64: the kernels' int32 total wraps past 2**31.
+                sizes["edges"] = int(np.sum(np.asarray(lower), dtype=np.int64))
         finally:
             scratch.release()
         return sizes
@@ -528,7 +529,9 @@ class BvhSearch:
         pairs, _, total = self._sparse(points, side, reach, query, axes, width,
                                        query.format is OrderedSparse,
                                        self.owner)
-        return SearchResult(pairs, total, (total > width) | too_large)
+        # A total past 2**31 edges wraps negative.
+        return SearchResult(pairs, total, (total > width) | (total < 0)
+                            | too_large)
 
 
 class MethodBackend:
