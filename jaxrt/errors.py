@@ -1,7 +1,7 @@
 """Error bits carried by every neighbour list, and the host-side check.
 
 jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
-``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds three.
+``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds four.
 A non-finite position, a metric that disagrees with the box, or a box too
 small for the cutoff also sets the overflow bit, so that the usual loop
 (``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches
@@ -24,6 +24,7 @@ class ErrorCode(enum.IntFlag):
     NONFINITE_POSITION = 1 << 4
     METRIC_MISMATCH = 1 << 5
     BOX_TOO_SMALL = 1 << 6
+    DELAUNAY_FAILED = 1 << 7
 
 
 _MESSAGES = {
@@ -41,6 +42,10 @@ _MESSAGES = {
         "the box passed to update shrank so that r_cutoff + dr_threshold is "
         "no longer below half its height on a periodic axis: the list would "
         "drop periodic images. Use a larger box or a smaller cutoff.",
+    ErrorCode.DELAUNAY_FAILED:
+        "backend='delaunay' could not rebuild its triangulation at the last "
+        "update (coincident or degenerate positions) or found it malformed; "
+        "the list is wrong. Reallocate: allocate names the cause.",
     ErrorCode.NEIGHBOR_LIST_OVERFLOW:
         "the neighbour buffer overflowed: reallocate with "
         "neighbor_fn.allocate(position) (a larger capacity_multiplier "
