@@ -35,9 +35,11 @@ Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
   two flips in a round touch one triangle. Rounds repeat until none is
   wanted (Lawson's algorithm). If that does not end with every triangle
   positive within ``max_flip_rounds`` rounds, the displacement is split
-  (Fig 5): the fraction of the move is halved, from the last fraction that
-  worked, and the rest is tried again from there. After ``max_splits``
-  failed or partial steps the triangulation is rebuilt from scratch.
+  (Fig 5): from the last fraction that worked, the next try goes 90% of
+  the way to the first time a triangle would turn flat along the move
+  (`first_inversion`; halfway if that is not why it failed), and then on
+  to the end. After ``max_splits`` failed or partial steps the
+  triangulation is rebuilt from scratch.
 * **Rebuilds** from scratch (scipy's Qhull, on the host, through
   `jax.pure_callback` under ``jit``: a host round trip) where maintenance
   cannot succeed: a point left the frame's safe region (free space),
@@ -255,7 +257,9 @@ def _torus(points: np.ndarray, side: np.ndarray, seed: int):
     from scipy.spatial import Delaunay as Qhull
     n = len(points)
     spacing = float(np.sqrt(side[0] * side[1] / n))
-    jittered = np.mod(_jitter(points, spacing, seed), side)
+    # Not wrapped again: a jittered copy of a point at 0 stays next to it,
+    # so the image shifts below refer to the true (canonical) points.
+    jittered = _jitter(points, spacing, seed)
     for factor in (4.0, 8.0, 16.0, np.inf):
         margin = np.minimum(factor * spacing, side)
         ext, ids, shifts = [], [], []
@@ -481,6 +485,40 @@ def flip_to_delaunay(tri: Array, twin: Array, shift: Array, P: Array,
     return tri, twin, shift, flips, done
 
 
+def first_inversion(tri: Array, shift: Array, P: Array, V: Array, L: Array
+                    ) -> Array:
+    """The first time ``tau`` in ``(0, 1]`` at which a triangle of the
+    vertices moving linearly from ``P`` by ``V`` (float64 ``(V, 2)``
+    each) becomes flat; ``inf`` if none does (float64 scalar).
+
+    The orientation along the move is the quadratic
+    ``(A + tau dA) x (B + tau dB)``; its smallest root in ``(0, 1]``, by the
+    cancellation-free form of the quadratic formula.
+    """
+    c = P[tri] + shift.astype(P.dtype) * L.astype(P.dtype)
+    v = V[tri]
+    A, B = c[:, 0] - c[:, 2], c[:, 1] - c[:, 2]
+    dA, dB = v[:, 0] - v[:, 2], v[:, 1] - v[:, 2]
+
+    def cross(x, y):
+        return x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]
+
+    c0 = cross(A, B)
+    c1 = cross(A, dB) + cross(dA, B)
+    c2 = cross(dA, dB)
+    inf = jnp.asarray(jnp.inf, P.dtype)
+    disc = c1 * c1 - 4 * c2 * c0
+    root = jnp.sqrt(jnp.maximum(disc, 0))
+    q = -0.5 * (c1 + jnp.where(c1 >= 0, root, -root))
+    r1 = jnp.where(c2 != 0, q / jnp.where(c2 != 0, c2, 1), inf)
+    r2 = jnp.where(q != 0, c0 / jnp.where(q != 0, q, 1), inf)
+    real = disc >= 0
+
+    def ok(r):
+        return jnp.where(real & (r > 0) & (r <= 1), r, inf)
+    return jnp.min(jnp.minimum(ok(r1), ok(r2)), initial=inf)
+
+
 def maintain(state: Triangulation, target: Array, L: Array, *,
              periodic: bool, max_flip_rounds: int, max_splits: int
              ) -> tuple[Triangulation, Array]:
@@ -500,8 +538,10 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
     else:
         delta = d
 
+    # Every success short of the end is followed by a try at the end, so
+    # capping the failures (splits) caps the loop at 2 max_splits + 1.
     def cond(c):
-        return (c[3] < 1.0) & (c[5] < max_splits)
+        return (c[3] < 1.0) & (c[7] < max_splits)
 
     def body(c):
         tri, twin, shift, s, f, steps, flips, splits = c
@@ -510,8 +550,16 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
                                                max_flip_rounds)
         tri, twin, shift = (jnp.where(done, x2, x) for x2, x in
                             ((t2, tri), (w2, twin), (s2, shift)))
+        # On failure, split the move (Fig 5): go 90% of the way to the
+        # first time a triangle of the last good triangulation would turn
+        # flat (the flips there pass the in-circle events, which come
+        # before the flattening inside a DT), or halve the step if the
+        # failure was not an inversion along the way.
+        tau = first_inversion(tri, shift, X0 + s * delta, (1 - s) * delta, L)
+        t_flat = s + tau * (1 - s)
+        retry = jnp.where(t_flat < f, s + 0.9 * (t_flat - s), s + (f - s) / 2)
         new_s = jnp.where(done, f, s)
-        new_f = jnp.where(done, 1.0, s + (f - s) / 2)
+        new_f = jnp.where(done, 1.0, retry)
         return (tri, twin, shift, new_s, new_f, steps + 1,
                 flips + jnp.where(done, k, 0), splits + ~done)
 
@@ -646,14 +694,17 @@ def bfs(position: Array, rows: Array, metric_sq: MetricSq, cutoff: float,
         # The parent of each candidate: its neighbour closest to v (ties to
         # the lower id), found by a pass over the candidate's row.
         nbr = rows[jnp.minimum(cand, n - 1)]  # (N, D, D)
-        best_d = jnp.full(cand.shape, far)
-        best_i = jnp.full(cand.shape, n, jnp.int32)
-        for k in range(rows.shape[1]):
+
+        def closer(k, best):
+            best_d, best_i = best
             y = nbr[:, :, k]
             dy = dist(y)
             better = (dy < best_d) | ((dy == best_d) & (y < best_i))
-            best_d = jnp.where(better, dy, best_d)
-            best_i = jnp.where(better, y, best_i)
+            return jnp.where(better, dy, best_d), jnp.where(better, y, best_i)
+
+        _, best_i = lax.fori_loop(
+            0, rows.shape[1], closer,
+            (jnp.full(cand.shape, far), jnp.full(cand.shape, n, jnp.int32)))
         take = inside & (best_i == x[:, None])
         slot = count[:, None] + jnp.cumsum(take, axis=1, dtype=jnp.int32) - 1
         slot = jnp.where(take, slot, width)
@@ -689,8 +740,8 @@ class Delaunay:
     Options (keyword-only, static):
       max_flip_rounds: flip rounds at one fraction of the move before the
         displacement is split (halved).
-      max_splits: failed or partial steps of one maintenance before the
-        triangulation is rebuilt from scratch.
+      max_splits: failed tries (each followed by a split of the move) of
+        one maintenance before the triangulation is rebuilt from scratch.
     """
 
     max_flip_rounds: int = 64
@@ -779,8 +830,8 @@ class Delaunay:
         while True:
             cap = Capacity(0, (("degree", degree), ("frontier", width),
                                ("row", width)))
-            found, count = _search_rows_jit(self, position, geometry, query,
-                                            cap, metric_sq, state)[:2]
+            found, count = _frontiers_jit(position, state, metric_sq,
+                                          query=query, capacity=cap)
             top = int(jnp.max(count))
             if top <= width or width >= n:
                 break
@@ -816,6 +867,20 @@ class Delaunay:
                                error=error), state
 
 
+def _frontiers(position, state: Triangulation, metric_sq: MetricSq,
+               query: Query, capacity: Capacity):
+    """Adjacency and BFS of ``state`` as it is (no maintenance): frontiers
+    int32 ``(N, K)``, counts int32 ``(N,)``, overflow and repeated-edge
+    flags (bool)."""
+    n = position.shape[0]
+    width = min(max(capacity["frontier"], capacity["row"] + 1), n)
+    rows, degrees, repeated = adjacency(state.tri, n, capacity["degree"])
+    found, count = bfs(position, rows, metric_sq, query.cutoff, width)
+    overflow = (jnp.any(degrees > capacity["degree"])
+                | jnp.any(count > width))
+    return found, count, overflow, repeated
+
+
 def _search_rows(backend: Delaunay, position, geometry: Geometry,
                  query: Query, capacity: Capacity, metric_sq: MetricSq,
                  state: Triangulation):
@@ -832,12 +897,8 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
         _device_rebuild, points=target[:n], L=L, periodic=periodic,
         cutoff=query.cutoff, max_flip_rounds=backend.max_flip_rounds)
     state = lax.cond(failed, lambda s: rebuild(s), lambda s: s, kept)
-    width = max(capacity["frontier"], capacity["row"] + 1)
-    width = min(width, n)
-    rows, degrees, repeated = adjacency(state.tri, n, capacity["degree"])
-    found, count = bfs(position, rows, metric_sq, query.cutoff, width)
-    overflow = (jnp.any(degrees > capacity["degree"])
-                | jnp.any(count > width))
+    found, count, overflow, repeated = _frontiers(position, state, metric_sq,
+                                                  query, capacity)
     bad = state.failed | repeated
     error = jnp.where(bad, jnp.uint8(ErrorCode.DELAUNAY_FAILED
                                      | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
@@ -846,8 +907,8 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
 
 
 _flip_jit = jax.jit(flip_to_delaunay, static_argnames="max_rounds")
-_search_rows_jit = jax.jit(_search_rows,
-                           static_argnames=("backend", "query", "capacity"))
+_frontiers_jit = jax.jit(lambda p, s, m, *, query, capacity: _frontiers(
+    p, s, m, query, capacity)[:2], static_argnames=("query", "capacity"))
 
 
 def stats(neighbors) -> dict:
