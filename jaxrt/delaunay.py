@@ -466,7 +466,7 @@ def _all_positive(tri: Array, shift: Array, P: Array, L: Array) -> Array:
 def flip_to_delaunay(tri: Array, twin: Array, shift: Array, P: Array,
                      L: Array, max_rounds: int):
     """Flip rounds at positions ``P`` until no edge wants a flip, at most
-    ``max_rounds``. Returns ``(tri, twin, shift, flips, done)``: ``done``
+    ``max_rounds`` (an int, or a traced int32). Returns ``(tri, twin, shift, flips, done)``: ``done``
     (bool) when the rounds ended with every triangle positive and nothing
     to flip, i.e. a Delaunay triangulation of ``P``."""
 
@@ -587,10 +587,11 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
 
 
 def _device_rebuild(state: Triangulation, points: Array, L: Array, *,
-                    periodic: bool, cutoff: float, max_flip_rounds: int
-                    ) -> Triangulation:
+                    periodic: bool, cutoff: float) -> Triangulation:
     """Rebuild from scratch on the host (`jax.pure_callback`, a host round
-    trip), then flip to Delaunay at the true positions."""
+    trip); the caller flips the result to Delaunay at the true positions
+    (`_finish_rebuild`). A failed rebuild keeps the old triangulation with
+    ``failed`` set."""
     n = points.shape[0]
     t_count = triangle_count(n, periodic)
     v = n if periodic else n + FRAME
@@ -608,16 +609,27 @@ def _device_rebuild(state: Triangulation, points: Array, L: Array, *,
 
     pos, tri, twin, shift, safe, ok = jax.pure_callback(
         host, shapes, points, L, vmap_method="sequential")
-    tri, twin, shift, flips, done = flip_to_delaunay(
-        tri, twin, shift, pos, L, max_flip_rounds)
-    ok &= done
     new = state._replace(position=pos, tri=tri, twin=twin, shift=shift,
-                         safe=safe, rebuilds=state.rebuilds + 1, flips=flips,
-                         flips_total=state.flips_total + flips,
-                         splits=jnp.int32(0), failed=~ok)
-    # A failed rebuild keeps the old triangulation, flagged.
+                         safe=safe, rebuilds=state.rebuilds + 1,
+                         flips=jnp.int32(0), splits=jnp.int32(0),
+                         failed=~ok)
     return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new,
                         state._replace(failed=jnp.bool_(True)))
+
+
+def _finish_rebuild(state: Triangulation, rebuilt: Array, L: Array,
+                    max_flip_rounds: int) -> Triangulation:
+    """Flip a fresh (jittered, `host_triangulate`) triangulation to
+    Delaunay at the true positions; no rounds when nothing was rebuilt.
+    One flip loop serves both branches, so it is compiled once."""
+    rounds = jnp.where(rebuilt & ~state.failed, max_flip_rounds, 0)
+    tri, twin, shift, flips, done = flip_to_delaunay(
+        state.tri, state.twin, state.shift, state.position, L, rounds)
+    bad = rebuilt & ~state.failed & ~done
+    return state._replace(tri=tri, twin=twin, shift=shift,
+                          flips=state.flips + flips,
+                          flips_total=state.flips_total + flips,
+                          failed=state.failed | bad)
 
 
 # ---------------------------------------------------------------------------
@@ -895,8 +907,9 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
                             max_splits=backend.max_splits)
     rebuild = functools.partial(
         _device_rebuild, points=target[:n], L=L, periodic=periodic,
-        cutoff=query.cutoff, max_flip_rounds=backend.max_flip_rounds)
+        cutoff=query.cutoff)
     state = lax.cond(failed, lambda s: rebuild(s), lambda s: s, kept)
+    state = _finish_rebuild(state, failed, L, backend.max_flip_rounds)
     found, count, overflow, repeated = _frontiers(position, state, metric_sq,
                                                   query, capacity)
     bad = state.failed | repeated

@@ -106,7 +106,8 @@ def test_predicates_decide_clear_cases_and_leave_ties_undecided():
 
 
 @pytest.mark.parametrize("periodic,fmt", [
-    (True, partition.Dense), (True, partition.Sparse),
+    (True, partition.Dense),
+    pytest.param(True, partition.Sparse, marks=pytest.mark.slow),
     (False, partition.OrderedSparse)])
 def test_random_scene_and_a_jitted_move_are_exact(periodic, fmt):
     side, cutoff = SIDE, CUTOFF
@@ -124,7 +125,8 @@ def test_random_scene_and_a_jitted_move_are_exact(periodic, fmt):
     assert s["flips"] > 0 and not s["failed"]
 
 
-@pytest.mark.parametrize("periodic", [True, False])
+@pytest.mark.parametrize("periodic", [
+    True, pytest.param(False, marks=pytest.mark.slow)])
 def test_square_lattice_with_ties_at_the_cutoff(periodic):
     """Every square of the lattice is cocircular and every row collinear;
     the cutoffs sit exactly on lattice distances (2 is excluded, strict;
@@ -148,7 +150,8 @@ def test_square_lattice_with_ties_at_the_cutoff(periodic):
         assert_exact(nbrs, R2, cutoff, side, periodic)
 
 
-@pytest.mark.parametrize("periodic", [True, False])
+@pytest.mark.parametrize("periodic", [
+    True, pytest.param(False, marks=pytest.mark.slow)])
 def test_many_small_moves_in_a_scan(periodic):
     """A random walk of 60 steps inside one lax.scan (every step a
     rebuild: no skin); the triangulation travels with the list."""
@@ -190,6 +193,7 @@ def test_a_move_across_several_edges_is_split():
     assert s["splits"] >= 1 and s["rebuilds"] == 0
 
 
+@pytest.mark.slow
 def test_skin_keeps_the_list_until_half_the_skin_then_maintains():
     side, cutoff, skin = SIDE, CUTOFF, 0.4
     R = scene()
