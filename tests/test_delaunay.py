@@ -288,3 +288,57 @@ def test_bad_input_is_refused_naming_the_fix():
     other = jaxrt.neighbor_list(disp, 5.0, 1.0, backend="brute")
     with pytest.raises(TypeError, match="state"):
         fns.update(R, other.allocate(R))
+
+
+# ---------------------------------------------------------------------------
+# The Boids scene
+
+
+def test_boids_scene_runs_with_lists_checked_against_brute_force(tmp_path):
+    from jaxrt import cli, sim
+    scene = sim.builtin("boids", n=300)
+    rule = scene.effect("boids")
+    summary = cli.run(scene, steps=8, out=tmp_path, chunk=4, check_brute=True)
+    assert summary["brute_checks"] == 3  # at the start and after each chunk
+    assert summary["overflows"] == 0
+    assert summary["triangulation"]["rebuilds"] == 0
+    assert (tmp_path / "triangulation.png").stat().st_size > 0
+    v = np.load(tmp_path / "snapshots.npz")["velocity"]
+    speed = np.linalg.norm(v, axis=1)
+    # Soft limits (the effect's docstring): within about 12%.
+    assert speed.min() > 0.85 * rule.min_speed
+    assert speed.max() < 1.15 * rule.max_speed
+
+
+def test_boids_rules_on_two_boids():
+    """Cohesion pulls together, alignment matches velocities, separation
+    pushes apart below R_s; speeds inside the limits feel nothing else."""
+    from jaxrt import sim
+    rule = sim.Boids(cohesion=1.0, alignment=1.0, separation=0.0)
+    pos = np.array([[1.0, 1.0], [1.5, 1.0], [4.0, 4.0]])
+    vel = np.array([[0.6, 0.0], [0.0, 0.8], [0.7, 0.0]])
+    scene = sim.Scene(
+        particles=sim.make_particles(positions=pos, velocities=vel),
+        box=sim.Box((8.0, 8.0), ("periodic", "periodic")),
+        effects=(rule,), integrator=sim.Integrator(dt=0.01),
+        neighbors=sim.Neighbors(backend="brute", skin=0.1, format="Dense"),
+        dtype="float64")
+    c = sim.compile_scene(scene)
+    state, nbrs = c.init()
+    a = np.asarray(state.accel)
+    # Boid 0 sees boid 1 (0.5 away): cohesion +0.5 x, alignment (-0.6, 0.8).
+    np.testing.assert_allclose(a[0], [0.5 - 0.6, 0.8], atol=1e-12)
+    np.testing.assert_allclose(a[1], [-0.5 + 0.6, -0.8], atol=1e-12)
+    np.testing.assert_allclose(a[2], [0.0, 0.0], atol=1e-12)  # alone
+    sep = sim.Boids(cohesion=0.0, alignment=0.0, separation=0.01,
+                    separation_radius=0.6)
+    state, _ = sim.compile_scene(dataclasses_replace(scene, effects=(sep,))
+                                 ).init()
+    a = np.asarray(state.accel)
+    np.testing.assert_allclose(a[0], [-0.01 / 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(a[1], [0.01 / 0.5, 0.0], atol=1e-12)
+
+
+def dataclasses_replace(obj, **kw):
+    import dataclasses
+    return dataclasses.replace(obj, **kw)

@@ -106,7 +106,7 @@ def boids(*, n: int = 2000, neighbours: float = 12.0, dt: float = 0.05,
     boids within the radius R = 1 on average (side sqrt(pi R^2 n /
     neighbours)). Rules and their parameters: `jaxrt.sim.effects.Boids`'s
     defaults (cohesion 0.5, alignment 1.0, separation 0.02 within 0.25,
-    speed in [0.5, 1.0], relaxation 0.1); time step ``dt``; list skin
+    speed in [0.5, 1.0], relaxation 0.05); time step ``dt``; list skin
     0.1, Dense, capacity multiplier 2. ``jaxrt run boids`` checks the list
     against brute force after every chunk and draws the triangulation.
     """
