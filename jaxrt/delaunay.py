@@ -667,7 +667,7 @@ def adjacency(tri: Array, n: int, degree: int) -> tuple[Array, Array, Array]:
 
 
 def bfs(position: Array, rows: Array, metric_sq: MetricSq, cutoff: float,
-        width: int) -> tuple[Array, Array]:
+        width: int, grid: Array, L: Array | None) -> tuple[Array, Array]:
     """Breadth-first search from every vertex (module docstring).
 
     Args:
@@ -675,6 +675,12 @@ def bfs(position: Array, rows: Array, metric_sq: MetricSq, cutoff: float,
         metric decides every pair, bit for bit as jax-md does).
       rows: int32 ``(N, D)`` adjacency padded with ``N`` (`adjacency`).
       width: frontier size per vertex, the vertex itself included.
+      grid: float ``(N, 2)``, the positions in grid Cartesian coordinates;
+        L: float ``(2,)`` box sides on a torus, None in free space. The
+        parent rule compares Euclidean (minimum-image) distances on them:
+        it only has to pick, among a vertex's neighbours, one closer to v,
+        and the parent is closer than the candidate by far more than
+        rounding wherever the candidate is in the radius.
     Returns:
       int32 ``(N, width)`` frontiers (the vertex itself first, then its
       neighbours in BFS order, padded with ``N``) and int32 ``(N,)``
@@ -686,42 +692,38 @@ def bfs(position: Array, rows: Array, metric_sq: MetricSq, cutoff: float,
     me = jnp.arange(n, dtype=jnp.int32)
     metric = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, 0))
     far = jnp.asarray(jnp.inf, position.dtype)
-
-    def dist(cand):  # (N, k) ids -> squared distance to the row's vertex
-        d2 = metric(position, position[jnp.minimum(cand, n - 1)])
-        return jnp.where(cand < n, d2, far)
-
-    def cond(c):
-        j, _, count = c
-        return (j < width) & jnp.any(j < count)
+    real = rows < n
+    # Each vertex's neighbours' positions, gathered once: the parent test
+    # below then reads whole rows (contiguous) instead of single vertices.
+    nbr_grid = jnp.where(real[..., None], grid[jnp.minimum(rows, n - 1)], 0)
 
     def body(c):
         j, found, count = c
         active = j < jnp.minimum(count, width)
         x = found[:, j]
         cand = rows[jnp.minimum(x, n - 1)]  # (N, D)
-        d2 = dist(cand)
+        safe = jnp.minimum(cand, n - 1)
+        d2 = jnp.where(cand < n, metric(position, position[safe]), far)
         inside = active[:, None] & (cand < n) & (cand != me[:, None]) & (
             d2 < cut2)
         # The parent of each candidate: its neighbour closest to v (ties to
-        # the lower id), found by a pass over the candidate's row.
-        nbr = rows[jnp.minimum(cand, n - 1)]  # (N, D, D)
-
-        def closer(k, best):
-            best_d, best_i = best
-            y = nbr[:, :, k]
-            dy = dist(y)
-            better = (dy < best_d) | ((dy == best_d) & (y < best_i))
-            return jnp.where(better, dy, best_d), jnp.where(better, y, best_i)
-
-        _, best_i = lax.fori_loop(
-            0, rows.shape[1], closer,
-            (jnp.full(cand.shape, far), jnp.full(cand.shape, n, jnp.int32)))
-        take = inside & (best_i == x[:, None])
+        # the lower id).
+        ids = rows[safe]  # (N, D, D)
+        dv = nbr_grid[safe] - grid[:, None, None, :]
+        if L is not None:
+            dv = dv - L * jnp.round(dv / L)
+        dy = jnp.where(real[safe], jnp.sum(dv * dv, axis=-1), far)
+        best = jnp.min(dy, axis=-1, keepdims=True)
+        parent = jnp.min(jnp.where(dy == best, ids, n), axis=-1)
+        take = inside & (parent == x[:, None])
         slot = count[:, None] + jnp.cumsum(take, axis=1, dtype=jnp.int32) - 1
         slot = jnp.where(take, slot, width)
         found = found.at[me[:, None], slot].set(cand, mode="drop")
         return j + 1, found, count + jnp.sum(take, axis=1, dtype=jnp.int32)
+
+    def cond(c):
+        j, _, count = c
+        return (j < width) & jnp.any(j < count)
 
     found = jnp.full((n, width), n, jnp.int32).at[:, 0].set(me)
     _, found, count = lax.while_loop(
@@ -842,8 +844,9 @@ class Delaunay:
         while True:
             cap = Capacity(0, (("degree", degree), ("frontier", width),
                                ("row", width)))
-            found, count = _frontiers_jit(position, state, metric_sq,
-                                          query=query, capacity=cap)
+            found, count = _frontiers_jit(position, geometry, state,
+                                          metric_sq, query=query,
+                                          capacity=cap)
             top = int(jnp.max(count))
             if top <= width or width >= n:
                 break
@@ -879,15 +882,18 @@ class Delaunay:
                                error=error), state
 
 
-def _frontiers(position, state: Triangulation, metric_sq: MetricSq,
-               query: Query, capacity: Capacity):
+def _frontiers(position, geometry: Geometry, state: Triangulation,
+               metric_sq: MetricSq, query: Query, capacity: Capacity):
     """Adjacency and BFS of ``state`` as it is (no maintenance): frontiers
     int32 ``(N, K)``, counts int32 ``(N,)``, overflow and repeated-edge
     flags (bool)."""
     n = position.shape[0]
     width = min(max(capacity["frontier"], capacity["row"] + 1), n)
     rows, degrees, repeated = adjacency(state.tri, n, capacity["degree"])
-    found, count = bfs(position, rows, metric_sq, query.cutoff, width)
+    periodic = all(query.periodic)
+    found, count = bfs(position, rows, metric_sq, query.cutoff, width,
+                       state.position[:n], geometry.side.astype(
+                           position.dtype) if periodic else None)
     overflow = (jnp.any(degrees > capacity["degree"])
                 | jnp.any(count > width))
     return found, count, overflow, repeated
@@ -910,8 +916,8 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
         cutoff=query.cutoff)
     state = lax.cond(failed, lambda s: rebuild(s), lambda s: s, kept)
     state = _finish_rebuild(state, failed, L, backend.max_flip_rounds)
-    found, count, overflow, repeated = _frontiers(position, state, metric_sq,
-                                                  query, capacity)
+    found, count, overflow, repeated = _frontiers(
+        position, geometry, state, metric_sq, query, capacity)
     bad = state.failed | repeated
     error = jnp.where(bad, jnp.uint8(ErrorCode.DELAUNAY_FAILED
                                      | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
@@ -920,8 +926,8 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
 
 
 _flip_jit = jax.jit(flip_to_delaunay, static_argnames="max_rounds")
-_frontiers_jit = jax.jit(lambda p, s, m, *, query, capacity: _frontiers(
-    p, s, m, query, capacity)[:2], static_argnames=("query", "capacity"))
+_frontiers_jit = jax.jit(lambda p, g, s, m, *, query, capacity: _frontiers(
+    p, g, s, m, query, capacity)[:2], static_argnames=("query", "capacity"))
 
 
 def stats(neighbors) -> dict:
