@@ -35,11 +35,11 @@ Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
   two flips in a round touch one triangle. Rounds repeat until none is
   wanted (Lawson's algorithm). If that does not end with every triangle
   positive within ``max_flip_rounds`` rounds, the displacement is split
-  (Fig 5): from the last fraction that worked, the next try goes 90% of
-  the way to the first time a triangle would turn flat along the move
-  (`first_inversion`; halfway if that is not why it failed), and then on
-  to the end. After ``max_splits`` failed or partial steps the
-  triangulation is rebuilt from scratch.
+  (Fig 5), point by point: each point keeps the fraction of its move that
+  last worked; the points of the triangles left inverted retry half their
+  remaining way, the others their whole move, and then all try the rest.
+  After ``max_splits`` failed tries the triangulation is rebuilt from
+  scratch.
 * **Rebuilds** from scratch (scipy's Qhull, on the host, through
   `jax.pure_callback` under ``jit``: a host round trip) where maintenance
   cannot succeed: a point left the frame's safe region (free space),
@@ -485,40 +485,6 @@ def flip_to_delaunay(tri: Array, twin: Array, shift: Array, P: Array,
     return tri, twin, shift, flips, done
 
 
-def first_inversion(tri: Array, shift: Array, P: Array, V: Array, L: Array
-                    ) -> Array:
-    """The first time ``tau`` in ``(0, 1]`` at which a triangle of the
-    vertices moving linearly from ``P`` by ``V`` (float64 ``(V, 2)``
-    each) becomes flat; ``inf`` if none does (float64 scalar).
-
-    The orientation along the move is the quadratic
-    ``(A + tau dA) x (B + tau dB)``; its smallest root in ``(0, 1]``, by the
-    cancellation-free form of the quadratic formula.
-    """
-    c = P[tri] + shift.astype(P.dtype) * L.astype(P.dtype)
-    v = V[tri]
-    A, B = c[:, 0] - c[:, 2], c[:, 1] - c[:, 2]
-    dA, dB = v[:, 0] - v[:, 2], v[:, 1] - v[:, 2]
-
-    def cross(x, y):
-        return x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0]
-
-    c0 = cross(A, B)
-    c1 = cross(A, dB) + cross(dA, B)
-    c2 = cross(dA, dB)
-    inf = jnp.asarray(jnp.inf, P.dtype)
-    disc = c1 * c1 - 4 * c2 * c0
-    root = jnp.sqrt(jnp.maximum(disc, 0))
-    q = -0.5 * (c1 + jnp.where(c1 >= 0, root, -root))
-    r1 = jnp.where(c2 != 0, q / jnp.where(c2 != 0, c2, 1), inf)
-    r2 = jnp.where(q != 0, c0 / jnp.where(q != 0, q, 1), inf)
-    real = disc >= 0
-
-    def ok(r):
-        return jnp.where(real & (r > 0) & (r <= 1), r, inf)
-    return jnp.min(jnp.minimum(ok(r1), ok(r2)), initial=inf)
-
-
 def maintain(state: Triangulation, target: Array, L: Array, *,
              periodic: bool, max_flip_rounds: int, max_splits: int
              ) -> tuple[Triangulation, Array]:
@@ -541,33 +507,38 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
     # Every success short of the end is followed by a try at the end, so
     # capping the failures (splits) caps the loop at 2 max_splits + 1.
     def cond(c):
-        return (c[3] < 1.0) & (c[7] < max_splits)
+        return jnp.any(c[3] < 1.0) & (c[7] < max_splits)
 
     def body(c):
-        tri, twin, shift, s, f, steps, flips, splits = c
-        P = X0 + f * delta
+        tri, twin, shift, s, f, streak, flips, splits = c
+        P = X0 + f[:, None] * delta
         t2, w2, s2, k, done = flip_to_delaunay(tri, twin, shift, P, L,
                                                max_flip_rounds)
+        # On failure, split the moves (Fig 5) of the vertices of the
+        # triangles the flips left inverted or flat: the points that went
+        # through more than one edge are among them. They go half their
+        # remaining way; the other points keep their whole step. If no
+        # triangle is bad (the rounds ran out), every point halves.
+        c2 = P[t2] + s2.astype(P.dtype) * L
+        det, bound = orient(c2[:, 0], c2[:, 1], c2[:, 2])
+        bad = ~(det > bound)
+        bad_v = jnp.zeros(f.shape, bool).at[t2].max(
+            jnp.broadcast_to(bad[:, None], t2.shape))
+        shrink = jnp.where(jnp.any(bad), bad_v, True)
+        retry = jnp.where(shrink, s + (f - s) / 2, f)
         tri, twin, shift = (jnp.where(done, x2, x) for x2, x in
                             ((t2, tri), (w2, twin), (s2, shift)))
-        # On failure, split the move (Fig 5): go 90% of the way to the
-        # first time a triangle of the last good triangulation would turn
-        # flat (the flips there pass the in-circle events, which come
-        # before the flattening inside a DT), or halve the step if the
-        # failure was not an inversion along the way.
-        tau = first_inversion(tri, shift, X0 + s * delta, (1 - s) * delta, L)
-        t_flat = s + tau * (1 - s)
-        retry = jnp.where(t_flat < f, s + 0.9 * (t_flat - s), s + (f - s) / 2)
         new_s = jnp.where(done, f, s)
-        new_f = jnp.where(done, 1.0, retry)
-        return (tri, twin, shift, new_s, new_f, steps + 1,
-                flips + jnp.where(done, k, 0), splits + ~done)
+        new_f = jnp.where(done, jnp.ones_like(f), retry)
+        return (tri, twin, shift, new_s, new_f,
+                jnp.where(done, 0, streak + 1), flips + jnp.where(done, k, 0),
+                splits + ~done)
 
-    one = jnp.ones((), X0.dtype)
+    ones = jnp.ones((X0.shape[0],), X0.dtype)
     tri, twin, shift, s, _, _, flips, splits = lax.while_loop(
-        cond, body, (state.tri, state.twin, state.shift, 0 * one, one,
+        cond, body, (state.tri, state.twin, state.shift, 0 * ones, ones,
                      jnp.int32(0), jnp.int32(0), jnp.int32(0)))
-    failed = s < 1.0
+    failed = jnp.any(s < 1.0)
     if periodic:
         new_pos = jnp.mod(target, L)
         new_pos = jnp.where(new_pos >= L, 0.0, new_pos)
@@ -759,7 +730,7 @@ class Delaunay:
     """
 
     max_flip_rounds: int = 64
-    max_splits: int = 16
+    max_splits: int = 32
     name: ClassVar[str] = "delaunay"
     stateful: ClassVar[bool] = True
 
