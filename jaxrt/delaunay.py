@@ -507,10 +507,10 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
     # Every success short of the end is followed by a try at the end, so
     # capping the failures (splits) caps the loop at 2 max_splits + 1.
     def cond(c):
-        return jnp.any(c[3] < 1.0) & (c[7] < max_splits)
+        return jnp.any(c[3] < 1.0) & (c[6] < max_splits)
 
     def body(c):
-        tri, twin, shift, s, f, streak, flips, splits = c
+        tri, twin, shift, s, f, flips, splits = c
         P = X0 + f[:, None] * delta
         t2, w2, s2, k, done = flip_to_delaunay(tri, twin, shift, P, L,
                                                max_flip_rounds)
@@ -531,13 +531,12 @@ def maintain(state: Triangulation, target: Array, L: Array, *,
         new_s = jnp.where(done, f, s)
         new_f = jnp.where(done, jnp.ones_like(f), retry)
         return (tri, twin, shift, new_s, new_f,
-                jnp.where(done, 0, streak + 1), flips + jnp.where(done, k, 0),
-                splits + ~done)
+                flips + jnp.where(done, k, 0), splits + ~done)
 
     ones = jnp.ones((X0.shape[0],), X0.dtype)
-    tri, twin, shift, s, _, _, flips, splits = lax.while_loop(
+    tri, twin, shift, s, _, flips, splits = lax.while_loop(
         cond, body, (state.tri, state.twin, state.shift, 0 * ones, ones,
-                     jnp.int32(0), jnp.int32(0), jnp.int32(0)))
+                     jnp.int32(0), jnp.int32(0)))
     failed = jnp.any(s < 1.0)
     if periodic:
         new_pos = jnp.mod(target, L)
