@@ -208,6 +208,31 @@ def test_skin_keeps_the_list_until_half_the_skin_then_maintains():
     assert_exact(moved, big, cutoff, side, True)
 
 
+@pytest.mark.slow
+def test_custom_mask_and_a_rectangular_torus():
+    """custom_mask_function goes through the stateful search (Sparse after
+    the mask); a rectangular torus (10 x 6) is exact too."""
+    R = scene()
+
+    def mask(idx):  # keep pairs of opposite parity only
+        i = jnp.arange(idx.shape[0])[:, None]
+        return jnp.where(idx % 2 == i % 2, idx.shape[0], idx)
+    fns = jaxrt.neighbor_list(space.periodic(SIDE)[0], SIDE, CUTOFF,
+                              backend="delaunay", custom_mask_function=mask,
+                              format=partition.Sparse)
+    nbrs = fns.allocate(R)
+    R2 = jnp.mod(R + 0.03, SIDE)
+    nbrs = jax.jit(fns.update)(R2, nbrs)
+    want = {(i, j) for i, j in brute_pairs(np.asarray(R2), CUTOFF, SIDE, True)
+            if i % 2 != j % 2}
+    assert not nbrs.did_buffer_overflow and list_pairs(nbrs) == want
+    box = np.array([10.0, 6.0])
+    R3 = uniform(200, 1.0, 2) * box
+    fns = jaxrt.neighbor_list(space.periodic(jnp.asarray(box))[0], box, 1.2,
+                              backend="delaunay")
+    assert_exact(fns.allocate(R3), R3, 1.2, box, True)
+
+
 # ---------------------------------------------------------------------------
 # Rebuilds, overflow, errors
 
