@@ -772,6 +772,7 @@ def run_options(args: argparse.Namespace) -> dict:
 
 
 _OPTION_CLASSES = {"cell": "Cell", "bvh": "Bvh", "brute": "Brute",
+                   "delaunay": "Delaunay",
                    "spheres": "Spheres", "squares": "Squares"}
 _SHORTHAND = {("cell", "auto"): {"kernel": "auto"},
               ("cell", "pallas"): {"kernel": "pallas"},

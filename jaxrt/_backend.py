@@ -21,8 +21,9 @@ A backend is a `Backend`: a frozen, hashable value holding its options
 ``allocate``) and returns the exact sizes the static buffers need;
 ``search`` must be jit/scan/vmap-able and must count exactly even where it
 cannot store, so that overflow is never silent. A backend that keeps state
-between calls (the ray-traced BVHs) does so in the object its ``bind``
-returns, one per `jaxrt.neighbor_list` call, never in module globals.
+between calls does so in the object its ``bind`` returns, one per
+`jaxrt.neighbor_list` call (the ray-traced BVHs), or in the list itself
+(``stateful``: the Delaunay triangulation), never in module globals.
 """
 from __future__ import annotations
 
@@ -159,11 +160,15 @@ class SearchResult(NamedTuple):
         row count (Dense) or the number of edges (Sparse, OrderedSparse).
       overflow: bool scalar, True when anything was dropped for lack of room,
         in ``idx`` or in an internal buffer.
+      error: None, or uint8 scalar: `jaxrt.errors.ErrorCode` bits the
+        backend sets itself (the Delaunay backend's failed rebuild); the
+        front ORs them into the list's error code.
     """
 
     idx: Array
     occupancy: Array
     overflow: Array
+    error: Array | None = None
 
 
 class Backend(Protocol):
@@ -186,7 +191,14 @@ class Backend(Protocol):
       takes them as measured (no ``capacity_multiplier``, no cap at N);
     * ``bind()``: called once per `jaxrt.neighbor_list` call; returns the
       backend that searches for that factory's lists (a stateful backend
-      returns a fresh object owning its state; default: the backend itself).
+      returns a fresh object owning its state; default: the backend itself);
+    * ``stateful = True`` with ``init_state(position, geometry, query)``: the
+      backend keeps a pytree of arrays *in the list* (the Delaunay
+      backend's triangulation). ``init_state`` runs eagerly at
+      ``allocate``; then ``measure`` and ``search`` get it as ``state=``,
+      and ``search`` returns ``(SearchResult, new_state)``. The front puts
+      the state in `jaxrt.neighbors.StatefulNeighborList.backend_state`,
+      so that it travels with the list through ``jit`` and ``lax.scan``.
     """
 
     name: str
@@ -204,6 +216,11 @@ class Backend(Protocol):
 
 # ---------------------------------------------------------------------------
 # Layout helpers shared by backends that build Dense rows first.
+
+
+def is_stateful(backend: Backend) -> bool:
+    """Whether ``backend`` keeps state in the list (`Backend`)."""
+    return bool(getattr(backend, "stateful", False))
 
 
 def bind(backend: Backend) -> Backend:

@@ -12,6 +12,9 @@ list does:
   list factory that owns it.
 * `Spheres`, `Squares` (``"spheres"``, ``"squares"``): seed 001's other
   ray-traced methods (`jaxrt.rt.spheres`, `jaxrt.rt.squares`).
+* `Delaunay` (``"delaunay"``): seed 004's 2D Delaunay triangulation kept by
+  edge flips and searched by BFS (`jaxrt.delaunay`); float64, its
+  triangulation travels with the list.
 
 A backend of one's own is any object following `Backend` (see
 `jaxrt._backend`, re-exported here with the layout helpers a backend
@@ -26,6 +29,7 @@ from jaxrt._backend import (Backend, Capacity, Geometry, MetricSq, Query,
                             format_dense_rows, pack_rows)
 from jaxrt.brute import Brute
 from jaxrt.cell_list import Cell
+from jaxrt.delaunay import Delaunay
 
 try:  # Warp is a dependency, but a broken install must not break the rest.
     from jaxrt.rt.ffi import Bvh, Spheres, Squares
@@ -34,7 +38,8 @@ except ImportError as _warp_error:
 else:
     _WARP_ERROR = None
 
-__all__ = ["Backend", "Brute", "Bvh", "Capacity", "Cell", "Geometry",
+__all__ = ["Backend", "Brute", "Bvh", "Capacity", "Cell", "Delaunay",
+           "Geometry",
            "MetricSq", "Query", "SearchResult", "Spheres", "Squares",
            "available", "bind", "dense_to_sparse", "format_dense_rows",
            "pack_rows", "resolve"]
@@ -48,6 +53,7 @@ _RAY_TRACED: dict[str, Callable[[], Backend]] = {
 _NAMED: dict[str, Callable[[], Backend]] = {
     "brute": lambda: Brute(),
     "cell": lambda: Cell(),
+    "delaunay": lambda: Delaunay(),
     **(_RAY_TRACED if _WARP_ERROR is None else {}),
 }
 

@@ -49,6 +49,9 @@ def _parser() -> argparse.ArgumentParser:
             p.add_argument("--compare-jax-md", action="store_true",
                            help="check jaxrt's list equals jax-md's at every "
                            "chunk and time both rebuilds")
+            p.add_argument("--check-brute", action="store_true",
+                           help="check the list against a float64 brute "
+                           "force at every chunk (on by default for boids)")
         p.add_argument("--steps", type=int, default=None)
         p.add_argument("--out", default="jaxrt-out")
         p.add_argument("--chunk", type=int, default=None,
@@ -57,7 +60,7 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--backend", default=None,
                        help="neighbour backend (see jaxrt.available_backends)")
         p.add_argument("--n", type=int, default=None,
-                       help="particles (lj-fluid only)")
+                       help="particles (lj-fluid and boids only)")
     return ap
 
 
@@ -84,8 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     if steps < 1:
         print("jaxrt: --steps must be >= 1", file=sys.stderr)
         return 2
+    check_brute = (getattr(args, "check_brute", False)
+                   or scene.name in _BRUTE_CHECKED)
     run(scene, steps=steps, out=pathlib.Path(args.out), chunk=args.chunk,
-        compare_jax_md=args.compare_jax_md)
+        compare_jax_md=args.compare_jax_md, check_brute=check_brute)
     return 0
 
 
@@ -96,9 +101,9 @@ def _load(args):
         kw["backend"] = args.backend
     if args.scene in sim.BUILTIN:
         if args.n is not None:
-            if args.scene != "lj-fluid":
-                raise sim.SceneError("--n: only lj-fluid takes a particle "
-                                     "count.")
+            if args.scene not in ("lj-fluid", "boids"):
+                raise sim.SceneError("--n: only lj-fluid and boids take a "
+                                     "particle count.")
             kw["n"] = args.n
         scene = sim.builtin(args.scene, **kw)
         steps = sim.BUILTIN[args.scene][1]
@@ -108,7 +113,8 @@ def _load(args):
             raise sim.SceneError(f"{args.scene!r} is neither a file nor a "
                                  f"built-in scene ({', '.join(sim.BUILTIN)}).")
         if args.n is not None:
-            raise sim.SceneError("--n: only for the built-in lj-fluid.")
+            raise sim.SceneError("--n: only for the built-in lj-fluid and "
+                                 "boids.")
         scene, steps = sim.load(path), 1000
         if args.backend:
             scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
@@ -132,6 +138,51 @@ def _pair_codes(nbrs, n: int) -> np.ndarray:
     keep = (i < n) & (j < n) & (i != j)
     i, j = i[keep].astype(np.int64), j[keep].astype(np.int64)
     return np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+
+
+_BRUTE_CHECKED = ("boids",)
+"""Built-in scenes whose lists `run` checks against brute force."""
+
+
+class _BruteCheck:
+    """The list against a float64 brute force (minimum image on periodic
+    axes) at its build positions, pair for pair."""
+
+    def __init__(self, compiled):
+        sc = compiled.scene
+        self.reach = sc.cutoff + sc.neighbors.skin
+        self.periodic = np.asarray(sc.box.periodic)
+        self.side = np.asarray(sc.box.size, float)
+        self.checks = 0
+
+    def pairs(self, position: np.ndarray) -> np.ndarray:
+        """Sorted ``i * n + j`` (i < j) within the reach, rows in blocks."""
+        r = np.asarray(position, np.float64)
+        n = len(r)
+        codes = []
+        for start in range(0, n, 1024):
+            d = r[start:start + 1024, None, :] - r[None, :, :]
+            wrap = self.side * np.round(d / np.where(self.periodic,
+                                                     self.side, 1.0))
+            d = np.where(self.periodic, d - wrap, d)
+            i, j = np.nonzero(np.sum(d * d, axis=-1) < self.reach ** 2)
+            i = i + start
+            keep = i < j
+            codes.append(i[keep].astype(np.int64) * n + j[keep])
+        return np.sort(np.concatenate(codes))
+
+    def compare(self, nbrs, n: int) -> None:
+        want = self.pairs(np.asarray(nbrs.reference_position))
+        got = _pair_codes(nbrs, n)
+        if got.shape != want.shape or np.any(got != want):
+            only_got = np.setdiff1d(got, want)[:5]
+            only_want = np.setdiff1d(want, got)[:5]
+            raise RuntimeError(
+                f"the list differs from brute force: {len(got)} vs "
+                f"{len(want)} pairs; only in the list: "
+                f"{[divmod(int(c), n) for c in only_got]}, missing: "
+                f"{[divmod(int(c), n) for c in only_want]}")
+        self.checks += 1
 
 
 def _median_time(fn, *args, repeats: int = 5) -> float:
@@ -205,11 +256,14 @@ class _JaxMdCheck:
 
 
 def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
-        compare_jax_md: bool = False) -> dict:
+        compare_jax_md: bool = False, check_brute: bool = False) -> dict:
     """Run ``scene`` for ``steps`` steps, print a summary, write files to
-    ``out``. Returns the summary as a dict."""
+    ``out``. Returns the summary as a dict. ``check_brute``: compare the
+    list with a float64 brute force after every chunk."""
     import jax
     from tqdm import tqdm
+    if scene.dtype == "float64":  # the scene asks for it; jax's default is 32
+        jax.config.update("jax_enable_x64", True)
     from jaxrt import sim
 
     _xyz_symbols(scene.particles)  # fail before the run, not after it
@@ -228,6 +282,12 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
             raise SystemExit("jaxrt: --compare-jax-md needs a scene with a "
                              "pair effect (it has no neighbour list).")
         checker = _JaxMdCheck(compiled)
+    brute = None
+    if check_brute:
+        if compiled.neighbor_fn is None:
+            raise SystemExit("jaxrt: --check-brute needs a scene with a "
+                             "pair effect (it has no neighbour list).")
+        brute = _BruteCheck(compiled)
 
     state, nbrs = compiled.init()
     chunk = chunk or max(1, min(100, steps // 10))
@@ -240,8 +300,9 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     jax.block_until_ready(compiled.chunk.lower(state, nbrs, steps=chunk)
                           .compile())
     t_compile = time.perf_counter() - t
-    if checker is not None:
-        checker.compare(nbrs, n)
+    for c in (checker, brute):
+        if c is not None:
+            c.compare(nbrs, n)
     bar = tqdm(total=steps, unit="step", desc=scene.name, smoothing=0.1,
                mininterval=0.5)
     done, t_run = 0, 0.0
@@ -254,8 +315,9 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
         t_run += time.perf_counter() - t
         done += k
         bar.update(k)
-        if checker is not None:
-            checker.compare(nbrs, n)
+        for c in (checker, brute):
+            if c is not None:
+                c.compare(nbrs, n)
         position = np.asarray(state.position)  # one copy to the host
         if not np.all(np.isfinite(position)):
             raise RuntimeError(f"positions became non-finite by step {done}")
@@ -279,6 +341,16 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
             ("overflows (redone chunks)", f"{stats.overflows}")]
     summary = dict(steps_per_s=done / t_run, rebuilds=stats.rebuilds,
                    overflows=stats.overflows, steps=done)
+    if brute is not None:
+        rows.append(("lists equal to brute force",
+                     f"yes, {brute.checks} checks (every {chunk} steps)"))
+        summary["brute_checks"] = brute.checks
+    tri_stats = _triangulation_stats(nbrs)
+    if tri_stats is not None:
+        rows.append(("triangulation rebuilds from scratch",
+                     f"{tri_stats['rebuilds']}"))
+        rows.append(("edge flips (total)", f"{tri_stats['flips_total']}"))
+        summary["triangulation"] = tri_stats
     if compiled.conservative:
         drift = (e[-1] - e[0]) / n
         rows.append(("energy drift (E_end - E_1) / N", f"{drift:+.3e}"))
@@ -308,8 +380,12 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
 
     _write_outputs(scene, out, state, np.asarray(frames),
                    np.asarray(frame_velocities), frame_steps, ke, u)
-    print(f"\nwrote {out}/energies.png, final.png, snapshots.npz, "
-          f"trajectory.xyz ({time.perf_counter() - t_start:.1f} s total)")
+    written = "energies.png, final.png, snapshots.npz, trajectory.xyz"
+    if tri_stats is not None:
+        _write_triangulation(out / "triangulation.png", scene, state, nbrs)
+        written += ", triangulation.png"
+    print(f"\nwrote {out}/{written} ({time.perf_counter() - t_start:.1f} s "
+          "total)")
     return summary
 
 
@@ -353,6 +429,50 @@ def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
     ax.set_aspect("equal")
     ax.set_title(f"{scene.name}: final state (colour: speed; x-y)")
     fig.savefig(out / "final.png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
+def _triangulation_stats(nbrs) -> dict | None:
+    """`jaxrt.delaunay.stats` of a Delaunay list, else None."""
+    from jaxrt import delaunay
+    if not isinstance(getattr(nbrs, "backend_state", None),
+                      delaunay.Triangulation):
+        return None
+    return delaunay.stats(nbrs)
+
+
+def _write_triangulation(path, scene, state, nbrs) -> None:
+    """The flock and its triangulation (the list's, at its last rebuild):
+    boids as arrows coloured by speed, the Delaunay edges in grey (edges
+    that wrap around a periodic box are left out of the picture)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    tri_state = nbrs.backend_state
+    pos = np.asarray(tri_state.position)
+    tri = np.asarray(tri_state.tri)
+    shift = np.asarray(tri_state.shift)
+    n = scene.particles.n
+    e = np.arange(3)
+    a, b = tri[:, e].ravel(), tri[:, (e + 1) % 3].ravel()
+    same = np.all(shift[:, e] == shift[:, (e + 1) % 3], axis=-1).ravel()
+    keep = same & (a < n) & (b < n) & (a < b)
+    segments = np.stack([pos[a[keep]], pos[b[keep]]], axis=1)
+    R = np.asarray(state.position)
+    V = np.asarray(state.velocity)
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.add_collection(LineCollection(segments, colors="0.75",
+                                     linewidths=0.3))
+    ax.quiver(R[:, 0], R[:, 1], V[:, 0], V[:, 1], np.linalg.norm(V, axis=1),
+              cmap="viridis", scale=30, width=0.003)
+    size = np.asarray(scene.box.size, float)
+    ax.set_xlim(0, size[0])
+    ax.set_ylim(0, size[1])
+    ax.set_aspect("equal")
+    ax.set_title(f"{scene.name}: {n} boids and their Delaunay triangulation")
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 

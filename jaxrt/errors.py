@@ -1,9 +1,11 @@
 """Error bits carried by every neighbour list, and the host-side check.
 
 jax-md's `PartitionError` holds a uint8 bitmask that survives ``jit`` and
-``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds four.
+``lax.scan``; jaxrt uses jax-md's four bits unchanged and adds four (the last shared
+by two causes).
 A non-finite position, a metric that disagrees with the box, a box too
-small for the cutoff, or bad radii also set the overflow bit, so that the usual loop
+small for the cutoff, bad radii or a failed triangulation also set the
+overflow bit, so that the usual loop
 (``if nbrs.did_buffer_overflow: nbrs = neighbor_fn.allocate(R)``) reaches
 ``allocate``, which raises a clear error instead of carrying on with a list
 that silently lacks the bad particle's pairs.
@@ -24,7 +26,13 @@ class ErrorCode(enum.IntFlag):
     NONFINITE_POSITION = 1 << 4
     METRIC_MISMATCH = 1 << 5
     BOX_TOO_SMALL = 1 << 6
+    # The eighth and last bit of jax-md's uint8 code: a search that could
+    # not build a right list from what update was given. Two names, one
+    # bit; allocate (which the overflow bit sends the loop to) names the
+    # cause.
+    SEARCH_FAILED = 1 << 7
     BAD_RADII = 1 << 7
+    DELAUNAY_FAILED = 1 << 7
 
 
 _MESSAGES = {
@@ -42,10 +50,12 @@ _MESSAGES = {
         "the box passed to update shrank so that r_cutoff + dr_threshold is "
         "no longer below half its height on a periodic axis: the list would "
         "drop periodic images. Use a larger box or a smaller cutoff.",
-    ErrorCode.BAD_RADII:
-        "the radii passed to update had a NaN, infinite or negative entry, "
-        "or one above r_cutoff (which sizes the search); the list may lack "
-        "those particles' pairs. Pass radii in [0, r_cutoff].",
+    ErrorCode.SEARCH_FAILED:
+        "the search could not build a right list at the last update: the "
+        "radii passed to update had a NaN, infinite or negative entry, or "
+        "one above r_cutoff (pass radii in [0, r_cutoff]), or "
+        "backend='delaunay' could not rebuild its triangulation (coincident "
+        "or degenerate positions). Reallocate: allocate names the cause.",
     ErrorCode.NEIGHBOR_LIST_OVERFLOW:
         "the neighbour buffer overflowed: reallocate with "
         "neighbor_fn.allocate(position) (a larger capacity_multiplier "

@@ -34,6 +34,11 @@ Where jaxrt differs from jax-md, on purpose (the README's table):
 * ``NeighborList.cell_list_capacity`` holds a `jaxrt.backends.Capacity`
   (static buffer sizes), not an int; ``cell_size`` and ``cell_list_fn``
   are None.
+* A backend that keeps state in the list (``backend="delaunay"``: its
+  triangulation) returns a `StatefulNeighborList`, a subclass of jax-md's
+  ``NeighborList`` with one more pytree field, ``backend_state``: it is
+  still a ``NeighborList`` to every consumer, and ``lax.scan`` carries the
+  state with the list.
 """
 from __future__ import annotations
 
@@ -47,11 +52,12 @@ from typing import Callable, NamedTuple, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax_md import dataclasses as jax_md_dataclasses
 from jax_md import space
 from jax_md.partition import (NeighborList, NeighborListFns,
                               NeighborListFormat, PartitionError)
 
-from jaxrt import _space, backends
+from jaxrt import _backend, _space, backends
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query
 from jaxrt.errors import ErrorCode
 
@@ -63,6 +69,16 @@ _ARGUMENTS = ("displacement_or_metric", "box", "r_cutoff", "dr_threshold",
               "capacity_multiplier", "disable_cell_list", "mask_self",
               "custom_mask_function", "fractional_coordinates", "format",
               "backend", "periodic", "radii")
+
+
+@jax_md_dataclasses.dataclass
+class StatefulNeighborList(NeighborList):
+    """jax-md's `NeighborList` plus the backend's state (a pytree of
+    arrays, e.g. `jaxrt.delaunay.Triangulation`), made by a backend with
+    ``stateful = True`` (`jaxrt.backends.Backend`). ``update`` maintains
+    the state at every rebuild and returns the list with the new state."""
+
+    backend_state: object
 
 
 def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
@@ -494,18 +510,32 @@ def _capacity(settings: _Settings, sizes: dict, n: int, extra: int,
     return Capacity(neighbors, tuple(sorted(internal.items())))
 
 
+def _state_kw(state) -> dict:
+    """``state=`` for a stateful backend's calls, nothing otherwise."""
+    return {} if state is None else {"state": state}
+
+
+def _search(searcher, position, geometry, query, capacity, metric, state):
+    """``(SearchResult, state)`` of any backend (state None if stateless)."""
+    out = searcher.search(position, geometry, query, capacity, metric,
+                          **_state_kw(state))
+    return out if state is not None else (out, None)
+
+
 def _measure(settings: _Settings, searcher, position, geometry, query,
-             metric) -> dict[str, int]:
+             metric, state=None) -> dict[str, int]:
     """The backend's exact sizes, after ``custom_mask_function`` if any."""
     mask = settings.custom_mask_function
+    kw = _state_kw(state)
     if mask is None:
-        return searcher.measure(position, geometry, query, metric)
+        return searcher.measure(position, geometry, query, metric, **kw)
     dense_query = dataclasses.replace(query, format=Dense)
-    pre = searcher.measure(position, geometry, dense_query, metric)
+    pre = searcher.measure(position, geometry, dense_query, metric, **kw)
     internal = {k: v for k, v in pre.items() if k not in ("row", "edges")}
     exact = Capacity(pre["row"], tuple(sorted({**internal,
                                                "row": pre["row"]}.items())))
-    idx = searcher.search(position, geometry, dense_query, exact, metric).idx
+    idx = _search(searcher, position, geometry, dense_query, exact, metric,
+                  state)[0].idx
     masked = np.asarray(mask(idx))
     n = position.shape[0]
     keep = masked < n
@@ -517,23 +547,30 @@ def _measure(settings: _Settings, searcher, position, geometry, query,
 
 
 def _make_build(searcher, custom_mask_function: Callable | None) -> Callable:
-    """The jitted search: ``build(position, geometry, metric, *, query,
-    capacity)`` -> (idx, overflow), the custom mask applied."""
+    """The jitted search: ``build(position, geometry, metric, state, *,
+    query, capacity)`` -> (idx, overflow, error bits (uint8), state), the
+    custom mask applied; ``state`` is None for a stateless backend."""
+
+    def bits_of(result):
+        return (jnp.uint8(0) if result.error is None
+                else result.error.astype(jnp.uint8))
 
     @functools.partial(jax.jit, static_argnames=("query", "capacity"))
-    def build(position, geometry, metric, *, query, capacity):
+    def build(position, geometry, metric, state, *, query, capacity):
         if custom_mask_function is None:
-            result = searcher.search(position, geometry, query, capacity,
-                                     metric)
-            return result.idx, result.overflow
+            result, state = _search(searcher, position, geometry, query,
+                                    capacity, metric, state)
+            return result.idx, result.overflow, bits_of(result), state
         dense_query = dataclasses.replace(query, format=Dense)
         pre = dataclasses.replace(capacity, neighbors=capacity["row"])
-        result = searcher.search(position, geometry, dense_query, pre, metric)
+        result, state = _search(searcher, position, geometry, dense_query,
+                                pre, metric, state)
         masked = custom_mask_function(result.idx)
         n = position.shape[0]
         rows, counts = backends.pack_rows(masked, masked < n, capacity["row"])
         final = backends.format_dense_rows(rows, counts, query, capacity)
-        return final.idx, final.overflow | result.overflow
+        return (final.idx, final.overflow | result.overflow, bits_of(result),
+                state)
 
     return build
 
@@ -630,20 +667,25 @@ class _Lists:
                                     decide_by_metric=model.metric_decides)
         geometry = _geometry(setup.grid, model.h, position.dtype, model.slack,
                              self.reach(radii, position.dtype))
+        state = (self.searcher.init_state(position, geometry, query)
+                 if _backend.is_stateful(self.searcher) else None)
         sizes = _measure(self.settings, self.searcher, position, geometry,
-                         query, metric)
+                         query, metric, state)
         capacity = dataclasses.replace(
             _capacity(self.settings, sizes, n, extra_capacity,
                       getattr(self.searcher, "fixed_sizes", ())),
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
-        idx, overflow = self.build(position, geometry, metric, query=query,
-                                   capacity=capacity)
-        return NeighborList(idx, position,
-                            PartitionError(_bits(overflow, _OVERFLOW)),
-                            capacity, capacity.neighbors, self.settings.format,
-                            None, None, self.update)
+        idx, overflow, code, state = self.build(
+            position, geometry, metric, state, query=query, capacity=capacity)
+        fields = (idx, position,
+                  PartitionError(code | _bits(overflow, _OVERFLOW)),
+                  capacity, capacity.neighbors, self.settings.format,
+                  None, None, self.update)
+        if state is None:
+            return NeighborList(*fields)
+        return StatefulNeighborList(*fields, state)
 
     def reach(self, radii, dtype):
         """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
@@ -688,6 +730,12 @@ class _Lists:
                                              "without") + " per-particle radii"
                 " but update got " + ("none" if capacity.radii else "radii") +
                 ": pass radii= to both, or give them to neighbor_list once.")
+        stateful = _backend.is_stateful(self.searcher)
+        if stateful != isinstance(neighbors, StatefulNeighborList):
+            raise TypeError(
+                f"neighbors {'lacks' if stateful else 'carries'} the state "
+                f"of backend={self.searcher.name!r}; use the update of the "
+                "factory that allocated it.")
         setup = self.setup(position.shape[1], kwargs)
         query = dataclasses.replace(setup.query,
                                     decide_by_metric=capacity.metric_decides)
@@ -703,15 +751,19 @@ class _Lists:
                                   self.settings.r_cutoff)
 
         def rebuild(_):
-            idx, overflow = self.build(position, geometry, metric, query=query,
-                                       capacity=capacity)
-            bits = _bits(overflow, _OVERFLOW)
+            state = neighbors.backend_state if stateful else None
+            idx, overflow, bits, state = self.build(
+                position, geometry, metric, state, query=query,
+                capacity=capacity)
+            bits |= _bits(overflow, _OVERFLOW)
             if self.checks_metric:
                 bits |= _metric_errors(position, metric, g, h, setup.grid,
                                        capacity)
-            return dataclasses.replace(neighbors, idx=idx,
-                                       reference_position=position,
-                                       error=PartitionError(code | bits))
+            new = dict(idx=idx, reference_position=position,
+                       error=PartitionError(code | bits))
+            if stateful:
+                new["backend_state"] = state
+            return dataclasses.replace(neighbors, **new)
 
         def keep(_):
             return dataclasses.replace(neighbors, error=PartitionError(code))

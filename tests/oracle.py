@@ -5,6 +5,25 @@ import numpy as np
 from jax_md import partition
 
 
+def _square_distances(position, side, periodic):
+    """float64 ``(N, N)`` squared minimum-image distances."""
+    r = np.asarray(position, np.float64)
+    dim = r.shape[1]
+    per = np.broadcast_to(np.asarray(periodic, bool), (dim,))
+    d = r[:, None, :] - r[None, :, :]
+    if per.any():
+        L = np.broadcast_to(np.asarray(side, np.float64), (dim,))
+        d = np.where(per, d - L * np.round(d / np.where(per, L, 1.0)), d)
+    return np.sum(d * d, axis=-1)
+
+
+def _pairs_of(keep, mask_self):
+    if mask_self:
+        np.fill_diagonal(keep, False)
+    i, j = np.nonzero(keep)
+    return set(zip(i.tolist(), j.tolist()))
+
+
 def brute_pairs(position, cutoff, side=None, periodic=False, mask_self=True):
     """Set of (i, j) with |r_i - r_j| < cutoff, in float64 (min image).
 
@@ -13,38 +32,17 @@ def brute_pairs(position, cutoff, side=None, periodic=False, mask_self=True):
       side: ``(dim,)`` or scalar box side for periodic axes.
       periodic: bool or per-axis bools.
     """
-    r = np.asarray(position, np.float64)
-    n, dim = r.shape
-    per = np.broadcast_to(np.asarray(periodic, bool), (dim,))
-    d = r[:, None, :] - r[None, :, :]
-    if per.any():
-        L = np.broadcast_to(np.asarray(side, np.float64), (dim,))
-        d = np.where(per, d - L * np.round(d / np.where(per, L, 1.0)), d)
-    d2 = np.sum(d * d, axis=-1)
-    keep = d2 < float(cutoff) ** 2
-    if mask_self:
-        np.fill_diagonal(keep, False)
-    i, j = np.nonzero(keep)
-    return set(zip(i.tolist(), j.tolist()))
+    d2 = _square_distances(position, side, periodic)
+    return _pairs_of(d2 < float(cutoff) ** 2, mask_self)
 
 
 def brute_pairs_radii(position, radii, side=None, periodic=False,
                       mask_self=True):
     """Set of (i, j) with |r_i - r_j| < max(radii_i, radii_j), float64."""
-    r = np.asarray(position, np.float64)
-    n, dim = r.shape
-    per = np.broadcast_to(np.asarray(periodic, bool), (dim,))
-    d = r[:, None, :] - r[None, :, :]
-    if per.any():
-        L = np.broadcast_to(np.asarray(side, np.float64), (dim,))
-        d = np.where(per, d - L * np.round(d / np.where(per, L, 1.0)), d)
-    d2 = np.sum(d * d, axis=-1)
+    d2 = _square_distances(position, side, periodic)
     reach = np.asarray(radii, np.float64)
-    keep = d2 < np.maximum(reach[:, None], reach[None, :]) ** 2
-    if mask_self:
-        np.fill_diagonal(keep, False)
-    i, j = np.nonzero(keep)
-    return set(zip(i.tolist(), j.tolist()))
+    return _pairs_of(d2 < np.maximum(reach[:, None], reach[None, :]) ** 2,
+                     mask_self)
 
 
 def list_pairs(nbrs) -> set[tuple[int, int]]:

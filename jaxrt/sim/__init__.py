@@ -26,15 +26,16 @@ A run::
 from jaxrt.sim.spec import (BOUNDARIES, Box, Context, Effect, Integrator,
                             Neighbors, Particles, Scene, SceneError, Term,
                             check_reach, make_particles)
-from jaxrt.sim.effects import (EFFECTS, LJ, Gravity, Registry, SPHDensity,
+from jaxrt.sim.effects import (EFFECTS, LJ, Boids, Gravity, Registry,
+                               SPHDensity,
                                SPHPressure, SPHViscosity, Walls, register,
                                registered, unregister)
 from jaxrt.sim.validate import check_backend
 from jaxrt.sim.toml import from_toml, load, to_toml
 from jaxrt.sim.compile import FORMATS, Compiled, State, Trace, compile_scene
 from jaxrt.sim.run import RunStats, run_chunk
-from jaxrt.sim.builtin import (BUILTIN, builtin, dam_break, lj_fluid,
-                               sphere_surface)
+from jaxrt.sim.builtin import (BUILTIN, boids, builtin, dam_break,
+                               lj_fluid, sphere_surface)
 
 __all__ = [
     # spec
@@ -42,7 +43,7 @@ __all__ = [
     "Particles", "Scene", "SceneError", "Term", "check_reach",
     "make_particles",
     # effects
-    "EFFECTS", "LJ", "Gravity", "Registry", "SPHDensity", "SPHPressure",
+    "EFFECTS", "LJ", "Boids", "Gravity", "Registry", "SPHDensity", "SPHPressure",
     "SPHViscosity", "Walls", "register", "registered", "unregister",
     # validate, toml
     "check_backend", "from_toml", "load", "to_toml",
@@ -50,5 +51,5 @@ __all__ = [
     "FORMATS", "Compiled", "State", "Trace", "compile_scene", "RunStats",
     "run_chunk",
     # builtin
-    "BUILTIN", "builtin", "dam_break", "lj_fluid", "sphere_surface",
+    "BUILTIN", "boids", "builtin", "dam_break", "lj_fluid", "sphere_surface",
 ]

@@ -18,6 +18,7 @@ import contextlib
 import dataclasses
 from typing import Any, ClassVar, Iterator
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -355,3 +356,102 @@ class Walls:
             out = jnp.maximum(-x, 0) + jnp.maximum(x - hi.astype(x.dtype), 0)
             return 0.5 * k * jnp.sum(out * out)
         return Term(energy=walls)
+
+
+# ---------------------------------------------------------------------------
+# Boids (seed 004's scene)
+
+
+@register
+@dataclasses.dataclass(frozen=True)
+class Boids:
+    """Reynolds' boids (1987), in the form of seed 004's spec (SPECS.md
+    §6; the poster gives no rules or parameters, so every one is here).
+
+    For boid i with neighbours j within ``radius`` (R):
+
+    * cohesion ``w_c (mean_j x_j - x_i)`` (minimum-image offsets),
+    * alignment ``w_a (mean_j v_j - v_i)``,
+    * separation ``w_s sum_{d_ij < R_s} (x_i - x_j) / d_ij^2`` with
+      ``R_s`` = ``separation_radius``,
+    * speed limits: an acceleration ``(v* - v) / tau`` towards ``v*``, the
+      velocity with its speed clamped to ``[min_speed, max_speed]``
+      (``tau`` = ``speed_relaxation``). A force cannot clamp exactly: the
+      other rules push speeds past the limits by about their acceleration
+      times ``tau`` (with the defaults and dt = 0.05, speeds stay within
+      about 12% of the limits: 0.44 to 1.0 seen in the built-in scene).
+
+    Weights: ``cohesion`` (w_c, 1/time^2), ``alignment`` (w_a, 1/time),
+    ``separation`` (w_s, length^2/time^2). A boid without neighbours feels
+    only the speed limits.
+    """
+    radius: float = 1.0
+    separation_radius: float = 0.25
+    cohesion: float = 0.5
+    alignment: float = 1.0
+    separation: float = 0.02
+    min_speed: float = 0.5
+    max_speed: float = 1.0
+    speed_relaxation: float = 0.05
+    kind: ClassVar[str] = "boids"
+    pairwise: ClassVar[bool] = True
+
+    @property
+    def cutoff(self) -> float:
+        return float(self.radius)
+
+    def validate(self, scene, where: str) -> None:
+        _positive(self, where, "radius", "separation_radius",
+                  "speed_relaxation", "max_speed")
+        for k in ("cohesion", "alignment", "separation", "min_speed"):
+            if not getattr(self, k) >= 0:
+                raise SceneError.at(f"{where}.{k}", "must be >= 0.")
+        if not self.separation_radius <= self.radius:
+            raise SceneError.at(f"{where}.separation_radius",
+                                "must be <= radius (the list's reach).")
+        if not self.min_speed < self.max_speed:
+            raise SceneError.at(f"{where}.min_speed",
+                                "must be below max_speed.")
+        check_reach(scene, self.cutoff, f"{where}.radius")
+
+    def term(self, ctx: Context) -> Term:
+        displacement = ctx.displacement
+        r2 = self.radius ** 2
+        rs2 = self.separation_radius ** 2
+
+        def boids(R, V, nbrs, rho):
+            n = R.shape[0]
+            pairs = _sph._pairs(nbrs, n)
+            c = jnp.minimum(pairs.centre, n - 1)
+            o = jnp.minimum(pairs.other, n - 1)
+            # x_j - x_i, from i's point of view.
+            dx = jax.vmap(displacement)(R[o].reshape(-1, R.shape[1]),
+                                        R[c].reshape(-1, R.shape[1]))
+            dx = dx.reshape(pairs.centre.shape + (R.shape[1],))
+            d2 = jnp.sum(dx * dx, axis=-1)
+            seen = pairs.valid & (d2 < r2)
+            near = pairs.valid & (d2 < rs2)
+            one = jnp.ones(pairs.centre.shape + (1,), R.dtype)
+
+            def total(weight, to_centre, to_other):
+                w = weight[..., None]
+                return _sph._sum_pairs(jnp.where(w, to_centre, 0),
+                                       jnp.where(w, to_other, 0), pairs,
+                                       nbrs, n)
+            count = total(seen, one, one)[:, 0]
+            dv = V[o] - V[c]
+            mean_dx = total(seen, dx, -dx) / jnp.maximum(count, 1)[:, None]
+            mean_dv = total(seen, dv, -dv) / jnp.maximum(count, 1)[:, None]
+            push = -dx / jnp.maximum(d2, 1e-12)[..., None]
+            sep = total(near, push, -push)
+            speed = jnp.linalg.norm(V, axis=1, keepdims=True)
+            clamped = jnp.clip(speed, self.min_speed, self.max_speed)
+            v_star = V * clamped / jnp.maximum(speed, 1e-12)
+            return (self.cohesion * mean_dx + self.alignment * mean_dv
+                    + self.separation * sep
+                    + (v_star - V) / self.speed_relaxation)
+        return Term(accel=boids, notes=(
+            f"boids: R={self.radius}, R_s={self.separation_radius}, "
+            f"w_c={self.cohesion}, w_a={self.alignment}, "
+            f"w_s={self.separation}, speed in [{self.min_speed}, "
+            f"{self.max_speed}], tau={self.speed_relaxation}",))

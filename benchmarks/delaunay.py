@@ -1,0 +1,214 @@
+"""Seed 004: update time per step of Delaunay lists against grids, in 2D.
+
+The poster's claim: its Delaunay method (a triangulation kept by edge flips,
+searched by BFS) "is faster than grid based methods in various situations"
+for slowly moving particles (2D Boids, float64). Here, per step of a
+trajectory, every method updates its list with dr_threshold = 0 (every
+step searches again, as the poster does each time step):
+
+  delaunay   jaxrt's backend="delaunay" (maintenance by flips, then BFS)
+  cell       jaxrt's cell list (the uniform grid; the poster's baseline is
+             the GPU uniform grid of Green 2010)
+  jax-md     jax_md.partition.neighbor_list (its cell list)
+
+Motions (positions precomputed, then replayed forward and backward so that
+repeated timing loops join smoothly; float64):
+
+  boids      the built-in Boids scene (`jaxrt.sim.builtin.boids`: R = 1,
+             speeds 0.5 to 1, dt = 0.05), a periodic square sized for k
+             neighbours within R on average; simulated with the cell list
+  random     a periodic random walk from uniform positions: each step
+             every particle moves by a Gaussian of 0.05 mean spacings per
+             axis; cutoff sized for k neighbours
+
+Columns: ``update_ms`` (median per step over ``--repeats`` loops of
+2 ``--steps`` steps, compilation excluded), ``k`` the measured mean
+neighbours, for delaunay ``flips_per_step``, ``rebuilds`` (from scratch,
+during the timed loops) and ``splits_last``; ``overflow`` if any list
+overflowed during the loops (the row is then not valid).
+
+    python benchmarks/delaunay.py --sizes 10000                   # CPU
+    python benchmarks/delaunay.py --sizes 10000 100000 1000000    # GPU
+    python benchmarks/delaunay.py --quick                         # smoke
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
+
+METHODS = ("delaunay", "cell", "jax-md")
+MOTIONS = ("boids", "random")
+CACHE = os.path.join(tempfile.gettempdir(), "jaxrt-delaunay-bench")
+
+
+def trajectory(motion: str, n: int, k: float, steps: int):
+    """float64 ``(2 steps, N, 2)`` positions (forward, then back), the box
+    side and the cutoff; cached on disk per (motion, N, k, steps)."""
+    import numpy as np
+    os.makedirs(CACHE, exist_ok=True)
+    path = os.path.join(CACHE, f"{motion}_{n}_{k:g}_{steps}.npz")
+    if os.path.exists(path):
+        z = np.load(path)
+        return z["traj"], float(z["side"]), float(z["cutoff"])
+    if motion == "boids":
+        traj, side, cutoff = _boids(n, k, steps)
+    else:
+        rng = np.random.default_rng(0)
+        side = math.sqrt(n)  # unit density
+        cutoff = math.sqrt(k / math.pi)  # k = pi rc^2 density
+        step = 0.05 * rng.normal(size=(steps, n, 2))  # spacing = 1
+        start = rng.uniform(0, side, (n, 2))
+        traj = np.mod(start + np.cumsum(step, axis=0), side)
+    traj = np.concatenate([traj, traj[::-1]])
+    np.savez(path, traj=traj, side=side, cutoff=cutoff)
+    return traj, side, cutoff
+
+
+def _boids(n: int, k: float, steps: int):
+    import jax
+    import numpy as np
+    from jaxrt import sim
+    scene = sim.builtin("boids", n=n, neighbours=k, backend="cell")
+    c = sim.compile_scene(scene)
+    state, nbrs = c.init()
+    step = jax.jit(c.step)
+    out = []
+    for _ in range(steps):
+        state, nbrs, _ = step(state, nbrs)
+        if nbrs.did_buffer_overflow:
+            nbrs = c.neighbor_fn.allocate(state.position)
+        out.append(np.asarray(state.position))
+    return np.stack(out), float(scene.box.size[0]), scene.cutoff
+
+
+def _list_fns(method: str, side: float, cutoff: float):
+    from jax_md import partition, space
+    disp, _ = space.periodic(side)
+    if method == "jax-md":
+        return partition.neighbor_list(disp, side, cutoff, 0.0,
+                                       capacity_multiplier=1.5)
+    import jaxrt
+    return jaxrt.neighbor_list(disp, side, cutoff, 0.0,
+                               capacity_multiplier=1.5,
+                               backend=_harness.backend(method),
+                               periodic=True)
+
+
+def run_row(job: dict) -> dict:
+    """One (motion, method, N, k) row, in a worker."""
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    traj, side, cutoff = trajectory(job["motion"], job["N"],
+                                    job["k_target"], job["steps"])
+    path = jnp.asarray(traj)
+    fns = _list_fns(job["method"], side, cutoff)
+    t = time.perf_counter()
+    nbrs = fns.allocate(path[0])
+    jax.block_until_ready(nbrs.idx)
+    allocate_s = time.perf_counter() - t
+    idx = np.asarray(nbrs.idx)
+    k_measured = float(np.mean(np.sum(idx < job["N"], axis=1)))
+    update = fns.update
+
+    @jax.jit
+    def loop(carry):
+        nbrs, overflow = carry
+
+        def body(c, R):
+            nb, bad = c
+            nb = update(R, nb)
+            return (nb, bad | (nb.did_buffer_overflow != 0)), None
+        (nbrs, overflow), _ = jax.lax.scan(body, (nbrs, overflow), path)
+        return nbrs, overflow
+
+    delaunay = job["method"].startswith("delaunay")
+    carry = (nbrs, jnp.bool_(False))
+    carry = jax.block_until_ready(loop(carry))  # warm: compiled
+    before = (np.asarray(carry[0].backend_state.flips_total),
+              np.asarray(carry[0].backend_state.rebuilds)) if delaunay \
+        else None
+    timing, carry = _harness.time_carry(
+        loop, carry, repeats=job["repeats"], warmup=job["warmup"],
+        per_call=len(traj))
+    row = {"motion": job["motion"], "method": job["method"], "N": job["N"],
+           "k_target": job["k_target"], "k": round(k_measured, 1),
+           "cutoff": round(cutoff, 4), "box": round(side, 3),
+           "dtype": "float64", "steps_per_loop": len(traj),
+           "allocate_s": allocate_s, "update_ms": timing.median_ms,
+           **timing.columns(), "overflow": bool(carry[1])}
+    if delaunay:
+        state = carry[0].backend_state
+        loops = timing.repeats + timing.warmup
+        row["flips_per_step"] = float(
+            (np.asarray(state.flips_total) - before[0])
+            / (loops * len(traj)))
+        row["rebuilds"] = int(np.asarray(state.rebuilds) - before[1])
+        row["splits_last"] = int(np.asarray(state.splits))
+    return row
+
+
+def add_ratios(rows: list[dict]) -> None:
+    """Each row's speed-up over the cell list and over jax-md, same motion,
+    N and k (> 1: this row is faster)."""
+    for r in rows:
+        for ref_name, col in (("cell", "vs_cell"), ("jax-md", "vs_jax_md")):
+            ref = next((x for x in rows if x["motion"] == r["motion"]
+                        and x["N"] == r["N"]
+                        and x.get("k_target") == r.get("k_target")
+                        and x["method"] == ref_name and x["status"] == "ok"),
+                       None)
+            if ref is not None and r["status"] == "ok" and r is not ref:
+                r[col] = ref["update_ms"] / r["update_ms"]
+
+
+COLUMNS = ["motion", "method", "N", "k_target", "k", "update_ms", "min_ms",
+           "max_ms", "vs_cell", "vs_jax_md", "flips_per_step", "rebuilds",
+           "splits_last", "overflow", "allocate_s"]
+
+
+def main(argv=None) -> None:
+    parser = _harness.make_parser(__doc__)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000],
+                        help="N")
+    parser.add_argument("--neighbours", type=float, nargs="+",
+                        default=[8, 16, 32, 64],
+                        help="mean neighbours k the box (boids) or the "
+                        "cutoff (random) is scaled for")
+    parser.add_argument("--motions", nargs="+", default=list(MOTIONS),
+                        choices=MOTIONS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS),
+                        help="delaunay, delaunay[max_splits=8], cell, "
+                        "cell[xla], jax-md, ...")
+    parser.add_argument("--steps", type=int, default=20,
+                        help="steps of the trajectory (replayed forward and "
+                        "back: 2 steps per timed loop)")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke: N = 2000, k = 8, 2 repeats")
+    _harness.add_common_args(parser, name="delaunay.csv", repeats=5,
+                             warmup=1, timeout=900)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.sizes, args.neighbours, args.repeats = [2000], [8], 2
+    for label in args.methods:
+        if label != "jax-md":
+            _harness.parse_backend(label)  # a typo fails here
+    jobs = [{"motion": m, "method": meth, "N": n, "k_target": k,
+             "steps": args.steps, "repeats": args.repeats,
+             "warmup": args.warmup}
+            for n in args.sizes for k in args.neighbours
+            for m in args.motions for meth in args.methods]
+    _harness.run_jobs("delaunay:run_row", jobs, columns=COLUMNS,
+                      finish=add_ratios, **_harness.run_options(args))
+
+
+if __name__ == "__main__":
+    main()
