@@ -42,15 +42,20 @@ def check(nbrs, radii, side, periodic, fmt, skin=0.0, mask_self=True):
     assert list_pairs(nbrs) == expected_pairs(fmt, want)
 
 
-# Every layout in a periodic box; free space in one layout (the layouts
-# share everything after the search).
-CASES = ([(True, fmt) for fmt in FORMATS] + [(False, partition.Sparse)])
+# Every layout in a periodic box, free space in one layout (the layouts
+# share everything after the search); the variants of a backend (one
+# class, clusters) in one layout each.
+CASES = [(name, periodic, fmt) for name in ("brute", "cell", "bvh")
+         for periodic, fmt in [(True, f) for f in FORMATS]
+         + [(False, partition.Sparse)]] + [
+    ("cell-one-class", True, partition.Sparse),
+    ("cell-one-class", False, partition.Dense),
+    ("bvh-clusters", True, partition.OrderedSparse)]
 
 
-@pytest.mark.parametrize("periodic,fmt", CASES,
-                         ids=[("periodic-" if p else "free-") + f.name
-                              for p, f in CASES])
-@pytest.mark.parametrize("name", BACKENDS)
+@pytest.mark.parametrize("name,periodic,fmt", CASES,
+                         ids=[f"{n}-{'periodic' if p else 'free'}-{f.name}"
+                              for n, p, f in CASES])
 def test_lognormal_radii_match_brute_force(name, fmt, periodic):
     rng = np.random.default_rng(3)
     n, side = 300, 12.0
