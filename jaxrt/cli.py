@@ -173,16 +173,18 @@ class _BruteCheck:
 
     def compare(self, nbrs, n: int) -> None:
         want = self.pairs(np.asarray(nbrs.reference_position))
-        got = _pair_codes(nbrs, n)
-        if got.shape != want.shape or np.any(got != want):
-            only_got = np.setdiff1d(got, want)[:5]
-            only_want = np.setdiff1d(want, got)[:5]
-            raise RuntimeError(
-                f"the list differs from brute force: {len(got)} vs "
-                f"{len(want)} pairs; only in the list: "
-                f"{[divmod(int(c), n) for c in only_got]}, missing: "
-                f"{[divmod(int(c), n) for c in only_want]}")
+        _check_same(_pair_codes(nbrs, n), want, n, "the list", "brute force")
         self.checks += 1
+
+
+def _check_same(a, b, n: int, name_a: str, name_b: str) -> None:
+    """Raise naming up to five pairs where two sorted pair codes differ."""
+    if a.shape != b.shape or np.any(a != b):
+        only_a = [divmod(int(c), n) for c in np.setdiff1d(a, b)[:5]]
+        only_b = [divmod(int(c), n) for c in np.setdiff1d(b, a)[:5]]
+        raise RuntimeError(
+            f"{name_a} differs from {name_b}: {len(a)} vs {len(b)} pairs; "
+            f"only in {name_a}: {only_a}, only in {name_b}: {only_b}")
 
 
 def _median_time(fn, *args, repeats: int = 5) -> float:
@@ -232,14 +234,8 @@ class _JaxMdCheck:
             self.nbrs = self.update(ref, self.nbrs)
             if self.nbrs.did_buffer_overflow:
                 self.nbrs = self.fns.allocate(ref)
-        a, b = _pair_codes(jaxrt_nbrs, n), _pair_codes(self.nbrs, n)
-        if a.shape != b.shape or np.any(a != b):
-            only_a = np.setdiff1d(a, b)[:5]
-            only_b = np.setdiff1d(b, a)[:5]
-            raise RuntimeError(
-                f"jaxrt's list differs from jax-md's: {len(a)} vs {len(b)} "
-                f"pairs; only jaxrt: {[divmod(int(c), n) for c in only_a]}, "
-                f"only jax-md: {[divmod(int(c), n) for c in only_b]}")
+        _check_same(_pair_codes(jaxrt_nbrs, n), _pair_codes(self.nbrs, n), n,
+                    "jaxrt's list", "jax-md's")
         self.checks += 1
 
     def rebuild_times(self, compiled, position) -> tuple[float, float]:
