@@ -5,6 +5,7 @@ parameters, and works on Dense, Sparse and OrderedSparse lists from
 `jaxrt.neighbor_list` or `jax_md.partition.neighbor_list`.
 
 LJ (`jaxrt.energy.lj`): `lennard_jones`, `lennard_jones_truncated`,
+`lennard_jones_radii` (per-particle radii, seed 003),
 `lennard_jones_pair_neighbor_list`, `lennard_jones_neighbor_list`.
 SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
 `WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
@@ -16,6 +17,7 @@ from jaxrt.energy.lj import (
     lennard_jones,
     lennard_jones_neighbor_list,
     lennard_jones_pair_neighbor_list,
+    lennard_jones_radii,
     lennard_jones_truncated,
 )
 from jaxrt.energy.sph import (
@@ -48,6 +50,7 @@ __all__ = [
     "lennard_jones",
     "lennard_jones_neighbor_list",
     "lennard_jones_pair_neighbor_list",
+    "lennard_jones_radii",
     "lennard_jones_truncated",
     "lj",
     "sph",
