@@ -35,3 +35,31 @@ else:
                                          database=None, deadline=None,
                                          print_blob=True)
     hypothesis.settings.load_profile("jaxrt")
+
+
+def pytest_configure(config):
+    """Compile the Warp kernels once, in a subprocess, before any test.
+
+    Warp compiles CPU kernels in-process with its own LLVM (warp-clang);
+    on a fresh machine the first test worker to load a kernel module would
+    do that next to XLA's LLVM, and the suite's later XLA compiles then
+    crashed twice (a segfault and an abort inside backend_compile) after
+    the kernels changed. With the kernel cache filled here, workers only
+    load compiled binaries.
+    """
+    import os
+    import subprocess
+    import sys
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # the controller did it
+    modules = ("jaxrt.rt.aabb", "jaxrt.rt.epsilon", "jaxrt.rt.spheres",
+               "jaxrt.rt.squares")
+    code = ("import importlib, warp as wp\n"
+            f"for m in {modules!r}:\n"
+            "    importlib.import_module(m)\n"
+            "    wp.load_module(module=m, device='cpu')\n")
+    try:
+        subprocess.run([sys.executable, "-c", code], check=False,
+                       capture_output=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired):
+        pass  # the tests then compile the kernels themselves
