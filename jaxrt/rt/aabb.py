@@ -286,7 +286,8 @@ def _query_radii_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                         pairs: wp.array2d(dtype=wp.int32),
                         count: wp.array(dtype=wp.int32)):
     """`_query_kernel` with per-particle radii: rows are appended to with
-    atomics (count zeroed, Dense rows filled with N before the launch).
+    atomics (count zeroed before the launch, Dense rows padded with N
+    after it by `_pad_rows_kernel`).
     Gamma rays reach the largest radius (``half_width``, §3.3): a small
     particle near a face must still find a large one across it."""
     k = wp.tid()
@@ -366,6 +367,17 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         width = rows.shape[1]
         for s in range(wp.min(n, width), width):
             rows[i, s] = n_particles
+
+
+@wp.kernel
+def _pad_rows_kernel(count: wp.array(dtype=wp.int32), n_particles: wp.int32,
+                     rows: wp.array2d(dtype=wp.int32)):
+    """Pad row i past its count with N (after a query that appended to
+    rows from both ends of each pair)."""
+    i = wp.tid()
+    width = rows.shape[1]
+    for s in range(wp.min(count[i], width), width):
+        rows[i, s] = n_particles
 
 
 @wp.kernel
@@ -696,8 +708,6 @@ class AabbSearch:
             if self._reach is not None:
                 # Rows grow from both ends of a pair: cursors from zero.
                 count.zero_()
-                if mode == MODE_DENSE:
-                    rows.fill_(self.n)
                 wp.launch(_query_radii_kernel, self.n,
                           inputs=[wp.uint64(self.bvh.id), self.item_points,
                                   self.item_coords, self.order, side, flags,
@@ -708,6 +718,9 @@ class AabbSearch:
                                   empty2 if rows is None else rows,
                                   empty1 if row_offset is None else row_offset,
                                   empty2 if pairs is None else pairs, count])
+                if mode == MODE_DENSE:
+                    wp.launch(_pad_rows_kernel, self.n,
+                              inputs=[count, self.n, rows])
             else:
                 wp.launch(_query_kernel, self.n,
                           inputs=[wp.uint64(self.bvh.id), self.item_points, self.item_coords,
