@@ -109,7 +109,8 @@ def run_row(job: dict) -> dict:
         return shift(R, dx), nbrs, key
 
     key = jax.random.PRNGKey(job["seed"])
-    reallocations, done, k_sum = 0, 0, 0.0
+    # k summed on the device: a float() per step would wait for each step.
+    reallocations, done, k_sum = 0, 0, jnp.zeros((), jnp.float32)
     start = time.perf_counter()
     while done < job["steps"] and time.perf_counter() - start < job["seconds"]:
         R_next, new, key = step(R, nbrs, key)
@@ -119,7 +120,7 @@ def run_row(job: dict) -> dict:
             nbrs = fn.allocate(R)
             reallocations += 1
             continue
-        k_sum += 2.0 * float(jnp.sum(new.idx[0] < R.shape[0])) / R.shape[0]
+        k_sum = k_sum + 2.0 * jnp.sum(new.idx[0] < R.shape[0]) / R.shape[0]
         R, nbrs = R_next, new
         done += 1
     jax.block_until_ready(R)
@@ -138,7 +139,7 @@ def run_row(job: dict) -> dict:
     steps = trace[1:1 + done]
     return {**{k: v for k, v in job.items() if not k.startswith("_")
                and k not in ("dynamics", "seconds")},
-            "steps": done, "k": round(k_sum / max(done, 1), 2),
+            "steps": done, "k": round(float(k_sum) / max(done, 1), 2),
             "total_ms": sum(u + q for _, u, q in steps),
             "per_step_ms": sum(u + q for _, u, q in steps) / max(len(steps), 1),
             "rebuilds": sum(a != "refit" for a, _, _ in steps),
@@ -165,13 +166,21 @@ def _merge_traces(rows: list[dict], path: Path) -> None:
                     w.writerow([r["scene"], r["radii"], r["policy"],
                                 line["call"], line["action"],
                                 line["update_ms"], line["query_ms"]])
-            r["trace"] = f"{path.name}#{r['scene']}/{r['radii']}/{r['policy']}"
+            r["trace"] = f"{path}#{r['scene']}/{r['radii']}/{r['policy']}"
             trace.unlink()
 
 
 def _read_trace(path) -> list[tuple[str, float]]:
-    with open(path, newline="") as f:
+    """(action, update + query ms) per call after the build, from one run's
+    trace file or from ``figure8_traces.csv#scene/radii/policy`` (the
+    merged file `_merge_traces` writes, which ``--plot`` reads)."""
+    name, _, key = str(path).partition("#")
+    with open(name, newline="") as f:
         rows = list(csv.DictReader(f))
+    if key:
+        scene, radii, policy = key.split("/")
+        rows = [r for r in rows if (r["scene"], r["radii"], r["policy"])
+                == (scene, radii, policy)]
     return [(r["action"], float(r["update_ms"]) + float(r["query_ms"]))
             for r in rows[1:]]
 
@@ -299,9 +308,7 @@ def main(argv=None) -> None:
     if args.quick:
         args.n, args.steps, args.job_seconds = 3000, 60, 20.0
     out = Path(args.out) if args.out and not args.out.endswith(".csv") else None
-    trace_dir = Path(out or "benchmarks/results/figure8_traces")
-    if out is None:
-        trace_dir = _harness.RESULTS / "figure8_traces"
+    trace_dir = out or _harness.RESULTS / "figure8_traces"
     trace_dir.mkdir(parents=True, exist_ok=True)
     jobs = []
     for radii in args.radii:
@@ -333,10 +340,11 @@ def main(argv=None) -> None:
                                    reuse_worker=True, **_harness.run_options(args))
     rows = rows + skipped
     _harness.write_csv(rows, path)
-    _finish(rows, path.parent, args.n, args.seed)
+    _finish(rows, path.parent, args.n, args.seed, csv_path=path)
 
 
-def _finish(rows, folder: Path, n: int | None = None, seed: int = 0) -> None:
+def _finish(rows, folder: Path, n: int | None = None, seed: int = 0,
+            csv_path: Path | None = None) -> None:
     table = ratios(rows)
     _harness.write_csv(table, folder / "figure8_ratios.csv")
     print()
@@ -346,7 +354,11 @@ def _finish(rows, folder: Path, n: int | None = None, seed: int = 0) -> None:
                                  "avg_rebuilds", "fixed_rebuilds", "vs_avg",
                                  "vs_fixed", "vs_second_best", "paper", "note"])
     plot(rows, folder / "figure8.png")
-    _merge_traces(rows, folder / "figure8_traces.csv")
+    if any(Path(str(r.get("trace") or "")).is_file() for r in rows):
+        # A fresh run (not --plot): one traces file, and the CSV pointing
+        # at it.
+        _merge_traces(rows, folder / "figure8_traces.csv")
+        _harness.write_csv(rows, csv_path or folder / "figure8.csv")
     histogram(n or int(rows[0]["N"]), seed, folder / "figure8_ln_radii.png")
     print("wrote", folder / "figure8.png", "and", folder / "figure8_ratios.csv")
 
