@@ -311,3 +311,19 @@ def test_perse_refuses_radii():
     with pytest.raises(ValueError, match="equal radii"):
         lennard_jones_perse_step(displacement, 10.0, dt=1e-3,
                                  radii=jnp.ones(4))
+
+
+def test_sums_count_pairs(x64):
+    R, side = fluid(n_side=5)
+    R = jnp.asarray(R)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side)
+    s = fused.sums(R)
+    d = np.asarray(R)[:, None] - np.asarray(R)[None]
+    d -= side * np.round(d / side)
+    r2 = np.sum(d * d, -1)
+    np.fill_diagonal(r2, np.inf)
+    assert int(s.count) == int(np.sum(r2 < 2.5 ** 2)) // 2
+    assert int(s.error) == 0
+    close(s.energy, fused(R), 0)
+    close(-s.forces, jax.grad(fused)(R), 0)

@@ -538,6 +538,9 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
       jit-compiled; ``jax.grad`` in R gives ``-F``, in sigma and epsilon
       their derivatives, from the same traversal. ``kT=`` (passed on by
       jax_md.simulate) is accepted and dropped; other keywords raise.
+      ``energy_fn.sums(R, **params)`` returns the whole `FusedSums`
+      (forces, ``dE/dsigma``, ``dE/depsilon``, the number of interacting
+      pairs, error bits), for statistics; it is not differentiable.
     """
     sigma0, r_on, r_c = _check_potential(sigma, epsilon, r_onset, r_cutoff)
     bound = r_c * sigma0 if radii is None else _check_radii(radii)
@@ -549,11 +552,19 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
         if dim not in by_dim:
             params = _static_params(displacement, box, periodic, dim,
                                     r_on * sigma0, r_c * sigma0, bound)
-            by_dim[dim] = jax.jit(_make_energy(impl, params, dim))
+            energy = _make_energy(impl, params, dim)
+
+            def sums(R, sigma, epsilon, radii):
+                s = impl.sums(jnp.pad(R, ((0, 0), (0, 3 - dim))), sigma,
+                              epsilon, radii, params)
+                error = s.error | _input_errors(R, radii, params.bound)
+                return s._replace(forces=s.forces[:, :dim], error=error)
+
+            by_dim[dim] = (jax.jit(energy), jax.jit(sums))
         return by_dim[dim]
 
-    def energy_fn(R: Array, *, sigma=None, epsilon=None, radii=None,
-                  **kwargs) -> Array:
+    def arguments(R, sigma, epsilon, radii, kwargs):
+        """(R, sigma, epsilon, radii) checked and in R's dtype."""
         reject_unknown("energy_fn", kwargs, _ENERGY_KEYWORDS,
                        ignored=SIMULATE_KEYWORDS)
         R = jnp.asarray(R)
@@ -576,13 +587,25 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
         for k, v in p.items():
             if v.ndim:
                 raise ValueError(f"{k} has shape {v.shape}; pass a scalar.")
-        e = setup(R.shape[1])(R, p["sigma"].astype(R.dtype),
-                              p["epsilon"].astype(R.dtype), radii)
+        return R, p["sigma"].astype(R.dtype), p["epsilon"].astype(R.dtype), radii
+
+    def energy_fn(R: Array, *, sigma=None, epsilon=None, radii=None,
+                  **kwargs) -> Array:
+        args = arguments(R, sigma, epsilon, radii, kwargs)
+        e = setup(args[0].shape[1])[0](*args)
         if not isinstance(e, jax.core.Tracer):
             if not bool(jnp.isfinite(e)):
-                _raise_for(_input_errors(R, radii, bound), bound)
+                _raise_for(_input_errors(args[0], args[3], bound), bound)
         return e
 
+    def sums(R: Array, *, sigma=None, epsilon=None, radii=None,
+             **kwargs) -> FusedSums:
+        """All the backend's sums at once (`FusedSums`: forces, parameter
+        derivatives, interaction count, error bits); not differentiable."""
+        args = arguments(R, sigma, epsilon, radii, kwargs)
+        return setup(args[0].shape[1])[1](*args)
+
+    energy_fn.sums = sums
     return energy_fn
 
 
