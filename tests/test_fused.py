@@ -327,3 +327,38 @@ def test_sums_count_pairs(x64):
     assert int(s.error) == 0
     close(s.energy, fused(R), 0)
     close(-s.forces, jax.grad(fused)(R), 0)
+
+
+def test_fit_sigma_epsilon_on_energies(x64):
+    """A training loop (`lax.scan` of gradient steps under `jit`) recovers
+    sigma and epsilon from snapshot energies, as examples/fit_lj.py does
+    on lists (on energies only: force matching needs second derivatives)."""
+    # Different disorder, so sigma and epsilon are not traded for each other.
+    snaps = [fluid(n_side=5, density=0.9, seed=s, jitter=j)
+             for s, j in enumerate((0.02, 0.1, 0.2, 0.3))]
+    side = snaps[0][1]
+    Rs = jnp.stack([jnp.asarray(R) for R, _ in snaps])
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side)
+    target = jnp.stack([fused(R) for R in Rs])
+
+    def loss(p):
+        e = jnp.stack([fused(R, sigma=jnp.exp(p[0]), epsilon=jnp.exp(p[1]))
+                       for R in Rs])
+        return jnp.mean(((e - target) / target) ** 2)
+
+    optax = pytest.importorskip("optax")
+    opt = optax.adam(0.01)
+
+    @jax.jit
+    def fit(p):
+        def step(carry, _):
+            p, state = carry
+            updates, state = opt.update(jax.grad(loss)(p), state)
+            return (optax.apply_updates(p, updates), state), None
+        return jax.lax.scan(step, (p, opt.init(p)), None, length=300)[0][0]
+
+    p0 = jnp.log(jnp.asarray([0.97, 1.2]))
+    p = fit(p0)
+    assert loss(p) < 1e-3 * loss(p0)
+    np.testing.assert_allclose(np.exp(np.asarray(p)), [1.0, 1.0], atol=1e-3)
