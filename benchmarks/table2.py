@@ -193,8 +193,9 @@ def _step_fns(job: dict, position, radii):
 
     def k_fn(R):
         idx = np.asarray(nbrs.idx)
-        per = np.sum(idx < R.shape[0])
-        return float(per if fmt is partition.Dense else 2 * per) / R.shape[0]
+        if fmt is partition.Dense:  # both directions of every pair
+            return float(np.sum(idx < R.shape[0])) / R.shape[0]
+        return 2.0 * float(np.sum(idx[0] < R.shape[0])) / R.shape[0]
     return step, (position, V0, nbrs), fmt.name, k_fn
 
 

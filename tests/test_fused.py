@@ -362,3 +362,25 @@ def test_fit_sigma_epsilon_on_energies(x64):
     p = fit(p0)
     assert loss(p) < 1e-3 * loss(p0)
     np.testing.assert_allclose(np.exp(np.asarray(p)), [1.0, 1.0], atol=1e-3)
+
+
+def test_scene_integrator_perse_matches_verlet(x64):
+    """A scene with integrator 'perse' follows the Verlet scene's
+    trajectory (leapfrog = velocity Verlet positions), with no list."""
+    import dataclasses
+
+    from jaxrt import sim
+    scene = dataclasses.replace(sim.lj_fluid(n=216, dt=0.002), dtype="float64")
+    perse = dataclasses.replace(
+        scene, integrator=sim.Integrator(dt=0.002, kind="perse"),
+        neighbors=sim.Neighbors(backend="bvh"))
+    verlet, fused = sim.compile_scene(scene), sim.compile_scene(perse)
+    assert fused.neighbor_fn is None
+    (s0, n0), (f0, _) = verlet.init(), fused.init()
+    s1, _, t_verlet = verlet.chunk(s0, n0, steps=10)
+    f1, _, t_perse = fused.chunk(f0, None, steps=10)
+    close(f1.position, s1.position, 1e-10)
+    # The persé trace is at each step's start: shifted by one step.
+    close(t_perse.potential[1:], t_verlet.potential[:-1], 1e-9)
+    with pytest.raises(sim.SceneError, match="perse"):
+        dataclasses.replace(perse, effects=perse.effects + (sim.Gravity(g=(0, 0, -1.0)),))
