@@ -305,6 +305,9 @@ def main(argv=None) -> None:
                         "--repeats, at most --max-repeats)")
     parser.add_argument("--max-repeats", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fresh-workers", action="store_true",
+                        help="one worker process per row (default: one per "
+                        "configuration, fresh after a failure)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: n = 2000; disordered and cluster; "
                         "r = 1 and LN; >= 5 repeats, 0.5 s per row")
@@ -332,8 +335,12 @@ def main(argv=None) -> None:
                             "repeats": args.repeats, "warmup": args.warmup,
                             "target_s": args.target_s,
                             "max_repeats": args.max_repeats,
-                            "dynamics": DYNAMICS})
+                            "dynamics": DYNAMICS,
+                            "_group": f"{n}/{radii}/{boundary}/{scene}"})
+    # One worker per configuration (its methods share the scene; a failed
+    # row gets a fresh worker for the next).
     rows, path = _harness.run_jobs("table2:run_row", jobs, columns=COLUMNS,
+                                   reuse_worker=not args.fresh_workers,
                                    **_harness.run_options(args))
     _finish(rows, path.with_name(path.stem + "_ratios.csv"))
 
