@@ -329,6 +329,7 @@ def test_sums_count_pairs(x64):
     close(-s.forces, jax.grad(fused)(R), 0)
 
 
+@SLOW
 def test_fit_sigma_epsilon_on_energies(x64):
     """A training loop (`lax.scan` of gradient steps under `jit`) recovers
     sigma and epsilon from snapshot energies, as examples/fit_lj.py does
@@ -364,6 +365,7 @@ def test_fit_sigma_epsilon_on_energies(x64):
     np.testing.assert_allclose(np.exp(np.asarray(p)), [1.0, 1.0], atol=1e-3)
 
 
+@SLOW
 def test_scene_integrator_perse_matches_verlet(x64):
     """A scene with integrator 'perse' follows the Verlet scene's
     trajectory (leapfrog = velocity Verlet positions), with no list."""
