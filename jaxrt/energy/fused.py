@@ -76,7 +76,8 @@ class FusedSums(NamedTuple):
 
     Attributes:
       energy: float scalar, the total energy.
-      forces: float ``(N, 3)``, ``-dE/dR``.
+      forces: float ``(N, 3)`` from a backend (zero-padded positions),
+        ``(N, dim)`` from ``energy_fn.sums``: ``-dE/dR``.
       d_sigma, d_epsilon: float scalars, ``dE/dsigma`` and ``dE/depsilon``.
       count: float scalar, unordered interacting pairs.
       error: int32 scalar, `jaxrt.errors.ErrorCode` bits (0: fine).
