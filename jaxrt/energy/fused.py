@@ -60,7 +60,6 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax_md import util
 
 from jaxrt.energy._checks import concrete
 from jaxrt.energy._keywords import SIMULATE_KEYWORDS, reject_unknown
@@ -176,6 +175,13 @@ def lj_terms(d2, sigma, epsilon, r_onset, r_cutoff, sigma_base):
     return tuple(jnp.where(positive, t, 0) for t in (e, g, ds, de))
 
 
+def _total(x):
+    """Sum in float64 where x64 is on (as jax-md's ``high_precision_sum``),
+    without its float32-mode warning; in ``x``'s dtype."""
+    wide = jax.dtypes.canonicalize_dtype(jnp.float64)
+    return jnp.sum(x, dtype=wide).astype(x.dtype)
+
+
 # ---------------------------------------------------------------------------
 # Backends: sums(R3, sigma, epsilon, radii, params) -> FusedSums.
 
@@ -252,7 +258,7 @@ class _Brute(_Backend):
         out = jax.lax.map(rows, jnp.arange(n_blocks) * block)
         forces, e, ds, de, c = (o.reshape((n_blocks * block,) + o.shape[2:])[:n]
                                 for o in out)
-        return FusedSums(util.high_precision_sum(e).astype(R3.dtype), forces,
+        return FusedSums(_total(e), forces,
                          jnp.sum(ds), jnp.sum(de), jnp.sum(c.astype(R3.dtype)),
                          jnp.zeros((), jnp.int32))
 
@@ -290,7 +296,7 @@ class _Bvh(_Backend):
             self.owner, R3, side, reach, self._params(dtype, sigma, epsilon, params),
             cutoff=params.bound, periodic=params.periodic,
             has_radii=radii is not None)
-        return FusedSums(util.high_precision_sum(e).astype(dtype), forces,
+        return FusedSums(_total(e), forces,
                          jnp.sum(ds), jnp.sum(de), jnp.sum(c.astype(dtype)),
                          err[..., 0])
 
@@ -301,7 +307,7 @@ class _Bvh(_Backend):
             self.owner, R3, V3.astype(dtype), side,
             self._params(dtype, sigma, epsilon, params, dt, mass),
             cutoff=params.bound, periodic=params.periodic)
-        return x, v, util.high_precision_sum(e).astype(dtype)
+        return x, v, _total(e)
 
 
 def _backend(backend) -> _Backend:
