@@ -19,7 +19,12 @@ Backends (``backend=``), one protocol (`_Backend.sums`):
   backend does (`jaxrt.rt.orcs`, `jaxrt.rt.ffi.orcs_forces`).
 * ``"brute"``: all pairs in pure JAX, in row blocks; the CPU reference and
   the template of the others.
-* ``"cell"``: the grid issue's; not built yet (raises).
+* ``"cell"``: jaxrt's sorted cell grid (`jaxrt.cell_list`), in pure JAX:
+  every particle walks the runs of sorted particles that hold its stencil
+  cells, one slot of every run per step of a loop as long as the longest
+  run, and sums its own terms; each pair is met from both sides (no
+  scatter), and nothing of size N x k is stored. The portable path (CPU
+  and GPU); a fused GPU kernel over the same cells is the grid issue's.
 
 `lennard_jones_perse_step` is ORCS-persé: one leapfrog step ``(R, V) ->
 (R', V')`` in a single kernel (``backend="bvh"``), equal radii only.
@@ -263,6 +268,70 @@ class _Brute(_Backend):
                          jnp.zeros((), jnp.int32))
 
 
+@dataclasses.dataclass(frozen=True)
+class _Cell(_Backend):
+    """List-free sums over jaxrt's sorted cell grid (module docstring).
+
+    The grid and its runs are `jaxrt.cell_list`'s (cells ``cutoff / 4``
+    wide along x and ``cutoff`` across, coarsened for sparse clouds; small
+    periodic boxes alias no cell twice), recomputed at every call, so no
+    size is static: the loop runs as many steps as the longest run holds
+    particles. Pairs are decided on the caller's unwrapped positions with
+    `_min_image`, the arithmetic of ``backend="brute"``.
+    """
+
+    name: str = "cell"
+
+    def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
+        from jaxrt import cell_list
+        from jaxrt._backend import Geometry, Query
+        from jax_md.partition import NeighborListFormat
+        n = R3.shape[0]
+        dtype = R3.dtype
+        geometry = Geometry(side=jnp.asarray(params.side, dtype),
+                            scale=jnp.ones((3,), dtype))
+        query = Query(cutoff=params.bound, periodic=params.periodic,
+                      mask_self=True, format=NeighborListFormat.Dense)
+        order, _, runs = cell_list._sorted_system(R3, geometry, query,
+                                                  sorted_runs=True)
+        start = jnp.concatenate([runs[0], runs[2]], axis=1)  # (N, 2 rows)
+        length = jnp.concatenate([runs[1], runs[3]], axis=1)
+        Ri = R3[order]
+        cut_i = None if radii is None else radii[order]
+        rc = jnp.asarray(params.r_cutoff, dtype)
+        me = jnp.arange(n)[:, None]
+
+        def visit(slot, acc):
+            forces, e, ds, de, c = acc
+            valid = slot < length
+            j = jnp.where(valid, start + slot, me)  # sorted index
+            d = _min_image(Ri[:, None, :] - Ri[j], params)
+            d2 = jnp.sum(d * d, axis=-1)
+            cut = (rc if radii is None
+                   else jnp.maximum(cut_i[:, None], cut_i[j]))
+            keep = valid & (j != me) & (d2 < cut * cut)
+            scale = cut / rc
+            te, g, tds, tde = lj_terms(jnp.where(keep, d2, 0), sigma * scale,
+                                       epsilon, params.r_onset * scale,
+                                       rc * scale, sigma)
+            return (forces + jnp.sum(g[..., None] * d, axis=1),
+                    e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
+                    de + jnp.sum(tde, axis=1),
+                    c + jnp.sum(keep, axis=1, dtype=jnp.int32))
+
+        zeros = jnp.zeros((n,), dtype)
+        acc = (jnp.zeros_like(R3), zeros, zeros, zeros,
+               jnp.zeros((n,), jnp.int32))
+        forces, e, ds, de, c = jax.lax.fori_loop(
+            0, jnp.max(length, initial=0), visit, acc)
+        # Each pair was met from both of its particles.
+        return FusedSums(_total(e) / 2,
+                         jnp.zeros_like(R3).at[order].set(forces),
+                         jnp.sum(ds) / 2, jnp.sum(de) / 2,
+                         jnp.sum(c).astype(dtype) / 2,
+                         jnp.zeros((), jnp.int32))
+
+
 class _Bvh(_Backend):
     """ORCS on a kept BVH (`jaxrt.rt.ffi.orcs_forces`, `orcs_perse`); each
     energy function owns its trees (`jaxrt.rt.ffi.TreeOwner`)."""
@@ -319,11 +388,7 @@ def _backend(backend) -> _Backend:
     if backend == "brute":
         return _Brute()
     if backend == "cell":
-        raise NotImplementedError(
-            "backend='cell' for lennard_jones_fused is the grid issue's (a "
-            "cell-list traversal through the same FusedSums protocol as "
-            "backend='brute' in jaxrt/energy/fused.py) and is not built yet; "
-            "use backend='bvh' or 'brute'.")
+        return _Cell()
     raise ValueError(f"backend={backend!r} is not known; choose one of "
                      f"{BACKENDS}, or pass jaxrt.rt.ffi.Bvh(...) options.")
 
@@ -532,7 +597,7 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
         ``ij`` cut at ``max(r_i, r_j)``, the potential stretched by
         ``max(r_i, r_j) / (r_cutoff sigma)``. Their largest bounds the
         radii the energy function may be given.
-      backend: ``"bvh"``, ``"brute"``, ``"cell"`` (not built yet), or
+      backend: ``"bvh"``, ``"brute"``, ``"cell"``, or
         `jaxrt.rt.ffi.Bvh` options (rebuild policy, builder, sorting).
       periodic: bool or one per axis; None infers it from ``displacement``.
 
