@@ -79,6 +79,10 @@ def test_exact_pairs_by_kdtree_equal_the_brute_force():
     a = accuracy.exact_pairs(r, 1.0, side, (True,) * 3)  # the cKDTree path
     b = accuracy.brute_pairs(r, 1.0, side, (True,) * 3)
     assert len(a) > 10_000 and np.array_equal(a, b)
+    # The RDF's pair distances, both ways.
+    kd = np.sort(accuracy._pair_distances(r, side, 2.0, kd=True))
+    brute = np.sort(accuracy._pair_distances(r, side, 2.0, kd=False))
+    np.testing.assert_allclose(kd, brute, rtol=0, atol=1e-12)
 
 
 def test_energy_drift_of_a_synthetic_series():
