@@ -238,3 +238,12 @@ def test_dam_break_sweep_has_no_drift_and_no_rdf(tmp_path):
         assert "drift_per_particle_1e4" not in r and "rdf_l2" not in r
         assert r["pairs_missed"] == 0
     assert dataclasses.is_dataclass(accuracy.QUICK)
+
+
+def test_cli_accuracy_refuses_an_unknown_knob(tmp_path, capsys):
+    from jaxrt import cli
+    assert cli.main(["accuracy", "--quick", "--knobs", "dtype,nope",
+                     "--out", str(tmp_path)]) == 2
+    assert "unknown knobs ['nope']" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["accuracy", "no-such-scene"])
