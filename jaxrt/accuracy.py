@@ -49,8 +49,9 @@ Definitions (the CSV's columns):
   ``max |g - g_ref|`` of the radial distribution functions over the run's
   chunk-end frames, on the fixed grid ``dr`` up to ``r_max`` (periodic
   scenes only); ``rdf_noise`` in the summary: the same between the two
-  halves of the reference run, the floor below which a difference means
-  nothing.
+  halves of the reference run (each half from half the frames, so about
+  √2 above the noise of a setting against the reference), the floor
+  below which a difference means nothing.
 * ``position_rms``: RMS distance between the setting's final positions and
   the reference's (chaotic for the LJ fluid, so a measure of divergence).
 """
@@ -560,7 +561,8 @@ class Plan:
     """Sizes of a sweep: ``n`` particles (LJ; the dam break's spacing
     ``dx``), ``equilibrate`` steps (float64, before everything), ``steps``
     per run in chunks of ``chunk``, RDF bins of width ``dr`` up to at most
-    ``r_max``."""
+    ``r_max`` over at most ``rdf_frames`` chunk-end frames, evenly
+    spaced."""
 
     n: int = 1000
     dx: float = 0.05
@@ -569,6 +571,7 @@ class Plan:
     chunk: int = 100
     dr: float = 0.05
     r_max: float = 4.0
+    rdf_frames: int = 10
 
 
 QUICK = Plan()
@@ -754,9 +757,10 @@ def finish_row(m: Measured, ref: Measured, scene, plan: Plan) -> dict:
     row = dict(m.row)
     edges = rdf_edges(scene, plan)
     if edges is not None:
-        g = rdf(m.frames, scene.box.size, edges)
+        g = rdf(_every(m.frames, plan.rdf_frames), scene.box.size, edges)
         if ref.rdf is None:
-            ref.rdf = rdf(ref.frames, scene.box.size, edges)
+            ref.rdf = rdf(_every(ref.frames, plan.rdf_frames),
+                          scene.box.size, edges)
         g_ref = ref.rdf
         row["rdf_l2"], row["rdf_linf"] = rdf_difference(g, g_ref, plan.dr)
     row["position_rms"] = position_rms(m.final, ref.final, scene.box.size,
@@ -764,14 +768,23 @@ def finish_row(m: Measured, ref: Measured, scene, plan: Plan) -> dict:
     return row
 
 
+def _every(frames: list, most: int) -> list:
+    """At most ``most`` of ``frames``, evenly spaced, the last included."""
+    if len(frames) <= most:
+        return frames
+    pick = np.round(np.linspace(len(frames) - 1, 0, most)).astype(int)
+    return [frames[i] for i in sorted(set(pick))]
+
+
 def rdf_noise(ref: Measured, scene, plan: Plan) -> float | None:
     """L2 difference between the RDFs of the reference run's two halves."""
     edges = rdf_edges(scene, plan)
     if edges is None or len(ref.frames) < 2:
         return None
-    h = len(ref.frames) // 2
-    return rdf_difference(rdf(ref.frames[:h], scene.box.size, edges),
-                          rdf(ref.frames[h:], scene.box.size, edges),
+    frames = _every(ref.frames, plan.rdf_frames)
+    h = len(frames) // 2
+    return rdf_difference(rdf(frames[:h], scene.box.size, edges),
+                          rdf(frames[h:], scene.box.size, edges),
                           plan.dr)[0]
 
 
