@@ -879,7 +879,8 @@ def _err(row: dict, col: str) -> float:
 def plot_knob(rows: list[dict], knob: str, path: pathlib.Path
               ) -> pathlib.Path | None:
     """``path``: one panel per error column that varies, each error
-    against the time per step, every value labelled, the Pareto front
+    against the time per step (per unit of simulated time for ``dt``),
+    every value labelled, the Pareto front
     drawn (the drift with ± one standard error); errors equal for every
     value are named in the title instead."""
     import matplotlib
@@ -903,7 +904,11 @@ def plot_knob(rows: list[dict], knob: str, path: pathlib.Path
     nrow = math.ceil(len(cols) / ncol)
     fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 3.4 * nrow),
                              squeeze=False)
-    t = np.array([_num(r, "time_per_step_ms") for r in mine])
+    # The time step's cost is per unit of simulated time, not per step.
+    xcol, xlabel = (("time_per_tau_ms", "time per unit of simulated time "
+                     "(ms)") if knob == "dt" else
+                    ("time_per_step_ms", "time per step (ms)"))
+    t = np.array([_num(r, xcol) for r in mine])
     for ax, (col, label) in zip(axes.ravel(), cols):
         e = np.array([_err(r, col) for r in mine])
         if col == "drift_per_particle_1e4":
@@ -929,7 +934,7 @@ def plot_knob(rows: list[dict], knob: str, path: pathlib.Path
                 ax.set_yscale("log")
             else:
                 ax.set_yscale("symlog", linthresh=pos.min())
-        ax.set_xlabel("time per step (ms)")
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(label, fontsize=8)
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(cols):]:
