@@ -14,7 +14,8 @@ One function per concern:
   whether it is available here) and `KNOBS`; a `Value` maps a `Scene` to a
   `Scene` (and may hold a context for a setting that is no scene field);
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
-  brute force), `measure` of the float64 scene itself;
+  brute force), `measure` of the float64 scene itself (continuing the
+  equilibration, its list by the scene's backend, ``cell``);
 * the error measures, each a pure function of arrays (tested by hand):
   `force_rms_rel`, `energy_drift`, `brute_pairs` / `pairs_missed`, `rdf` /
   `rdf_difference`, `position_rms`;
@@ -29,7 +30,9 @@ Definitions (the CSV's columns):
   jitted ``lax.scan`` each; list updates, forces, integrator) of the chunk's
   wall time / ``chunk``; the first chunk (compilation) and any chunk redone
   after a list overflow are excluded. ``time_min_ms`` / ``time_max_ms``: the
-  extremes of the same samples.
+  extremes of the same samples. ``time_per_tau_ms``: ``time_per_step_ms /
+  dt``, per unit of simulated time (what the summary ranks by, so that a
+  longer time step counts for what it saves).
 * ``force_rms_rel``: ``sqrt(mean |F - F_ref|^2) / sqrt(mean |F_ref|^2)`` at
   the equilibrated configuration, where ``F_ref`` is the float64 brute-force
   force of the *scene's own* potential (so it isolates precision and list
@@ -38,13 +41,16 @@ Definitions (the CSV's columns):
   error of the truncation itself. (SPH: accelerations.)
 * ``drift_per_particle_1e4``: the least-squares slope of
   ``(E(t) - E(t_1)) / N`` against the step number, times 10^4: energy drift
-  per particle per 10^4 steps of the setting's own Hamiltonian, NVE
-  (``max_abs_dE_per_particle``: ``max |E(t) - E(t_1)| / N`` over the run).
+  per particle per 10^4 steps of the setting's own Hamiltonian, NVE;
+  ``drift_se``: its standard error from 10 block means (`energy_drift`);
+  ``max_abs_dE_per_particle``: ``max |E(t) - E(t_1)| / N`` over the run
+  (the energy excursion, robust in short runs: it scales as dt^2).
   Empty for non-conservative scenes (dam break).
 * ``pairs_missed``: after every chunk, the pairs within the interaction
   cutoff at the current positions (float64 brute force, minimum image on
   periodic axes) that the list in use lacks, summed over the checks
-  (``pairs_checked``: the brute-force pairs over the same checks).
+  (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
+  mean neighbours within the cutoff per particle).
 * ``rdf_l2`` / ``rdf_linf``: ``sqrt(sum (g - g_ref)^2 dr)`` and
   ``max |g - g_ref|`` of the radial distribution functions over the run's
   chunk-end frames, on the fixed grid ``dr`` up to ``r_max`` (periodic
