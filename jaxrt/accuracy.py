@@ -207,20 +207,6 @@ def _with_bvh_policy(policy: str):
     return apply
 
 
-@contextlib.contextmanager
-def _epsilon_relative(value: float):
-    """The sphere method's ε is ``EPSILON_RELATIVE · scale``
-    (`jaxrt.rt.epsilon`), a module constant rather than an option of
-    `jaxrt.backends.Spheres`: set it for the run, restore it after."""
-    from jaxrt.rt import epsilon
-    old = epsilon.EPSILON_RELATIVE
-    epsilon.EPSILON_RELATIVE = value
-    try:
-        yield
-    finally:
-        epsilon.EPSILON_RELATIVE = old
-
-
 def _warp() -> bool:
     import jaxrt
     return "bvh" in jaxrt.available_backends()
@@ -246,9 +232,10 @@ def _same(s):
 
 
 def _eps(e: int) -> Value:
-    # 2^-40 is the default: no context, so it is the backend knob's spheres.
-    return Value(f"2^-{e}", _with_backend("spheres"),
-                 None if e == 40 else lambda e=e: _epsilon_relative(2.0 ** -e))
+    def apply(s):
+        from jaxrt.backends import Spheres
+        return _replace_neighbors(s, backend=Spheres(epsilon_relative=2.0 ** -e))
+    return Value(f"2^-{e}", apply)
 
 
 KNOBS: tuple[Knob, ...] = (
@@ -320,17 +307,17 @@ def knobs(kind: str, names: Sequence[str] | None = None) -> list[Knob]:
 @dataclasses.dataclass(frozen=True)
 class LJFused:
     """The LJ effect on the list-free fused energy
-    (``jaxrt.energy.lennard_jones_fused``, being built on another branch):
-    ``pairwise = False``, so the compiled scene builds no list. Assumes the
-    factory takes ``(displacement, box, *, sigma, epsilon, r_onset,
-    r_cutoff, truncation)`` and returns ``energy(R)``; adjust `term` when
-    it lands."""
+    (`jaxrt.energy.lennard_jones_fused`, backend ``cell``: the portable
+    one): ``pairwise = False``, so the compiled scene builds no list. The
+    fused energy is jax-md's smooth switch only; other truncations are
+    refused (the knob runs on the smooth base scene)."""
 
     r_cutoff: float
     sigma: object = 1.0
     epsilon: object = 1.0
     r_onset: float | None = None
     truncation: str = "smooth"
+    backend: str = "cell"
     kind = "lj_fused"
     pairwise = False
 
@@ -339,22 +326,32 @@ class LJFused:
         return float(self.r_cutoff)
 
     def validate(self, scene, where: str) -> None:
-        pass
+        from jaxrt.sim import SceneError
+        if self.truncation != "smooth":
+            raise SceneError.at(f"{where}.truncation", "the fused energy is "
+                                "the smooth switch only; use 'smooth'.")
+        if np.ndim(self.sigma) or np.ndim(self.epsilon):
+            raise SceneError.at(f"{where}.sigma", "the fused energy takes "
+                                "scalar sigma and epsilon.")
 
     def term(self, ctx):
         import jaxrt.energy
         from jaxrt.sim import Term
         box = np.asarray(ctx.scene.box.size, float)
+        sigma = float(self.sigma)
         r_onset = 0.8 * self.r_cutoff if self.r_onset is None else \
             self.r_onset
+        # The fused factory takes r_onset / r_cutoff in units of sigma, as
+        # jax-md's does; the scene's are absolute.
         energy = jaxrt.energy.lennard_jones_fused(
-            ctx.displacement, box, sigma=self.sigma, epsilon=self.epsilon,
-            r_onset=r_onset, r_cutoff=self.r_cutoff,
-            truncation=self.truncation)
+            ctx.displacement, box, sigma=sigma, epsilon=float(self.epsilon),
+            r_onset=r_onset / sigma, r_cutoff=self.r_cutoff / sigma,
+            backend=self.backend, periodic=ctx.scene.box.periodic)
 
         def lj_fused(R, nbrs):
             return energy(R)
-        return Term(energy=lj_fused, notes=("list-free fused LJ",))
+        return Term(energy=lj_fused, notes=(
+            f"list-free fused LJ (backend {self.backend!r})",))
 
 
 # ---------------------------------------------------------------------------

@@ -708,13 +708,20 @@ class Spheres(MethodBackend):
     Attributes:
       check_separation: raise when two particles are closer than the
         method's resolution (`jaxrt.rt.spheres.SpheresMethod`).
+      epsilon_relative: the method's ε as a fraction of the data's scale
+        (default 2**-40; `jaxrt.rt.epsilon`).
     """
 
     check_separation: bool = True
+    epsilon_relative: float = 2.0 ** -40
     name: ClassVar[str] = "spheres"
 
+    def __post_init__(self):
+        self.method()  # the method's checks, at construction
+
     def method(self) -> RTMethod:
-        return SpheresMethod(check_separation=self.check_separation)
+        return SpheresMethod(check_separation=self.check_separation,
+                             epsilon_relative=self.epsilon_relative)
 
 
 @dataclasses.dataclass(frozen=True)
