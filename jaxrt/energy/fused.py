@@ -294,36 +294,43 @@ class _Cell(_Backend):
                       mask_self=True, format=NeighborListFormat.Dense)
         order, _, runs = cell_list._sorted_system(R3, geometry, query,
                                                   sorted_runs=True)
-        start = jnp.concatenate([runs[0], runs[2]], axis=1)  # (N, 2 rows)
-        length = jnp.concatenate([runs[1], runs[3]], axis=1)
         Ri = R3[order]
         cut_i = None if radii is None else radii[order]
         rc = jnp.asarray(params.r_cutoff, dtype)
         me = jnp.arange(n)[:, None]
 
-        def visit(slot, acc):
-            forces, e, ds, de, c = acc
-            valid = slot < length
-            j = jnp.where(valid, start + slot, me)  # sorted index
-            d = _min_image(Ri[:, None, :] - Ri[j], params)
-            d2 = jnp.sum(d * d, axis=-1)
-            cut = (rc if radii is None
-                   else jnp.maximum(cut_i[:, None], cut_i[j]))
-            keep = valid & (j != me) & (d2 < cut * cut)
-            scale = cut / rc
-            te, g, tds, tde = lj_terms(jnp.where(keep, d2, 0), sigma * scale,
-                                       epsilon, params.r_onset * scale,
-                                       rc * scale, sigma)
-            return (forces + jnp.sum(g[..., None] * d, axis=1),
-                    e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
-                    de + jnp.sum(tde, axis=1),
-                    c + jnp.sum(keep, axis=1, dtype=jnp.int32))
+        def walk(start, length, acc):
+            """Slot by slot along runs (N, R) of the sorted order."""
+            def visit(slot, acc):
+                forces, e, ds, de, c = acc
+                valid = slot < length
+                j = jnp.where(valid, start + slot, me)  # sorted index
+                d = _min_image(Ri[:, None, :] - Ri[j], params)
+                d2 = jnp.sum(d * d, axis=-1)
+                cut = (rc if radii is None
+                       else jnp.maximum(cut_i[:, None], cut_i[j]))
+                keep = valid & (j != me) & (d2 < cut * cut)
+                scale = cut / rc
+                te, g, tds, tde = lj_terms(jnp.where(keep, d2, 0),
+                                           sigma * scale, epsilon,
+                                           params.r_onset * scale, rc * scale,
+                                           sigma)
+                return (forces + jnp.sum(g[..., None] * d, axis=1),
+                        e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
+                        de + jnp.sum(tde, axis=1),
+                        c + jnp.sum(keep, axis=1, dtype=jnp.int32))
+            return jax.lax.fori_loop(0, jnp.max(length, initial=0), visit,
+                                     acc)
 
         zeros = jnp.zeros((n,), dtype)
         acc = (jnp.zeros_like(R3), zeros, zeros, zeros,
                jnp.zeros((n,), jnp.int32))
-        forces, e, ds, de, c = jax.lax.fori_loop(
-            0, jnp.max(length, initial=0), visit, acc)
+        # The runs and the parts of periodic x rows that wrap around, in
+        # one loop: particles near the x ends have long wrapped parts, so a
+        # loop of their own would be as long as the first.
+        forces, e, ds, de, c = walk(
+            jnp.concatenate([runs[0], runs[2]], axis=1),
+            jnp.concatenate([runs[1], runs[3]], axis=1), acc)
         # Each pair was met from both of its particles.
         return FusedSums(_total(e) / 2,
                          jnp.zeros_like(R3).at[order].set(forces),
