@@ -31,16 +31,21 @@ def ulp_neighbours(x, dtype):
     return (np.nextafter(x, dtype(-np.inf)), x, np.nextafter(x, dtype(np.inf)))
 
 
-def grid(fast, **axes):
+def grid(fast, xfail=None, **axes):
     """pytest params over the product of ``axes`` (name -> values); a
     combination is in the fast part iff ``fast(**combination)``, else it is
-    marked slow (the fast part must stay within ~90 s on a 2-core CPU)."""
+    marked slow (the fast part must stay within ~90 s on a 2-core CPU).
+    ``xfail(**combination)``: None, or the reason of a known bug (strict
+    xfail: the case must fail while the bug is there)."""
     import itertools
     names = list(axes)
     params = []
     for combo in itertools.product(*axes.values()):
         kw = dict(zip(names, combo))
         marks = () if fast(**kw) else (pytest.mark.slow,)
+        reason = xfail(**kw) if xfail is not None else None
+        if reason:
+            marks += (pytest.mark.xfail(strict=True, reason=reason),)
         params.append(pytest.param(*combo, marks=marks,
                                    id="-".join(_name(v) for v in combo)))
     return ",".join(names), params
