@@ -74,8 +74,8 @@ def test_all_points_on_one_circle_in_free_space():
         check(nbrs, moved, cutoff, None, False, disp)
 
 
-@pytest.mark.parametrize("cutoff", [
-    pytest.param(1.0, marks=pytest.mark.slow), np.sqrt(2.0)])
+@pytest.mark.slow
+@pytest.mark.parametrize("cutoff", [1.0, np.sqrt(2.0)])
 def test_square_lattice_translated_by_whole_spacings(cutoff):
     """A periodic 10 x 10 square lattice (every cell's 4 corners
     cocircular, every row collinear) with the cutoff on a lattice distance
@@ -104,6 +104,7 @@ def test_square_lattice_translated_by_whole_spacings(cutoff):
         check(nbrs, R, cutoff, side, True, disp)
 
 
+@pytest.mark.slow
 def test_triangular_lattice_with_hexagon_ties():
     """A periodic triangular lattice (6 cocircular neighbours around every
     point), cutoff exactly the spacing times sqrt(3) (second shell on the

@@ -37,7 +37,7 @@ def cluster_scene(seed=0):
 
 
 @pytest.mark.parametrize(*grid(
-    lambda backend, fmt: fmt is partition.Dense,
+    lambda backend, fmt: fmt is partition.Dense and backend != "cell",
     backend=BACKENDS_3D, fmt=[partition.Dense, partition.OrderedSparse]))
 def test_cluster_of_k_360_is_exact_and_its_growth_overflows_loudly(backend,
                                                                    fmt):

@@ -93,7 +93,7 @@ def floor(e, steps=1):
     return 32 * ulp * np.sqrt(steps)
 
 
-@pytest.mark.parametrize(*grid(lambda backend: backend == "cell",
+@pytest.mark.parametrize(*grid(lambda backend: backend == "bvh",
                               backend=[b for b in BACKENDS_3D
                                        if b != "spheres"]))
 def test_short_nve_drift_no_worse_than_jax_md(backend):

@@ -33,7 +33,8 @@ def gas(dt, kind="verlet", n_side=4, side=6.4):
         box=S.Box((side,) * 3, ("periodic",) * 3),
         effects=(S.LJ(r_cutoff=2.5, r_onset=2.0),),
         integrator=S.Integrator(dt=dt, kind=kind, **extra),
-        neighbors=S.Neighbors(skin=0.3, capacity_multiplier=2.0))
+        neighbors=S.Neighbors(backend="brute", skin=0.3,
+                              capacity_multiplier=2.0))
 
 
 @functools.lru_cache(maxsize=None)
