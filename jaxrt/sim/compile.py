@@ -82,7 +82,10 @@ class Compiled:
     without pair effects); displacement: the scene's ``d(Ra, Rb)``; plan:
     what the step computes and what it skips, in words; conservative: True
     when every force comes from the potential and the integrator is NVE,
-    so the total energy is conserved up to the integrator's error.
+    so the total energy is conserved up to the integrator's error;
+    energy(state, nbrs): the total energy (kinetic + potential, float
+    ``()``) of a state, jitted (`jaxrt.sim.run.run_chunk` reads it at the
+    start of each chunk of a conservative scene to detect a blow-up).
     """
     scene: Scene
     init: Callable
@@ -92,6 +95,7 @@ class Compiled:
     displacement: Callable
     plan: tuple[str, ...]
     conservative: bool
+    energy: Callable | None = None
 
 
 def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
@@ -119,8 +123,15 @@ def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
     init = _init_fn(scene, neighbor_fn, forces.accel, dtype)
     conservative = (scene.integrator.kind == "verlet"
                     and not forces.accel_terms)
+    m_col = ctx.mass_column
+
+    @jax.jit
+    def energy(state: State, nbrs):
+        ke = 0.5 * jnp.sum(m_col * state.velocity * state.velocity)
+        return ke + forces.potential(state.position, nbrs)
+
     return Compiled(scene, init, _chunk_fn(step), step, neighbor_fn,
-                    displacement, tuple(plan), conservative)
+                    displacement, tuple(plan), conservative, energy)
 
 
 def _compile_perse(scene: Scene, displacement, dtype) -> Compiled:
