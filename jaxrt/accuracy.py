@@ -75,6 +75,7 @@ import platform
 import subprocess
 import sys
 import time
+import warnings
 from typing import Callable, ContextManager, NamedTuple, Sequence
 
 import numpy as np
@@ -1194,9 +1195,23 @@ def run(scene_name: str = "lj-fluid", *, out, quick: bool = False,
     rest are written as ``skipped`` (rows done are kept).
     """
     import jax
+    # The float64 reference needs x64; the caller's setting is restored
+    # after the run (a library call must not switch a process-wide flag).
+    before = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", True)
-    import warnings
-    warnings.filterwarnings("ignore", message="Explicitly requested dtype")
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore",
+                                    message="Explicitly requested dtype")
+            return _run(scene_name, out=out, quick=quick, budget=budget,
+                        plan=plan, knob_names=knob_names, log=log)
+    finally:
+        jax.config.update("jax_enable_x64", before)
+
+
+def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
+         log) -> list[dict]:
+    import jax
     t0 = time.perf_counter()
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)

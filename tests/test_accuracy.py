@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import math
 
+import jax
 import numpy as np
 import pytest
 
@@ -186,8 +187,11 @@ def test_auto_rule():
 def test_tiny_sweep_writes_csv_png_and_summary(tmp_path):
     # Equilibrated a little: on the initial lattice every force is ~0.
     plan = accuracy.Plan(n=216, equilibrate=50, steps=100, chunk=50)
+    x64 = jax.config.jax_enable_x64
     rows = accuracy.run("lj-fluid", out=tmp_path, quick=True, plan=plan,
                         knob_names=["dtype"], log=lambda s: None)
+    # The float64 reference switched x64 on for the run only.
+    assert jax.config.jax_enable_x64 == x64
     with open(tmp_path / "accuracy.csv", newline="") as f:
         read = list(csv.DictReader(f))
     assert len(read) == len(rows) == 3
