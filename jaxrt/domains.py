@@ -785,3 +785,108 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
                   energy(disp), disp, one_body=one_body)
     object.__setattr__(dom, "_sizes", {})
     return dom
+
+
+# ---------------------------------------------------------------------------
+# Runs: chunks of steps, redone on overflow
+
+
+def chunk_fn(dom: Domains, dt: float, mass=1.0):
+    """``chunk(state, steps) -> (state, (kinetic, potential, momentum))``:
+    ``steps`` `Domains.verlet_step` in one jitted ``lax.scan``; records
+    ``(steps,)`` (momentum ``(steps, dim)``)."""
+    @functools.partial(jax.jit, static_argnames=("steps",))
+    def chunk(state, steps: int):
+        def body(s, _):
+            return dom.verlet_step(s, dt, mass)
+        return lax.scan(body, state, None, length=steps)
+    return chunk
+
+
+def run_chunk(dom: Domains, chunk, state: DomainState, steps: int,
+              stats: dict | None = None):
+    """Run ``steps`` steps; a chunk that overflowed anything is thrown away
+    and redone from its start after `Domains.distribute` again (which
+    reallocates the lists and resizes the capacities it sized). Raises
+    `DomainError` if it overflows again. ``stats``: a dict whose
+    ``"redone"`` counts the redone chunks."""
+    new, rec = chunk(state, steps=steps)
+    if dom.errors(new):
+        if stats is not None:
+            stats["redone"] = stats.get("redone", 0) + 1
+        R, V, A = (dom.gather(state, k) for k in ("position", "velocity",
+                                                  "accel"))
+        dtype = state.position.dtype
+        state = dom.distribute(R, V, dtype=dtype)
+        gid = np.asarray(state.gid)
+        acc = np.zeros(state.position.shape)
+        acc[gid >= 0] = A[gid[gid >= 0]]
+        state = state._replace(accel=dom._put(jnp.asarray(acc, dtype)))
+        new, rec = chunk(state, steps=steps)
+        dom.check(new)
+    return new, rec
+
+
+def from_scene(scene, devices: int, *, backend=None,
+               capacity_multiplier: float | None = None) -> Domains:
+    """`decompose` for a `jaxrt.sim.Scene` of LJ (plus gravity / walls):
+    slabs along x, the scene's cutoff, skin and backend (or ``backend``).
+
+    Raises `DomainError` for what the decomposed run does not do yet:
+    other pair effects (SPH), species or per-particle radii in LJ, unequal
+    masses, the Langevin integrator.
+    """
+    from jaxrt.energy import lj as _lj
+    from jaxrt.sim import effects as _effects
+    from jaxrt.sim.spec import Context
+    p = scene.particles
+    if scene.integrator.kind != "verlet":
+        raise DomainError("--devices: only the verlet integrator (NVE) is "
+                          "decomposed so far.")
+    if np.ptp(p.masses) > 0:
+        raise DomainError("--devices: particles of unequal masses are not "
+                          "decomposed yet.")
+    pair = scene.pair_effects
+    if not pair or not all(isinstance(e, _effects.LJ) for e in pair):
+        raise DomainError(
+            "--devices: decomposed runs take Lennard-Jones scenes (lj-fluid "
+            "and TOML scenes with one lj effect, plus gravity / walls); "
+            f"this scene's pair effects are {[e.kind for e in pair]}.")
+    lj = pair[0]
+    if (p.species is not None or p.radius is not None
+            or np.ndim(lj.sigma) or np.ndim(lj.epsilon)):
+        raise DomainError("--devices: LJ with species or per-particle radii "
+                          "is not decomposed yet.")
+    r_onset = 0.8 * lj.r_cutoff if lj.r_onset is None else lj.r_onset
+
+    def energy(disp):
+        return _lj.lennard_jones_pair_neighbor_list(
+            disp, sigma=lj.sigma, epsilon=lj.epsilon, r_onset=r_onset,
+            r_cutoff=lj.r_cutoff, truncation=lj.truncation,
+            per_particle=True)
+
+    one_body = None
+    others = [e for e in scene.effects if not e.pairwise]
+    if others:
+        mass = float(p.masses[0])
+        ctx = Context(scene, lambda a, b, **kw: a - b,
+                      jnp.dtype(scene.dtype), mass)
+        terms = [e.term(ctx) for e in others]
+        if any(t.energy is None or t.accel or t.density for t in terms):
+            raise DomainError("--devices: one-body effects must be "
+                              "potentials (gravity, walls).")
+
+        def one_body(R, valid):
+            def each(r):
+                return sum(t.energy(r[None], None) for t in terms)
+            return jnp.sum(jnp.where(valid, jax.vmap(each)(R), 0))
+    nb = scene.neighbors
+    size = np.where(np.isfinite(scene.box.size) & (np.asarray(
+        scene.box.size) > 0), scene.box.size, 1.0)
+    return decompose(
+        box_size=size, periodic=scene.box.periodic, cutoff=scene.cutoff,
+        skin=nb.skin, energy=energy,
+        decomposition=Decomposition(devices=devices),
+        backend=backend or nb.backend,
+        capacity_multiplier=capacity_multiplier or nb.capacity_multiplier,
+        one_body=one_body)
