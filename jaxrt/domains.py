@@ -447,7 +447,7 @@ class Domains:
         name = self.decomposition.axis_name
         me = lax.axis_index(name)
         C, H = R.shape[0], send.shape[1]
-        M = self._migrate_capacity
+        M = self.decomposition.migrate_capacity or H
         R, V, A, gid, err = self._migrate(R, V, A, gid, me, M)
         send, shift, ovh = self._select_halo(R, gid, me, H)
         err |= jnp.where(ovh, int(Overflow.HALO), 0)
@@ -475,10 +475,6 @@ class Domains:
             g = jnp.where(idx < C, gid[jnp.minimum(idx, C - 1)], -1)
             out.append(lax.ppermute(g, name, perm))
         return jnp.concatenate(out)
-
-    @property
-    def _migrate_capacity(self) -> int:
-        return self._sizes["migrate"]
 
     def _stale(self, R, gid, nbrs):
         ref = nbrs.reference_position[:R.shape[0]]
@@ -509,6 +505,25 @@ class Domains:
                       out_specs=spec)
         return f(*state)
 
+    @functools.cached_property
+    def _jit_local_positions(self):
+        """(R, gid, send) -> owned + halo positions of freshly chosen
+        halos, per device."""
+        def body(R, gid, send):
+            me = lax.axis_index(self.decomposition.axis_name)
+            s, sh, _ = self._select_halo(R[0], gid[0], me, send.shape[2])
+            return self._local_positions(R[0], gid[0], s, sh)[None]
+        return jax.jit(self._smap(body, 3, 1))
+
+    @functools.cached_property
+    def _jit_rebuild(self):
+        return jax.jit(lambda s: self._per_device(self._rebuild_fn, s))
+
+    def _rebuild_fn(self, s):
+        return DomainState(*self._rebuild_local(
+            s.position, s.velocity, s.accel, s.gid, s.send, s.nbrs,
+            s.rebuilds, s.error))
+
     def update(self, state: DomainState) -> DomainState:
         """After moving ``state.position``: migrate, choose halos and
         rebuild the lists if some particle moved more than skin / 2 since
@@ -516,12 +531,8 @@ class Domains:
         return self._per_device(self._update_local, state)
 
     def rebuild(self, state: DomainState) -> DomainState:
-        """Migrate, choose halos and rebuild the lists now."""
-        def fn(s):
-            return DomainState(*self._rebuild_local(
-                s.position, s.velocity, s.accel, s.gid, s.send, s.nbrs,
-                s.rebuilds, s.error))
-        return self._per_device(fn, state)
+        """Migrate, choose halos and rebuild the lists now (jitted)."""
+        return self._jit_rebuild(state)
 
     def verlet_step(self, state: DomainState, dt: float, mass=1.0):
         """One velocity Verlet step (kick, drift, update, forces, kick), as
@@ -600,9 +611,6 @@ class Domains:
                                             minlength=nd)])
         C = dec.capacity or int(math.ceil(dec.slack * counts.max())) + 16
         H = dec.halo_capacity or int(math.ceil(dec.slack * faces.max())) + 16
-        M = dec.migrate_capacity or H
-        object.__setattr__(self, "_sizes", {"capacity": C, "halo": H,
-                                            "migrate": M})
         if counts.max() > C:
             d = int(np.argmax(counts))
             raise DomainError(
@@ -633,18 +641,15 @@ class Domains:
                            jnp.asarray(send), jnp.asarray(shift, dtype)))
         pos_d, vel_d, acc_d, gid_d, send_d, shift_d = zeros
 
-        def halo_only(R, gid, send):
-            me = lax.axis_index(dec.axis_name)
-            s, sh, _ = self._select_halo(R[0], gid[0], me, H)
-            Rloc = self._local_positions(R[0], gid[0], s, sh)
-            return Rloc[None]
-        Rloc = jax.jit(self._smap(halo_only, 3, 1))(pos_d, gid_d, send_d)
+        Rloc = self._jit_local_positions(pos_d, gid_d, send_d)
         Rloc = np.asarray(Rloc)
-        best = None
-        for d in range(nd):
-            nb = self.neighbor_fn.allocate(jnp.asarray(Rloc[d], dtype))
-            if best is None or nb.idx.shape[1] > best.idx.shape[1]:
-                best = nb
+        # Sized on the device with the most particles (owned + halo); the
+        # capacity multiplier covers the others' fuller rows (an overflow
+        # is flagged, and run_chunk distributes again).
+        real = [np.sum(r[:, ax] < (d + 1) * self.width + 2 * w)
+                for d, r in enumerate(Rloc)]  # parked sites lie beyond
+        fullest = int(np.argmax(real))
+        best = self.neighbor_fn.allocate(jnp.asarray(Rloc[fullest], dtype))
         nbrs = jax.tree_util.tree_map(
             lambda a: jnp.broadcast_to(a, (nd,) + a.shape), best)
         state = DomainState(
@@ -652,7 +657,7 @@ class Domains:
             self._put(jnp.full((nd, 2 * H), -1, jnp.int32)),
             self._put(nbrs), self._put(jnp.zeros((nd,), jnp.int32)),
             self._put(jnp.zeros((nd,), jnp.int32)))
-        state = jax.jit(self.rebuild)(state)
+        state = self.rebuild(state)
         object.__setattr__(self, "n", n)
         return state._replace(rebuilds=state.rebuilds * 0)
 
@@ -781,10 +786,8 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
         disp, box, float(cutoff), float(skin),
         capacity_multiplier=capacity_multiplier, format=partition.Dense,
         backend=backend, periodic=local_periodic)
-    dom = Domains(dec, mesh, box, periodic, float(cutoff), float(skin), nl,
-                  energy(disp), disp, one_body=one_body)
-    object.__setattr__(dom, "_sizes", {})
-    return dom
+    return Domains(dec, mesh, box, periodic, float(cutoff), float(skin), nl,
+                   energy(disp), disp, one_body=one_body)
 
 
 # ---------------------------------------------------------------------------
