@@ -239,6 +239,8 @@ class Domains:
     displacement: Callable
     n: int = 0
     one_body: Callable | None = None
+    density: Callable | None = None
+    accel: Callable | None = None
 
     # -- geometry ---------------------------------------------------------
     @property
@@ -302,20 +304,28 @@ class Domains:
         right = [(i, (i + 1) % n) for i in range(n)]
         return left, right
 
-    def _halo(self, R, send, shift, park_halo):
-        """Halo positions ``(2H, dim)``: from the right neighbour (its left
-        face), then from the left one; parked where empty."""
+    def _exchange(self, X, send, shift=None, fill=0.0):
+        """Values of the halo, ``(2H,) + X.shape[1:]``, from the owners'
+        ``X`` (per owned slot): from the right neighbour (its left face),
+        then from the left one; ``fill`` where empty. ``shift``: added
+        along the split axis (positions)."""
         name = self.decomposition.axis_name
         left, right = self._perms()
-        C = R.shape[0]
+        C = X.shape[0]
         out = []
         for face, perm in ((0, left), (1, right)):
             idx = send[face]
-            vals = R[jnp.minimum(idx, C - 1)]
-            vals = vals.at[:, self.axis].add(shift[face])
-            vals = jnp.where((idx < C)[:, None], vals, jnp.inf)
+            vals = X[jnp.minimum(idx, C - 1)]
+            if shift is not None:
+                vals = vals.at[:, self.axis].add(shift[face])
+            ok = (idx < C).reshape((-1,) + (1,) * (X.ndim - 1))
+            vals = jnp.where(ok, vals, fill)
             out.append(lax.ppermute(vals, name, perm))
-        got = jnp.concatenate(out)
+        return jnp.concatenate(out)
+
+    def _halo(self, R, send, shift, park_halo):
+        """Halo positions ``(2H, dim)``, parked where empty."""
+        got = self._exchange(R, send, shift, fill=jnp.inf)
         ok = jnp.isfinite(got[:, 0])
         return jnp.where(ok[:, None], got, park_halo), ok
 
@@ -331,10 +341,12 @@ class Domains:
     # -- energy ---------------------------------------------------------------
     def _energy_local(self, R, gid, send, shift, nbrs):
         """This device's share: owned particles' energies."""
-        Rloc = self._local_positions(R, gid, send, shift)
-        e = self.local_energy(Rloc, nbrs)[:R.shape[0]]
         valid = gid >= 0
-        u = jnp.sum(jnp.where(valid, e, 0))
+        u = jnp.zeros((), R.dtype)
+        if self.local_energy is not None:
+            Rloc = self._local_positions(R, gid, send, shift)
+            e = self.local_energy(Rloc, nbrs)[:R.shape[0]]
+            u = jnp.sum(jnp.where(valid, e, 0))
         if self.one_body is not None:
             u = u + self.one_body(R, valid)
         return u
@@ -343,6 +355,21 @@ class Domains:
         u, g = jax.value_and_grad(self._energy_local)(R, gid, send, shift,
                                                       nbrs)
         return u, -jnp.where((gid >= 0)[:, None], g, 0)
+
+    def _other_accel(self, R, V, gid, send, shift, nbrs):
+        """Accelerations not from the potential (SPH), ``(C, dim)``: the
+        density on owned + halo, the halo's densities from their owners,
+        then ``accel`` on owned + halo (velocities exchanged too)."""
+        C = R.shape[0]
+        Rloc = self._local_positions(R, gid, send, shift)
+        Vloc = jnp.concatenate([V, self._exchange(V, send)])
+        rho = jnp.zeros((0,), R.dtype)
+        if self.density is not None:
+            rho_own = self.density(Rloc, nbrs)[:C]
+            rho = jnp.concatenate([rho_own, self._exchange(rho_own, send,
+                                                           fill=1.0)])
+        a = self.accel(Rloc, Vloc, nbrs, rho)[:C]
+        return jnp.where((gid >= 0)[:, None], a, 0)
 
     def energy(self, state: DomainState) -> jax.Array:
         """Total energy, float ``()``; differentiable in ``state.position``
@@ -554,6 +581,9 @@ class Domains:
             u, f = self._forces_local(s.position, s.gid, s.send, s.shift,
                                       s.nbrs)
             a = f / mass
+            if self.accel is not None:
+                a = a + self._other_accel(s.position, s.velocity, s.gid,
+                                          s.send, s.shift, s.nbrs)
             v = s.velocity + 0.5 * dt * a
             valid = (s.gid >= 0)[:, None]
             ke = 0.5 * mass * jnp.sum(jnp.where(valid, v * v, 0))
@@ -573,9 +603,18 @@ class Domains:
         return new, jax.tree_util.tree_map(lambda x: x[0], rec)
 
     def forces_into(self, state: DomainState, mass=1.0) -> DomainState:
-        """``state`` with ``accel`` = forces / mass (as after a step)."""
+        """``state`` with ``accel`` = forces / mass, plus the accelerations
+        not from the potential (as after a step)."""
         _, f = self.energy_and_forces(state)
-        return state._replace(accel=f / mass)
+        a = f / mass
+        if self.accel is not None:
+            def body(R, V, gid, send, shift, nbrs):
+                return self._other_accel(R[0], V[0], gid[0], send[0],
+                                         shift[0], _unstack(nbrs))[None]
+            a = a + self._smap(body, 6, 1)(
+                state.position, state.velocity, state.gid, state.send,
+                state.shift, state.nbrs)
+        return state._replace(accel=a)
 
     # -- host side ------------------------------------------------------------
     def _sharding(self):
@@ -728,9 +767,11 @@ class Domains:
 
 
 def decompose(*, box_size, periodic, cutoff: float, skin: float,
-              energy: Callable, decomposition: Decomposition,
+              energy: Callable | None, decomposition: Decomposition,
               backend="auto", capacity_multiplier: float = 1.25,
-              one_body: Callable | None = None, devices=None) -> Domains:
+              one_body: Callable | None = None,
+              density: Callable | None = None,
+              accel: Callable | None = None, devices=None) -> Domains:
     """The functions of a slab decomposition (`Domains`).
 
     box_size: float ``(dim,)`` sides; periodic: bool or one per axis.
@@ -740,7 +781,12 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
     ``lambda d: jaxrt.energy.lennard_jones_pair_neighbor_list(d, ...,
     per_particle=True)``. backend: any `jaxrt.neighbor_list` backend.
     one_body: optional ``u(R, valid) -> ()``, an external energy of the
-    owned particles (``valid``: bool ``(C,)``). devices: the JAX devices
+    owned particles (``valid``: bool ``(C,)``). density, accel: optional
+    factories of forces not from a potential (SPH), each given the
+    displacement: ``density(d) -> rho(R, nbrs) -> (n,)`` and ``accel(d)
+    -> a(R, V, nbrs, rho) -> (n, dim)``; the halo's densities and
+    velocities come from their owners before ``accel``. devices: the JAX
+    devices
     (default ``jax.devices()[:decomposition.devices]``).
 
     Raises `DomainError` if the halo is wider than a slab, the split axis
@@ -786,8 +832,14 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
         disp, box, float(cutoff), float(skin),
         capacity_multiplier=capacity_multiplier, format=partition.Dense,
         backend=backend, periodic=local_periodic)
+    if energy is None and accel is None and one_body is None:
+        raise DomainError("give energy, accel or one_body: nothing to "
+                          "compute.")
     return Domains(dec, mesh, box, periodic, float(cutoff), float(skin), nl,
-                   energy(disp), disp, one_body=one_body)
+                   None if energy is None else energy(disp), disp,
+                   one_body=one_body,
+                   density=None if density is None else density(disp),
+                   accel=None if accel is None else accel(disp))
 
 
 # ---------------------------------------------------------------------------
@@ -832,64 +884,93 @@ def run_chunk(dom: Domains, chunk, state: DomainState, steps: int,
 
 def from_scene(scene, devices: int, *, backend=None,
                capacity_multiplier: float | None = None) -> Domains:
-    """`decompose` for a `jaxrt.sim.Scene` of LJ (plus gravity / walls):
-    slabs along x, the scene's cutoff, skin and backend (or ``backend``).
+    """`decompose` for a `jaxrt.sim.Scene`: slabs along x, the scene's
+    cutoff, skin and backend (or ``backend``).
 
-    Raises `DomainError` for what the decomposed run does not do yet:
-    other pair effects (SPH), species or per-particle radii in LJ, unequal
-    masses, the Langevin integrator.
+    Decomposed: LJ (scalar sigma / epsilon), SPH (sph_density,
+    sph_pressure, sph_viscosity), one-body potentials (gravity, walls).
+    Raises `DomainError` for what is not decomposed yet: other pair
+    effects (boids), LJ with species or per-particle radii, unequal masses,
+    the Langevin integrator.
     """
     from jaxrt.energy import lj as _lj
     from jaxrt.sim import effects as _effects
     from jaxrt.sim.spec import Context
     p = scene.particles
     if scene.integrator.kind != "verlet":
-        raise DomainError("--devices: only the verlet integrator (NVE) is "
-                          "decomposed so far.")
+        raise DomainError("only the verlet integrator (NVE) is decomposed "
+                          "so far.")
     if np.ptp(p.masses) > 0:
-        raise DomainError("--devices: particles of unequal masses are not "
-                          "decomposed yet.")
+        raise DomainError("particles of unequal masses are not decomposed "
+                          "yet.")
+    mass = float(p.masses[0])
+    dtype = jnp.dtype(scene.dtype)
     pair = scene.pair_effects
-    if not pair or not all(isinstance(e, _effects.LJ) for e in pair):
+    sph_kinds = (_effects.SPHDensity, _effects.SPHPressure,
+                 _effects.SPHViscosity)
+    ljs = [e for e in pair if isinstance(e, _effects.LJ)]
+    sph = [e for e in pair if isinstance(e, sph_kinds)]
+    if not pair or len(ljs) + len(sph) < len(pair):
         raise DomainError(
-            "--devices: decomposed runs take Lennard-Jones scenes (lj-fluid "
-            "and TOML scenes with one lj effect, plus gravity / walls); "
-            f"this scene's pair effects are {[e.kind for e in pair]}.")
-    lj = pair[0]
-    if (p.species is not None or p.radius is not None
-            or np.ndim(lj.sigma) or np.ndim(lj.epsilon)):
-        raise DomainError("--devices: LJ with species or per-particle radii "
-                          "is not decomposed yet.")
-    r_onset = 0.8 * lj.r_cutoff if lj.r_onset is None else lj.r_onset
+            "decomposed runs take Lennard-Jones and SPH scenes (lj-fluid, "
+            "dam-break, TOML scenes with lj or sph_* effects, plus gravity "
+            f"/ walls); this scene's pair effects are "
+            f"{[e.kind for e in pair]}.")
+    energy = None
+    if ljs:
+        lj = ljs[0]
+        if (p.species is not None or p.radius is not None
+                or np.ndim(lj.sigma) or np.ndim(lj.epsilon)):
+            raise DomainError("LJ with species or per-particle radii is not "
+                              "decomposed yet.")
+        r_onset = 0.8 * lj.r_cutoff if lj.r_onset is None else lj.r_onset
 
-    def energy(disp):
-        return _lj.lennard_jones_pair_neighbor_list(
-            disp, sigma=lj.sigma, epsilon=lj.epsilon, r_onset=r_onset,
-            r_cutoff=lj.r_cutoff, truncation=lj.truncation,
-            per_particle=True)
+        def energy(disp):
+            return _lj.lennard_jones_pair_neighbor_list(
+                disp, sigma=lj.sigma, epsilon=lj.epsilon, r_onset=r_onset,
+                r_cutoff=lj.r_cutoff, truncation=lj.truncation,
+                per_particle=True)
+
+    density = accel = None
+    if sph:
+        def terms(disp):
+            ctx = Context(scene, disp, dtype, mass)
+            return [e.term(ctx) for e in sph]
+
+        def density(disp):
+            fns = [t.density for t in terms(disp) if t.density]
+            return fns[0] if fns else None
+
+        def accel(disp):
+            fns = [t.accel for t in terms(disp) if t.accel]
+
+            def a(R, V, nbrs, rho):
+                out = fns[0](R, V, nbrs, rho)
+                for f in fns[1:]:
+                    out = out + f(R, V, nbrs, rho)
+                return out
+            return a
 
     one_body = None
     others = [e for e in scene.effects if not e.pairwise]
     if others:
-        mass = float(p.masses[0])
-        ctx = Context(scene, lambda a, b, **kw: a - b,
-                      jnp.dtype(scene.dtype), mass)
-        terms = [e.term(ctx) for e in others]
-        if any(t.energy is None or t.accel or t.density for t in terms):
-            raise DomainError("--devices: one-body effects must be "
-                              "potentials (gravity, walls).")
+        ctx = Context(scene, lambda a, b, **kw: a - b, dtype, mass)
+        bodies = [e.term(ctx) for e in others]
+        if any(t.energy is None or t.accel or t.density for t in bodies):
+            raise DomainError("one-body effects must be potentials (gravity, "
+                              "walls).")
 
         def one_body(R, valid):
             def each(r):
-                return sum(t.energy(r[None], None) for t in terms)
+                return sum(t.energy(r[None], None) for t in bodies)
             return jnp.sum(jnp.where(valid, jax.vmap(each)(R), 0))
     nb = scene.neighbors
-    size = np.where(np.isfinite(scene.box.size) & (np.asarray(
-        scene.box.size) > 0), scene.box.size, 1.0)
+    size = np.asarray(scene.box.size, float)
+    size = np.where(np.isfinite(size) & (size > 0), size, 1.0)
     return decompose(
         box_size=size, periodic=scene.box.periodic, cutoff=scene.cutoff,
         skin=nb.skin, energy=energy,
         decomposition=Decomposition(devices=devices),
         backend=backend or nb.backend,
         capacity_multiplier=capacity_multiplier or nb.capacity_multiplier,
-        one_body=one_body)
+        one_body=one_body, density=density, accel=accel)

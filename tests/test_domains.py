@@ -76,7 +76,7 @@ def test_bad_decomposition_is_refused():
 
 def test_cli_refuses_what_it_cannot_decompose(capsys):
     from jaxrt import cli
-    rc = cli.main(["run", "sphere-surface", "--steps", "2", "--devices",
+    rc = cli.main(["run", "boids", "--steps", "2", "--devices",
                    "2"])
     assert rc == 2
     assert "decomposed runs take" in capsys.readouterr().err
