@@ -63,6 +63,24 @@ def case_forces():
     # Empty slots get no force.
     assert not np.any(np.asarray(f)[np.asarray(st.gid) < 0])
 
+    # The README's user step: energy_and_forces, move, update, under jit.
+    @jax.jit
+    def step(state):
+        U, F = dom.energy_and_forces(state)
+        drift = jnp.asarray([0.06, 0.0, 0.0])  # across the faces
+        state = state._replace(position=state.position + 1e-4 * F + drift)
+        return dom.update(state), U
+    for _ in range(8):
+        st, U = step(st)
+    dom.check(st)
+    assert int(np.asarray(st.rebuilds)[0]) >= 2  # it did migrate / rebuild
+    R = dom.gather(st)
+    potential = _Forces.collect(scene, ctx, []).potential
+    u1 = float(potential(jnp.asarray(R), compiled.neighbor_fn.allocate(
+        jnp.asarray(R))))
+    u4 = float(jax.jit(dom.energy)(st))
+    assert abs(u4 - u1) < 1e-9 * abs(u1), (u4, u1)
+
 
 def streaming_lattice(planes, v_of_layer):
     """4 x 4 x 4 sites at spacing 3 in a periodic box of 12 (4 slabs of 3

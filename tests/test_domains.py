@@ -74,12 +74,18 @@ def test_bad_decomposition_is_refused():
         Decomposition(devices=2, capacity=-3)
 
 
-def test_cli_refuses_what_it_cannot_decompose(capsys):
+def test_scene_it_cannot_decompose_is_refused():
+    from jaxrt import domains, sim
+    with pytest.raises(DomainError, match="decomposed runs take "
+                       "Lennard-Jones and SPH scenes.*'boids'"):
+        domains.from_scene(sim.builtin("boids"), 2)
+
+
+def test_cli_devices_with_a_check_is_refused(capsys):
     from jaxrt import cli
-    rc = cli.main(["run", "boids", "--steps", "2", "--devices",
-                   "2"])
+    rc = cli.main(["run", "boids", "--steps", "2", "--devices", "2"])
     assert rc == 2
-    assert "decomposed runs take" in capsys.readouterr().err
+    assert "--devices runs without" in capsys.readouterr().err
 
 
 def _cli(out: pathlib.Path, *extra):
@@ -101,3 +107,22 @@ def test_cli_devices_follows_single_device(tmp_path):
     d -= box * np.round(d / box)
     assert np.abs(d).max() < 1e-8
     assert len(p1) > 1000 and np.array_equal(p1, p4)
+
+
+@pytest.mark.slow
+def test_cli_dam_break_devices_follows_single_device(tmp_path):
+    """SPH with walls: the column's front crosses the first face (x = 1)
+    into the empty slabs; positions within 1e-8 of the single device's,
+    the same pairs."""
+    runs = {}
+    for name, extra in (("d4", ("--devices", "4")), ("d1", ())):
+        out = tmp_path / name
+        _run(["-m", "jaxrt", "run", "dam-break", "--steps", "600",
+              "--dtype", "float64", "--out", str(out), "--save-pairs",
+              *extra])
+        runs[name] = (np.load(out / "snapshots.npz")["positions"][-1],
+                      np.load(out / "pairs.npy"))
+    (r4, p4), (r1, p1) = runs["d4"], runs["d1"]
+    assert r1[:, 0].max() > 1.05  # particles migrated to slab 1
+    assert np.abs(r4 - r1).max() < 1e-8
+    assert np.array_equal(p1, p4)
