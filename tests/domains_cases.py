@@ -152,6 +152,29 @@ def case_empty_domain():
     owners_ok(dom, st)
 
 
+def case_redo():
+    """run_chunk throws away a chunk that overflowed, distributes again
+    (reallocating) and redoes it: the same result as without overflow."""
+    dom, chunk = streaming_domains()
+    R, V = streaming_lattice(range(4), lambda j: np.where(j % 2, -2.0, 2.0))
+    st = dom.distribute(R, V, dtype=jnp.float64)
+    calls = []
+
+    def flaky(state, steps):
+        new, rec = chunk(state, steps=steps)
+        if not calls:  # the first call reports a list overflow
+            new = new._replace(error=new.error | int(domains.Overflow.LIST))
+        calls.append(steps)
+        return new, rec
+    stats = {}
+    new, _ = domains.run_chunk(dom, flaky, st, 10, stats)
+    assert stats == {"redone": 1} and calls == [10, 10], (stats, calls)
+    dom.check(new)
+    want = np.mod(R + V * 0.05 * 10, 12.0)
+    d = dom.gather(new) - want
+    assert np.abs(d - 12.0 * np.round(d / 12.0)).max() < 1e-9
+
+
 def case_overflow():
     """A full slab is flagged and check() names the capacity to raise."""
     R, V = streaming_lattice([0, 1], lambda j: 0 * j)

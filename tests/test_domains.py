@@ -44,9 +44,10 @@ def _energy(d):
 
 def test_library_cases():
     """Energies, forces and jax.grad equal the single device's (float64);
-    migration across every face; emptied domains; overflow flagged."""
+    the README's jitted user step; migration across every face; emptied
+    domains; a chunk redone after an overflow; overflow flagged."""
     out = _run([str(HERE / "domains_cases.py")])
-    for case in ("forces", "migration", "empty_domain", "overflow"):
+    for case in ("forces", "migration", "empty_domain", "redo", "overflow"):
         assert f"CASE {case} ok" in out, out
 
 
