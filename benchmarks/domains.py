@@ -17,7 +17,11 @@ runs in its own worker process (`_harness`), on the first ``D`` devices.
   ``--devices`` (default 1 2 4 8); efficiency = T(1) / (D T(D)), T(1) the
   same code on one device;
 * weak scaling: ``--weak`` particles per device (default 1e6) on D
-  devices; efficiency = T(1) / T(D).
+  devices; efficiency = T(1) / T(D);
+* plain: ``md_step.py``'s own LJ step (jax-md's ``simulate.nve``, the
+  jaxrt list of ``--backend`` on Dense, the "rows" forces) on one device
+  at each strong N, no decomposition: ``vs_plain`` = T_plain / (D T(D))
+  is what the decomposition gains over the best single-device step.
 
 Rows whose D exceeds the devices present are written as skipped; a row
 whose halo is wider than its slab is written as an error (the refusal).
@@ -25,12 +29,15 @@ The NCCL variables are left as the machine sets them.
 
     python benchmarks/domains.py --quick         # CPU: 4 fake devices,
                                                  # N = 4096, 2 repeats
-    # 8 GPUs, under 10 minutes (rows past the budget are written skipped):
+    # 8 GPUs, under 10 minutes (no row starts after 500 s, the running
+    # one is killed at 570 s; rows not reached are written as skipped):
     XLA_PYTHON_CLIENT_PREALLOCATE=false python benchmarks/domains.py \
         --strong 1e6 1e7 --weak 1e6 --devices 1 2 4 8 --steps 20 \
-        --repeats 3 --warmup 1 --timeout 200 --budget 480 --hard-stop 560
-    # if the Pallas cell kernel fails inside shard_map there:
-    #   the same with --backend "cell[xla]"
+        --repeats 3 --warmup 1 --timeout 240 --budget 500 --hard-stop 570
+    # the 1e7 rows it skipped, in a second run of the same length: the
+    # same with --strong 1e7 --weak 0
+    # if the Pallas cell kernel fails inside shard_map there: add
+    #   --backend "cell[xla]"
 """
 from __future__ import annotations
 
@@ -43,12 +50,16 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _harness  # noqa: E402
 
 COLUMNS = ["scaling", "N", "devices", "N_per_device", "k", "median_ms",
-           "min_ms", "max_ms", "efficiency", "rebuilds", "capacity",
-           "halo_capacity"]
+           "min_ms", "max_ms", "efficiency", "vs_plain", "rebuilds",
+           "capacity", "halo_capacity"]
 
 
 def lj_row(job: dict) -> dict:
     warnings.filterwarnings("ignore", message="Explicitly requested dtype")
+    if job["scaling"] == "plain":  # md_step.py's own row, no domains
+        import md_step
+        return md_step.lj_step(f"jaxrt:{job['backend']}/Dense", job["N"],
+                               job)
     import jax
     import numpy as np
     from jax import lax
@@ -97,8 +108,13 @@ def efficiency(rows: list[dict]) -> None:
     (T1: the one-device row of ``base_N``, the per-device size rounded
     to a cube)."""
     ok = [r for r in rows if r.get("status") == "ok"]
-    one = {(r["N"]): r["median_ms"] for r in ok if r["devices"] == 1}
+    one = {(r["N"]): r["median_ms"] for r in ok if r["devices"] == 1
+           and r["scaling"] != "plain"}
+    plain = {r["N"]: r["median_ms"] for r in ok if r["scaling"] == "plain"}
     for r in ok:
+        if r["N"] in plain and r["scaling"] != "plain":
+            r["vs_plain"] = round(plain[r["N"]] / (r["devices"]
+                                                   * r["median_ms"]), 3)
         d = r["devices"]
         if r["scaling"] == "strong" and r["N"] in one:
             r["efficiency"] = round(one[r["N"]] / (d * r["median_ms"]), 3)
@@ -113,9 +129,13 @@ def plan(args) -> list[dict]:
               "warmup": args.warmup, "backend": args.backend}
     def strong(n):
         side = round(n ** (1 / 3))
-        return [{"scaling": "strong", "N": side ** 3, "devices": d,
+        rows = [{"scaling": "strong", "N": side ** 3, "devices": d,
                  "N_per_device": side ** 3 // d, **common}
                 for d in args.devices]
+        if args.plain:
+            rows.append({"scaling": "plain", "N": side ** 3, "devices": 1,
+                         "N_per_device": side ** 3, **common})
+        return rows
     weak = []
     if args.weak:
         base = round(args.weak ** (1 / 3)) ** 3
@@ -146,6 +166,10 @@ def main(argv=None) -> None:
                         help="steps per timed call (one lax.scan)")
     parser.add_argument("--backend", default="cell",
                         help="list backend label (`_harness.parse_backend`)")
+    parser.add_argument("--no-plain", dest="plain", action="store_false",
+                        help="leave out the plain single-device rows "
+                        "(md_step.py's LJ step on a jaxrt Dense list, no "
+                        "decomposition: vs_plain = T_plain / (D T_D))")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: 4 fake CPU devices, strong N = "
                         "4000 on 1 2 4, weak 2000 per device, 5 steps, "

@@ -98,7 +98,6 @@ class Overflow(enum.IntFlag):
     MIGRATION = 1 << 2   # more crossing a face than migrate_capacity
     TOO_FAR = 1 << 3     # a particle moved further than one slab
     LIST = 1 << 4        # a device's neighbour list overflowed
-    STALE = 1 << 5       # (energy outside a step) halo older than skin / 2
 
 
 _FIX = {
@@ -111,7 +110,6 @@ _FIX = {
                       "blown up)",
     Overflow.LIST: "a device's neighbour list overflowed: distribute again "
                    "(it reallocates) or raise capacity_multiplier",
-    Overflow.STALE: "call update(state) after moving positions",
 }
 
 
@@ -272,25 +270,23 @@ class Domains:
     def _parking(self, count: int, dtype, lo=0.0):
         """``count`` sites beyond the reach of the slab starting at ``lo``
         (its frame), spaced by more than the list's reach (no
-        neighbours)."""
+        neighbours). Computed from an iota (no large constant in the
+        compiled program)."""
         dim = len(self.box_size)
         s = 1.5 * self.halo_width + 1e-3
-        others = [a for a in range(dim) if a != self.axis]
-        per = []
-        for a in others:
+        rest = jnp.arange(count, dtype=jnp.int32)
+        cols = [None] * dim
+        for a in range(dim):
+            if a == self.axis:
+                continue
             L = float(self.box_size[a])
-            per.append(max(1, int(L // s)) if L > 0 and math.isfinite(L)
-                       else 64)
-        k = np.arange(count)
-        pos = np.zeros((count, dim))
-        rest = k.copy()
-        for a, m in zip(others, per):
-            pos[:, a] = (rest % m) * s
+            m = max(1, int(L // s)) if L > 0 and math.isfinite(L) else 64
+            cols[a] = (rest % m).astype(dtype) * s
             rest = rest // m
-        pos[:, self.axis] = (self.width + 3 * self.halo_width + 2 * s
-                             + rest * s)
-        pos = jnp.asarray(pos, dtype)
-        return pos.at[:, self.axis].add(jnp.asarray(lo, dtype))
+        cols[self.axis] = (jnp.asarray(lo, dtype) + (
+            self.width + 3 * self.halo_width + 2 * s)
+            + rest.astype(dtype) * s)
+        return jnp.stack(cols, axis=-1)
 
     def _frame(self, me, dtype):
         """(lo, hi) of device ``me``'s slab along the split axis."""
@@ -522,7 +518,7 @@ class Domains:
                 s.rebuilds, s.error))
         return lax.cond(stale, rebuild, lambda s: s, s)
 
-    def _per_device(self, fn, state: DomainState, force: bool = False):
+    def _per_device(self, fn, state: DomainState):
         spec = self._spec()
 
         def body(*leaves):
