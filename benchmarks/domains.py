@@ -5,8 +5,9 @@ The LJ system of ``md_step.py``: a simple-cubic lattice at density 0.8
 velocities at kT = 1. The box is cut into ``D`` slabs along x, one per
 device (`jax.shard_map` over a 1-D mesh, halos by `jax.lax.ppermute`,
 NCCL underneath on GPUs); each device builds its own Dense list with the
-``--backend`` (default ``cell``) on owned + halo particles, the forces are
-``-jax.grad`` of the decomposed energy, and a step is `jaxrt.domains`'s
+``--backend`` (default ``cell``) on owned + halo particles, the forces
+come from the owned particles' rows (``--forces rows``, default) or from
+``-jax.grad`` of the decomposed energy (``--forces grad``), and a step is `jaxrt.domains`'s
 velocity Verlet step (halo refresh every step; migration, halos and lists
 again when a particle moved more than skin / 2, decided over all devices).
 ``--steps`` steps run in one jitted ``lax.scan``; ms per step, median of
@@ -80,7 +81,10 @@ def lj_row(job: dict) -> dict:
         energy=lambda disp: lennard_jones_pair_neighbor_list(
             disp, r_onset=2.0, r_cutoff=2.5, per_particle=True),
         decomposition=domains.Decomposition(devices=d, slack=1.2),
-        backend=_harness.backend(job["backend"]))
+        backend=_harness.backend(job["backend"]),
+        row_energy=(None if job["forces"] == "grad" else
+                    lambda disp: lennard_jones_pair_neighbor_list(
+                        disp, r_onset=2.0, r_cutoff=2.5)))
     state = dom.distribute(R, V, dtype=np.float32)
     state = jax.jit(dom.forces_into)(state)
     steps = job["steps"]
@@ -126,7 +130,8 @@ def efficiency(rows: list[dict]) -> None:
 
 def plan(args) -> list[dict]:
     common = {"steps": args.steps, "repeats": args.repeats,
-              "warmup": args.warmup, "backend": args.backend}
+              "warmup": args.warmup, "backend": args.backend,
+              "forces": args.forces}
     def strong(n):
         side = round(n ** (1 / 3))
         rows = [{"scaling": "strong", "N": side ** 3, "devices": d,
@@ -166,6 +171,11 @@ def main(argv=None) -> None:
                         help="steps per timed call (one lax.scan)")
     parser.add_argument("--backend", default="cell",
                         help="list backend label (`_harness.parse_backend`)")
+    parser.add_argument("--forces", choices=("rows", "grad"),
+                        default="rows", help="rows: each owned particle's "
+                        "force from its own row (no reverse halo exchange, "
+                        "no scatter); grad: jax.grad of the decomposed "
+                        "energy through shard_map and the halo")
     parser.add_argument("--no-plain", dest="plain", action="store_false",
                         help="leave out the plain single-device rows "
                         "(md_step.py's LJ step on a jaxrt Dense list, no "

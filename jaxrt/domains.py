@@ -239,6 +239,7 @@ class Domains:
     one_body: Callable | None = None
     density: Callable | None = None
     accel: Callable | None = None
+    row_energy: Callable | None = None
 
     # -- geometry ---------------------------------------------------------
     @property
@@ -348,9 +349,23 @@ class Domains:
         return u
 
     def _forces_local(self, R, gid, send, shift, nbrs):
-        u, g = jax.value_and_grad(self._energy_local)(R, gid, send, shift,
-                                                      nbrs)
-        return u, -jnp.where((gid >= 0)[:, None], g, 0)
+        if self.row_energy is None or self.local_energy is None:
+            u, g = jax.value_and_grad(self._energy_local)(R, gid, send,
+                                                          shift, nbrs)
+            return u, -jnp.where((gid >= 0)[:, None], g, 0)
+        # Rows: an owned particle's row holds all its neighbours, so the
+        # per-row gradient of the local pair energy is its whole force;
+        # no cotangents go back through the halo exchange.
+        C = R.shape[0]
+        valid = gid >= 0
+        Rloc = self._local_positions(R, gid, send, shift)
+        g = jax.grad(self.row_energy)(Rloc, nbrs)[:C]
+        e = self.local_energy(Rloc, nbrs)[:C]
+        u = jnp.sum(jnp.where(valid, e, 0))
+        if self.one_body is not None:
+            ub, gb = jax.value_and_grad(self.one_body)(R, valid)
+            u, g = u + ub, g + gb
+        return u, -jnp.where(valid[:, None], g, 0)
 
     def _other_accel(self, R, V, gid, send, shift, nbrs):
         """Accelerations not from the potential (SPH), ``(C, dim)``: the
@@ -767,7 +782,8 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
               backend="auto", capacity_multiplier: float = 1.25,
               one_body: Callable | None = None,
               density: Callable | None = None,
-              accel: Callable | None = None, devices=None) -> Domains:
+              accel: Callable | None = None,
+              row_energy: Callable | None = None, devices=None) -> Domains:
     """The functions of a slab decomposition (`Domains`).
 
     box_size: float ``(dim,)`` sides; periodic: bool or one per axis.
@@ -781,8 +797,14 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
     factories of forces not from a potential (SPH), each given the
     displacement: ``density(d) -> rho(R, nbrs) -> (n,)`` and ``accel(d)
     -> a(R, V, nbrs, rho) -> (n, dim)``; the halo's densities and
-    velocities come from their owners before ``accel``. devices: the JAX
-    devices
+    velocities come from their owners before ``accel``. row_energy:
+    optional, the same pair energy as a total on a Dense list whose
+    gradient for particle k is summed over row k alone (jaxrt's
+    ``gradient="rows"``, e.g. ``lennard_jones_pair_neighbor_list(d, ...)``
+    without per_particle): the steps then take the owned particles'
+    forces from their own rows, with no reverse halo exchange and no
+    scatter (`Domains.energy` is still differentiated through the halo).
+    devices: the JAX devices
     (default ``jax.devices()[:decomposition.devices]``).
 
     Raises `DomainError` if the halo is wider than a slab, the split axis
@@ -835,7 +857,8 @@ def decompose(*, box_size, periodic, cutoff: float, skin: float,
                    None if energy is None else energy(disp), disp,
                    one_body=one_body,
                    density=None if density is None else density(disp),
-                   accel=None if accel is None else accel(disp))
+                   accel=None if accel is None else accel(disp),
+                   row_energy=None if row_energy is None else row_energy(disp))
 
 
 # ---------------------------------------------------------------------------
@@ -921,12 +944,17 @@ def from_scene(scene, devices: int, *, backend=None,
                               "decomposed yet.")
         r_onset = 0.8 * lj.r_cutoff if lj.r_onset is None else lj.r_onset
 
-        def energy(disp):
+        def energy(disp, per_particle=True):
             return _lj.lennard_jones_pair_neighbor_list(
                 disp, sigma=lj.sigma, epsilon=lj.epsilon, r_onset=r_onset,
                 r_cutoff=lj.r_cutoff, truncation=lj.truncation,
-                per_particle=True)
+                per_particle=per_particle)
 
+        def row_energy(disp):
+            return energy(disp, per_particle=False)
+
+    else:
+        row_energy = None
     density = accel = None
     if sph:
         def terms(disp):
@@ -969,4 +997,5 @@ def from_scene(scene, devices: int, *, backend=None,
         decomposition=Decomposition(devices=devices),
         backend=backend or nb.backend,
         capacity_multiplier=capacity_multiplier or nb.capacity_multiplier,
-        one_body=one_body, density=density, accel=accel)
+        one_body=one_body, density=density, accel=accel,
+        row_energy=row_energy)

@@ -28,9 +28,11 @@ def lj_energy(d):
                                             per_particle=True)
 
 
-def lj_domains(L, devices=4, backend=BACKEND, **dec):
+def lj_domains(L, devices=4, backend=BACKEND, rows=False, **dec):
+    row = (lambda d: lennard_jones_pair_neighbor_list(
+        d, r_onset=2.0, r_cutoff=2.5)) if rows else None
     return decompose(box_size=(L,) * 3, periodic=True, cutoff=2.5, skin=0.3,
-                     energy=lj_energy, backend=backend,
+                     energy=lj_energy, backend=backend, row_energy=row,
                      decomposition=Decomposition(devices=devices, **dec))
 
 
@@ -42,8 +44,9 @@ def by_gid(dom, state, values):
 
 
 def case_forces():
-    """Energy, forces (grad inside shard_map) and jax.grad of the
-    decomposed energy equal the single-device ones (float64)."""
+    """Energy, forces (from the owned rows) and jax.grad of the decomposed
+    energy (through shard_map and the halo) equal the single-device ones
+    (float64)."""
     scene = dataclasses.replace(sim.lj_fluid(n=1200, backend=BACKEND),
                                 dtype="float64")
     compiled = sim.compile_scene(scene)
@@ -51,7 +54,9 @@ def case_forces():
     from jaxrt.sim.compile import _Forces  # the single device's potential
     ctx = sim.Context(scene, compiled.displacement, jnp.float64, 1.0)
     u1 = float(_Forces.collect(scene, ctx, []).potential(s0.position, nbrs))
-    dom = lj_domains(scene.box.size[0])
+    # Forces from the owned rows (energy_and_forces, row_energy) and from
+    # jax.grad of the energy through shard_map and the halo exchange.
+    dom = lj_domains(scene.box.size[0], rows=True)
     st = dom.distribute(scene.particles.positions, dtype=jnp.float64)
     u, f = jax.jit(dom.energy_and_forces)(st)
     g = jax.jit(jax.grad(lambda R: dom.energy(st._replace(position=R))))(
