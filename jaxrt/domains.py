@@ -19,7 +19,10 @@ The box is cut into ``devices`` slabs of equal width along one axis
   `jax.lax.psum`: an owned-owned pair is counted once on its device, an
   owned-halo pair half on each of the two devices. Forces are ``-jax.grad``
   of that energy through ``shard_map``: the halo cotangents travel back to
-  the owners through the transpose of the ``ppermute``;
+  the owners through the transpose of the ``ppermute``. With
+  ``row_energy`` the steps take each owned particle's force from its own
+  Dense row instead (its row holds all its neighbours): no reverse
+  exchange, no scatter;
 * **rebuild**, when some particle moved more than ``skin / 2`` since the
   last one (the rule of the single-device list, decided over all devices
   with `jax.lax.pmax` inside a `jax.lax.cond`): positions are wrapped,
