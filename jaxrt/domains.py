@@ -46,6 +46,7 @@ devices``) and too few devices are refused when the functions are made.
             d, r_onset=2.0, r_cutoff=2.5, per_particle=True),
         decomposition=Decomposition(devices=4))
     state = dom.distribute(R, V)              # host: place, pad, build
+    state = dom.forces_into(state)            # the first accelerations
     step = jax.jit(functools.partial(dom.verlet_step, dt=0.005))
     for _ in range(100):
         state, (ke, pe, mom) = step(state)
