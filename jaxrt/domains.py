@@ -352,7 +352,7 @@ class Domains:
             u = u + self.one_body(R, valid)
         return u
 
-    def _forces_local(self, R, gid, send, shift, nbrs):
+    def _forces_local(self, R, gid, send, shift, nbrs, energy=True):
         if self.row_energy is None or self.local_energy is None:
             u, g = jax.value_and_grad(self._energy_local)(R, gid, send,
                                                           shift, nbrs)
@@ -364,8 +364,10 @@ class Domains:
         valid = gid >= 0
         Rloc = self._local_positions(R, gid, send, shift)
         g = jax.grad(self.row_energy)(Rloc, nbrs)[:C]
-        e = self.local_energy(Rloc, nbrs)[:C]
-        u = jnp.sum(jnp.where(valid, e, 0))
+        u = jnp.zeros((), R.dtype)
+        if energy:  # the per-particle pass, for the energy only
+            e = self.local_energy(Rloc, nbrs)[:C]
+            u = jnp.sum(jnp.where(valid, e, 0))
         if self.one_body is not None:
             ub, gb = jax.value_and_grad(self.one_body)(R, valid)
             u, g = u + ub, g + gb
@@ -576,10 +578,13 @@ class Domains:
         """Migrate, choose halos and rebuild the lists now (jitted)."""
         return self._jit_rebuild(state)
 
-    def verlet_step(self, state: DomainState, dt: float, mass=1.0):
+    def verlet_step(self, state: DomainState, dt: float, mass=1.0,
+                    energy: bool = True):
         """One velocity Verlet step (kick, drift, update, forces, kick), as
         `jaxrt.sim`'s; returns ``(state, (kinetic, potential, momentum))``,
-        totals over all devices. ``mass``: a scalar."""
+        totals over all devices. ``mass``: a scalar. ``energy=False``:
+        with ``row_energy``, skip the per-particle energy pass (the
+        potential is then reported as 0)."""
         name = self.decomposition.axis_name
         wrap_axes = [a for a, p in enumerate(self.periodic)
                      if p and a != self.axis]
@@ -594,7 +599,7 @@ class Domains:
                                              R[:, a]))
             s = self._update_local(s._replace(position=R, velocity=v_half))
             u, f = self._forces_local(s.position, s.gid, s.send, s.shift,
-                                      s.nbrs)
+                                      s.nbrs, energy)
             a = f / mass
             if self.accel is not None:
                 a = a + self._other_accel(s.position, s.velocity, s.gid,
