@@ -22,6 +22,9 @@ Setup labels (``--list`` prints them):
   jaxrt:<backend>/<format>          jaxrt's list and energy; <backend> is a
                                     label of `_harness.parse_backend`:
                                     cell, cell[xla], bvh, bvh[unsorted], ...
+  fused:<backend>                   (LJ) no list: `energy.lennard_jones_fused`
+                                    (backend cell, bvh or brute), forces from
+                                    its custom_vjp, the same NVE step
 A label in ``--only`` without ``/`` selects both formats.
 
     python benchmarks/md_step.py                         # CPU sizes, all
@@ -43,6 +46,7 @@ FORMATS = ("Dense", "OrderedSparse")
 DEFAULT_BACKENDS = ("cell", "bvh", "bvh-unsorted", "squares", "spheres",
                     "brute")
 JAXMD_LIST_JAXRT_ENERGY = "jax-md list + jaxrt energy"
+FUSED_BACKENDS = ("cell", "bvh")
 
 
 def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:
@@ -50,12 +54,19 @@ def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:
     out = [f"{name}/{fmt}" for name in lists for fmt in FORMATS]
     if system == "lj":
         out.insert(2, f"{JAXMD_LIST_JAXRT_ENERGY}/Dense")
+        out += [f"fused:{b}" for b in FUSED_BACKENDS]
     return out
 
 
 def parse_label(label: str) -> tuple[str, str | None, str]:
     """``"jaxrt:cell[xla]/Dense"`` -> (``"jaxrt"``, ``"cell[xla]"``,
     ``"Dense"``); jax-md's rows have no backend."""
+    if label.startswith("fused:"):
+        backend = label[len("fused:"):]
+        if backend not in FUSED_BACKENDS + ("brute",):
+            raise ValueError(f"setup {label!r}: fused:<backend> takes "
+                             f"{FUSED_BACKENDS + ('brute',)}")
+        return "fused", backend, None
     lists, sep, fmt = label.rpartition("/")
     if not sep or fmt not in FORMATS:
         raise ValueError(f"setup {label!r}: end it with /Dense or "
@@ -110,6 +121,8 @@ def lj_step(label: str, n: int, job: dict) -> dict:
     g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
     R = jnp.asarray(g.reshape(-1, 3) * box / n_side, jnp.float32)
     disp, shift = space.periodic(box)
+    if label.startswith("fused:"):
+        return _fused_lj_step(label, n, box, R, disp, shift, job)
     list_fn, energy_factory, fmt = _list_and_energy(label)
     # r_onset / r_cutoff in units of sigma = 1, as jax-md's factory takes
     # them. jax-md's factory builds its own list (and would silently
@@ -139,6 +152,30 @@ def lj_step(label: str, n: int, job: dict) -> dict:
         raise RuntimeError("LJ list overflowed during timing")
     return {"N": n, "k": round(float(mean_neighbours(nbrs, n)), 2),
             **timing.columns()}
+
+
+def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
+    """The LJ step of `lj_step` with no list: the fused energy's forces."""
+    import jax
+    from jax import lax
+    from jax_md import simulate
+    from jaxrt.energy import lennard_jones_fused
+    _, backend, _ = parse_label(label)
+    energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
+                                    backend=backend)
+    init, apply = simulate.nve(energy_fn, shift, dt=0.005)
+    state = init(jax.random.PRNGKey(0), R, 1.0)
+    steps = job["steps"]
+
+    @jax.jit
+    def run(state):
+        return lax.scan(lambda s, _: (apply(s), None), state, None,
+                        length=steps)[0]
+
+    timing, state = _harness.time_carry(run, state, repeats=job["repeats"],
+                                        warmup=job["warmup"], per_call=steps)
+    pairs = float(energy_fn.sums(state.position).count)
+    return {"N": n, "k": round(2 * pairs / n, 2), **timing.columns()}
 
 
 def sph_step(label: str, n: int, job: dict) -> dict:
@@ -205,9 +242,10 @@ def plan(args) -> list[dict]:
         if args.only:
             chosen = []
             for sel in args.only:
-                chosen += [sel] if "/" in sel else [f"{sel}/{f}" for f in FORMATS]
-            chosen = [c for c in chosen if system == "lj" or
-                      not c.startswith(JAXMD_LIST_JAXRT_ENERGY)]
+                chosen += ([sel] if "/" in sel or sel.startswith("fused:")
+                           else [f"{sel}/{f}" for f in FORMATS])
+            chosen = [c for c in chosen if system == "lj" or not
+                      c.startswith((JAXMD_LIST_JAXRT_ENERGY, "fused:"))]
         else:
             chosen = labels(system)
         for label in chosen:

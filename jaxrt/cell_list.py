@@ -33,7 +33,8 @@ longest run, so two thirds of the slots lie past a run's end).
 So every pair is decided as ``metric_sq(Ri, Rj) < cutoff**2`` with the
 caller's metric, bit for bit as jax-md decides, provided that metric is the
 Euclidean minimum-image distance up to ``tol`` (``2**-18`` of the cutoff
-plus 16 ulps of the largest coordinate), which the cell grid assumes anyway.
+plus 16 ulps of the largest coordinate, wrapped or not: the metric rounds
+the unwrapped difference), which the cell grid assumes anyway.
 The caller's metric is not used on every slot because jax-md's periodic
 wrap (a float ``mod``) is a scalar libm call on CPU: 20x the cheap test.
 Where the metric is not that distance (a triclinic box, binned in its
@@ -373,9 +374,19 @@ def _slots(window: int) -> int:
     return 32 * max(-(-window // 32), 1)
 
 
-def _tolerance(cart, geometry: Geometry, query: Query):
-    """Bound on |cheap distance - caller's distance| (float scalar)."""
-    scale = jnp.max(jnp.abs(cart), initial=0.0) + query.cutoff
+def _tolerance(cart, geometry: Geometry, query: Query, position):
+    """Bound on |cheap distance - caller's distance| (float scalar).
+
+    The ulps are those of the largest coordinate the caller's metric sees:
+    it subtracts the caller's positions (``position``), which on a periodic
+    axis may lie many boxes outside it, before it wraps, so its rounding is
+    that of the unwrapped coordinates, not of the wrapped ``cart``.
+    """
+    raw = geometry.grid_coordinates(position)
+    raw = jnp.max(jnp.abs(jnp.where(jnp.isfinite(raw), raw, 0.0)),
+                  initial=0.0)
+    scale = jnp.maximum(jnp.max(jnp.abs(cart), initial=0.0),
+                        raw.astype(cart.dtype)) + query.cutoff
     if any(query.periodic):
         scale = scale + jnp.max(jnp.where(jnp.asarray(query.periodic),
                                           geometry.side, 0.0))
@@ -383,10 +394,10 @@ def _tolerance(cart, geometry: Geometry, query: Query):
     return query.cutoff * _TOL_RELATIVE + _TOL_ULPS * eps * scale
 
 
-def _thresholds(cart, geometry: Geometry, query: Query):
+def _thresholds(cart, geometry: Geometry, query: Query, position):
     """Squared distances (float scalars, ``cart``'s dtype) below which the
     cheap test calls a pair sure, and below which it is in the shell."""
-    tol = _tolerance(cart, geometry, query)
+    tol = _tolerance(cart, geometry, query, position)
     inner_sq = (jnp.maximum(query.cutoff - tol, 0.0) ** 2).astype(cart.dtype)
     outer_sq = ((query.cutoff + tol) ** 2).astype(cart.dtype)
     return inner_sq, outer_sq
@@ -413,7 +424,7 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     n, dim = cart.shape
     slots = _slots(window)
     dtype = cart.dtype
-    inner_sq, outer_sq = _thresholds(cart, geometry, query)
+    inner_sq, outer_sq = _thresholds(cart, geometry, query, position)
     if query.decide_by_metric:  # the metric's own decision, nothing near it
         inner_sq = outer_sq = jnp.asarray(query.cutoff ** 2, dtype)
     side = geometry.side.astype(dtype)
@@ -590,7 +601,7 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     n = position.shape[0]
     order, cart, runs = _sorted_system(position, geometry, query,
                                        sorted_runs=True)
-    inner_sq, outer_sq = _thresholds(cart, geometry, query)
+    inner_sq, outer_sq = _thresholds(cart, geometry, query, position)
     rows, count, shells, shell_count = _cell_kernel.candidate_rows(
         cart[order], order, runs, inner_sq, outer_sq, geometry.side,
         periodic=query.periodic, mask_self=query.mask_self,
@@ -760,7 +771,7 @@ class Cell:
         # liquid a few per hundred particles: expect the liquid's share,
         # from the pairs found (they grow as r**dim, so a shell of width
         # 2 tol holds 2 dim tol / cutoff of them).
-        tol = float(_tolerance(cart, geometry, query))
+        tol = float(_tolerance(cart, geometry, query, position))
         per_particle = count.mean() * 2 * query.dim * tol / query.cutoff
         liquid = math.ceil(n * -math.expm1(-per_particle))
         sizes = {"row": int(count.max(initial=0)), "window": window,

@@ -10,6 +10,10 @@
         CPU, D fake devices are made); LJ and SPH scenes.
     jaxrt scenes            the built-in scenes: name, default steps and
                             what each is, one line each
+    jaxrt accuracy [lj-fluid|dam-break] --out DIR [--quick] [--budget S]
+                   [--knobs a,b] [--n N] [--steps N]
+        what accuracy costs in time: every knob against a float64
+        reference (CSV, one PNG per knob, summary.md; jaxrt.accuracy)
 """
 from __future__ import annotations
 
@@ -44,6 +48,24 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     sub.add_parser("scenes", help="list the built-in scenes (for jaxrt "
                    "run NAME): name, default steps, what each is")
+    acc = sub.add_parser("accuracy", help="sweep the knobs that trade "
+                         "accuracy for time against a float64 reference")
+    acc.add_argument("scene", nargs="?", default="lj-fluid",
+                     choices=("lj-fluid", "dam-break"))
+    acc.add_argument("--out", default="jaxrt-accuracy")
+    acc.add_argument("--quick", action="store_true",
+                     help="small N, short runs, a subset of values (a CPU "
+                     "in a few minutes)")
+    acc.add_argument("--budget", type=float, default=None,
+                     help="seconds; no new setting starts after them (the "
+                     "rest are written as skipped)")
+    acc.add_argument("--knobs", default=None,
+                     help="comma-separated knob names (default: all that "
+                     "apply; see jaxrt.accuracy.KNOBS)")
+    acc.add_argument("--n", type=int, default=None,
+                     help="particles (lj-fluid)")
+    acc.add_argument("--steps", type=int, default=None,
+                     help="steps per run")
     for name in ("run", "demo"):
         p = sub.add_parser(name, help="run a scene" if name == "run" else
                            "LJ fluid NVE, compared with jax-md's lists")
@@ -95,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
             summary = factory.__doc__.strip().split("\n")[0]
             print(f"{name:16s} {steps:5d} steps  {summary}")
         return 0
+    if args.command == "accuracy":
+        return _accuracy(args)
     if args.command == "demo":
         args.scene, args.compare_jax_md = "lj-fluid", True
         args.steps = args.steps or DEMO_STEPS
@@ -149,6 +173,23 @@ def _fake_cpu_devices(n: int) -> None:
     sys.stdout.flush()
     os.execve(sys.executable, [sys.executable, "-m", "jaxrt",
                                *sys.argv[1:]], env)
+
+
+def _accuracy(args) -> int:
+    from jaxrt import accuracy
+    plan = accuracy.QUICK if args.quick else accuracy.FULL
+    if args.n is not None:
+        plan = dataclasses.replace(plan, n=args.n)
+    if args.steps is not None:
+        plan = dataclasses.replace(plan, steps=args.steps)
+    names = args.knobs.split(",") if args.knobs else None
+    try:
+        accuracy.run(args.scene, out=pathlib.Path(args.out), quick=args.quick,
+                     budget=args.budget, plan=plan, knob_names=names)
+    except ValueError as e:
+        print(f"jaxrt accuracy: {e}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def _load(args):

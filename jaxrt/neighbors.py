@@ -334,7 +334,7 @@ def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
                              f"search but backend={backend!r}; drop one.")
         backend = "brute"
     if isinstance(backend, str) and backend == "auto":
-        backend = _auto_backend()
+        backend = _auto_backend(has_radii=radii is not None)
     backend = backends.resolve(backend)
     r_cutoff = _static_positive("r_cutoff", r_cutoff)
     if radii is not None:
@@ -867,5 +867,39 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
             "the ray-traced backends, backend='cell'.")
 
 
-def _auto_backend() -> str:
+def _auto_backend(*, has_radii: bool = False) -> str:
+    """``backend="auto"`` here: `choose_backend` for JAX's default device."""
+    return choose_backend(platform=jax.default_backend(), has_radii=has_radii,
+                          warp="bvh" in backends.available())
+
+
+def choose_backend(*, platform: str, has_radii: bool = False,
+                   warp: bool = True) -> str:
+    """The backend ``backend="auto"`` picks, from the measured tables
+    (`benchmarks/RESULTS.md`; the README's "Which backend auto picks").
+
+    The rule:
+
+    * per-particle radii given to `neighbor_list` (``radii=``), on a CPU,
+      with Warp installed: ``"bvh"``. CPU, n = 4000, seed 003's Disordered
+      scene with LN[1, 330] radii: bvh 36 ms per rebuild against 492 ms for
+      the cell list's radius classes (13x);
+    * everything else: ``"cell"``. On the GPU (H200, N = 10^6) `cell`'s
+      kernel is the fastest in every table: rebuild, uniform 3.06 ms
+      against bvh's 12.8; sphere surface 1.90 against 4.99; LJ MD step
+      2.07 against 3.59; with radii (n = 50 000) 21.7 against 25.7. On the
+      CPU without radii, `cell` is within 5-12 % of `bvh` for an LJ step
+      (N = 10^4; the VM varies ~2x from day to day) and 26 % faster for an
+      SPH step, and it needs no Warp. `delaunay` (2D) was slower than
+      `cell` in every case measured (19-140x), and `spheres` / `squares`
+      slower than `bvh` in every seed-study configuration, so neither is
+      ever chosen; nor is `brute` (no table measures it against `cell`).
+
+    Dimension and N do not enter: no table shows a different winner for
+    2D or for small N. Args: ``platform``: ``jax.default_backend()``
+    (``"cpu"``, ``"gpu"``/``"cuda"``, ``"tpu"``); ``has_radii``: radii given
+    at construction; ``warp``: Warp's backends are installed.
+    """
+    if has_radii and platform == "cpu" and warp:
+        return "bvh"
     return "cell"

@@ -7,11 +7,21 @@ parameters, and works on Dense, Sparse and OrderedSparse lists from
 LJ (`jaxrt.energy.lj`): `lennard_jones`, `lennard_jones_truncated`,
 `lennard_jones_radii` (per-particle radii, seed 003),
 `lennard_jones_pair_neighbor_list`, `lennard_jones_neighbor_list`.
+Without a list (`jaxrt.energy.fused`, seed 003 ORCS): `lennard_jones_fused`
+(energy, first derivatives from one traversal), `lennard_jones_perse_step`
+(ORCS-persé leapfrog step).
 SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
 `WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
 `acceleration` -> `Acceleration`.
 """
-from jaxrt.energy import lj, sph
+from jaxrt.energy import fused, lj, sph
+from jaxrt.energy.fused import (
+    FusedInputError,
+    FusedSums,
+    HigherOrderError,
+    lennard_jones_fused,
+    lennard_jones_perse_step,
+)
 from jaxrt.energy.lj import (
     TRUNCATIONS,
     lennard_jones,
@@ -38,6 +48,9 @@ __all__ = [
     "KERNELS",
     "TRUNCATIONS",
     "Acceleration",
+    "FusedInputError",
+    "FusedSums",
+    "HigherOrderError",
     "CubicSpline",
     "Kernel",
     "QuinticSpline",
@@ -46,10 +59,13 @@ __all__ = [
     "WendlandC4",
     "acceleration",
     "density",
+    "fused",
     "kernel",
     "lennard_jones",
+    "lennard_jones_fused",
     "lennard_jones_neighbor_list",
     "lennard_jones_pair_neighbor_list",
+    "lennard_jones_perse_step",
     "lennard_jones_radii",
     "lennard_jones_truncated",
     "lj",

@@ -31,6 +31,9 @@ Differences from jax-md, on purpose:
   Nearly coincident particles give ``+inf`` energy once ``(sigma/r)**12``
   overflows (``r < sigma * 1e-3.2`` in float32); jax-md replaces that with
   the largest float and a zero force, which hides the overlap.
+* A NaN or infinite position makes the energy NaN: the pair functions'
+  masks (and jax-md's switch) treat a NaN distance as one past the cutoff,
+  which would drop that particle's pairs from the sum silently.
 * Keyword arguments of the energy function other than the LJ parameters
   go to the displacement function only (e.g. ``box=`` for a changing box),
   and only those it reads: its named parameters, plus ``box``, ``new_box``
@@ -414,9 +417,15 @@ def lennard_jones_pair_neighbor_list(
             pairs, combine = _RADII_PAIRS, _RADIUS_COMBINE
             pair_params = {"radius": jnp.asarray(radii)}
 
+        # A NaN or infinite position is never a silent zero: the pair
+        # functions and the switch mask a NaN distance like one past the
+        # cutoff, so the particle's pairs would simply vanish from the sum.
+        # 0 * sum(R) is 0 for finite R (with a zero gradient) and NaN
+        # otherwise.
+        poison = 0 * jnp.sum(R)
         if (neighbor.format is partition.Dense and not per_particle
                 and gradient == "rows"):
-            return dense_pair_energy(
+            return poison + dense_pair_energy(
                 pairs[truncation], metric, R, neighbor.idx,
                 {"sigma": p["sigma"], "epsilon": p["epsilon"],
                  "r_onset": p["r_onset"], "r_cutoff": p["r_cutoff"],
@@ -447,7 +456,7 @@ def lennard_jones_pair_neighbor_list(
             # dropped (its energies are zero anyway).
             out = (segment_sum(out, neighbor.idx[0], n)
                    + segment_sum(out, neighbor.idx[1], n)) / 2
-        return out
+        return out + poison.astype(out.dtype)
 
     return energy_fn
 

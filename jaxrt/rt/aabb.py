@@ -178,9 +178,11 @@ def _item_reach_kernel(order: wp.array(dtype=wp.int32), reach: wp.array(dtype=An
 
 
 @wp.func
-def _square_distance(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
-    """jax-md's ``square_distance(periodic_displacement(side, Ra - Rb))``,
-    operation for operation (``jnp.mod`` is fmod plus a sign fix)."""
+def displacement(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
+    """jax-md's ``periodic_displacement(side, Ra - Rb)`` on periodic axes
+    (``Ra - Rb`` on free ones), operation for operation (``jnp.mod`` is
+    fmod plus a sign fix). Also the ORCS kernels' pair vector
+    (`jaxrt.rt.orcs`)."""
     d = xi - xj
     for a in range(3):
         if periodic[a] != 0:
@@ -189,6 +191,13 @@ def _square_distance(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
             if r != type(r)(0.0) and (r < type(r)(0.0)) != (box[a] < type(r)(0.0)):
                 r = r + box[a]
             d[a] = r - half
+    return d
+
+
+@wp.func
+def _square_distance(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
+    """jax-md's ``square_distance(periodic_displacement(side, Ra - Rb))``."""
+    d = displacement(xi, xj, box, periodic)
     return d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 
 

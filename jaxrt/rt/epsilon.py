@@ -86,9 +86,10 @@ class ParticlesTooCloseError(ValueError):
         self.distance = distance
 
 
-def seed_epsilon(scale: float) -> float:
-    """The ε of seed 001 §4.2/§4.3 for data of the given scale (module docstring)."""
-    return EPSILON_RELATIVE * scale
+def seed_epsilon(scale: float, relative: float = EPSILON_RELATIVE) -> float:
+    """The ε of seed 001 §4.2/§4.3 for data of the given scale (module
+    docstring); ``relative``: ε as a fraction of the scale."""
+    return relative * scale
 
 
 def sphere_resolution(epsilon: float) -> float:
@@ -162,16 +163,19 @@ class Survey:
     padding: float
 
 
-def survey(points: wp.array, args: FindArguments) -> Survey:
-    """The points' scale, hence ε and the BVH padding (a Warp reduction;
-    reads one float64 back to the host, a device sync)."""
+def survey(points: wp.array, args: FindArguments,
+           epsilon_relative: float = EPSILON_RELATIVE) -> Survey:
+    """The points' scale, hence ε (``epsilon_relative`` of it) and the BVH
+    padding (a Warp reduction; reads one float64 back to the host, a device
+    sync)."""
     n = points.shape[0]
     max_abs = wp.zeros(1, dtype=wp.float64, device=points.device)
     if n:
         wp.launch(_survey_kernel, dim=n, device=points.device,
                   inputs=[points, args.side_vec, args.periodic_vec], outputs=[max_abs])
     scale = max(args.cutoff, float(max_abs.numpy()[0]), *args.side)
-    return Survey(scale=scale, epsilon=seed_epsilon(scale), padding=bvh_padding(scale))
+    return Survey(scale=scale, epsilon=seed_epsilon(scale, epsilon_relative),
+                  padding=bvh_padding(scale))
 
 
 # ---------------------------------------------------------------------------

@@ -12,6 +12,10 @@ Two ways in:
   `jaxrt.rt._method.RTMethod`: a backend through Dense rows and
   `jaxrt.backends.format_dense_rows`.
 
+* `orcs_forces`, `orcs_perse`: the list-free ORCS kernels of
+  `jaxrt.rt.orcs` (used by `jaxrt.energy.fused`), on trees kept per call
+  site exactly as `Bvh`'s (same slots, `TreeOwner` and policy).
+
 The backends are frozen options; ``bind`` (called by `jaxrt.neighbor_list`)
 returns the searcher of one list factory, which owns that factory's BVHs.
 
@@ -56,7 +60,7 @@ from jax_md.partition import NeighborListFormat
 
 from jaxrt import _backend
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query, SearchResult
-from jaxrt.rt import aabb, periodic as gamma
+from jaxrt.rt import aabb, orcs, periodic as gamma
 from jaxrt.rt import policy as _policy
 from jaxrt.rt._method import RTMethod
 from jaxrt.rt.spheres import SpheresMethod
@@ -203,18 +207,22 @@ def _bits(periodic) -> int:
 _CALLABLES: dict = {}
 
 
+def _fit(slot, points, side, cutoff, periodic, reach, has_radii
+         ) -> aabb.AabbSearch:
+    """The slot's tree, refit or rebuilt to ``points`` (inside a callback)."""
+    tree = _tree(int(slot), points.shape[0], points.dtype, points.device)
+    action = tree.update(points, side, _axes(periodic), float(cutoff),
+                         reach if int(has_radii) else None)
+    update_counts[action] += 1
+    return tree
+
+
 def _aabb_callables(vector):
     """(dense, sparse) jax callables for positions of type ``vector``."""
     if vector in _CALLABLES:
         return _CALLABLES[vector]
     scalar = aabb.scalar_type(vector)
-
-    def fit(slot, points, side, cutoff, periodic, reach, has_radii):
-        tree = _tree(int(slot), points.shape[0], vector, points.device)
-        action = tree.update(points, side, _axes(periodic), float(cutoff),
-                             reach if int(has_radii) else None)
-        update_counts[action] += 1
-        return tree
+    fit = _fit
 
     def dense(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
               reach: wp.array(dtype=scalar), cutoff: wp.float64,
@@ -244,6 +252,110 @@ def _aabb_callables(vector):
     _CALLABLES[vector] = (wp.jax_callable(dense, num_outputs=2, **options),
                           wp.jax_callable(sparse, num_outputs=4, **options))
     return _CALLABLES[vector]
+
+
+_ORCS_CALLABLES: dict = {}
+
+
+def _orcs_callables(vector):
+    """(forces, perse) jax callables of `jaxrt.rt.orcs` for positions of
+    type ``vector``; the tree is the slot's, kept and refit or rebuilt as
+    the list backend's (`Bvh`'s policy)."""
+    if vector in _ORCS_CALLABLES:
+        return _ORCS_CALLABLES[vector]
+    scalar = aabb.scalar_type(vector)
+
+    def forces(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
+               reach: wp.array(dtype=scalar), params: wp.array(dtype=scalar),
+               cutoff: wp.float64, periodic: wp.int32, has_radii: wp.int32,
+               slot: wp.int32, forces: wp.array(dtype=vector),
+               energy: wp.array(dtype=scalar), d_sigma: wp.array(dtype=scalar),
+               d_epsilon: wp.array(dtype=scalar),
+               count: wp.array(dtype=wp.int32),
+               error: wp.array(dtype=wp.int32)):
+        tree = _fit(slot, points, side, cutoff, periodic, reach, has_radii)
+        orcs.forces(tree, side, params, radii=reach if int(has_radii) else None,
+                    forces=forces, energy=energy, d_sigma=d_sigma,
+                    d_epsilon=d_epsilon, count=count, error=error)
+
+    def perse(points: wp.array(dtype=vector), velocities: wp.array(dtype=vector),
+              side: wp.array(dtype=vector), params: wp.array(dtype=scalar),
+              cutoff: wp.float64, periodic: wp.int32, slot: wp.int32,
+              positions_out: wp.array(dtype=vector),
+              velocities_out: wp.array(dtype=vector),
+              energy: wp.array(dtype=scalar), count: wp.array(dtype=wp.int32),
+              error: wp.array(dtype=wp.int32)):
+        tree = _fit(slot, points, side, cutoff, periodic, params, 0)
+        orcs.perse_step(tree, side, params, velocities=velocities,
+                        positions_out=positions_out,
+                        velocities_out=velocities_out, energy=energy,
+                        count=count, error=error)
+
+    forces.__module__ = perse.__module__ = orcs.__name__  # see _aabb_callables
+    options = dict(graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None,
+                   has_side_effect=True)
+    _ORCS_CALLABLES[vector] = (wp.jax_callable(forces, num_outputs=6, **options),
+                               wp.jax_callable(perse, num_outputs=5, **options))
+    return _ORCS_CALLABLES[vector]
+
+
+def orcs_forces(owner: TreeOwner, points, side, reach, params, *,
+                cutoff: float, periodic, has_radii: bool):
+    """ORCS-forces (`jaxrt.rt.orcs.forces`) on the trees of ``owner``.
+
+    Args:
+      owner: the `TreeOwner` of the calling energy function.
+      points: float ``(N, 3)`` Cartesian positions (float32 or float64).
+      side: float ``(1, 3)`` box sides (1 on free axes).
+      reach: float ``(N,)`` radii, or ``(1,)`` placeholder.
+      params: float ``(orcs.N_PARAMS,)``, `jaxrt.rt.orcs`'s layout.
+      cutoff: static, the largest radius (or the cutoff): boxes and gamma
+        rays reach this far.
+      periodic: 3 static bools.
+      has_radii: whether ``reach`` holds radii.
+    Returns:
+      ``(forces (N, 3), energy (N,), d_sigma (N,), d_epsilon (N,),
+      count int32 (N,), error int32 (1,))``, per-particle sums over the
+      pairs each particle owns. ``vmap`` runs systems one after the other.
+    """
+    call_forces, _ = _orcs_callables(_vector_of(points))
+    n = points.shape[0]
+
+    def call(points, side, reach, params, slot):
+        return tuple(call_forces(
+            points, side, reach, params, float(cutoff), _bits(periodic),
+            int(has_radii), slot,
+            output_dims={"forces": (n, 3), "energy": (n,), "d_sigma": (n,),
+                         "d_epsilon": (n,), "count": (n,), "error": (1,)}))
+
+    return _sequential_vmap(call, owner)(points, side, reach, params)
+
+
+def orcs_perse(owner: TreeOwner, points, velocities, side, params, *,
+               cutoff: float, periodic):
+    """One ORCS-persé leapfrog step (`jaxrt.rt.orcs.perse_step`).
+
+    Returns ``(positions (N, 3), velocities (N, 3), energy (N,), count
+    int32 (N,), error int32 (1,))``: x(t + dt), v(t + dt/2), half the pair
+    energies at x(t) per particle, neighbours per particle.
+    """
+    _, call_perse = _orcs_callables(_vector_of(points))
+    n = points.shape[0]
+
+    def call(points, velocities, side, params, slot):
+        return tuple(call_perse(
+            points, velocities, side, params, float(cutoff), _bits(periodic),
+            slot, output_dims={"positions_out": (n, 3),
+                               "velocities_out": (n, 3), "energy": (n,),
+                               "count": (n,), "error": (1,)}))
+
+    return _sequential_vmap(call, owner)(points, velocities, side, params)
+
+
+def load_orcs() -> None:
+    """Compile the ORCS kernels for JAX's default device now."""
+    platform = jax.default_backend()
+    orcs.load("cuda" if platform in ("gpu", "cuda") else "cpu")
 
 
 _METHOD_CALLABLES: dict = {}
@@ -596,13 +708,20 @@ class Spheres(MethodBackend):
     Attributes:
       check_separation: raise when two particles are closer than the
         method's resolution (`jaxrt.rt.spheres.SpheresMethod`).
+      epsilon_relative: the method's ε as a fraction of the data's scale
+        (default 2**-40; `jaxrt.rt.epsilon`).
     """
 
     check_separation: bool = True
+    epsilon_relative: float = 2.0 ** -40
     name: ClassVar[str] = "spheres"
 
+    def __post_init__(self):
+        self.method()  # the method's checks, at construction
+
     def method(self) -> RTMethod:
-        return SpheresMethod(check_separation=self.check_separation)
+        return SpheresMethod(check_separation=self.check_separation,
+                             epsilon_relative=self.epsilon_relative)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -44,6 +44,7 @@ import warp as wp
 from jaxrt.rt import periodic as gamma
 from jaxrt.rt._method import check_find_arguments
 from jaxrt.rt.epsilon import (
+    EPSILON_RELATIVE,
     ParticlesTooCloseError,
     Survey,
     geometry_point,
@@ -187,6 +188,10 @@ class SpheresMethod:
         particles are closer than `sphere_resolution` (the method may have
         missed them). With False, ``find`` never reads back from the device
         for this; read `separation_flag` instead.
+      epsilon_relative: ε as a fraction of the data's scale
+        (`jaxrt.rt.epsilon`; default 2**-40). A larger ε widens the blind
+        zone (pairs closer than `sphere_resolution` may be missed, and the
+        separation check reports them) and slightly enlarges the spheres.
 
     Attributes:
       separation_flag: int32 ``(3,)`` wp.array from the last ``find``:
@@ -197,11 +202,20 @@ class SpheresMethod:
 
     name = "spheres"
 
-    def __init__(self, *, check_separation: bool = True):
+    def __init__(self, *, check_separation: bool = True,
+                 epsilon_relative: float = EPSILON_RELATIVE):
         if not isinstance(check_separation, bool):
             raise TypeError(f"SpheresMethod: check_separation must be a bool; "
                             f"got {check_separation!r}.")
+        if isinstance(epsilon_relative, bool) or not (
+                isinstance(epsilon_relative, (int, float))
+                and 0.0 < epsilon_relative < 0.5):
+            raise ValueError("SpheresMethod: epsilon_relative (the sphere "
+                             "method's ε as a fraction of the data's scale) "
+                             "must be a float in (0, 0.5); got "
+                             f"{epsilon_relative!r}. The default is 2**-40.")
         self.check_separation = check_separation
+        self.epsilon_relative = float(epsilon_relative)
         self.separation_flag: wp.array | None = None
         self.last_survey: Survey | None = None
         # The BVH reads its bounds arrays while a launch may still be running
@@ -240,7 +254,7 @@ class SpheresMethod:
         n = points.shape[0]
         if n == 0:
             return
-        scan = survey(points, args)
+        scan = survey(points, args, self.epsilon_relative)
         self.last_survey = scan
         half_length = args.cutoff * math.sqrt(2.0) / math.sqrt(3.0)
         radius = half_length + scan.epsilon

@@ -33,7 +33,7 @@ from jaxrt.sim.effects import (EFFECTS, LJ, Boids, Gravity, Registry,
 from jaxrt.sim.validate import check_backend
 from jaxrt.sim.toml import from_toml, load, to_toml
 from jaxrt.sim.compile import FORMATS, Compiled, State, Trace, compile_scene
-from jaxrt.sim.run import RunStats, run_chunk
+from jaxrt.sim.run import BlowUpError, RunStats, run_chunk
 from jaxrt.sim.builtin import (BUILTIN, boids, builtin, dam_break,
                                lj_fluid, sphere_surface)
 
@@ -48,7 +48,8 @@ __all__ = [
     # validate, toml
     "check_backend", "from_toml", "load", "to_toml",
     # compile, run
-    "FORMATS", "Compiled", "State", "Trace", "compile_scene", "RunStats",
+    "FORMATS", "BlowUpError", "Compiled", "State", "Trace", "compile_scene",
+    "RunStats",
     "run_chunk",
     # builtin
     "BUILTIN", "boids", "builtin", "dam_break", "lj_fluid", "sphere_surface",

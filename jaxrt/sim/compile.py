@@ -17,6 +17,11 @@ a velocity Verlet step (plus a Langevin velocity step for NVT) around them:
 * per-particle masses only when they differ; the effects make the same
   choice for what they read (`LJ` takes one scalar sigma for equal radii).
 
+Integrator ``perse`` (ORCS-persé, `jaxrt.energy.lennard_jones_perse_step`)
+replaces all of it by one kernel per step and no list: the state's
+velocity is then the half-step one, v(t + dt/2), and each step's trace
+holds the energies at its start, x(t), where the kernel evaluates them.
+
 The terms are summed in the order the scene lists its effects. Overflow is
 never silent: `jaxrt.sim.run.run_chunk` redoes a chunk whose list
 overflowed.
@@ -77,7 +82,10 @@ class Compiled:
     without pair effects); displacement: the scene's ``d(Ra, Rb)``; plan:
     what the step computes and what it skips, in words; conservative: True
     when every force comes from the potential and the integrator is NVE,
-    so the total energy is conserved up to the integrator's error.
+    so the total energy is conserved up to the integrator's error;
+    energy(state, nbrs): the total energy (kinetic + potential, float
+    ``()``) of a state, jitted (`jaxrt.sim.run.run_chunk` reads it at the
+    start of each chunk of a conservative scene to detect a blow-up).
     """
     scene: Scene
     init: Callable
@@ -87,6 +95,7 @@ class Compiled:
     displacement: Callable
     plan: tuple[str, ...]
     conservative: bool
+    energy: Callable | None = None
 
 
 def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
@@ -100,6 +109,8 @@ def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
     check_backend(scene)
     dtype = jnp.dtype(scene.dtype)
     displacement, shift = _displacement_shift(scene.box)
+    if scene.integrator.kind == "perse":
+        return _compile_perse(scene, displacement, dtype)
     mass = _mass(scene.particles.masses, dtype)
     plan = ["masses: " + ("one scalar" if np.ndim(mass) == 0
                           else "per particle")]
@@ -112,8 +123,59 @@ def compile_scene(scene: Scene, *, neighbor_list_fn: Callable | None = None
     init = _init_fn(scene, neighbor_fn, forces.accel, dtype)
     conservative = (scene.integrator.kind == "verlet"
                     and not forces.accel_terms)
+    m_col = ctx.mass_column
+
+    @jax.jit
+    def energy(state: State, nbrs):
+        ke = 0.5 * jnp.sum(m_col * state.velocity * state.velocity)
+        return ke + forces.potential(state.position, nbrs)
+
     return Compiled(scene, init, _chunk_fn(step), step, neighbor_fn,
-                    displacement, tuple(plan), conservative)
+                    displacement, tuple(plan), conservative, energy)
+
+
+def _compile_perse(scene: Scene, displacement, dtype) -> Compiled:
+    """A scene whose step is one ORCS-persé kernel (`jaxrt.sim.spec`
+    checked that it applies)."""
+    from jaxrt.energy import lennard_jones_fused, lennard_jones_perse_step
+    lj, p, box = scene.effects[0], scene.particles, scene.box
+    sigma = float(lj._sigma(p.radius, dtype)[0])
+    r_onset = 0.8 * lj.r_cutoff if lj.r_onset is None else lj.r_onset
+    backend = "bvh" if scene.neighbors.backend == "auto" else scene.neighbors.backend
+    dt, mass = scene.integrator.dt, float(p.masses[0])
+    potential = dict(sigma=sigma, epsilon=float(lj.epsilon),
+                     r_onset=r_onset / sigma, r_cutoff=lj.r_cutoff / sigma,
+                     backend=backend, periodic=box.periodic)
+    sides = _list_sides(box)
+    perse = lennard_jones_perse_step(displacement, sides, dt=dt, mass=mass,
+                                     **potential)
+    energy = lennard_jones_fused(displacement, sides, **potential)
+
+    def init():
+        R = jnp.asarray(p.positions, dtype)
+        V = jnp.asarray(p.velocities, dtype)
+        a = -jax.grad(energy)(R) / mass
+        # Leapfrog carries v(t - dt/2).
+        return State(R, V - 0.5 * dt * a, a, jnp.zeros((0,), dtype),
+                     jnp.zeros((), jnp.uint32), jnp.zeros((), jnp.int32)), None
+
+    def step(state: State, nbrs):
+        R, V, u = perse.energy(state.position, state.velocity)
+        v_mid = 0.5 * (state.velocity + V)  # v(t), for the trace
+        ke = 0.5 * mass * jnp.sum(v_mid * v_mid)
+        mom = mass * jnp.sum(v_mid, axis=0)
+        a = (V - state.velocity) / dt
+        return (State(R, V, a, state.rho, state.key, state.rebuilds), nbrs,
+                (ke, u, mom))
+
+    plan = ("integrator 'perse': one ORCS-persé kernel per step (seed 003 "
+            f"§3.2.1), backend {backend!r}, no neighbour list",
+            f"lj: sigma {sigma:.4g}, epsilon {float(lj.epsilon):.4g}, smooth "
+            f"from {r_onset:.4g} to {lj.r_cutoff:.4g}",
+            "state velocity at the half step; trace energies at each "
+            "step's start")
+    return Compiled(scene, init, _chunk_fn(step), step, None, displacement,
+                    plan, True)
 
 
 def _mass(masses: np.ndarray, dtype):

@@ -24,7 +24,7 @@ import numpy as np
 BOUNDARIES = ("periodic", "wall", "free")
 FORMAT_NAMES = ("Dense", "Sparse", "OrderedSparse")
 """jax-md's list layouts, by name (`jaxrt.sim.compile.FORMATS` maps them)."""
-INTEGRATORS = ("verlet", "langevin")
+INTEGRATORS = ("verlet", "langevin", "perse")
 DTYPES = ("float32", "float64")
 
 
@@ -164,9 +164,12 @@ class Particles:
 
 @dataclasses.dataclass(frozen=True)
 class Integrator:
-    """``verlet`` (NVE, time step ``dt``) or ``langevin`` (NVT: Verlet, then
+    """``verlet`` (NVE, time step ``dt``), ``langevin`` (NVT: Verlet, then
     an Ornstein-Uhlenbeck velocity step of friction ``gamma`` towards
-    ``kT``, random numbers from ``seed``)."""
+    ``kT``, random numbers from ``seed``) or ``perse`` (NVE by ORCS-persé,
+    seed 003 §3.2.1: a whole leapfrog step in one kernel, no neighbour
+    list; only for a scene whose one effect is ``lj`` with scalar sigma and
+    epsilon, the smooth truncation, equal radii and equal masses)."""
     dt: float
     kind: str = "verlet"
     kT: float | None = None
@@ -211,6 +214,7 @@ class Scene:
         _check_integrator(self.integrator)
         _check_neighbors(self.neighbors)
         _check_effects(self)
+        _check_perse(self)
 
     @property
     def pair_effects(self) -> tuple:
@@ -309,7 +313,7 @@ def _check_integrator(it: Integrator) -> None:
                             f"{it.dt}.")
     if it.kind not in INTEGRATORS:
         raise SceneError.at("integrator.kind", f"{it.kind!r} is not "
-                            "'verlet' or 'langevin'.")
+                            "'verlet', 'langevin' or 'perse'.")
     if it.kind == "langevin":
         for k in ("kT", "gamma"):
             v = getattr(it, k)
@@ -319,6 +323,35 @@ def _check_integrator(it: Integrator) -> None:
     elif it.kT is not None or it.gamma is not None:
         raise SceneError.at("integrator.kT", "only the langevin integrator "
                             "takes kT / gamma.")
+
+
+def _check_perse(scene: "Scene") -> None:
+    """ORCS-persé applies to one smooth LJ effect with scalar parameters,
+    equal radii and equal masses (seed 003 §3.2.3)."""
+    if scene.integrator.kind != "perse":
+        return
+    field = "integrator.kind"
+    kinds = [getattr(e, "kind", None) for e in scene.effects]
+    if kinds != ["lj"]:
+        raise SceneError.at(field, f"'perse' computes LJ only; the scene has "
+                            f"effects {kinds}. Use 'verlet'.")
+    lj = scene.effects[0]
+    if (np.ndim(lj.sigma) or np.ndim(lj.epsilon)
+            or getattr(lj, "truncation", "smooth") != "smooth"):
+        raise SceneError.at(field, "'perse' needs scalar sigma and epsilon "
+                            "and truncation 'smooth'. Use 'verlet'.")
+    p = scene.particles
+    if p.radius is not None and np.ptp(p.radius) > 0:
+        raise SceneError.at(field, "'perse' needs equal radii (with "
+                            "different radii each pair is found from one "
+                            "side only). Use 'verlet'.")
+    if np.ptp(p.masses) > 0:
+        raise SceneError.at(field, "'perse' needs equal masses. Use "
+                            "'verlet'.")
+    if scene.neighbors.backend not in ("auto", "bvh", "brute"):
+        raise SceneError.at("neighbors.backend", "'perse' runs on 'bvh' (or "
+                            "'brute', its pure-JAX reference); got "
+                            f"{scene.neighbors.backend!r}.")
 
 
 def _check_neighbors(nb: Neighbors) -> None:

@@ -42,7 +42,9 @@ Layout::
     [integrator]
     kind = "verlet"          # velocity Verlet (NVE), or "langevin" (NVT:
     dt = 0.005               #  Verlet + an Ornstein-Uhlenbeck velocity step,
-                             #  kT, gamma, seed): the thermostat
+                             #  kT, gamma, seed): the thermostat; or "perse"
+                             #  (ORCS-persé: one kernel per step, no list;
+                             #  one smooth "lj", equal radii and masses)
 
     [neighbors]
     backend = "auto"         # any of jaxrt.available_backends()

@@ -15,8 +15,9 @@ def check_backend(scene: Scene) -> None:
     """Raise `SceneError` at ``neighbors.backend`` if the scene has a pair
     effect and names a backend that is not available here."""
     backend = scene.neighbors.backend
-    if not scene.pair_effects or backend == "auto":
-        return
+    if not scene.pair_effects or not isinstance(backend, str) \
+            or backend == "auto":
+        return  # a backend object (jaxrt.backends.Bvh(...)) is its own check
     from jaxrt import available_backends  # jaxrt imports jaxrt.sim
     if backend not in available_backends():
         raise SceneError.at("neighbors.backend", f"{backend!r} not in "

@@ -1,0 +1,349 @@
+"""Seed 003's Table 2: mean ms per LJ step, RT-REF against ORCS and cell lists.
+
+Methods (Meneses et al. §4.2; all jaxrt, all one leapfrog step
+``v += dt F / m; x += dt v`` on the same positions):
+
+* ``RT-REF``: the ``bvh`` list (`jaxrt.neighbor_list`, no skin, so every
+  step refits or rebuilds the BVH by the policy and queries it) plus the
+  forces (``jax.grad`` of `jaxrt.energy.lennard_jones_pair_neighbor_list`).
+* ``ORCS-forces``: `jaxrt.energy.lennard_jones_fused` on the same kind of
+  BVH: forces from the traversal, no list.
+* ``ORCS-persé``: `jaxrt.energy.lennard_jones_perse_step`, the whole step in
+  one kernel; equal radii only (r = 1, r = 160; the other kinds are rows
+  with status ``skipped`` and the reason).
+* ``GPU-CELL``: jaxrt's ``cell`` list plus the same forces, on JAX's default
+  device (on a CPU-only machine that is the CPU).
+* ``CPU-CELL``: the same on JAX's CPU device (``--cpu-cores`` are what this
+  machine has, not the paper's 64).
+
+The BVH methods use the ``gradient`` policy (``--policy``), as the paper's.
+Scenes and radii (`jaxrt.seed_distributions`, §4.1): Lattice, Disordered,
+Cluster in a box of 1000³ with walls (free axes; nothing leaves the box in
+these steps) or periodic; r = 1, r = 160, U[1, 160], LN(1, 2) clipped to
+[1, 330]. With radii, pair ij is cut at max(r_i, r_j) and sigma_ij =
+max(r_i, r_j) / 2.5, epsilon 1, smooth switch from 0.8 of the cut; equal
+radii run without a radii array (the same potential).
+
+Dynamics: the paper gives none, so none is simulated: each timed step
+starts from one of ``--snapshots`` copies of the scene jittered by
+``--jitter`` (a fraction of the smallest radius), so consecutive steps see
+slightly moved particles (the BVH is refit or rebuilt by the policy, as in
+a slowly moving system) and random overlaps cannot blow the system up.
+Times are the median over ``--repeats`` steps after ``--warmup``.
+Out-of-memory rows (RT-REF's list, as in the paper's "–" cells) are
+``oom`` with the reason; lists past the backends' 2**29 int32 entries are
+``oom`` too (the reason says which).
+
+The paper's milliseconds (RTX PRO 6000 Blackwell, RT cores; CPU-CELL on 64
+cores) are the ``paper_ms`` column; ``table2_ratios.csv`` compares ratios
+(RT-REF / ORCS-forces, RT-REF / persé, CPU-CELL / ORCS-forces) with the
+paper's for each configuration. Compare shapes and ratios, not absolute ms
+(H200 has no RT cores).
+
+    python benchmarks/table2.py --quick                     # CPU smoke
+    python benchmarks/table2.py --n 50000 --budget 1500     # GPU, part 1
+    python benchmarks/table2.py --n 1000000 --methods ORCS-forces ORCS-persé \
+        --radii r=1 LN[1,330] --budget 1500 --name table2_1e6_a.csv
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
+
+SCENES = ("lattice", "disordered", "cluster")
+RADII = ("r=1", "r=160", "U[1,160]", "LN[1,330]")
+BOUNDARIES = ("wall", "periodic")
+METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL", "CPU-CELL")
+NS = (50_000, 1_000_000)
+DYNAMICS = dict(epsilon=1.0, sigma_per_cut=1 / 2.5, onset_fraction=0.8,
+                dt=1e-4, mass=1.0, box=1000.0)
+COLUMNS = ["method", "scene", "radii", "boundary", "N", "median_ms",
+           "paper_ms", "k", "format"]
+
+# Seed 003 Table 2 (SPECS.md §5), mean ms per step; None: "–" (RT-REF out
+# of memory, or persé not applicable). Column order: radius kind, then
+# (wall 50k, wall 1M, periodic 50k, periodic 1M).
+_PAPER_TEXT = """
+lattice CPU-CELL 1.80 9.64 1.80 10.4 17.9 5482 28.0 9864 11.7 3958 21.2 7891 56.4 22311 141 60612
+lattice GPU-CELL 0.415 2.97 0.399 2.61 43.6 3185 38.4 5379 27.1 2163 26.3 3957 130 7767 151 25864
+lattice RT-REF 0.165 0.599 0.199 0.844 17.6 2235 31.8 5520 6.99 835 10.9 1801 10.6 - 14.8 -
+lattice ORCS-forces 0.166 0.612 0.181 0.729 19.5 4836 35.8 7844 4.99 1323 7.99 2064 2.33 548 4.26 976
+lattice ORCS-persé 0.127 0.506 0.147 0.632 19.6 5201 36.4 8674 - - - - - - - -
+disordered CPU-CELL 1.97 13.7 2.01 14.2 21.6 8229 31.5 12156 12.0 4221 21.2 7935 56.0 22204 268 106472
+disordered GPU-CELL 0.433 3.49 0.419 3.08 48.6 4569 42.5 7174 28.4 2697 27.7 4664 131 8073 156 26890
+disordered RT-REF 0.163 0.658 0.192 1.03 18.6 2861 39.7 7525 7.08 972 12.4 2250 8.73 - 14.9 -
+disordered ORCS-forces 0.153 0.660 0.173 0.894 22.3 5398 45.7 10989 5.41 1464 9.95 2671 2.59 674 5.60 1484
+disordered ORCS-persé 0.117 0.552 0.137 0.792 22.5 6017 47.0 12573 - - - - - - - -
+cluster CPU-CELL 1.52 15.4 1.56 18.1 153 13820 147 17827 111 10969 194 21459 66.8 21617 188 95351
+cluster GPU-CELL 0.638 6.82 0.617 7.62 333 7119 201 9392 278 6114 302 10278 229 12241 318 30759
+cluster RT-REF 0.200 4.77 0.227 7.43 251 - 354 - 182 - 342 - 145 - 295 -
+cluster ORCS-forces 0.176 6.32 0.186 7.82 223 19150 281 57670 119 6796 202 13780 40.8 2586 75.0 5617
+cluster ORCS-persé 0.146 7.44 0.158 8.99 232 23445 301 78784 - - - - - - - -
+"""
+
+
+def paper_table() -> dict:
+    """{(scene, method, radii, boundary, N): ms or None}."""
+    out = {}
+    for line in _PAPER_TEXT.strip().splitlines():
+        scene, method, *values = line.split()
+        assert len(values) == 16, line
+        for c, v in enumerate(values):
+            radii = RADII[c // 4]
+            boundary = BOUNDARIES[(c % 4) // 2]
+            n = NS[c % 2]
+            out[(scene, method, radii, boundary, n)] = (None if v == "-"
+                                                        else float(v))
+    return out
+
+
+PAPER = paper_table()
+# The paper's headline claims (§4.2, abstract), for the report.
+PAPER_CLAIMS = ("persé ~1.3x RT-REF at r = 1; ORCS-forces up to ~1.6x "
+                "RT-REF's best case on LN (40x vs 25x over CPU-CELL), ~2x "
+                "on periodic LN; abstract: 1.3x (small radius) to 2.0x (LN)")
+
+
+def _scene(scene: str, radii: str, n: int, seed: int):
+    import numpy as np
+    from jaxrt import seed_distributions as sd
+    make = {"lattice": lambda: sd.lattice(n),
+            "disordered": lambda: sd.disordered(n, seed),
+            "cluster": lambda: sd.cluster(n, seed)}[scene]
+    return make(), sd.radii(radii, n, seed + 1).astype(np.float64)
+
+
+def _list_too_large(exc: BaseException) -> bool:
+    return isinstance(exc, ValueError) and "int32 entries" in str(exc)
+
+
+def _step_fns(job: dict, position, radii):
+    """(step(state) -> state, state0, format, k_fn) for the job's method."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax_md import partition, space
+
+    import jaxrt
+    from jaxrt.energy import (lennard_jones_fused,
+                              lennard_jones_pair_neighbor_list,
+                              lennard_jones_perse_step)
+
+    d = job["dynamics"]
+    side = d["box"]
+    periodic = job["boundary"] == "periodic"
+    displacement, shift = space.periodic(side) if periodic else space.free()
+    box = side if periodic else None
+    equal = bool(np.all(radii == radii[0]))
+    cut = float(radii.max())
+    # sigma_ij = cut_ij / 2.5 (reference cut 2.5 sigma); with equal radii
+    # the reference cut is the radius itself.
+    sigma = 1.0 if not equal else cut * d["sigma_per_cut"]
+    onset = 2.5 * d["onset_fraction"]
+    radii_arg = None if equal else jnp.asarray(radii, jnp.float32)
+    policy = jaxrt.backends.Bvh(policy=job["policy"])
+    dt, mass = d["dt"], d["mass"]
+    method = job["method"]
+    V0 = jnp.zeros_like(position)
+
+    if method == "ORCS-persé":
+        step = lennard_jones_perse_step(displacement, box, dt=dt, mass=mass,
+                                        sigma=sigma, epsilon=d["epsilon"],
+                                        r_onset=onset, r_cutoff=2.5,
+                                        backend=policy, periodic=periodic)
+        return (lambda s: step(*s)), (position, V0), "none", None
+
+    if method == "ORCS-forces":
+        energy = lennard_jones_fused(displacement, box, sigma=sigma,
+                                     epsilon=d["epsilon"], r_onset=onset,
+                                     r_cutoff=2.5, radii=radii_arg,
+                                     backend=policy, periodic=periodic)
+
+        @jax.jit
+        def step(state):
+            R, V = state
+            V = V - (dt / mass) * jax.grad(energy)(R)
+            return shift(R, dt * V), V
+
+        def k_fn(R):
+            return 2.0 * float(energy.sums(R).count) / R.shape[0]
+        return step, (position, V0), "none", k_fn
+
+    backend = {"RT-REF": policy, "GPU-CELL": "cell", "CPU-CELL": "cell"}[method]
+    fmt = partition.Dense if cut <= 1.0 else partition.OrderedSparse
+    nfn = jaxrt.neighbor_list(displacement, side, cut, 0.0, format=fmt,
+                              backend=backend, periodic=periodic,
+                              radii=None if equal else radii)
+    energy = lennard_jones_pair_neighbor_list(
+        displacement, sigma=sigma, epsilon=d["epsilon"], r_onset=onset * sigma,
+        r_cutoff=2.5 * sigma, radii=radii_arg)
+    nbrs = nfn.allocate(position)
+
+    @jax.jit
+    def step(state):
+        R, V, nbrs = state
+        nbrs = nfn.update(R, nbrs)
+        V = V - (dt / mass) * jax.grad(energy)(R, nbrs)
+        return shift(R, dt * V), V, nbrs
+
+    def k_fn(R):
+        idx = np.asarray(nbrs.idx)
+        if fmt is partition.Dense:  # both directions of every pair
+            return float(np.sum(idx < R.shape[0])) / R.shape[0]
+        return 2.0 * float(np.sum(idx[0] < R.shape[0])) / R.shape[0]
+    return step, (position, V0, nbrs), fmt.name, k_fn
+
+
+def run_row(job: dict) -> dict:
+    """One method on one configuration: median ms per step."""
+    import contextlib
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    base = {k: v for k, v in job.items() if not k.startswith("_")
+            and k != "dynamics"}
+    base.update({f"dyn_{k}": v for k, v in job["dynamics"].items()},
+                radius_rule="LN clipped to [1, 330]",
+                paper_ms=PAPER.get((job["scene"], job["method"], job["radii"],
+                                    job["boundary"], job["N"])))
+    position, radii = _scene(job["scene"], job["radii"], job["N"], job["seed"])
+    if job["method"] == "ORCS-persé" and not np.all(radii == radii[0]):
+        return {**base, "status": "skipped",
+                "failed": "persé needs equal radii (seed 003 §3.2.3)"}
+    device = (jax.devices("cpu")[0] if job["method"] == "CPU-CELL"
+              else jax.devices()[0])
+    rng = np.random.default_rng(job["seed"] + 7)
+    jitter = job["jitter"] * float(radii.min())
+    snapshots = [position + rng.uniform(-jitter, jitter, position.shape)
+                 for _ in range(job["snapshots"])]
+    if job["boundary"] == "periodic":
+        snapshots = [np.mod(s, job["dynamics"]["box"]) for s in snapshots]
+    else:  # walls: keep them inside the box
+        snapshots = [np.clip(s, 0.0, job["dynamics"]["box"] * (1 - 1e-7))
+                     for s in snapshots]
+    with jax.default_device(device) if job["method"] == "CPU-CELL" \
+            else contextlib.nullcontext():
+        R = [jnp.asarray(s, jnp.float32) for s in snapshots]
+        try:
+            step, state, fmt, k_fn = _step_fns(job, R[0], radii)
+        except Exception as exc:  # noqa: BLE001 - classified below
+            if _harness.is_out_of_memory(exc) or _list_too_large(exc):
+                return {**base, "status": "oom",
+                        "failed": f"{type(exc).__name__}: {exc}"[:300]}
+            raise
+        states = [(r,) + tuple(state[1:]) for r in R]
+        timing = _harness.time_calls(step, states, repeats=job["repeats"],
+                                     warmup=job["warmup"],
+                                     target_s=job.get("target_s"),
+                                     max_repeats=job.get("max_repeats"))
+        out = timing.first
+        if not bool(jnp.all(jnp.isfinite(out[1]))):
+            return {**base, **timing.columns(), "status": "error",
+                    "failed": "non-finite velocities after one step"}
+        k = k_fn(R[0]) if k_fn is not None else math.nan
+    return {**base, **timing.columns(), "format": fmt,
+            "k": round(k, 2) if math.isfinite(k) else None,
+            "method_device": str(device), "status": "ok", "dtype": "float32"}
+
+
+def ratios(rows: list[dict]) -> list[dict]:
+    """Ours against the paper's, per configuration."""
+    got = {(r["scene"], r["method"], r["radii"], r["boundary"], int(r["N"])):
+           float(r["median_ms"]) for r in rows if r.get("status") == "ok"}
+    pairs = (("RT-REF", "ORCS-forces"), ("RT-REF", "ORCS-persé"),
+             ("CPU-CELL", "ORCS-forces"), ("GPU-CELL", "ORCS-forces"))
+    keys = sorted({(r["scene"], r["radii"], r["boundary"], int(r["N"]))
+                   for r in rows})
+    out = []
+    for scene, radii, boundary, n in keys:
+        row = {"scene": scene, "radii": radii, "boundary": boundary, "N": n}
+        for a, b in pairs:
+            ka, kb = ((scene, m, radii, boundary, n) for m in (a, b))
+            ours = got[ka] / got[kb] if ka in got and kb in got else None
+            pa, pb = PAPER.get(ka), PAPER.get(kb)
+            paper = pa / pb if pa and pb else None
+            name = f"{a}/{b}"
+            row[name] = None if ours is None else round(ours, 3)
+            row[f"paper {name}"] = None if paper is None else round(paper, 3)
+        out.append(row)
+    return out
+
+
+def _finish(rows: list[dict], path: Path) -> None:
+    table = ratios(rows)
+    _harness.write_csv(table, path)
+    print("\npaper's claims:", PAPER_CLAIMS)
+    cols = [c for c in table[0] if c not in ("scene", "radii", "boundary", "N")] \
+        if table else []
+    _harness.print_table(table, ["scene", "radii", "boundary", "N"] + cols)
+    print("wrote", path)
+
+
+def main(argv=None) -> None:
+    parser = _harness.make_parser(__doc__)
+    parser.add_argument("--n", type=int, nargs="+", default=list(NS))
+    parser.add_argument("--scenes", nargs="+", default=SCENES, choices=SCENES)
+    parser.add_argument("--radii", nargs="+", default=RADII, choices=RADII)
+    parser.add_argument("--boundaries", nargs="+", default=BOUNDARIES,
+                        choices=BOUNDARIES)
+    parser.add_argument("--methods", nargs="+", default=METHODS,
+                        choices=METHODS)
+    parser.add_argument("--policy", default="gradient",
+                        help="BVH policy of the RT methods (jaxrt.rt.policy)")
+    parser.add_argument("--snapshots", type=int, default=3)
+    parser.add_argument("--jitter", type=float, default=0.01,
+                        help="snapshot jitter, in smallest radii")
+    parser.add_argument("--target-s", type=float, default=2.0,
+                        help="seconds of timed steps per row (at least "
+                        "--repeats, at most --max-repeats)")
+    parser.add_argument("--max-repeats", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fresh-workers", action="store_true",
+                        help="one worker process per row (default: one per "
+                        "configuration, fresh after a failure)")
+    parser.add_argument("--quick", action="store_true",
+                        help="CPU smoke: n = 2000; disordered and cluster; "
+                        "r = 1 and LN; >= 5 repeats, 0.5 s per row")
+    _harness.add_common_args(parser, name="table2.csv", repeats=5, warmup=2,
+                             timeout=900.0)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.n, args.repeats, args.target_s = [2000], 5, 0.5
+        if args.scenes == SCENES:
+            args.scenes = ("disordered", "cluster")
+        if args.radii == RADII:
+            args.radii = ("r=1", "LN[1,330]")
+    jobs = []
+    # Small configurations first, so a budget keeps the most rows.
+    for n in sorted(args.n):
+        for radii in args.radii:
+            for boundary in args.boundaries:
+                for scene in args.scenes:
+                    for method in args.methods:
+                        jobs.append({
+                            "method": method, "scene": scene, "radii": radii,
+                            "boundary": boundary, "N": n, "seed": args.seed,
+                            "policy": args.policy,
+                            "snapshots": args.snapshots, "jitter": args.jitter,
+                            "repeats": args.repeats, "warmup": args.warmup,
+                            "target_s": args.target_s,
+                            "max_repeats": args.max_repeats,
+                            "dynamics": DYNAMICS,
+                            "_group": f"{n}/{radii}/{boundary}/{scene}"})
+    # One worker per configuration (its methods share the scene; a failed
+    # row gets a fresh worker for the next).
+    rows, path = _harness.run_jobs("table2:run_row", jobs, columns=COLUMNS,
+                                   reuse_worker=not args.fresh_workers,
+                                   **_harness.run_options(args))
+    _finish(rows, path.with_name(path.stem + "_ratios.csv"))
+
+
+if __name__ == "__main__":
+    main()

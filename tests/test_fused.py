@@ -1,0 +1,408 @@
+"""`jaxrt.energy.lennard_jones_fused` / `lennard_jones_perse_step` (seed 003
+§3.2, ORCS) against the list path and jax-md.
+
+Tolerances: in float64 the fused sums and the list path add the same pair
+terms in different orders (per owner vs per row; ``high_precision_sum``
+of per-particle vs per-pair values), so they agree to a few ulps of the
+largest terms: ``rtol = 1e-12`` on energies and ``1e-10`` of the largest
+force on forces (the terms are O(10) while single pairs reach O(1e3)
+at the closest distances of these fluids). float32 runs are checked
+against the float64 reference at ``rtol = 1e-4`` (energies are sums of
+~10^3 terms of mixed sign) and ``2e-3`` of the largest force.
+
+Nothing here names a device: on a GPU the same tests run the CUDA kernels.
+"""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax_md import energy as jmd_energy
+from jax_md import partition, space
+
+import jaxrt
+from jaxrt.energy import (FusedInputError, HigherOrderError,
+                          lennard_jones_fused, lennard_jones_neighbor_list,
+                          lennard_jones_perse_step, lennard_jones_truncated)
+
+BACKENDS = ("bvh", "brute", "cell")
+E_RTOL, F_RTOL = 1e-12, 1e-10
+SLOW = pytest.mark.slow
+# The default run keeps one case per property (bvh, the kernels under
+# test); the rest run with -m slow.
+BRUTE_SLOW = ("bvh", pytest.param("brute", marks=SLOW))
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def fluid(n_side=6, dim=3, density=0.8, seed=0, jitter=0.15):
+    """A jittered lattice in ``[0, side)``: (R float64 (N, dim), side)."""
+    side = (n_side ** dim / density) ** (1 / dim)
+    a = side / n_side
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * dim, indexing="ij"),
+                 -1).reshape(-1, dim) * a
+    rng = np.random.default_rng(seed)
+    return (g + rng.uniform(-jitter, jitter, g.shape) * a) % side, side
+
+
+def slab_displacement(side):
+    """Periodic on x and y, a wall (free) on z."""
+    def displacement(a, b, **unused):
+        d = a - b
+        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
+    return displacement
+
+
+GEOMETRIES = {
+    "periodic": lambda side: (space.periodic(side)[0], side, None),
+    "free": lambda side: (space.free()[0], None, None),
+    "slab": lambda side: (slab_displacement(side), side, (True, True, False)),
+}
+
+
+def list_energy(displacement, box, periodic, R0, radii=None, **kw):
+    """jaxrt's list path (Dense, cell list; bvh with radii): energy_fn(R),
+    on a list allocated at ``R0`` and updated (rebuilt) at every R."""
+    backend = "cell" if radii is None else "bvh"
+    nfn, efn = lennard_jones_neighbor_list(
+        displacement, box if box is not None else 1.0, dr_threshold=0.0,
+        format=partition.Dense, radii=radii, capacity_multiplier=2.0,
+        neighbor_list_fn=functools.partial(jaxrt.neighbor_list,
+                                           backend=backend,
+                                           periodic=periodic or (box is not None)),
+        **kw)
+    nbrs = nfn.allocate(R0)
+
+    def energy(R, **params):
+        list_kw = {"radii": params["radii"]} if "radii" in params else {}
+        return efn(R, nbrs.update(R, **list_kw), **params)
+    return energy
+
+
+def close(a, b, rtol):
+    a, b = np.asarray(a), np.asarray(b)
+    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
+    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
+
+
+@pytest.mark.parametrize("backend, geometry", [
+    ("bvh", "periodic"), ("brute", "slab"), ("cell", "periodic"),
+    pytest.param("cell", "free", marks=SLOW),
+    pytest.param("cell", "slab", marks=SLOW),
+    pytest.param("bvh", "free", marks=SLOW), pytest.param("bvh", "slab", marks=SLOW),
+    pytest.param("brute", "periodic", marks=SLOW),
+    pytest.param("brute", "free", marks=SLOW)])
+def test_energy_forces_match_list_path_float64(x64, backend, geometry):
+    R, side = fluid()
+    R = jnp.asarray(R)
+    displacement, box, periodic = GEOMETRIES[geometry](side)
+    fused = lennard_jones_fused(displacement, box, backend=backend,
+                                periodic=periodic)
+    ref = list_energy(displacement, box, periodic, R)
+    e, e_ref = fused(R), ref(R)
+    assert e.dtype == jnp.float64
+    close(e, e_ref, E_RTOL)
+    close(jax.grad(fused)(R), jax.grad(ref)(R), F_RTOL)
+
+
+@pytest.mark.parametrize("backend", BRUTE_SLOW)
+def test_energy_matches_jax_md_float64(x64, backend):
+    R, side = fluid()
+    R = jnp.asarray(R)
+    displacement, _ = space.periodic(side)
+    # jax-md casts Python floats to float32: give it float64 arrays.
+    f64 = functools.partial(jnp.asarray, dtype=jnp.float64)
+    nfn, efn = jmd_energy.lennard_jones_neighbor_list(
+        displacement, side, sigma=f64(1.1), epsilon=f64(0.7),
+        r_onset=2.0, r_cutoff=2.4, dr_threshold=0.0, format=partition.Dense)
+    # ... and its r_onset / r_cutoff too (maybe_downcast before they are
+    # multiplied by max(sigma)): ours get the same float32-rounded value.
+    fused = lennard_jones_fused(displacement, side, sigma=1.1, epsilon=0.7,
+                                r_onset=2.0, r_cutoff=float(np.float32(2.4)),
+                                backend=backend)
+    close(fused(R), efn(R, nfn.allocate(R)), E_RTOL)
+    close(jax.grad(fused)(R), jax.grad(efn)(R, nfn.allocate(R)), F_RTOL)
+
+
+@pytest.mark.parametrize("backend, geometry", [
+    ("bvh", "periodic"), pytest.param("bvh", "free", marks=SLOW),
+    ("cell", "periodic"), pytest.param("cell", "free", marks=SLOW),
+    pytest.param("brute", "periodic", marks=SLOW),
+    pytest.param("brute", "free", marks=SLOW)])
+def test_radii_match_list_path(x64, backend, geometry):
+    R, side = fluid(n_side=5, density=0.4)
+    R = jnp.asarray(R)
+    radii = jnp.asarray(np.random.default_rng(1).uniform(0.8, 2.6, len(R)))
+    displacement, box, periodic = GEOMETRIES[geometry](side)
+    fused = lennard_jones_fused(displacement, box, radii=radii,
+                                backend=backend, periodic=periodic)
+    ref = list_energy(displacement, box, periodic, R, radii=radii)
+    close(fused(R), ref(R), E_RTOL)
+    close(jax.grad(fused)(R), jax.grad(ref)(R), F_RTOL)
+    # Smaller radii at call time (the factory's largest bounds the search).
+    small = radii * 0.9
+    close(fused(R, radii=small), ref(R, radii=small), E_RTOL)
+
+
+@pytest.mark.parametrize("backend", BRUTE_SLOW)
+def test_parameter_gradients_match_list_path(x64, backend):
+    R, side = fluid()
+    R = jnp.asarray(R)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend=backend)
+    ref = list_energy(displacement, side, None, R)
+    for name in ("sigma", "epsilon"):
+        value = jnp.asarray(0.95 if name == "sigma" else 1.3)
+        g = jax.grad(lambda v: fused(R, **{name: v}))(value)
+        g_ref = jax.grad(lambda v: ref(R, **{name: v}))(value)
+        assert np.isfinite(g)
+        close(g, g_ref, E_RTOL)
+    both = jax.grad(lambda R, s, e: fused(R, sigma=s, epsilon=e),
+                    argnums=(0, 1, 2))(R, 1.0, 1.0)
+    assert all(np.all(np.isfinite(b)) for b in both)
+
+
+@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell",))
+def test_coincident_and_exact_cutoff_pairs(x64, backend):
+    side = 10.0
+    R = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0],   # coincident
+                     [5.0, 5.0, 5.0], [7.5, 5.0, 5.0],   # exactly r_cutoff
+                     [1.0, 6.0, 6.0], [2.2, 6.0, 6.0]])  # inside the switch
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend=backend)
+    g = jax.grad(fused)(R)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_array_equal(np.asarray(g[:4]), 0.0)
+    # Only the inside pair counts: at exactly the cutoff the energy is 0
+    # (the lists' strict d < r_cutoff).
+    r = jnp.asarray(1.2)
+    pair = lennard_jones_truncated(r, r_onset=2.0, r_cutoff=2.5)
+    close(fused(R), pair, E_RTOL)
+    close(g[5, 0], jax.grad(lennard_jones_truncated)(r, r_onset=2.0,
+                                                      r_cutoff=2.5), F_RTOL)
+
+
+@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell",))
+def test_jit_scan_and_2d(x64, backend):
+    R, side = fluid(n_side=10, dim=2)
+    R = jnp.asarray(R)
+    displacement, shift = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend=backend)
+    ref = list_energy(displacement, side, None, R)
+    close(jax.jit(fused)(R), ref(R), E_RTOL)
+
+    def descend(R, _):
+        R = shift(R, -1e-4 * jax.grad(fused)(R))
+        return R, fused(R)
+
+    R_end, energies = jax.lax.scan(descend, R, None, length=5)
+    close(energies[-1], ref(R_end), E_RTOL)
+    assert np.all(np.diff(np.asarray(energies)) < 0)  # descent lowers E
+
+
+@pytest.mark.parametrize("side_over_cutoff", (2.05, 2.6, 3.4, 7.0))
+def test_cell_small_periodic_boxes_count_each_pair_once(x64,
+                                                        side_over_cutoff):
+    """Boxes of 2 to 7 cutoffs: the grid has one to a few cells across, so
+    stencil offsets alias; each pair must still be met once from each side
+    (a doubled run would double the energy). Against brute force, exact
+    pair counts."""
+    r_cutoff = 2.5
+    side = side_over_cutoff * r_cutoff
+    n = max(8, int(0.5 * side ** 3))
+    R = jnp.asarray(np.random.default_rng(3).uniform(0, side, (n, 3)))
+    displacement, _ = space.periodic(side)
+    cell = lennard_jones_fused(displacement, side, backend="cell")
+    brute = lennard_jones_fused(displacement, side, backend="brute")
+    assert int(cell.sums(R).count) == int(brute.sums(R).count)
+    close(cell(R), brute(R), E_RTOL)
+    close(jax.grad(cell)(R), jax.grad(brute)(R), F_RTOL)
+
+
+def test_vmap(x64):
+    (R0, side), (R1, _) = fluid(n_side=5, seed=0), fluid(n_side=5, seed=1)
+    Rs = jnp.stack([jnp.asarray(R0), jnp.asarray(R1)])
+    displacement, _ = space.periodic(side)
+    for backend in BACKENDS:
+        fused = lennard_jones_fused(displacement, side, backend=backend)
+        close(jax.vmap(fused)(Rs), jnp.stack([fused(Rs[0]), fused(Rs[1])]),
+              E_RTOL)
+        close(jax.vmap(jax.grad(fused))(Rs)[1], jax.grad(fused)(Rs[1]),
+              F_RTOL)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_higher_order_raises_naming_list_path(x64, backend):
+    R, side = fluid(n_side=4, density=0.5)
+    R = jnp.asarray(R)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend=backend)
+    with pytest.raises(HigherOrderError, match="lennard_jones_neighbor_list"):
+        jax.hessian(fused)(R)
+    with pytest.raises(HigherOrderError, match="lennard_jones_neighbor_list"):
+        jax.grad(jax.grad(lambda s: fused(R, sigma=s)))(1.0)
+    with pytest.raises(HigherOrderError):
+        jax.grad(lambda s: jnp.sum(jax.grad(fused)(R, sigma=s) ** 2))(1.0)
+
+
+def test_bad_arguments_raise():
+    R, side = fluid(n_side=4, density=0.5)
+    R = jnp.asarray(R, jnp.float32)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend="brute")
+    with pytest.raises(TypeError, match="sigmaa"):
+        fused(R, sigmaa=1.0)
+    fused(R, kT=1.0)  # jax_md.simulate passes kT on
+    with pytest.raises(FusedInputError, match="NaN"):
+        fused(R.at[3, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="radii was given"):
+        fused(R, radii=jnp.ones(len(R)))
+    with pytest.raises(ValueError, match="half the periodic box"):
+        lennard_jones_fused(displacement, side, r_cutoff=side)(R)
+    with pytest.raises(ValueError, match="scalar sigma"):
+        lennard_jones_fused(displacement, side, sigma=jnp.ones(len(R)))
+    with pytest.raises(ValueError, match="r_onset"):
+        lennard_jones_fused(displacement, side, r_onset=3.0)
+    with pytest.raises(ValueError, match="backend"):
+        lennard_jones_fused(displacement, side, backend="nope")
+    with pytest.raises(ValueError, match="disagrees"):
+        lennard_jones_fused(space.free()[0], side, periodic=True)(R)
+    radii = jnp.ones(len(R))
+    with_radii = lennard_jones_fused(displacement, side, radii=radii,
+                                     backend="brute")
+    with pytest.raises(FusedInputError, match="radii"):
+        with_radii(R, radii=radii * 2)
+    # Under jit the error is a NaN energy.
+    assert np.isnan(jax.jit(lambda R: with_radii(R, radii=radii * 2))(R))
+
+
+@pytest.mark.parametrize("geometry", ("periodic", "free"))
+def test_bvh_float32_within_tolerance(geometry):
+    R, side = fluid()
+    displacement, box, periodic = GEOMETRIES[geometry](side)
+    with jax.enable_x64(True):
+        ref = lennard_jones_fused(displacement, box, backend="brute",
+                                  periodic=periodic)
+        e64, f64 = ref(jnp.asarray(R)), jax.grad(ref)(jnp.asarray(R))
+    fused = lennard_jones_fused(displacement, box, periodic=periodic)
+    R32 = jnp.asarray(R, jnp.float32)
+    e, g = fused(R32), jax.grad(fused)(R32)
+    assert e.dtype == jnp.float32 and g.dtype == jnp.float32
+    np.testing.assert_allclose(float(e), float(e64), rtol=1e-4)
+    close(g, f64, 2e-3)
+
+
+@pytest.mark.parametrize("backend", BRUTE_SLOW)
+def test_perse_step_matches_leapfrog_on_list_forces(x64, backend):
+    R, side = fluid()
+    R = jnp.asarray(R)
+    V = jnp.asarray(np.random.default_rng(2).normal(0, 0.3, R.shape))
+    displacement, shift = space.periodic(side)
+    dt, mass = 1e-3, 1.5
+    step = lennard_jones_perse_step(displacement, side, dt=dt, mass=mass,
+                                    backend=backend)
+    ref = list_energy(displacement, side, None, R)
+    V_ref = V - dt / mass * jax.grad(ref)(R)
+    R_ref = shift(R, dt * V_ref)
+    R1, V1 = step(R, V)
+    close(V1, V_ref, F_RTOL)
+    close(R1, R_ref, 1e-14)
+    _, _, e = step.energy(R, V)
+    close(e, ref(R), E_RTOL)
+
+    # Two steps in a scan: the kept tree is refit to the new positions.
+    def body(carry, _):
+        return step(*carry), None
+
+    (R2, V2), _ = jax.lax.scan(body, (R, V), None, length=2)
+    V_ref2 = V_ref - dt / mass * jax.grad(ref)(R_ref)
+    close(V2, V_ref2, F_RTOL)
+
+
+def test_perse_refuses_radii():
+    displacement, _ = space.periodic(10.0)
+    with pytest.raises(ValueError, match="equal radii"):
+        lennard_jones_perse_step(displacement, 10.0, dt=1e-3,
+                                 radii=jnp.ones(4))
+
+
+def test_sums_count_pairs(x64):
+    R, side = fluid(n_side=5)
+    R = jnp.asarray(R)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side)
+    s = fused.sums(R)
+    d = np.asarray(R)[:, None] - np.asarray(R)[None]
+    d -= side * np.round(d / side)
+    r2 = np.sum(d * d, -1)
+    np.fill_diagonal(r2, np.inf)
+    assert int(s.count) == int(np.sum(r2 < 2.5 ** 2)) // 2
+    assert int(s.error) == 0
+    close(s.energy, fused(R), 0)
+    close(-s.forces, jax.grad(fused)(R), 0)
+
+
+@SLOW
+def test_fit_sigma_epsilon_on_energies(x64):
+    """A training loop (`lax.scan` of gradient steps under `jit`) recovers
+    sigma and epsilon from snapshot energies, as examples/fit_lj.py does
+    on lists (on energies only: force matching needs second derivatives)."""
+    # Different disorder, so sigma and epsilon are not traded for each other.
+    snaps = [fluid(n_side=5, density=0.9, seed=s, jitter=j)
+             for s, j in enumerate((0.02, 0.1, 0.2, 0.3))]
+    side = snaps[0][1]
+    Rs = jnp.stack([jnp.asarray(R) for R, _ in snaps])
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side)
+    target = jnp.stack([fused(R) for R in Rs])
+
+    def loss(p):
+        e = jnp.stack([fused(R, sigma=jnp.exp(p[0]), epsilon=jnp.exp(p[1]))
+                       for R in Rs])
+        return jnp.mean(((e - target) / target) ** 2)
+
+    optax = pytest.importorskip("optax")
+    opt = optax.adam(0.01)
+
+    @jax.jit
+    def fit(p):
+        def step(carry, _):
+            p, state = carry
+            updates, state = opt.update(jax.grad(loss)(p), state)
+            return (optax.apply_updates(p, updates), state), None
+        return jax.lax.scan(step, (p, opt.init(p)), None, length=300)[0][0]
+
+    p0 = jnp.log(jnp.asarray([0.97, 1.2]))
+    p = fit(p0)
+    assert loss(p) < 1e-3 * loss(p0)
+    np.testing.assert_allclose(np.exp(np.asarray(p)), [1.0, 1.0], atol=1e-3)
+
+
+@SLOW
+def test_scene_integrator_perse_matches_verlet(x64):
+    """A scene with integrator 'perse' follows the Verlet scene's
+    trajectory (leapfrog = velocity Verlet positions), with no list."""
+    import dataclasses
+
+    from jaxrt import sim
+    scene = dataclasses.replace(sim.lj_fluid(n=216, dt=0.002), dtype="float64")
+    perse = dataclasses.replace(
+        scene, integrator=sim.Integrator(dt=0.002, kind="perse"),
+        neighbors=sim.Neighbors(backend="bvh"))
+    verlet, fused = sim.compile_scene(scene), sim.compile_scene(perse)
+    assert fused.neighbor_fn is None
+    (s0, n0), (f0, _) = verlet.init(), fused.init()
+    s1, _, t_verlet = verlet.chunk(s0, n0, steps=10)
+    f1, _, t_perse = fused.chunk(f0, None, steps=10)
+    close(f1.position, s1.position, 1e-10)
+    # The persé trace is at each step's start: shifted by one step.
+    close(t_perse.potential[1:], t_verlet.potential[:-1], 1e-9)
+    with pytest.raises(sim.SceneError, match="perse"):
+        dataclasses.replace(perse, effects=perse.effects + (sim.Gravity(g=(0, 0, -1.0)),))
