@@ -5,6 +5,9 @@
         The same as ``jaxrt run lj-fluid --compare-jax-md``.
     jaxrt run SCENE.toml|NAME [--steps N] [--out DIR] [--chunk K]
               [--backend B] [--n N] [--compare-jax-md]
+              [--dtype float32|float64] [--devices D] [--save-pairs]
+        --devices D: slabs along x over D devices (`jaxrt.domains`; on a
+        CPU, D fake devices are made); LJ and SPH scenes.
     jaxrt scenes            the built-in scenes: name, default steps and
                             what each is, one line each
     jaxrt accuracy [lj-fluid|dam-break] --out DIR [--quick] [--budget S]
@@ -74,6 +77,17 @@ def _parser() -> argparse.ArgumentParser:
             p.add_argument("--check-brute", action="store_true",
                            help="check the list against a float64 brute "
                            "force at every chunk (on by default for boids)")
+            p.add_argument("--dtype", choices=("float32", "float64"),
+                           default=None, help="the run's float type "
+                           "(default: the scene's)")
+            p.add_argument("--devices", type=int, default=None,
+                           help="domain decomposition: slabs along x over "
+                           "this many devices (jaxrt.domains); on a CPU "
+                           "that many fake devices are made")
+            p.add_argument("--save-pairs", action="store_true",
+                           help="write pairs.npy: the list's pairs (i < j, "
+                           "as i * N + j) closer than the cutoff at the "
+                           "final positions")
         p.add_argument("--steps", type=int, default=None)
         p.add_argument("--out", default="jaxrt-out")
         p.add_argument("--chunk", type=int, default=None,
@@ -90,6 +104,13 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status."""
     args = _parser().parse_args(argv)
     warnings.filterwarnings("ignore", message="Explicitly requested dtype")
+    devices = getattr(args, "devices", None)
+    if devices is not None:
+        if devices < 1:
+            print("jaxrt: --devices must be >= 1", file=sys.stderr)
+            return 2
+        if argv is None:  # the command line: it may start itself again
+            _fake_cpu_devices(devices)
     from jaxrt import sim
     if args.command == "scenes":
         for name, (factory, steps) in sim.BUILTIN.items():
@@ -111,11 +132,47 @@ def main(argv: list[str] | None = None) -> int:
     if steps < 1:
         print("jaxrt: --steps must be >= 1", file=sys.stderr)
         return 2
+    if getattr(args, "dtype", None):
+        scene = dataclasses.replace(scene, dtype=args.dtype)
     check_brute = (getattr(args, "check_brute", False)
                    or scene.name in _BRUTE_CHECKED)
+    save_pairs = getattr(args, "save_pairs", False)
+    if devices is not None:
+        if args.compare_jax_md or check_brute:
+            print("jaxrt: --devices runs without --compare-jax-md / "
+                  "--check-brute", file=sys.stderr)
+            return 2
+        from jaxrt.domains import DomainError
+        try:
+            run_decomposed(scene, steps=steps, out=pathlib.Path(args.out),
+                           chunk=args.chunk, devices=devices,
+                           save_pairs=save_pairs)
+        except DomainError as e:
+            print(f"jaxrt: --devices {devices}: {e}", file=sys.stderr)
+            return 2
+        return 0
     run(scene, steps=steps, out=pathlib.Path(args.out), chunk=args.chunk,
-        compare_jax_md=args.compare_jax_md, check_brute=check_brute)
+        compare_jax_md=args.compare_jax_md, check_brute=check_brute,
+        save_pairs=save_pairs)
     return 0
+
+
+def _fake_cpu_devices(n: int) -> None:
+    """On a CPU with fewer than ``n`` devices, start this command again
+    with ``n`` host devices (XLA's flag must be set before JAX starts, and
+    importing jax-md starts it). An XLA_FLAGS that sets the count wins."""
+    import os
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_force_host_platform_device_count" in flags:
+        return
+    import jax
+    if jax.default_backend() != "cpu" or jax.device_count() >= n:
+        return
+    env = dict(os.environ, XLA_FLAGS=(
+        flags + f" --xla_force_host_platform_device_count={n}").strip())
+    sys.stdout.flush()
+    os.execve(sys.executable, [sys.executable, "-m", "jaxrt",
+                               *sys.argv[1:]], env)
 
 
 def _accuracy(args) -> int:
@@ -179,6 +236,19 @@ def _pair_codes(nbrs, n: int) -> np.ndarray:
     keep = (i < n) & (j < n) & (i != j)
     i, j = i[keep].astype(np.int64), j[keep].astype(np.int64)
     return np.unique(np.minimum(i, j) * n + np.maximum(i, j))
+
+
+def _pairs_within(codes: np.ndarray, position: np.ndarray, scene
+                  ) -> np.ndarray:
+    """The pair codes ``i * N + j`` whose particles are closer than the
+    scene's cutoff at ``position`` (minimum image on periodic axes)."""
+    r = np.asarray(position, np.float64)
+    i, j = np.divmod(codes, len(r))
+    d = r[i] - r[j]
+    side = np.asarray(scene.box.size, float)
+    per = np.asarray(scene.box.periodic)
+    d = np.where(per, d - side * np.round(d / np.where(per, side, 1.0)), d)
+    return codes[np.sum(d * d, axis=-1) < scene.cutoff ** 2]
 
 
 _BRUTE_CHECKED = ("boids",)
@@ -293,7 +363,8 @@ class _JaxMdCheck:
 
 
 def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
-        compare_jax_md: bool = False, check_brute: bool = False) -> dict:
+        compare_jax_md: bool = False, check_brute: bool = False,
+        save_pairs: bool = False) -> dict:
     """Run ``scene`` for ``steps`` steps, print a summary, write files to
     ``out``. Returns the summary as a dict. ``check_brute``: compare the
     list with a float64 brute force after every chunk."""
@@ -418,12 +489,126 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
     _write_outputs(scene, out, state, np.asarray(frames),
                    np.asarray(frame_velocities), frame_steps, ke, u)
     written = "energies.png, final.png, snapshots.npz, trajectory.xyz"
+    if save_pairs and nbrs is not None:
+        np.save(out / "pairs.npy", _pairs_within(
+            _pair_codes(nbrs, n), frames[-1], scene))
+        written += ", pairs.npy"
     if tri_stats is not None:
         _write_triangulation(out / "triangulation.png", scene, state, nbrs)
         written += ", triangulation.png"
     print(f"\nwrote {out}/{written} ({time.perf_counter() - t_start:.1f} s "
           "total)")
     return summary
+
+
+def run_decomposed(scene, *, steps: int, out: pathlib.Path, devices: int,
+                   chunk: int | None = None, save_pairs: bool = False
+                   ) -> dict:
+    """`run` with the box cut into ``devices`` slabs along x
+    (`jaxrt.domains.from_scene`); the same outputs and summary rows.
+    Raises `jaxrt.domains.DomainError` for a scene it cannot cut."""
+    import types
+    import jax
+    import jax.numpy as jnp
+    from tqdm import tqdm
+    if scene.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    from jaxrt import domains
+
+    _xyz_symbols(scene.particles)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    dom = domains.from_scene(scene, devices)
+    p = scene.particles
+    n = p.n
+    mass = float(p.masses[0])
+    dtype = jnp.dtype(scene.dtype)
+    print(f"scene {scene.name!r}: {n} particles, {p.dim}D, "
+          f"{steps} steps of dt = {scene.integrator.dt:.4g}")
+    print(f"  - domain decomposition: {devices} slabs along x on "
+          f"{devices} {jax.devices()[0].platform} devices, slab width "
+          f"{dom.width:.4g}, halo width cutoff + skin = {dom.halo_width:.4g}")
+    t = time.perf_counter()
+    state = dom.distribute(p.positions, p.velocities, dtype=dtype)
+    state = jax.jit(dom.forces_into, static_argnums=1)(state, mass)
+    print(f"  - per device: {state.capacity} owned slots, "
+          f"{state.halo_capacity} halo slots per face, Dense list of "
+          f"{state.nbrs.idx.shape[2]} per row ({time.perf_counter() - t:.1f}"
+          " s to distribute)")
+    chunk = chunk or max(1, min(100, steps // 10))
+    run_chunk = domains.chunk_fn(dom, scene.integrator.dt, mass)
+    t = time.perf_counter()
+    jax.block_until_ready(run_chunk.lower(state, steps=chunk).compile())
+    t_compile = time.perf_counter() - t
+    frames = [dom.gather(state)]
+    frame_velocities = [dom.gather(state, "velocity")]
+    frame_steps = [0]
+    stats: dict = {}
+    kin, pot, moms = [], [], []
+    bar = tqdm(total=steps, unit="step", desc=scene.name, smoothing=0.1,
+               mininterval=0.5)
+    done, t_run = 0, 0.0
+    while done < steps:
+        k = min(chunk, steps - done)
+        t = time.perf_counter()
+        state, (ke, u, mom) = domains.run_chunk(dom, run_chunk, state, k,
+                                                stats)
+        jax.block_until_ready(state.position)
+        t_run += time.perf_counter() - t
+        done += k
+        bar.update(k)
+        kin.append(np.asarray(ke))
+        pot.append(np.asarray(u))
+        moms.append(np.asarray(mom))
+        position = dom.gather(state)
+        if not np.all(np.isfinite(position)):
+            raise RuntimeError(f"positions became non-finite by step {done}")
+        frames.append(position)
+        frame_velocities.append(dom.gather(state, "velocity"))
+        frame_steps.append(done)
+    bar.close()
+    dom.check(state)
+    ke = np.concatenate(kin).astype(np.float64)
+    u = np.concatenate(pot).astype(np.float64)
+    mom = np.concatenate(moms).astype(np.float64)
+    e = ke + u
+    rebuilds = int(np.asarray(state.rebuilds)[0])
+    rows = [("particles", f"{n}"), ("devices (slabs along x)", f"{devices}"),
+            ("steps", f"{done}"),
+            ("steps/s (compiled)", f"{done / t_run:.1f}"),
+            ("compile (s)", f"{t_compile:.1f}"),
+            ("list rebuilds (with migration)", f"{rebuilds}"),
+            ("overflows (redone chunks)", f"{stats.get('redone', 0)}")]
+    conservative = dom.accel is None
+    if conservative:
+        rows += [("energy drift (E_end - E_1) / N",
+                  f"{(e[-1] - e[0]) / n:+.3e}"),
+                 ("max |E - E_1| / N", f"{np.abs(e - e[0]).max() / n:.3e}")]
+    else:
+        rows.append(("total mass (exact)", f"{p.masses.sum():.6g} "
+                     "(constant by construction)"))
+    dmom = np.abs(mom[-1] - mom[0]).max()
+    has_external = any(not x.pairwise for x in scene.effects)
+    rows.append(("momentum change |P_end - P_1|" +
+                 (" (external forces)" if has_external else ""),
+                 f"{dmom:.3e}"))
+    width = max(len(r[0]) for r in rows)
+    print()
+    for name, val in rows:
+        print(f"  {name:<{width}}  {val}")
+    final = types.SimpleNamespace(velocity=frame_velocities[-1])
+    _write_outputs(scene, out, final, np.asarray(frames),
+                   np.asarray(frame_velocities), frame_steps, ke, u)
+    written = "energies.png, final.png, snapshots.npz, trajectory.xyz"
+    if save_pairs:
+        np.save(out / "pairs.npy", _pairs_within(dom.pairs(state),
+                                                 frames[-1], scene))
+        written += ", pairs.npy"
+    print(f"\nwrote {out}/{written} ({time.perf_counter() - t_start:.1f} s "
+          "total)")
+    return dict(steps_per_s=done / t_run, rebuilds=rebuilds,
+                overflows=stats.get("redone", 0), steps=done,
+                    momentum_change=float(dmom))
 
 
 def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
