@@ -53,7 +53,7 @@ def pytest_configure(config):
     if os.environ.get("PYTEST_XDIST_WORKER"):
         return  # the controller did it
     modules = ("jaxrt.rt.aabb", "jaxrt.rt.epsilon", "jaxrt.rt.spheres",
-               "jaxrt.rt.squares")
+               "jaxrt.rt.squares", "jaxrt.rt.orcs")
     code = ("import importlib, warp as wp\n"
             f"for m in {modules!r}:\n"
             "    importlib.import_module(m)\n"
@@ -63,3 +63,23 @@ def pytest_configure(config):
                        capture_output=True, timeout=600)
     except (OSError, subprocess.TimeoutExpired):
         pass  # the tests then compile the kernels themselves
+
+
+try:
+    import pytest  # noqa: E402
+except ImportError:  # pragma: no cover
+    pytest = None
+else:
+    @pytest.fixture(autouse=True, scope="module")
+    def _free_compiled_programs():
+        """Drop JAX's compiled programs after each test file.
+
+        A worker compiles hundreds of programs that no later file calls; in
+        a full run each worker grew past 5 GB, and workers have died inside
+        XLA's compiler (aborts, segfaults) late in long runs. Files share
+        few programs, so recompiling those is cheap.
+        """
+        yield
+        import gc
+        jax.clear_caches()
+        gc.collect()
