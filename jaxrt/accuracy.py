@@ -12,7 +12,7 @@ One function per concern:
 
 * knobs as data: `Knob` (a name, its `Value`\\s, the scenes it applies to,
   whether it is available here) and `KNOBS`; a `Value` maps a `Scene` to a
-  `Scene` (and may hold a context for a setting that is no scene field);
+  `Scene` (every knob is a scene field or a backend option);
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
   brute force), `measure` of the float64 scene itself (continuing the
   equilibration, its list by the scene's backend, ``cell``);
@@ -63,7 +63,6 @@ Definitions (the CSV's columns):
 """
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import datetime
@@ -73,10 +72,9 @@ import os
 import pathlib
 import platform
 import subprocess
-import sys
 import time
 import warnings
-from typing import Callable, ContextManager, NamedTuple, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -129,14 +127,11 @@ PROVENANCE = ("device", "device_kind", "device_slug", "host", "jax", "jaxlib",
 
 @dataclasses.dataclass(frozen=True)
 class Value:
-    """One value of a knob: ``label`` (the CSV's ``value``), ``apply``
-    (base scene -> the scene of this value) and, for a setting that is not
-    a scene field, ``context`` (a function returning the context manager
-    the run is made in)."""
+    """One value of a knob: ``label`` (the CSV's ``value``) and ``apply``
+    (base scene -> the scene of this value)."""
 
     label: str
     apply: Callable
-    context: Callable[[], ContextManager] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -688,8 +683,7 @@ class Measured:
     rdf: np.ndarray | None = None
 
 
-def measure(scene, plan: Plan, *, ref_forces: dict,
-            context: Callable | None = None, start=None) -> Measured:
+def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
     """Run ``scene`` (its particles at the equilibrated state) for
     ``plan.steps`` steps in chunks, timing each chunk and checking its
     list against the brute force after it; the row's measures (module
@@ -699,57 +693,55 @@ def measure(scene, plan: Plan, *, ref_forces: dict,
     import jax
     from jaxrt import sim
     from jaxrt.cli import _pair_codes
-    ctx = context() if context is not None else contextlib.nullcontext()
-    with ctx:
-        if start is None:
-            compiled = sim.compile_scene(scene)
-            state, nbrs = compiled.init()
-        else:
-            compiled, state, nbrs = start
-        rebuilds0 = int(state.rebuilds)
-        n = scene.particles.n
-        row = {"force_rms_rel": force_rms_rel(state.accel,
-                                              ref_forces["scene"])}
-        if "full" in ref_forces:
-            row["force_rms_rel_full"] = force_rms_rel(state.accel,
-                                                      ref_forces["full"])
-        side = np.asarray(scene.box.size, float)
-        periodic = scene.box.periodic
-        frames, energies, times = [], [], []
-        missed = checked = overflows = 0
-        done = 0
-        while done < plan.steps:
-            k = min(plan.chunk, plan.steps - done)
-            t = time.perf_counter()
-            new_state, new_nbrs, trace = compiled.chunk(state, nbrs, steps=k)
+    if start is None:
+        compiled = sim.compile_scene(scene)
+        state, nbrs = compiled.init()
+    else:
+        compiled, state, nbrs = start
+    rebuilds0 = int(state.rebuilds)
+    n = scene.particles.n
+    row = {"force_rms_rel": force_rms_rel(state.accel,
+                                          ref_forces["scene"])}
+    if "full" in ref_forces:
+        row["force_rms_rel_full"] = force_rms_rel(state.accel,
+                                                  ref_forces["full"])
+    side = np.asarray(scene.box.size, float)
+    periodic = scene.box.periodic
+    frames, energies, times = [], [], []
+    missed = checked = overflows = 0
+    done = 0
+    while done < plan.steps:
+        k = min(plan.chunk, plan.steps - done)
+        t = time.perf_counter()
+        new_state, new_nbrs, trace = compiled.chunk(state, nbrs, steps=k)
+        jax.block_until_ready(new_state.position)
+        dt = time.perf_counter() - t
+        if new_nbrs is not None and new_nbrs.did_buffer_overflow:
+            overflows += 1
+            nbrs = compiled.neighbor_fn.allocate(state.position)
+            new_state, new_nbrs, trace = compiled.chunk(state, nbrs,
+                                                        steps=k)
             jax.block_until_ready(new_state.position)
-            dt = time.perf_counter() - t
-            if new_nbrs is not None and new_nbrs.did_buffer_overflow:
-                overflows += 1
-                nbrs = compiled.neighbor_fn.allocate(state.position)
-                new_state, new_nbrs, trace = compiled.chunk(state, nbrs,
-                                                            steps=k)
-                jax.block_until_ready(new_state.position)
-                if new_nbrs.did_buffer_overflow:
-                    raise RuntimeError("the list overflowed twice in a chunk")
-            elif done > 0 and k == plan.chunk:
-                times.append(dt / k)
-            state, nbrs = new_state, new_nbrs
-            done += k
-            pos = np.asarray(state.position, np.float64)
-            if not np.all(np.isfinite(pos)):
-                raise RuntimeError(f"positions became non-finite by step "
-                                   f"{done}")
-            frames.append(pos)
-            energies.append(np.asarray(trace.kinetic, np.float64)
-                            + np.asarray(trace.potential, np.float64))
-            if nbrs is not None:
-                want = exact_pairs(pos, scene.cutoff, side, periodic)
-                missed += pairs_missed(_pair_codes(nbrs, n), want)
-                checked += len(want)
+            if new_nbrs.did_buffer_overflow:
+                raise RuntimeError("the list overflowed twice in a chunk")
+        elif done > 0 and k == plan.chunk:
+            times.append(dt / k)
+        state, nbrs = new_state, new_nbrs
+        done += k
+        pos = np.asarray(state.position, np.float64)
+        if not np.all(np.isfinite(pos)):
+            raise RuntimeError(f"positions became non-finite by step "
+                               f"{done}")
+        frames.append(pos)
+        energies.append(np.asarray(trace.kinetic, np.float64)
+                        + np.asarray(trace.potential, np.float64))
         if nbrs is not None:
-            from jaxrt.errors import check
-            check(nbrs)
+            want = exact_pairs(pos, scene.cutoff, side, periodic)
+            missed += pairs_missed(_pair_codes(nbrs, n), want)
+            checked += len(want)
+    if nbrs is not None:
+        from jaxrt.errors import check
+        check(nbrs)
     if not times:  # a run of one chunk: its time, compilation included
         times = [dt / k]
     row.update(time_per_step_ms=1e3 * float(np.median(times)),
@@ -828,9 +820,8 @@ def _describe(scene) -> dict:
 
 def _key(scene, value: Value) -> str:
     """Identical settings (the base, reached by several knobs) run once."""
-    eps = value.label if value.context is not None else ""
     return repr((scene.dtype, repr(scene.neighbors), repr(scene.effects),
-                 scene.integrator, eps))
+                 scene.integrator))
 
 
 # ---------------------------------------------------------------------------
@@ -1258,8 +1249,7 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
                 row.update(_describe(sc))
                 key = _key(sc, value)
                 if key not in done:
-                    m = measure(sc, plan, ref_forces=ref_forces,
-                                context=value.context)
+                    m = measure(sc, plan, ref_forces=ref_forces)
                     done[key] = finish_row(m, ref, base, plan, sc)
                 row.update(status="ok", **done[key])
             except Exception as e:  # noqa: BLE001 - recorded in the row

@@ -384,18 +384,13 @@ def run(scene, *, steps: int, out: pathlib.Path, chunk: int | None = None,
           f"{steps} steps of dt = {scene.integrator.dt:.4g}")
     for line in compiled.plan:
         print(f"  - {line}")
-    checker = None
-    if compare_jax_md:
-        if compiled.neighbor_fn is None:
-            raise SystemExit("jaxrt: --compare-jax-md needs a scene with a "
-                             "pair effect (it has no neighbour list).")
-        checker = _JaxMdCheck(compiled)
-    brute = None
-    if check_brute:
-        if compiled.neighbor_fn is None:
-            raise SystemExit("jaxrt: --check-brute needs a scene with a "
-                             "pair effect (it has no neighbour list).")
-        brute = _BruteCheck(compiled)
+    for flag, wanted in (("--compare-jax-md", compare_jax_md),
+                         ("--check-brute", check_brute)):
+        if wanted and compiled.neighbor_fn is None:
+            raise SystemExit(f"jaxrt: {flag} needs a scene with a pair "
+                             "effect (it has no neighbour list).")
+    checker = _JaxMdCheck(compiled) if compare_jax_md else None
+    brute = _BruteCheck(compiled) if check_brute else None
 
     state, nbrs = compiled.init()
     chunk = chunk or max(1, min(100, steps // 10))

@@ -59,7 +59,6 @@ Conventions, and where they differ from jax-md on purpose:
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Callable, NamedTuple
 
 import jax
