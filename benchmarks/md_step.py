@@ -23,8 +23,10 @@ Setup labels (``--list`` prints them):
                                     label of `_harness.parse_backend`:
                                     cell, cell[xla], bvh, bvh[unsorted], ...
   fused:<backend>                   (LJ) no list: `energy.lennard_jones_fused`
-                                    (backend cell, bvh or brute), forces from
-                                    its custom_vjp, the same NVE step
+                                    (backend cell, cell[xla], cell[pallas],
+                                    bvh or brute; cell is the Pallas kernel
+                                    on CUDA), forces from its custom_vjp,
+                                    the same NVE step
 A label in ``--only`` without ``/`` selects both formats.
 
     python benchmarks/md_step.py                         # CPU sizes, all
@@ -46,7 +48,10 @@ FORMATS = ("Dense", "OrderedSparse")
 DEFAULT_BACKENDS = ("cell", "bvh", "bvh-unsorted", "squares", "spheres",
                     "brute")
 JAXMD_LIST_JAXRT_ENERGY = "jax-md list + jaxrt energy"
-FUSED_BACKENDS = ("cell", "bvh")
+FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
+# fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
+FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
+                 "cell[auto]": ("cell", "auto")}
 
 
 def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:
@@ -63,9 +68,10 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
     ``"Dense"``); jax-md's rows have no backend."""
     if label.startswith("fused:"):
         backend = label[len("fused:"):]
-        if backend not in FUSED_BACKENDS + ("brute",):
+        known = FUSED_BACKENDS + tuple(FUSED_OPTIONS) + ("brute",)
+        if backend not in known:
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
-                             f"{FUSED_BACKENDS + ('brute',)}")
+                             f"{known}")
         return "fused", backend, None
     lists, sep, fmt = label.rpartition("/")
     if not sep or fmt not in FORMATS:
@@ -161,6 +167,9 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     from jax_md import simulate
     from jaxrt.energy import lennard_jones_fused
     _, backend, _ = parse_label(label)
+    if backend in FUSED_OPTIONS:
+        from jaxrt.backends import Cell
+        backend = Cell(kernel=FUSED_OPTIONS[backend][1])
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
                                     backend=backend)
     init, apply = simulate.nve(energy_fn, shift, dt=0.005)

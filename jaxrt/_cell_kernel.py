@@ -186,3 +186,132 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
     count, shell_count = jax.lax.fori_loop(0, runs, walk_run, (zero, zero))
     plgpu.store(count_ref.at[dest], count)
     plgpu.store(shell_count_ref.at[dest], shell_count)
+
+
+# ---------------------------------------------------------------------------
+# Pair sums with no list (issue #18): the same walk, but each thread folds
+# every candidate into its own particle's sums instead of writing it down.
+
+
+def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
+              periodic: tuple[bool, ...], pair_terms, n_sums: int,
+              block: int = _BLOCK, warps: int = _WARPS,
+              interpret: bool = False):
+    """Each sorted particle's sums over all its candidates, in one kernel.
+
+    Every pair is met from both of its particles (no atomics, no list); a
+    thread keeps its particle's sums in registers while it walks its runs,
+    and stores them once.
+
+    Args:
+      sorted_cart: float ``(N, dim)`` wrapped Cartesian positions, sorted
+        by cell.
+      sorted_runs: ``(start1, len1, start2, len2)``, int32 ``(N, R)`` in
+        sorted order (`jaxrt.cell_list._runs`).
+      side: float ``(dim,)`` box sides (used on periodic axes only).
+      scalars: float ``(S,)`` values handed to ``pair_terms`` (traced
+        parameters such as sigma and epsilon).
+      per_particle: float ``(N,)`` arrays in sorted order, handed to
+        ``pair_terms`` for both particles of a pair (radii, densities).
+      pair_terms: ``(d2, valid, scalars, mine, theirs) -> (g, sums)``:
+        traced in the kernel on vectors of one value per thread; ``d2`` the
+        squared minimum-image distance, ``valid`` whether the candidate is
+        another particle, ``mine`` / ``theirs`` tuples of the
+        ``per_particle`` values; returns ``g`` (the particle's vector sum
+        gains ``g (x_i - x_j)``) and a tuple of ``n_sums`` scalar terms,
+        all zero where ``valid`` is false.
+      block, warps: particles per program and warps per program.
+      interpret: run in Pallas' interpreter (any backend; for tests).
+    Returns:
+      float ``(N, dim)`` vector sums and float ``(n_sums, N)`` scalar sums,
+      in sorted order and ``sorted_cart``'s dtype.
+    """
+    n, dim = sorted_cart.shape
+    dtype = sorted_cart.dtype
+    padded = -(-n // block) * block
+    extra = padded - n
+
+    def pad(x):
+        return jnp.pad(x, [(0, extra)] + [(0, 0)] * (x.ndim - 1), mode="edge")
+
+    coords = [pad(sorted_cart[:, a]) for a in range(dim)]
+    start1, len1, start2, len2 = sorted_runs
+    starts = jnp.concatenate([start1, start2], axis=1)
+    lengths = jnp.concatenate([len1, len2], axis=1)
+    if not any(periodic):
+        starts, lengths = start1, len1
+    # The spare threads of the last block walk nothing.
+    lengths = jnp.pad(lengths, [(0, extra), (0, 0)]).T
+    starts = jnp.clip(pad(starts), 0, n).T
+    geometry = jnp.concatenate([side.astype(dtype),
+                                (1.0 / side).astype(dtype)])
+    scalars = jnp.asarray(scalars, dtype).reshape(-1)
+    extras = [pad(jnp.asarray(p, dtype)) for p in per_particle]
+    kernel = functools.partial(
+        _sum_walk, n=n, dim=dim, periodic=periodic, block=block,
+        runs=starts.shape[0], n_extras=len(extras), n_sums=n_sums,
+        pair_terms=pair_terms)
+    outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
+               + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
+    sums = pl.pallas_call(
+        kernel, out_shape=outputs, grid=(padded // block,),
+        compiler_params=_COMPILER_PARAMS(num_warps=warps),
+        interpret=interpret, name="jaxrt_cell_pair_sums",
+    )(geometry, scalars, *coords, starts, lengths, *extras)
+    vector = jnp.stack([s[:n] for s in sums[:dim]], axis=1)
+    scalar = jnp.stack([s[:n] for s in sums[dim:]]) if n_sums else (
+        jnp.zeros((0, n), dtype))
+    return vector, scalar
+
+
+def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
+              runs, n_extras, n_sums, pair_terms):
+    """One program of `pair_sums`: ``block`` consecutive sorted particles.
+
+    Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
+    scalars; ``dim`` float ``(padded,)`` coordinates; int32 ``(runs,
+    padded)`` run starts and lengths; ``n_extras`` float ``(padded,)``
+    per-particle values; then ``dim + n_sums`` float ``(padded,)`` outputs.
+    """
+    coord_refs = refs[:dim]
+    starts_ref, lengths_ref = refs[dim:dim + 2]
+    extra_refs = refs[dim + 2:dim + 2 + n_extras]
+    out_refs = refs[dim + 2 + n_extras:]
+    first = pl.program_id(0) * block
+    lanes = pl.ds(first, block)
+    me = first + jnp.arange(block, dtype=jnp.int32)
+    mine = [ref[lanes] for ref in coord_refs]
+    mine_extra = tuple(ref[lanes] for ref in extra_refs)
+    side = [geometry_ref[a] for a in range(dim)]
+    inverse_side = [geometry_ref[dim + a] for a in range(dim)]
+    scalars = scalars_ref[...]
+    dtype = mine[0].dtype
+    zero = jnp.zeros((block,), dtype)
+
+    def walk_run(r, acc):
+        start = starts_ref[r, lanes]
+        length = lengths_ref[r, lanes]
+
+        def step(s, acc):
+            inside = s < length
+            j = jnp.where(inside, start + s, 0)
+            d2 = zero
+            d = []
+            for a in range(dim):
+                da = mine[a] - plgpu.load(coord_refs[a].at[j])
+                if periodic[a]:
+                    da = da - side[a] * jnp.floor(da * inverse_side[a] + 0.5)
+                d.append(da)
+                d2 = d2 + da * da
+            valid = inside & (j != me)
+            theirs = tuple(plgpu.load(ref.at[j]) for ref in extra_refs)
+            g, terms = pair_terms(jnp.where(valid, d2, 0), valid, scalars,
+                                  mine_extra, theirs)
+            vector = tuple(v + g * da for v, da in zip(acc[:dim], d))
+            return vector + tuple(t + u for t, u in zip(acc[dim:], terms))
+
+        return jax.lax.fori_loop(0, jnp.max(length), step, acc)
+
+    acc = jax.lax.fori_loop(0, runs, walk_run, (zero,) * (dim + n_sums))
+    for ref, value in zip(out_refs, acc):
+        ref[lanes] = value

@@ -29,6 +29,15 @@ from jaxrt.energy import (FusedInputError, HigherOrderError,
                           lennard_jones_perse_step, lennard_jones_truncated)
 
 BACKENDS = ("bvh", "brute", "cell")
+# The cell walk as one kernel (`jaxrt._cell_kernel.pair_sums`): compiled on
+# a GPU, in Pallas' interpreter elsewhere; "kernel" in the parameter lists.
+ON_GPU = jax.default_backend() in ("gpu", "cuda")
+KERNEL = jaxrt.backends.Cell(kernel="pallas" if ON_GPU else "interpret")
+
+
+def pick(backend):
+    return KERNEL if backend == "kernel" else backend
+
 E_RTOL, F_RTOL = 1e-12, 1e-10
 SLOW = pytest.mark.slow
 # The default run keeps one case per property (bvh, the kernels under
@@ -75,7 +84,7 @@ def list_energy(displacement, box, periodic, R0, radii=None, **kw):
         displacement, box if box is not None else 1.0, dr_threshold=0.0,
         format=partition.Dense, radii=radii, capacity_multiplier=2.0,
         neighbor_list_fn=functools.partial(jaxrt.neighbor_list,
-                                           backend=backend,
+                                           backend=pick(backend),
                                            periodic=periodic or (box is not None)),
         **kw)
     nbrs = nfn.allocate(R0)
@@ -94,6 +103,8 @@ def close(a, b, rtol):
 
 @pytest.mark.parametrize("backend, geometry", [
     ("bvh", "periodic"), ("brute", "slab"), ("cell", "periodic"),
+    ("kernel", "periodic"), pytest.param("kernel", "slab", marks=SLOW),
+    pytest.param("kernel", "free", marks=SLOW),
     pytest.param("cell", "free", marks=SLOW),
     pytest.param("cell", "slab", marks=SLOW),
     pytest.param("bvh", "free", marks=SLOW), pytest.param("bvh", "slab", marks=SLOW),
@@ -103,7 +114,7 @@ def test_energy_forces_match_list_path_float64(x64, backend, geometry):
     R, side = fluid()
     R = jnp.asarray(R)
     displacement, box, periodic = GEOMETRIES[geometry](side)
-    fused = lennard_jones_fused(displacement, box, backend=backend,
+    fused = lennard_jones_fused(displacement, box, backend=pick(backend),
                                 periodic=periodic)
     ref = list_energy(displacement, box, periodic, R)
     e, e_ref = fused(R), ref(R)
@@ -126,7 +137,7 @@ def test_energy_matches_jax_md_float64(x64, backend):
     # multiplied by max(sigma)): ours get the same float32-rounded value.
     fused = lennard_jones_fused(displacement, side, sigma=1.1, epsilon=0.7,
                                 r_onset=2.0, r_cutoff=float(np.float32(2.4)),
-                                backend=backend)
+                                backend=pick(backend))
     close(fused(R), efn(R, nfn.allocate(R)), E_RTOL)
     close(jax.grad(fused)(R), jax.grad(efn)(R, nfn.allocate(R)), F_RTOL)
 
@@ -134,6 +145,7 @@ def test_energy_matches_jax_md_float64(x64, backend):
 @pytest.mark.parametrize("backend, geometry", [
     ("bvh", "periodic"), pytest.param("bvh", "free", marks=SLOW),
     ("cell", "periodic"), pytest.param("cell", "free", marks=SLOW),
+    ("kernel", "periodic"), pytest.param("kernel", "free", marks=SLOW),
     pytest.param("brute", "periodic", marks=SLOW),
     pytest.param("brute", "free", marks=SLOW)])
 def test_radii_match_list_path(x64, backend, geometry):
@@ -142,7 +154,7 @@ def test_radii_match_list_path(x64, backend, geometry):
     radii = jnp.asarray(np.random.default_rng(1).uniform(0.8, 2.6, len(R)))
     displacement, box, periodic = GEOMETRIES[geometry](side)
     fused = lennard_jones_fused(displacement, box, radii=radii,
-                                backend=backend, periodic=periodic)
+                                backend=pick(backend), periodic=periodic)
     ref = list_energy(displacement, box, periodic, R, radii=radii)
     close(fused(R), ref(R), E_RTOL)
     close(jax.grad(fused)(R), jax.grad(ref)(R), F_RTOL)
@@ -156,7 +168,7 @@ def test_parameter_gradients_match_list_path(x64, backend):
     R, side = fluid()
     R = jnp.asarray(R)
     displacement, _ = space.periodic(side)
-    fused = lennard_jones_fused(displacement, side, backend=backend)
+    fused = lennard_jones_fused(displacement, side, backend=pick(backend))
     ref = list_energy(displacement, side, None, R)
     for name in ("sigma", "epsilon"):
         value = jnp.asarray(0.95 if name == "sigma" else 1.3)
@@ -169,14 +181,14 @@ def test_parameter_gradients_match_list_path(x64, backend):
     assert all(np.all(np.isfinite(b)) for b in both)
 
 
-@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell",))
+@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell", "kernel"))
 def test_coincident_and_exact_cutoff_pairs(x64, backend):
     side = 10.0
     R = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0],   # coincident
                      [5.0, 5.0, 5.0], [7.5, 5.0, 5.0],   # exactly r_cutoff
                      [1.0, 6.0, 6.0], [2.2, 6.0, 6.0]])  # inside the switch
     displacement, _ = space.periodic(side)
-    fused = lennard_jones_fused(displacement, side, backend=backend)
+    fused = lennard_jones_fused(displacement, side, backend=pick(backend))
     g = jax.grad(fused)(R)
     assert np.all(np.isfinite(g))
     np.testing.assert_array_equal(np.asarray(g[:4]), 0.0)
@@ -189,12 +201,13 @@ def test_coincident_and_exact_cutoff_pairs(x64, backend):
                                                       r_cutoff=2.5), F_RTOL)
 
 
-@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell",))
+@pytest.mark.parametrize("backend", BRUTE_SLOW + (
+    "cell", pytest.param("kernel", marks=SLOW)))
 def test_jit_scan_and_2d(x64, backend):
     R, side = fluid(n_side=10, dim=2)
     R = jnp.asarray(R)
     displacement, shift = space.periodic(side)
-    fused = lennard_jones_fused(displacement, side, backend=backend)
+    fused = lennard_jones_fused(displacement, side, backend=pick(backend))
     ref = list_energy(displacement, side, None, R)
     close(jax.jit(fused)(R), ref(R), E_RTOL)
 
@@ -207,8 +220,11 @@ def test_jit_scan_and_2d(x64, backend):
     assert np.all(np.diff(np.asarray(energies)) < 0)  # descent lowers E
 
 
-@pytest.mark.parametrize("side_over_cutoff", (2.05, 2.6, 3.4, 7.0))
-def test_cell_small_periodic_boxes_count_each_pair_once(x64,
+@pytest.mark.parametrize("backend, side_over_cutoff", [
+    *[("cell", s) for s in (2.05, 2.6, 3.4, 7.0)],
+    ("kernel", 2.05), ("kernel", 3.4),
+    *[pytest.param("kernel", s, marks=SLOW) for s in (2.6, 7.0)]])
+def test_cell_small_periodic_boxes_count_each_pair_once(x64, backend,
                                                         side_over_cutoff):
     """Boxes of 2 to 7 cutoffs: the grid has one to a few cells across, so
     stencil offsets alias; each pair must still be met once from each side
@@ -219,7 +235,7 @@ def test_cell_small_periodic_boxes_count_each_pair_once(x64,
     n = max(8, int(0.5 * side ** 3))
     R = jnp.asarray(np.random.default_rng(3).uniform(0, side, (n, 3)))
     displacement, _ = space.periodic(side)
-    cell = lennard_jones_fused(displacement, side, backend="cell")
+    cell = lennard_jones_fused(displacement, side, backend=pick(backend))
     brute = lennard_jones_fused(displacement, side, backend="brute")
     assert int(cell.sums(R).count) == int(brute.sums(R).count)
     close(cell(R), brute(R), E_RTOL)
@@ -231,7 +247,7 @@ def test_vmap(x64):
     Rs = jnp.stack([jnp.asarray(R0), jnp.asarray(R1)])
     displacement, _ = space.periodic(side)
     for backend in BACKENDS:
-        fused = lennard_jones_fused(displacement, side, backend=backend)
+        fused = lennard_jones_fused(displacement, side, backend=pick(backend))
         close(jax.vmap(fused)(Rs), jnp.stack([fused(Rs[0]), fused(Rs[1])]),
               E_RTOL)
         close(jax.vmap(jax.grad(fused))(Rs)[1], jax.grad(fused)(Rs[1]),
@@ -243,7 +259,7 @@ def test_higher_order_raises_naming_list_path(x64, backend):
     R, side = fluid(n_side=4, density=0.5)
     R = jnp.asarray(R)
     displacement, _ = space.periodic(side)
-    fused = lennard_jones_fused(displacement, side, backend=backend)
+    fused = lennard_jones_fused(displacement, side, backend=pick(backend))
     with pytest.raises(HigherOrderError, match="lennard_jones_neighbor_list"):
         jax.hessian(fused)(R)
     with pytest.raises(HigherOrderError, match="lennard_jones_neighbor_list"):
@@ -272,6 +288,13 @@ def test_bad_arguments_raise():
         lennard_jones_fused(displacement, side, r_onset=3.0)
     with pytest.raises(ValueError, match="backend"):
         lennard_jones_fused(displacement, side, backend="nope")
+    with pytest.raises(ValueError, match="radius_classes"):
+        lennard_jones_fused(displacement, side,
+                            backend=jaxrt.backends.Cell(radius_classes=1))
+    if not ON_GPU:
+        with pytest.raises(ValueError, match="kernel='pallas'.*CUDA"):
+            lennard_jones_fused(displacement, side,
+                                backend=jaxrt.backends.Cell(kernel="pallas"))
     with pytest.raises(ValueError, match="disagrees"):
         lennard_jones_fused(space.free()[0], side, periodic=True)(R)
     radii = jnp.ones(len(R))
@@ -283,15 +306,18 @@ def test_bad_arguments_raise():
     assert np.isnan(jax.jit(lambda R: with_radii(R, radii=radii * 2))(R))
 
 
-@pytest.mark.parametrize("geometry", ("periodic", "free"))
-def test_bvh_float32_within_tolerance(geometry):
+@pytest.mark.parametrize("backend, geometry", [
+    ("bvh", "periodic"), ("bvh", "free"), ("kernel", "periodic"),
+    pytest.param("kernel", "free", marks=SLOW)])
+def test_float32_within_tolerance(geometry, backend):
     R, side = fluid()
     displacement, box, periodic = GEOMETRIES[geometry](side)
     with jax.enable_x64(True):
         ref = lennard_jones_fused(displacement, box, backend="brute",
                                   periodic=periodic)
         e64, f64 = ref(jnp.asarray(R)), jax.grad(ref)(jnp.asarray(R))
-    fused = lennard_jones_fused(displacement, box, periodic=periodic)
+    fused = lennard_jones_fused(displacement, box, periodic=periodic,
+                                backend=pick(backend))
     R32 = jnp.asarray(R, jnp.float32)
     e, g = fused(R32), jax.grad(fused)(R32)
     assert e.dtype == jnp.float32 and g.dtype == jnp.float32
@@ -307,7 +333,7 @@ def test_perse_step_matches_leapfrog_on_list_forces(x64, backend):
     displacement, shift = space.periodic(side)
     dt, mass = 1e-3, 1.5
     step = lennard_jones_perse_step(displacement, side, dt=dt, mass=mass,
-                                    backend=backend)
+                                    backend=pick(backend))
     ref = list_energy(displacement, side, None, R)
     V_ref = V - dt / mass * jax.grad(ref)(R)
     R_ref = shift(R, dt * V_ref)

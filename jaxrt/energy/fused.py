@@ -267,6 +267,9 @@ class _Brute(_Backend):
                          jnp.zeros((), jnp.int32))
 
 
+_CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
+
+
 @dataclasses.dataclass(frozen=True)
 class _Cell(_Backend):
     """List-free sums over jaxrt's sorted cell grid (module docstring).
@@ -274,27 +277,79 @@ class _Cell(_Backend):
     The grid and its runs are `jaxrt.cell_list`'s (cells ``cutoff / 4``
     wide along x and ``cutoff`` across, coarsened for sparse clouds; small
     periodic boxes alias no cell twice), recomputed at every call, so no
-    size is static: the loop runs as many steps as the longest run holds
-    particles. Pairs are decided on the caller's unwrapped positions with
-    `_min_image`, the arithmetic of ``backend="brute"``.
+    size is static: each particle walks its runs to their ends.
+
+    ``kernel`` (`jaxrt.backends.Cell`'s option) picks the walk: ``"xla"``,
+    array programs (one slot of every particle's runs per step of a loop
+    as long as the longest run; pairs decided on the caller's unwrapped
+    positions with `_min_image`, the arithmetic of ``backend="brute"``);
+    ``"pallas"``, one GPU kernel (`jaxrt._cell_kernel.pair_sums`: a thread
+    per particle, its sums in registers, on the wrapped positions);
+    ``"auto"``, the kernel on CUDA and the array programs elsewhere
+    (chosen where the program is lowered); ``"interpret"``, the kernel in
+    Pallas' interpreter (tests). They agree to rounding: the switch makes
+    every term continuous at the cut, so a pair decided differently by one
+    ulp at the cutoff changes nothing.
     """
 
+    kernel: str = "auto"
     name: str = "cell"
 
+    def __post_init__(self):
+        from jaxrt import _cell_kernel
+        if self.kernel not in _CELL_KERNELS:
+            raise ValueError(f"backend=Cell(kernel={self.kernel!r}): choose "
+                             f"one of {_CELL_KERNELS}.")
+        if self.kernel in ("pallas", "interpret") and _cell_kernel.pl is None:
+            raise ValueError(f"backend=Cell(kernel={self.kernel!r}): this JAX "
+                             "has no Pallas Triton backend; use "
+                             "Cell(kernel='xla').")
+        if self.kernel == "pallas" and jax.default_backend() not in ("gpu",
+                                                                     "cuda"):
+            raise ValueError(
+                "backend=Cell(kernel='pallas') needs a CUDA GPU, and JAX's "
+                f"default backend is {jax.default_backend()!r}; use "
+                "Cell(kernel='auto') (the kernel where it can run) or 'xla'.")
+
     def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
-        from jaxrt import cell_list
+        from jaxrt import _cell_kernel, cell_list
         from jaxrt._backend import Geometry, Query
         from jax_md.partition import NeighborListFormat
-        n = R3.shape[0]
         dtype = R3.dtype
         geometry = Geometry(side=jnp.asarray(params.side, dtype),
                             scale=jnp.ones((3,), dtype))
         query = Query(cutoff=params.bound, periodic=params.periodic,
                       mask_self=True, format=NeighborListFormat.Dense)
-        order, _, runs = cell_list._sorted_system(R3, geometry, query,
-                                                  sorted_runs=True)
-        Ri = R3[order]
-        cut_i = None if radii is None else radii[order]
+        order, cart, runs = cell_list._sorted_system(R3, geometry, query,
+                                                     sorted_runs=True)
+
+        def portable():
+            return self._walk(R3[order], runs, sigma, epsilon,
+                              None if radii is None else radii[order], params)
+
+        def kernel(interpret=False):
+            return self._kernel_walk(cart[order], runs, geometry.side, sigma,
+                                     epsilon, radii, order, params, interpret)
+
+        if self.kernel == "xla" or (self.kernel == "auto"
+                                    and _cell_kernel.pl is None):
+            forces, e, ds, de, c = portable()
+        elif self.kernel == "auto":
+            forces, e, ds, de, c = jax.lax.platform_dependent(
+                cuda=kernel, default=portable)
+        else:
+            forces, e, ds, de, c = kernel(self.kernel == "interpret")
+        # Each pair was met from both of its particles.
+        return FusedSums(_total(e) / 2,
+                         jnp.zeros_like(R3).at[order].set(forces),
+                         jnp.sum(ds) / 2, jnp.sum(de) / 2,
+                         jnp.sum(c).astype(dtype) / 2,
+                         jnp.zeros((), jnp.int32))
+
+    @staticmethod
+    def _walk(Ri, runs, sigma, epsilon, cut_i, params: _Params):
+        """The array-program walk: per-particle sums, sorted order."""
+        n, dtype = Ri.shape[0], Ri.dtype
         rc = jnp.asarray(params.r_cutoff, dtype)
         me = jnp.arange(n)[:, None]
 
@@ -306,7 +361,7 @@ class _Cell(_Backend):
                 j = jnp.where(valid, start + slot, me)  # sorted index
                 d = _min_image(Ri[:, None, :] - Ri[j], params)
                 d2 = jnp.sum(d * d, axis=-1)
-                cut = (rc if radii is None
+                cut = (rc if cut_i is None
                        else jnp.maximum(cut_i[:, None], cut_i[j]))
                 keep = valid & (j != me) & (d2 < cut * cut)
                 scale = cut / rc
@@ -322,7 +377,7 @@ class _Cell(_Backend):
                                      acc)
 
         zeros = jnp.zeros((n,), dtype)
-        acc = (jnp.zeros_like(R3), zeros, zeros, zeros,
+        acc = (jnp.zeros_like(Ri), zeros, zeros, zeros,
                jnp.zeros((n,), jnp.int32))
         # The runs and the parts of periodic x rows that wrap around, in
         # one loop: particles near the x ends have long wrapped parts, so a
@@ -330,12 +385,40 @@ class _Cell(_Backend):
         forces, e, ds, de, c = walk(
             jnp.concatenate([runs[0], runs[2]], axis=1),
             jnp.concatenate([runs[1], runs[3]], axis=1), acc)
-        # Each pair was met from both of its particles.
-        return FusedSums(_total(e) / 2,
-                         jnp.zeros_like(R3).at[order].set(forces),
-                         jnp.sum(ds) / 2, jnp.sum(de) / 2,
-                         jnp.sum(c).astype(dtype) / 2,
-                         jnp.zeros((), jnp.int32))
+        return forces, e, ds, de, c.astype(dtype)
+
+    @staticmethod
+    def _kernel_walk(sorted_cart, runs, side, sigma, epsilon, radii, order,
+                     params: _Params, interpret: bool):
+        """`jaxrt._cell_kernel.pair_sums` with the LJ terms: per-particle
+        sums, sorted order."""
+        from jaxrt import _cell_kernel
+        dtype = sorted_cart.dtype
+        r_cutoff, r_onset = params.r_cutoff, params.r_onset
+        has_radii = radii is not None
+
+        def terms(d2, valid, scalars, mine, theirs):
+            sigma, epsilon = scalars[0], scalars[1]
+            if has_radii:
+                cut = jnp.maximum(mine[0], theirs[0])
+                scale = cut / r_cutoff
+            else:
+                cut, scale = r_cutoff, 1.0
+            keep = valid & (d2 < cut * cut)
+            e, g, ds, de = lj_terms(jnp.where(keep, d2, 0), sigma * scale,
+                                    epsilon, r_onset * scale,
+                                    r_cutoff * scale, sigma)
+            return g, (e, ds, de, keep.astype(d2.dtype))
+
+        # No tangent may reach the kernel: the custom_vjp differentiates.
+        sorted_cart, side, sigma, epsilon = jax.lax.stop_gradient(
+            (sorted_cart, side, sigma, epsilon))
+        forces, (e, ds, de, c) = _cell_kernel.pair_sums(
+            sorted_cart, runs, side, jnp.stack([sigma, epsilon]).astype(dtype),
+            () if not has_radii else (radii[order],),
+            periodic=params.periodic, pair_terms=terms, n_sums=4,
+            interpret=interpret)
+        return forces, e, ds, de, c
 
 
 class _Bvh(_Backend):
@@ -395,8 +478,17 @@ def _backend(backend) -> _Backend:
         return _Brute()
     if backend == "cell":
         return _Cell()
+    from jaxrt import cell_list
+    if isinstance(backend, cell_list.Cell):
+        if backend.radius_classes is not None:
+            raise ValueError(
+                f"backend=Cell(radius_classes={backend.radius_classes!r}): "
+                "the fused sums walk one grid of the largest radius; leave "
+                "radius_classes at None.")
+        return _Cell(kernel=backend.kernel)
     raise ValueError(f"backend={backend!r} is not known; choose one of "
-                     f"{BACKENDS}, or pass jaxrt.rt.ffi.Bvh(...) options.")
+                     f"{BACKENDS}, or pass options: jaxrt.rt.ffi.Bvh(...) or "
+                     "jaxrt.backends.Cell(kernel=...).")
 
 
 # ---------------------------------------------------------------------------

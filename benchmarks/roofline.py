@@ -1,0 +1,199 @@
+"""How far the cell grid's rebuild and its list-free LJ sums are from the
+device's limits (issue #18's roofline table).
+
+Rows, each in its own worker (`_harness`), side by side in one run:
+
+* ``copy``: ``y = a x + b`` over 2^28 float32 (1 GiB in, 1 GiB out): the
+  memory bandwidth a JAX program reaches (bytes read + written / time).
+* ``fma``: 512 dependent multiply-adds per element on 2^24 float32, one
+  fused XLA loop: the FP32 rate it reaches (2 flops per multiply-add).
+* ``rebuild``: a jitted `jaxrt.neighbor_list` update (``cell``, Dense,
+  ``dr_threshold = 0``: every call searches) on md_step's LJ system
+  (simple-cubic lattice at density 0.8, jittered by 0.1 of a spacing,
+  cutoff 2.5).
+* ``fused``: the forces of `jaxrt.energy.lennard_jones_fused`
+  (``backend=Cell(kernel=...)``, one call of ``energy_fn.sums`` under
+  jit) on the same system.
+
+For the two search rows the script also counts, on the device, what the
+work is: ``candidates`` per particle (the stencil runs' total length: every
+one is read and tested) and ``pairs`` per particle within the cutoff. The
+roofline columns then say what the row would cost at the measured limits:
+
+* ``bytes_min``: compulsory traffic per particle (positions and order in,
+  the runs in, forces and sums or the row out) / ``copy``'s bandwidth;
+* ``bytes_l2``: every candidate's coordinates fetched from memory or L2
+  (4 bytes x dim each) / the same bandwidth: the cost when nothing is
+  staged in shared memory or registers;
+* ``flops``: ``FLOP_PER_CANDIDATE`` x candidates (the SIMT lanes execute
+  the whole pair term for every candidate, masked) / ``fma``'s rate.
+
+    GIT_SHA=$(git rev-parse --short HEAD) python benchmarks/roofline.py --n 1000000
+    python benchmarks/roofline.py --quick          # CPU: N = 8000
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
+
+# Counted in `jaxrt._cell_kernel._sum_walk` with the LJ terms of
+# `jaxrt.energy.fused.lj_terms` (sqrt, divide and floor as one each):
+# minimum image and distance 18, the smooth-switched LJ with its sigma and
+# epsilon derivatives 48, the accumulation 10.
+FLOP_PER_CANDIDATE = 76
+# The list kernel (`jaxrt._cell_kernel._walk`): distance 18, the two
+# threshold tests and the row and shell offsets 8.
+FLOP_PER_CANDIDATE_LIST = 26
+ROWS = ("copy", "fma", "rebuild", "fused")
+
+
+def _system(n: int, dtype):
+    import jax.numpy as jnp
+    import numpy as np
+    from jax_md import space
+    n_side = round(n ** (1 / 3))
+    n = n_side ** 3
+    box = (n / 0.8) ** (1 / 3)
+    a = box / n_side
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
+    rng = np.random.default_rng(0)
+    R = (g.reshape(-1, 3) + rng.uniform(-0.1, 0.1, (n, 3))) * a % box
+    return jnp.asarray(R, dtype), box, space.periodic(box)[0]
+
+
+def _work(R, box, cutoff):
+    """Candidates and pairs per particle of the cell grid at ``cutoff``."""
+    import jax.numpy as jnp
+    import numpy as np
+    from jax_md.partition import NeighborListFormat
+    from jaxrt import cell_list
+    from jaxrt._backend import Geometry, Query
+    dtype = R.dtype
+    geometry = Geometry(side=jnp.full((3,), box, dtype),
+                        scale=jnp.ones((3,), dtype))
+    query = Query(cutoff=cutoff, periodic=(True,) * 3, mask_self=True,
+                  format=NeighborListFormat.Dense)
+    _, _, runs = cell_list._sorted_system(R, geometry, query)
+    candidates = float(np.mean(np.sum(np.asarray(runs[1]) + np.asarray(runs[3]),
+                                      axis=1)))
+    return candidates, int(np.asarray(runs[0]).shape[1])
+
+
+def run_row(job: dict) -> dict:
+    import jax
+    import jax.numpy as jnp
+    row, n = job["row"], job["N"]
+    timing = dict(repeats=job["repeats"], warmup=job["warmup"])
+    if row == "copy":
+        x = jnp.ones((n,), jnp.float32)
+        f = jax.jit(lambda x: 1.0001 * x + 0.5)
+        t = _harness.time_calls(f, [x, x + 1], **timing)
+        return {"N": n, "bytes": 8 * n,
+                "rate": 8 * n / (t.median_ms * 1e-3) / 1e12,
+                "rate_unit": "TB/s", **t.columns()}
+    if row == "fma":
+        depth = 512
+
+        def chain(x):
+            for i in range(depth):  # unrolled: one fused elementwise loop
+                x = x * (1.0 - 1e-7 * (i % 3)) + 1e-6
+            return x
+        x = jnp.ones((n,), jnp.float32)
+        f = jax.jit(chain)
+        t = _harness.time_calls(f, [x, x + 1], **timing)
+        return {"N": n, "flops": 2 * depth * n,
+                "rate": 2 * depth * n / (t.median_ms * 1e-3) / 1e12,
+                "rate_unit": "TFLOP/s", **t.columns()}
+    import jaxrt
+    from jax_md import partition
+    from jaxrt.backends import Cell
+    from jaxrt.energy import lennard_jones_fused
+    R, box, disp = _system(n, jnp.float32)
+    n = R.shape[0]
+    candidates, runs = _work(R, box, 2.5)
+    inputs = [R, (R + 1e-3) % box]
+    if row == "rebuild":
+        nfn = jaxrt.neighbor_list(disp, box, 2.5, dr_threshold=0.0,
+                                  format=partition.Dense,
+                                  backend=Cell(kernel=job["kernel"]))
+        nbrs = nfn.allocate(R)
+        t = _harness.time_calls(jax.jit(lambda R: nbrs.update(R).idx), inputs,
+                                **timing)
+        pairs = float(jnp.sum(nbrs.idx < n)) / n
+        # order, 3 coordinates, 2 x runs x (start, length) in; the row out
+        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * nbrs.idx.shape[1]
+        flops = FLOP_PER_CANDIDATE_LIST * candidates
+    else:
+        energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
+                                        backend=Cell(kernel=job["kernel"]))
+        t = _harness.time_calls(jax.jit(lambda R: energy_fn.sums(R).forces),
+                                inputs, **timing)
+        pairs = 2 * float(energy_fn.sums(R).count) / n
+        # order, 3 coordinates, the runs in; 3 forces and 4 sums out
+        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * 7
+        flops = FLOP_PER_CANDIDATE * candidates
+    return {"N": n, "k": round(pairs, 2), "kernel": job["kernel"],
+            "candidates": round(candidates, 1), "bytes_min": bytes_min,
+            "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
+
+
+COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",
+           "rate_unit", "limit_ms", "bound", "of_limit"]
+
+
+def _finish(rows: list[dict]) -> None:
+    """The roofline columns of the search rows from the measured limits."""
+    rate = {r["row"]: float(r["rate"]) for r in rows
+            if r.get("status") == "ok" and r.get("rate") not in (None, "")}
+    if "copy" not in rate or "fma" not in rate:
+        return
+    bandwidth, fp32 = rate["copy"] * 1e12, rate["fma"] * 1e12
+    for r in rows:
+        if r.get("status") != "ok" or r["row"] not in ("rebuild", "fused"):
+            continue
+        n = float(r["N"])
+        limits = {"memory (compulsory)": n * float(r["bytes_min"]) / bandwidth,
+                  "memory (candidates uncached)": n * float(r["bytes_l2"]) / bandwidth,
+                  "fp32": n * float(r["flops"]) / fp32}
+        r["limit_ms_min"] = round(limits["memory (compulsory)"] * 1e3, 4)
+        r["limit_ms_l2"] = round(limits["memory (candidates uncached)"] * 1e3, 4)
+        r["limit_ms_fp32"] = round(limits["fp32"] * 1e3, 4)
+        bound = max(limits, key=limits.get)
+        r["bound"], r["limit_ms"] = bound, round(limits[bound] * 1e3, 4)
+        r["of_limit"] = round(limits[bound] * 1e3 / float(r["median_ms"]), 3)
+
+
+def plan(args) -> list[dict]:
+    sizes = {"copy": 2 ** 28, "fma": 2 ** 24}
+    if args.quick:
+        sizes = {"copy": 2 ** 24, "fma": 2 ** 20}
+    jobs = [{"row": r, "N": sizes[r], "kernel": "", "repeats": args.repeats,
+             "warmup": args.warmup} for r in ("copy", "fma")]
+    for row in ("rebuild", "fused"):
+        for kernel in args.kernels:
+            jobs.append({"row": row, "N": args.n, "kernel": kernel,
+                         "repeats": args.repeats, "warmup": args.warmup})
+    return jobs
+
+
+def main(argv=None) -> None:
+    parser = _harness.make_parser(__doc__)
+    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--kernels", nargs="*", default=["auto", "xla"],
+                        help="Cell(kernel=...) values of the search rows")
+    parser.add_argument("--quick", action="store_true",
+                        help="CPU smoke: N = 8000, small limit rows")
+    _harness.add_common_args(parser, name="roofline.csv", repeats=10,
+                             warmup=2, timeout=300)
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.n, args.repeats = 8000, 3
+    _harness.run_jobs("roofline:run_row", plan(args), columns=COLUMNS,
+                      finish=_finish, **_harness.run_options(args))
+
+
+if __name__ == "__main__":
+    main()
