@@ -250,7 +250,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     kernel = functools.partial(
         _sum_walk, n=n, dim=dim, periodic=periodic, block=block,
         runs=starts.shape[0], n_extras=len(extras), n_sums=n_sums,
-        pair_terms=pair_terms)
+        n_scalars=scalars.shape[0], pair_terms=pair_terms)
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
     sums = pl.pallas_call(
@@ -265,7 +265,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
 
 
 def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
-              runs, n_extras, n_sums, pair_terms):
+              runs, n_extras, n_sums, n_scalars, pair_terms):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
 
     Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
@@ -284,7 +284,8 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
     mine_extra = tuple(ref[lanes] for ref in extra_refs)
     side = [geometry_ref[a] for a in range(dim)]
     inverse_side = [geometry_ref[dim + a] for a in range(dim)]
-    scalars = scalars_ref[...]
+    # One load per scalar: Triton's lowering has no slice of a loaded vector.
+    scalars = tuple(scalars_ref[k] for k in range(n_scalars))
     dtype = mine[0].dtype
     zero = jnp.zeros((block,), dtype)
 
