@@ -48,6 +48,20 @@ def fits(n: int, row_width: int, shell: int) -> bool:
             and n * max(row_width, shell, 1) < 2 ** 31 - 1)
 
 
+def _padding(n: int, block: int):
+    """``(padded, pad)``: N rounded up to whole blocks, and a function that
+    pads axis 0 to it. The last block's spare threads repeat the last
+    particle: they write what it writes (a masked-off store is no write on
+    a GPU, but the interpreter writes back the old value, which would
+    race)."""
+    padded = -(-n // block) * block
+
+    def pad(x):
+        return jnp.pad(x, [(0, padded - n)] + [(0, 0)] * (x.ndim - 1),
+                       mode="edge")
+    return padded, pad
+
+
 def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
                    side, *, periodic: tuple[bool, ...], mask_self: bool,
                    row_width: int, shell: int, interpret: bool = False):
@@ -79,14 +93,7 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
         (sorted_cart, inner_sq, outer_sq, side))
     n, dim = sorted_cart.shape
     dtype = sorted_cart.dtype
-    padded = -(-n // _BLOCK) * _BLOCK
-    extra = padded - n
-
-    def pad(x):
-        # The last block's spare threads repeat the last particle: they
-        # write what it writes (a masked-off store is no write on a GPU,
-        # but the interpreter writes back the old value, which would race).
-        return jnp.pad(x, [(0, extra)] + [(0, 0)] * (x.ndim - 1), mode="edge")
+    padded, pad = _padding(n, _BLOCK)
 
     # One array per axis: the kernel gathers scalars by index.
     coords = [pad(sorted_cart[:, a]) for a in range(dim)]
@@ -228,11 +235,8 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     """
     n, dim = sorted_cart.shape
     dtype = sorted_cart.dtype
-    padded = -(-n // block) * block
+    padded, pad = _padding(n, block)
     extra = padded - n
-
-    def pad(x):
-        return jnp.pad(x, [(0, extra)] + [(0, 0)] * (x.ndim - 1), mode="edge")
 
     coords = [pad(sorted_cart[:, a]) for a in range(dim)]
     start1, len1, start2, len2 = sorted_runs
