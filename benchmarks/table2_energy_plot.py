@@ -100,8 +100,9 @@ def plot_efficiency(rows: list[dict], path: Path) -> Path:
             if real and max(real) / min(real) > 30:
                 ax.set_yscale("log")
             for x, (m, v) in enumerate(zip(methods, values)):
-                if not v:
-                    ax.text(x, 0.02, "n/a", ha="center", va="bottom",
+                if not v:  # no energy (n/a), or no pairs at all (0)
+                    ax.text(x, 0.02, "n/a" if v is None else "0",
+                            ha="center", va="bottom",
                             transform=ax.get_xaxis_transform(), fontsize=8)
                     continue
                 ax.bar(x, v, color=COLORS.get(m, "gray"))
