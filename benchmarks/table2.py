@@ -40,7 +40,28 @@ cores) are the ``paper_ms`` column; ``table2_ratios.csv`` compares ratios
 paper's for each configuration. Compare shapes and ratios, not absolute ms
 (H200 has no RT cores).
 
+Energy (``--energy``; seed 003 §4.3, Figs 11-12, `_energy`): after a
+row's timing its step is repeated for ``--energy-seconds`` (default 2 s:
+NVML's energy counter ticks every 20-100 ms) between two reads of the
+energy counter of the method's device: NVML's for a GPU method, RAPL's
+CPU packages for CPU-CELL (its GPU-idle energy is only ``gpu_energy_j``).
+Columns: ``energy_j``, ``mean_power_w``, ``peak_power_w``,
+``interactions_per_step`` (unordered pairs within the cut: ORCS-forces'
+count, the list's pairs for RT-REF and the cells, the fused count on the
+same positions for persé), ``interactions_per_joule`` (Eq. 10: pairs per
+step x steps / joules), ``energy_window_s``, ``energy_steps``,
+``energy_source`` and ``energy_reason`` (why a value is empty: "no NVML",
+"no GPU", "no RAPL"). The GPU's power samples (every
+``--energy-interval``) go to ``<csv stem>_power.csv``, one line per sample
+keyed by method/scene/radii/boundary/N; `table2_energy_plot` draws Figs
+11-12 from the two (``--plot-energy CSV`` redraws). ``--cases
+paper-energy`` selects the paper's cases: lattice r = 160, disordered r = 1,
+cluster LN, with --boundaries (both by default).
+
     python benchmarks/table2.py --quick                     # CPU smoke
+    python benchmarks/table2.py --quick --energy --cases paper-energy
+    python benchmarks/table2.py --n 50000 --cases paper-energy --energy \
+        --budget 480                                        # GPU, Figs 11-12
     python benchmarks/table2.py --n 50000 --budget 1500     # GPU, part 1
     python benchmarks/table2.py --n 1000000 --methods ORCS-forces ORCS-persé \
         --radii r=1 LN[1,330] --budget 1500 --name table2_1e6_a.csv
@@ -53,6 +74,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _energy  # noqa: E402
 import _harness  # noqa: E402
 
 SCENES = ("lattice", "disordered", "cluster")
@@ -64,6 +86,12 @@ DYNAMICS = dict(epsilon=1.0, sigma_per_cut=1 / 2.5, onset_fraction=0.8,
                 dt=1e-4, mass=1.0, box=1000.0)
 COLUMNS = ["method", "scene", "radii", "boundary", "N", "median_ms",
            "paper_ms", "k", "format"]
+ENERGY_COLUMNS = ["energy_j", "mean_power_w", "interactions_per_joule",
+                  "energy_window_s", "energy_reason"]
+# Seed 003 §4.3's energy cases (Figs 11-12), each with wall and periodic BC.
+CASES = {"paper-energy": (("lattice", "r=160"), ("disordered", "r=1"),
+                          ("cluster", "LN[1,330]"))}
+TRACE_KEY = ("method", "scene", "radii", "boundary", "N")
 
 # Seed 003 Table 2 (SPECS.md §5), mean ms per step; None: "–" (RT-REF out
 # of memory, or persé not applicable). Column order: radius kind, then
@@ -156,7 +184,17 @@ def _step_fns(job: dict, position, radii):
                                         sigma=sigma, epsilon=d["epsilon"],
                                         r_onset=onset, r_cutoff=2.5,
                                         backend=policy, periodic=periodic)
-        return (lambda s: step(*s)), (position, V0), "none", None
+        # persé returns no count; the same traversal's fused sums count
+        # the unordered pairs within the cut (what persé's kernel visits,
+        # each from both ends). Only called for --energy (one more compile).
+        counter = lennard_jones_fused(displacement, box, sigma=sigma,
+                                      epsilon=d["epsilon"], r_onset=onset,
+                                      r_cutoff=2.5, backend=policy,
+                                      periodic=periodic)
+
+        def k_fn(R):
+            return 2.0 * float(counter.sums(R).count) / R.shape[0]
+        return (lambda s: step(*s)), (position, V0), "none", k_fn
 
     if method == "ORCS-forces":
         energy = lennard_jones_fused(displacement, box, sigma=sigma,
@@ -247,10 +285,50 @@ def run_row(job: dict) -> dict:
         if not bool(jnp.all(jnp.isfinite(out[1]))):
             return {**base, **timing.columns(), "status": "error",
                     "failed": "non-finite velocities after one step"}
-        k = k_fn(R[0]) if k_fn is not None else math.nan
+        # persé's k costs a compile of its own: only where energy needs it.
+        wants_k = job["method"] != "ORCS-persé" or job.get("energy_seconds")
+        k = k_fn(R[0]) if k_fn is not None and wants_k else math.nan
+        energy = (_energy_columns(job, step, states, k, device)
+                  if job.get("energy_seconds") else {})
     return {**base, **timing.columns(), "format": fmt,
             "k": round(k, 2) if math.isfinite(k) else None,
-            "method_device": str(device), "status": "ok", "dtype": "float32"}
+            "method_device": str(device), "status": "ok", "dtype": "float32",
+            **energy}
+
+
+def _energy_columns(job: dict, step, states: list, k: float, device) -> dict:
+    """Seed 003 §4.3: repeat the step for ``job["energy_seconds"]`` inside
+    `_energy.measure`; interactions per joule (Eq. 10) from the method's
+    unordered pairs per step (k N / 2) times the steps.
+
+    The method's own meter gives ``energy_j``: NVML's counter for a method
+    on the GPU, RAPL for one on the CPU (CPU-CELL), whose GPU-idle energy
+    is not counted in it but kept in ``gpu_energy_j``. ``power_trace``
+    (the GPU's samples; the driver moves them to ``*_power.csv``)."""
+    import jax
+    with _energy.measure(job.get("energy_interval_s", 0.01)) as m:
+        steps, seconds = _energy.repeat_for(step, states,
+                                            job["energy_seconds"],
+                                            sync=jax.block_until_ready)
+    on_cpu = device.platform == "cpu"
+    own = m.cpu if on_cpu else m.gpu
+    # k = 2 pairs / N exactly, so this is the integer pair count.
+    per_step = round(k * job["N"] / 2) if math.isfinite(k) else None
+    reason = own.reason
+    if on_cpu:  # say what became of the GPU meter (a CPU-only host: why)
+        reason = "; ".join(filter(None, [reason, (
+            f"GPU: {m.gpu.reason}" if m.gpu.reason else
+            "GPU idle energy in gpu_energy_j, not counted")]))
+    ee = (per_step * steps / own.joules
+          if per_step is not None and own.joules else None)
+    return {"energy_j": own.joules, "mean_power_w": own.mean_watts,
+            "peak_power_w": own.peak_watts,
+            "interactions_per_step": per_step,
+            "interactions_per_joule": ee, "energy_window_s": seconds,
+            "energy_steps": steps, "energy_meter": "cpu" if on_cpu else "gpu",
+            "energy_source": own.source, "energy_reason": reason or None,
+            "gpu_energy_j": m.gpu.joules, "cpu_energy_j": m.cpu.joules,
+            "power_trace": [(round(t, 4), round(w, 2)) for t, w in m.gpu.trace]}
 
 
 def ratios(rows: list[dict]) -> list[dict]:
@@ -310,22 +388,49 @@ def main(argv=None) -> None:
                         "configuration, fresh after a failure)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: n = 2000; disordered and cluster; "
-                        "r = 1 and LN; >= 5 repeats, 0.5 s per row")
+                        "r = 1 and LN; >= 5 repeats, 0.5 s per row; "
+                        "0.2 s energy windows")
+    parser.add_argument("--cases", choices=("all",) + tuple(CASES),
+                        default="all",
+                        help="scene/radius pairs: all of --scenes x --radii, "
+                        "or paper-energy (seed 003 §4.3: lattice r=160, "
+                        "disordered r=1, cluster LN; replaces them)")
+    parser.add_argument("--energy", action="store_true",
+                        help="after each row's timing, repeat its step for "
+                        "--energy-seconds under NVML (GPU) / RAPL (CPU): "
+                        "energy_j, mean_power_w, interactions_per_joule; "
+                        "power traces in <csv stem>_power.csv")
+    parser.add_argument("--energy-seconds", type=float, default=None,
+                        help="energy window per row (default 2 s, 0.2 with "
+                        "--quick); NVML's counter ticks every 20-100 ms, so "
+                        "keep it >= 1 s on a GPU")
+    parser.add_argument("--energy-interval", type=float, default=0.01,
+                        help="seconds between power samples")
+    parser.add_argument("--plot-energy", metavar="CSV",
+                        help="only redraw the energy figures from a run's CSV")
     _harness.add_common_args(parser, name="table2.csv", repeats=5, warmup=2,
                              timeout=900.0)
     args = parser.parse_args(argv)
+    if args.plot_energy:
+        import table2_energy_plot
+        table2_energy_plot.plot_run(args.plot_energy)
+        return
     if args.quick:
         args.n, args.repeats, args.target_s = [2000], 5, 0.5
         if args.scenes == SCENES:
             args.scenes = ("disordered", "cluster")
         if args.radii == RADII:
             args.radii = ("r=1", "LN[1,330]")
+    if args.energy_seconds is None:
+        args.energy_seconds = 0.2 if args.quick else 2.0
+    cases = (CASES[args.cases] if args.cases in CASES else
+             [(scene, radii) for radii in args.radii for scene in args.scenes])
     jobs = []
     # Small configurations first, so a budget keeps the most rows.
     for n in sorted(args.n):
-        for radii in args.radii:
+        for radii in dict.fromkeys(r for _, r in cases):
             for boundary in args.boundaries:
-                for scene in args.scenes:
+                for scene in (s for s, r in cases if r == radii):
                     for method in args.methods:
                         jobs.append({
                             "method": method, "scene": scene, "radii": radii,
@@ -337,12 +442,76 @@ def main(argv=None) -> None:
                             "max_repeats": args.max_repeats,
                             "dynamics": DYNAMICS,
                             "_group": f"{n}/{radii}/{boundary}/{scene}"})
+                        if args.energy:
+                            jobs[-1].update(
+                                energy_seconds=args.energy_seconds,
+                                energy_interval_s=args.energy_interval)
+    columns = COLUMNS + (ENERGY_COLUMNS if args.energy else [])
+    traces = TraceWriter(args, columns)
     # One worker per configuration (its methods share the scene; a failed
     # row gets a fresh worker for the next).
-    rows, path = _harness.run_jobs("table2:run_row", jobs, columns=COLUMNS,
+    rows, path = _harness.run_jobs("table2:run_row", jobs, columns=columns,
                                    reuse_worker=not args.fresh_workers,
-                                   **_harness.run_options(args))
+                                   on_row=traces, **_harness.run_options(args))
     _finish(rows, path.with_name(path.stem + "_ratios.csv"))
+    if args.energy:
+        _finish_energy(rows, path, traces.path)
+
+
+def power_path(csv_path: Path) -> Path:
+    """The power traces of a run: ``<stem>_power.csv`` beside its CSV."""
+    csv_path = Path(csv_path)
+    return csv_path.with_name(csv_path.stem + "_power.csv")
+
+
+class TraceWriter:
+    """``run_jobs``'s ``on_row``: moves each row's ``power_trace`` (a list
+    the worker sent) into the long power CSV, one line per sample keyed by
+    `TRACE_KEY`, written as the rows come (an interrupted run keeps them),
+    then prints the row."""
+
+    FIELDS = list(TRACE_KEY) + ["meter", "t_s", "power_w"]
+
+    def __init__(self, args, columns: list[str]):
+        self.args, self.columns = args, columns
+        self.path: Path | None = None
+
+    def __call__(self, row: dict) -> None:
+        trace = row.pop("power_trace", None)
+        if trace is not None:
+            row["power_samples"] = len(trace)
+        if self.args.energy:
+            self._append(row, trace or [])
+        _harness.print_row(row, self.columns)
+
+    def _append(self, row: dict, trace: list) -> None:
+        import csv
+        if self.path is None:  # the first row: a fresh file for this run
+            main_csv = _harness.out_path(self.args.out, self.args.name,
+                                         row.get("device_slug", "unknown"))
+            self.path = power_path(main_csv)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.path, "w", newline="") as f:
+                csv.writer(f).writerow(self.FIELDS)
+        with open(self.path, "a", newline="") as f:
+            w = csv.writer(f)
+            key = [row.get(c) for c in TRACE_KEY]
+            for t, watts in trace:
+                w.writerow(key + ["gpu", t, watts])
+
+
+def _finish_energy(rows: list[dict], path: Path, power: Path | None) -> None:
+    """The energy table (Fig 12's numbers) and the figures."""
+    import table2_energy_plot
+    print("\ninteractions per joule (seed 003 Eq. 10; energy of the "
+          "method's device over the energy window)")
+    _harness.print_table([r for r in rows if r.get("energy_window_s")],
+                         ["method", "scene", "radii", "boundary", "N",
+                          "interactions_per_step", "energy_steps",
+                          "energy_window_s", "energy_j", "mean_power_w",
+                          "peak_power_w", "interactions_per_joule",
+                          "gpu_energy_j", "energy_reason"])
+    table2_energy_plot.plot_run(path, power)
 
 
 if __name__ == "__main__":
