@@ -13,7 +13,8 @@ Rows, each in its own worker (`_harness`), side by side in one run:
   cutoff 2.5).
 * ``fused``: the forces of `jaxrt.energy.lennard_jones_fused`
   (``backend=Cell(kernel=...)``, one call of ``energy_fn.sums`` under
-  jit) on the same system.
+  jit) on the same system; with ``--launches``, also the kernel at other
+  particles-per-program x warps shapes.
 
 For the two search rows the script also counts, on the device, what the
 work is: ``candidates`` per particle (the stencil runs' total length: every
@@ -129,15 +130,48 @@ def run_row(job: dict) -> dict:
     else:
         energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
                                         backend=Cell(kernel=job["kernel"]))
-        t = _harness.time_calls(jax.jit(lambda R: energy_fn.sums(R).forces),
-                                inputs, **timing)
+        forces = (jax.jit(lambda R: energy_fn.sums(R).forces)
+                  if not job.get("launch") else _launched(box, job["launch"]))
+        t = _harness.time_calls(forces, inputs, **timing)
         pairs = 2 * float(energy_fn.sums(R).count) / n
         # order, 3 coordinates, the runs in; 3 forces and 4 sums out
         bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * 7
         flops = FLOP_PER_CANDIDATE * candidates
-    return {"N": n, "k": round(pairs, 2), "kernel": job["kernel"],
+    return {"N": n, "k": round(pairs, 2),
+            "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch")
+                                       else ""),
             "candidates": round(candidates, 1), "bytes_min": bytes_min,
             "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
+
+
+def _launched(box, launch: str):
+    """The fused kernel's forces with another launch shape (``"block x
+    warps"``, e.g. ``"64x2"``): the private walk of
+    `jaxrt.energy.fused._Cell`, on the grid that ``sums`` would build."""
+    import jax
+    import jax.numpy as jnp
+    from jax_md.partition import NeighborListFormat
+    from jaxrt import cell_list
+    from jaxrt._backend import Geometry, Query
+    from jaxrt.energy import fused
+    block, warps = (int(v) for v in launch.split("x"))
+    params = fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
+                           periodic=(True,) * 3, side=(box,) * 3)
+
+    @jax.jit
+    def forces(R):
+        geometry = Geometry(side=jnp.full((3,), box, R.dtype),
+                            scale=jnp.ones((3,), R.dtype))
+        query = Query(cutoff=2.5, periodic=(True,) * 3, mask_self=True,
+                      format=NeighborListFormat.Dense)
+        order, cart, runs = cell_list._sorted_system(R, geometry, query,
+                                                     sorted_runs=True)
+        one = jnp.asarray(1.0, R.dtype)
+        f = fused._Cell._kernel_walk(cart[order], runs, geometry.side, one,
+                                     one, None, order, params, False,
+                                     block=block, warps=warps)[0]
+        return jnp.zeros_like(R).at[order].set(f)
+    return forces
 
 
 COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",
@@ -176,6 +210,10 @@ def plan(args) -> list[dict]:
         for kernel in args.kernels:
             jobs.append({"row": row, "N": args.n, "kernel": kernel,
                          "repeats": args.repeats, "warmup": args.warmup})
+    for launch in args.launches:
+        jobs.append({"row": "fused", "N": args.n, "kernel": "pallas",
+                     "launch": launch, "repeats": args.repeats,
+                     "warmup": args.warmup})
     return jobs
 
 
@@ -184,6 +222,10 @@ def main(argv=None) -> None:
     parser.add_argument("--n", type=int, default=1_000_000)
     parser.add_argument("--kernels", nargs="*", default=["auto", "xla"],
                         help="Cell(kernel=...) values of the search rows")
+    parser.add_argument("--launches", nargs="*", default=[],
+                        help="extra fused rows with other launch shapes of "
+                        "the kernel, BLOCKxWARPS (e.g. 64x2 128x4; the "
+                        "default is 32x1); CUDA only")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 8000, small limit rows")
     _harness.add_common_args(parser, name="roofline.csv", repeats=10,

@@ -389,9 +389,10 @@ class _Cell(_Backend):
 
     @staticmethod
     def _kernel_walk(sorted_cart, runs, side, sigma, epsilon, radii, order,
-                     params: _Params, interpret: bool):
+                     params: _Params, interpret: bool, **launch):
         """`jaxrt._cell_kernel.pair_sums` with the LJ terms: per-particle
-        sums, sorted order."""
+        sums, sorted order. ``launch``: its ``block`` and ``warps``
+        (benchmarks/roofline.py tunes them)."""
         from jaxrt import _cell_kernel
         dtype = sorted_cart.dtype
         r_cutoff, r_onset = params.r_cutoff, params.r_onset
@@ -417,7 +418,7 @@ class _Cell(_Backend):
             sorted_cart, runs, side, jnp.stack([sigma, epsilon]).astype(dtype),
             () if not has_radii else (radii[order],),
             periodic=params.periodic, pair_terms=terms, n_sums=4,
-            interpret=interpret)
+            interpret=interpret, **launch)
         return forces, e, ds, de, c
 
 
