@@ -1,8 +1,10 @@
 """What accuracy costs in time: sweep the knobs that trade one for the other.
 
 ``jaxrt accuracy [SCENE] --out DIR [--quick]`` (`jaxrt.cli`) calls `run`.
-On a scene (the LJ fluid by default; the dam break for SPH) it varies one
-knob at a time away from the scene's own setting (the *base*) and measures,
+On a scene (`SCENES`: the LJ fluid by default; ``lj-fluid-2d``, the LJ
+fluid in 2D, where the Delaunay backend runs; the dam break for SPH, 2D
+too) it varies one knob at a time away from the scene's own setting (the
+*base*) and measures,
 for each value, the time per step and its errors against a float64
 reference of the same scene. Outputs in ``DIR``: ``accuracy.csv`` (one row
 per knob value), ``<knob>.png`` (each error against the time per step, the
@@ -10,9 +12,19 @@ Pareto front drawn) and ``summary.md`` (sentences computed from the rows).
 
 One function per concern:
 
-* knobs as data: `Knob` (a name, its `Value`\\s, the scenes it applies to,
-  whether it is available here) and `KNOBS`; a `Value` maps a `Scene` to a
-  `Scene` (every knob is a scene field or a backend option);
+* knobs as data: `Knob` (a name, its `Value`\\s, the scenes and
+  dimensions it applies to, whether it is available here) and `KNOBS`; a
+  `Value` maps a `Scene` to a `Scene` (every knob is a scene field, a
+  backend option, or an effect in place of the LJ: `LJFused`, `LJPairs`)
+  and may run in some dimensions only (Delaunay 2D, `jaxrt.pairs` 3D) or
+  only where it can (the Pallas kernels: CUDA GPUs);
+* not swept: per-particle radii (``radii=``, ``Cell(radius_classes=)``).
+  No scene here has them: `jaxrt.sim` builds its shared list without
+  radii, and its LJ reads radii as ``sigma_ij = r_i + r_j``, not the cut at
+  ``max(r_i, r_j)`` of `jaxrt.energy.lennard_jones_radii` that a list with
+  radii serves; a knob needs a polydisperse scene with that energy, the
+  list's radii passed through ``compile_scene(neighbor_list_fn=)`` and a
+  radius-aware brute-force pair check;
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
   brute force), `measure` of the float64 scene itself (continuing the
   equilibration, its list by the scene's backend, ``cell``);
@@ -48,7 +60,8 @@ Definitions (the CSV's columns):
   Empty for non-conservative scenes (dam break).
 * ``pairs_missed``: after every chunk, the pairs within the interaction
   cutoff at the current positions (float64 brute force, minimum image on
-  periodic axes) that the list in use lacks, summed over the checks
+  periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
+  `jaxrt.pairs` finds at those positions), summed over the checks
   (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
   mean neighbours within the cutoff per particle).
 * ``rdf_l2`` / ``rdf_linf``: ``sqrt(sum (g - g_ref)^2 dr)`` and
@@ -60,6 +73,9 @@ Definitions (the CSV's columns):
   below which a difference means nothing.
 * ``position_rms``: RMS distance between the setting's final positions and
   the reference's (chaotic for the LJ fluid, so a measure of divergence).
+* ``rebuilds``: list rebuilds over the run; ``triangulation_rebuilds``
+  (Delaunay lists): rebuilds of the triangulation from scratch (Qhull on
+  the host) where its maintenance by flips gave up.
 """
 from __future__ import annotations
 
