@@ -1,8 +1,10 @@
 """What accuracy costs in time: sweep the knobs that trade one for the other.
 
 ``jaxrt accuracy [SCENE] --out DIR [--quick]`` (`jaxrt.cli`) calls `run`.
-On a scene (the LJ fluid by default; the dam break for SPH) it varies one
-knob at a time away from the scene's own setting (the *base*) and measures,
+On a scene (`SCENES`: the LJ fluid by default; ``lj-fluid-2d``, the LJ
+fluid in 2D, where the Delaunay backend runs; the dam break for SPH, 2D
+too) it varies one knob at a time away from the scene's own setting (the
+*base*) and measures,
 for each value, the time per step and its errors against a float64
 reference of the same scene. Outputs in ``DIR``: ``accuracy.csv`` (one row
 per knob value), ``<knob>.png`` (each error against the time per step, the
@@ -10,9 +12,19 @@ Pareto front drawn) and ``summary.md`` (sentences computed from the rows).
 
 One function per concern:
 
-* knobs as data: `Knob` (a name, its `Value`\\s, the scenes it applies to,
-  whether it is available here) and `KNOBS`; a `Value` maps a `Scene` to a
-  `Scene` (every knob is a scene field or a backend option);
+* knobs as data: `Knob` (a name, its `Value`\\s, the scenes and
+  dimensions it applies to, whether it is available here) and `KNOBS`; a
+  `Value` maps a `Scene` to a `Scene` (every knob is a scene field, a
+  backend option, or an effect in place of the LJ: `LJFused`, `LJPairs`)
+  and may run in some dimensions only (Delaunay 2D, `jaxrt.pairs` 3D) or
+  only where it can (the Pallas kernels: CUDA GPUs);
+* not swept: per-particle radii (``radii=``, ``Cell(radius_classes=)``).
+  No scene here has them: `jaxrt.sim` builds its shared list without
+  radii, and its LJ reads radii as ``sigma_ij = r_i + r_j``, not the cut at
+  ``max(r_i, r_j)`` of `jaxrt.energy.lennard_jones_radii` that a list with
+  radii serves; a knob needs a polydisperse scene with that energy, the
+  list's radii passed through ``compile_scene(neighbor_list_fn=)`` and a
+  radius-aware brute-force pair check;
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
   brute force), `measure` of the float64 scene itself (continuing the
   equilibration, its list by the scene's backend, ``cell``);
@@ -48,7 +60,8 @@ Definitions (the CSV's columns):
   Empty for non-conservative scenes (dam break).
 * ``pairs_missed``: after every chunk, the pairs within the interaction
   cutoff at the current positions (float64 brute force, minimum image on
-  periodic axes) that the list in use lacks, summed over the checks
+  periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
+  `jaxrt.pairs` finds at those positions), summed over the checks
   (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
   mean neighbours within the cutoff per particle).
 * ``rdf_l2`` / ``rdf_linf``: ``sqrt(sum (g - g_ref)^2 dr)`` and
@@ -60,6 +73,9 @@ Definitions (the CSV's columns):
   below which a difference means nothing.
 * ``position_rms``: RMS distance between the setting's final positions and
   the reference's (chaotic for the LJ fluid, so a measure of divergence).
+* ``rebuilds``: list rebuilds over the run; ``triangulation_rebuilds``
+  (Delaunay lists): rebuilds of the triangulation from scratch (Qhull on
+  the host) where its maintenance by flips gave up.
 """
 from __future__ import annotations
 
@@ -122,36 +138,225 @@ PROVENANCE = ("device", "device_kind", "device_slug", "host", "jax", "jaxlib",
               "jax_md", "warp", "python", "git_sha", "date")
 
 # ---------------------------------------------------------------------------
+# Effects the knobs put in a scene in place of its LJ (list-free: each runs
+# its own search, so ``pairwise = False`` and the scene builds no list)
+
+
+def _lj_r_onset(effect) -> float:
+    return 0.8 * effect.r_cutoff if effect.r_onset is None else \
+        effect.r_onset
+
+
+@dataclasses.dataclass(frozen=True)
+class LJFused:
+    """The LJ effect on the list-free fused energy
+    (`jaxrt.energy.lennard_jones_fused`): ``pairwise = False``, so the
+    compiled scene builds no list. ``backend``: the fused energy's search,
+    a name (``"cell"``: the portable one, its kernel as ``"cell"`` picks
+    it) or an options object passed through as it is (a
+    `jaxrt.backends.Cell` for the cell search's kernel, where the fused
+    energy takes one). The fused energy is jax-md's smooth switch only;
+    other truncations are refused (the knob runs on the smooth base
+    scene)."""
+
+    r_cutoff: float
+    sigma: object = 1.0
+    epsilon: object = 1.0
+    r_onset: float | None = None
+    truncation: str = "smooth"
+    backend: object = "cell"
+    kind = "lj_fused"
+    pairwise = False
+
+    @property
+    def cutoff(self) -> float:
+        return float(self.r_cutoff)
+
+    @property
+    def search(self) -> str:
+        """The search, for the CSV's ``backend`` column."""
+        b = self.backend
+        if not isinstance(b, str):
+            b = f"{b.name}[{getattr(b, 'kernel', '?')}]"
+        return f"fused {b} (no list)"
+
+    def validate(self, scene, where: str) -> None:
+        from jaxrt.sim import SceneError
+        if self.truncation != "smooth":
+            raise SceneError.at(f"{where}.truncation", "the fused energy is "
+                                "the smooth switch only; use 'smooth'.")
+        if np.ndim(self.sigma) or np.ndim(self.epsilon):
+            raise SceneError.at(f"{where}.sigma", "the fused energy takes "
+                                "scalar sigma and epsilon.")
+
+    def term(self, ctx):
+        import jaxrt.energy
+        from jaxrt.sim import Term
+        box = np.asarray(ctx.scene.box.size, float)
+        sigma = float(self.sigma)
+        # The fused factory takes r_onset / r_cutoff in units of sigma, as
+        # jax-md's does; the scene's are absolute.
+        energy = jaxrt.energy.lennard_jones_fused(
+            ctx.displacement, box, sigma=sigma, epsilon=float(self.epsilon),
+            r_onset=_lj_r_onset(self) / sigma, r_cutoff=self.r_cutoff / sigma,
+            backend=self.backend, periodic=ctx.scene.box.periodic)
+
+        def lj_fused(R, nbrs):
+            return energy(R)
+        return Term(energy=lj_fused, notes=(
+            f"list-free fused LJ (backend {self.backend!r})",))
+
+
+@dataclasses.dataclass(frozen=True)
+class LJPairs:
+    """The LJ effect on pairs from `jaxrt.pairs` (a full list with lattice
+    shifts, ``(i, j, S)`` and ``(j, i, -S)``, the pair list of the ML
+    potentials), searched every step at ``r_cutoff`` itself: no skin and
+    nothing kept between steps. Under ``jit`` the search needs a static
+    capacity: ``capacity_margin`` times the pairs at the scene's own
+    positions (`jaxrt.pairs_sizes`) plus 64. A search past it makes the
+    energy and the forces NaN (the run then stops at non-finite
+    positions): never a silent loss of pairs. Same potential as
+    `jaxrt.sim.LJ` (`jaxrt.energy.lj.lennard_jones_truncated`), scalar
+    sigma and epsilon; 3D (`jaxrt.pairs` is)."""
+
+    r_cutoff: float
+    sigma: object = 1.0
+    epsilon: object = 1.0
+    r_onset: float | None = None
+    truncation: str = "smooth"
+    capacity_margin: float = 1.25
+    kind = "lj_pairs"
+    pairwise = False
+    search = "jaxrt.pairs (no list)"
+
+    @property
+    def cutoff(self) -> float:
+        return float(self.r_cutoff)
+
+    def validate(self, scene, where: str) -> None:
+        from jaxrt.sim import SceneError
+        if scene.particles.dim != 3:
+            raise SceneError.at(where, "jaxrt.pairs takes 3D positions; "
+                                f"this scene is {scene.particles.dim}D.")
+        if np.ndim(self.sigma) or np.ndim(self.epsilon):
+            raise SceneError.at(f"{where}.sigma", "scalar sigma and epsilon "
+                                "only (no species).")
+        r = scene.particles.radius
+        if r is not None and np.ptp(r) > 0:
+            raise SceneError.at(where, "no per-particle radii.")
+
+    def searcher(self, scene) -> Callable:
+        """``search(R) -> jaxrt.Pairs`` for ``R`` float ``(N, 3)``, jitted,
+        its capacity and reach static (`jaxrt.pairs` under ``jit``)."""
+        import jax
+        import jaxrt
+        box = scene.box
+        cell = np.asarray(box.size, np.float64)
+        pbc = tuple(box.periodic)
+        sizes = jaxrt.pairs_sizes(np.asarray(scene.particles.positions),
+                                  self.r_cutoff, cell=cell, pbc=pbc)
+        capacity = int(self.capacity_margin * sizes.capacity) + 64
+
+        @jax.jit
+        def search(R):
+            return jaxrt.pairs(R, self.r_cutoff, cell=cell.astype(R.dtype),
+                               pbc=pbc, capacity=capacity,
+                               max_shift=sizes.max_shift)
+        search.cell = cell
+        return search
+
+    def term(self, ctx):
+        import jax.numpy as jnp
+        from jaxrt.energy.lj import lennard_jones_truncated
+        from jaxrt.sim import Term
+        search = self.searcher(ctx.scene)
+        r_c, r_on = float(self.r_cutoff), _lj_r_onset(self)
+        sigma, epsilon = float(self.sigma), float(self.epsilon)
+
+        def lj_pairs(R, nbrs):
+            p = search(R)
+            valid = p.valid
+            # Padded entries sit at the cutoff (zero energy, finite
+            # gradient), not at 0 where LJ is infinite.
+            dr = jnp.where(valid, p.distances(R, search.cell.astype(R.dtype)),
+                           r_c)
+            e = lennard_jones_truncated(dr, sigma, epsilon, r_onset=r_on,
+                                        r_cutoff=r_c,
+                                        truncation=self.truncation)
+            # Each pair is listed both ways; an overflow poisons the energy
+            # and, through the product, every force.
+            u = 0.5 * jnp.sum(jnp.where(valid, e, 0.0))
+            return u * jnp.where(p.overflow, jnp.nan, 1.0).astype(u.dtype)
+        return Term(energy=lj_pairs, notes=(
+            f"LJ on jaxrt.pairs, searched every step at {r_c:g}",))
+
+    def pair_checker(self, scene) -> Callable:
+        """``codes(position)``: the sorted pair codes ``i * n + j`` (i < j)
+        that this effect's search finds at ``position`` (float64 ``(N,
+        3)``, searched in the scene's dtype, as in the run), for
+        `pairs_missed`; raises if the search overflowed."""
+        import jax.numpy as jnp
+        search = self.searcher(scene)
+        n = scene.particles.n
+
+        def codes(position):
+            p = search(jnp.asarray(position, scene.dtype))
+            if bool(p.overflow):
+                raise RuntimeError("jaxrt.pairs overflowed its capacity")
+            c = int(p.count)
+            i = np.asarray(p.i)[:c].astype(np.int64)
+            j = np.asarray(p.j)[:c].astype(np.int64)
+            keep = i < j
+            return np.unique(i[keep] * n + j[keep])
+        return codes
+
+
+
+# ---------------------------------------------------------------------------
 # Knobs as data
+
+
+def _always() -> bool:
+    return True
 
 
 @dataclasses.dataclass(frozen=True)
 class Value:
     """One value of a knob: ``label`` (the CSV's ``value``) and ``apply``
-    (base scene -> the scene of this value)."""
+    (base scene -> the scene of this value); ``dims``: the scene
+    dimensions it runs in (Delaunay: 2D only); ``available``: whether it
+    can run in this installation (the Pallas kernels: CUDA only)."""
 
     label: str
     apply: Callable
+    dims: tuple[int, ...] = (2, 3)
+    available: Callable[[], bool] = _always
 
 
 @dataclasses.dataclass(frozen=True)
 class Knob:
     """A knob: ``name``, its ``values``, the labels ``quick`` sweeps, the
-    scene kinds it applies to (``"lj"``, ``"sph"``) and whether it is
-    ``available`` in this installation."""
+    scene kinds it applies to (``"lj"``, ``"sph"``), the scene dimensions
+    (``dims``) and whether it is ``available`` in this installation."""
 
     name: str
     values: tuple[Value, ...]
     quick: tuple[str, ...]
     scenes: tuple[str, ...] = ("lj", "sph")
-    available: Callable[[], bool] = lambda: True
+    available: Callable[[], bool] = _always
     what: str = ""
     judge: str = "pairs_missed"
     """The error column the summary judges the knob's values by."""
+    dims: tuple[int, ...] = (2, 3)
 
-    def selected(self, quick: bool) -> tuple[Value, ...]:
+    def selected(self, quick: bool, dim: int | None = None
+                 ) -> tuple[Value, ...]:
+        """The values a sweep runs: the ``quick`` ones if ``quick``, those
+        that run in ``dim`` dimensions (any if None) and are available."""
         return tuple(v for v in self.values
-                     if not quick or v.label in self.quick)
+                     if (not quick or v.label in self.quick)
+                     and (dim is None or dim in v.dims) and v.available())
 
 
 def _replace_neighbors(scene, **kw):
@@ -163,11 +368,17 @@ def _with_dtype(dtype: str):
     return lambda s: dataclasses.replace(s, dtype=dtype)
 
 
+_BY_OBJECT = ("bvh", "spheres", "squares")
+"""Backends a knob passes as objects: then "bvh" is Bvh(policy="drift")'s
+run, found again under its options (a setting two knobs reach runs once,
+`_key`)."""
+
+
 def _with_backend(backend, dtype: str | None = None):
     def apply(s):
         b = backend
-        if b in ("bvh", "spheres", "squares"):  # as objects: "bvh" is then
-            from jaxrt.backends import resolve  # Bvh(policy="drift")'s run
+        if b in _BY_OBJECT:
+            from jaxrt.backends import resolve
             b = resolve(b)
         s = _replace_neighbors(s, backend=b)
         return dataclasses.replace(s, dtype=dtype) if dtype else s
@@ -203,6 +414,32 @@ def _with_bvh_policy(policy: str):
     return apply
 
 
+DELAUNAY_CAPACITY = 2.0
+"""The Delaunay lists' capacity_multiplier (the boids scene's): its vertex
+degree and BFS frontier buffers are sized at ``allocate``, and a liquid's
+fluctuate past 1.25 times that within a chunk (measured: the 2D LJ fluid
+overflowed twice in a row at 1.25 and 1.5)."""
+
+
+def _with_delaunay(max_flip_rounds: int = 64, max_splits: int = 32):
+    """Delaunay with these options, in float64 (its predicates are float64:
+    it refuses float32 positions), `DELAUNAY_CAPACITY`."""
+    def apply(s):
+        from jaxrt.backends import Delaunay
+        s = _replace_neighbors(s, backend=Delaunay(
+            max_flip_rounds=max_flip_rounds, max_splits=max_splits),
+            capacity_multiplier=DELAUNAY_CAPACITY)
+        return dataclasses.replace(s, dtype="float64")
+    return apply
+
+
+def _with_cell_kernel(kernel: str):
+    def apply(s):
+        from jaxrt.backends import Cell
+        return _replace_neighbors(s, backend=Cell(kernel=kernel))
+    return apply
+
+
 def _warp() -> bool:
     import jaxrt
     return "bvh" in jaxrt.available_backends()
@@ -213,14 +450,65 @@ def _has_fused() -> bool:
     return hasattr(jaxrt.energy, "lennard_jones_fused")
 
 
-def _list_free(s):
+def _pallas_here() -> bool:
+    """Whether the cell list's Pallas kernel can run here: a CUDA GPU and a
+    JAX with Pallas' Triton backend (`jaxrt._cell_kernel`). Pallas'
+    interpreter runs anywhere but is far too slow for a sweep."""
+    import jax
+    from jaxrt import _cell_kernel
+    return (jax.default_backend() in ("gpu", "cuda")
+            and _cell_kernel.plgpu is not None)
+
+
+def _fused_takes(backend) -> bool:
+    """Whether `jaxrt.energy.lennard_jones_fused` accepts ``backend`` (a
+    `jaxrt.backends.Cell` for its cell search: not before the fused cell
+    kernel lands), probed on a small periodic box."""
+    if not _has_fused():
+        return False
+    from jax_md import space
+    import jaxrt.energy
+    try:
+        jaxrt.energy.lennard_jones_fused(space.periodic(10.0)[0], 10.0,
+                                         backend=backend)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _fused_cell(kernel: str) -> Callable[[], bool]:
+    """``available`` of the fused energy on ``Cell(kernel=kernel)``: a GPU
+    where the kernel runs (on a CPU "auto" is "xla", the plain ``fused``
+    value) and a fused energy that takes a `Cell`."""
+    def available() -> bool:
+        from jaxrt.backends import Cell
+        return _pallas_here() and _fused_takes(Cell(kernel=kernel))
+    return available
+
+
+def _lj_as(cls, **options):
+    """``apply``: the scene with its LJ effect replaced by ``cls`` (an
+    effect of the same fields and ``options``, e.g. `LJFused`, `LJPairs`)."""
+    def apply(s):
+        from jaxrt.sim import LJ
+        effects = tuple(cls(**{f.name: getattr(e, f.name) for f in
+                               dataclasses.fields(e)}, **options)
+                        if isinstance(e, LJ) else e for e in s.effects)
+        return dataclasses.replace(s, effects=effects)
+    return apply
+
+
+def _list_free(backend="cell"):
     """The scene with its LJ effect replaced by the list-free fused energy
-    (`LJFused`): no neighbour list at all."""
-    from jaxrt.sim import LJ
-    effects = tuple(LJFused(**{f.name: getattr(e, f.name) for f in
-                               dataclasses.fields(e)})
-                    if isinstance(e, LJ) else e for e in s.effects)
-    return dataclasses.replace(s, effects=effects)
+    (`LJFused`, its search ``backend``): no neighbour list at all."""
+    return _lj_as(LJFused, backend=backend)
+
+
+def _fused_kernel(kernel: str):
+    def apply(s):
+        from jaxrt.backends import Cell
+        return _list_free(Cell(kernel=kernel))(s)
+    return apply
 
 
 def _same(s):
@@ -232,6 +520,11 @@ def _eps(e: int) -> Value:
         from jaxrt.backends import Spheres
         return _replace_neighbors(s, backend=Spheres(epsilon_relative=2.0 ** -e))
     return Value(f"2^-{e}", apply)
+
+
+def _flips(rounds: int, splits: int) -> Value:
+    return Value(f"rounds {rounds}, splits {splits}",
+                 _with_delaunay(rounds, splits), dims=(2,))
 
 
 KNOBS: tuple[Knob, ...] = (
@@ -261,9 +554,33 @@ KNOBS: tuple[Knob, ...] = (
          quick=("Dense", "OrderedSparse"),
          what="the neighbour list's layout"),
     Knob("backend", tuple(Value(b, _with_backend(b)) for b in
-                          ("brute", "cell", "bvh", "spheres", "squares")),
-         quick=("brute", "cell", "bvh", "spheres"),
-         what="the search (all exact: differences are rounding only)"),
+                          ("brute", "cell", "bvh", "spheres", "squares"))
+         + (Value("delaunay", _with_delaunay(), dims=(2,)),),
+         quick=("brute", "cell", "bvh", "spheres", "delaunay"),
+         what="the search (all exact: differences are rounding only); "
+              "delaunay (2D scenes only) runs in float64, as its predicates "
+              "need (it refuses float32), so its like-for-like is `dtype = "
+              "float64`, the cell list in float64 (and with capacity "
+              "multiplier 2, the head-room its degree and frontier buffers "
+              "need)"),
+    Knob("cell-kernel", tuple(Value(k, _with_cell_kernel(k))
+                              for k in ("auto", "xla", "pallas")),
+         quick=("auto", "xla", "pallas"), available=_pallas_here,
+         what="the cell list's candidate pass: the Pallas kernel or XLA's "
+              "windows (the same pairs; CUDA GPUs only, where the kernel "
+              "runs: on a CPU \"auto\" is \"xla\" and Pallas' interpreter "
+              "is too slow to sweep)"),
+    Knob("delaunay-flips", (_flips(64, 32), _flips(8, 8), _flips(4, 4),
+                            _flips(2, 2), _flips(1, 1)),
+         # One flip round also ends every rebuild: on the dam break its
+         # triangulations then outgrow the list's buffers (overflows).
+         quick=("rounds 64, splits 32", "rounds 4, splits 4",
+                "rounds 2, splits 2"), dims=(2,),
+         what="Delaunay's max_flip_rounds and max_splits (float64, as the "
+              "backend needs; capacity multiplier 2): fewer make maintenance give up sooner and "
+              "rebuild the triangulation from scratch (Qhull on the host); "
+              "the list stays exact, only the time moves "
+              "(triangulation_rebuilds counts the rebuilds)"),
     Knob("bvh-precision", (Value("float32", _with_backend("bvh", "float32")),
                            Value("float64", _with_backend("bvh", "float64"))),
          quick=("float32", "float64"), available=_warp,
@@ -279,18 +596,37 @@ KNOBS: tuple[Knob, ...] = (
          quick=("2^-40", "2^-10"), scenes=("lj",), available=_warp,
          what="the sphere method's eps as a fraction of the data's scale "
               "(default 2^-40)"),
-    Knob("list-free", (Value("list", _same), Value("fused", _list_free)),
-         quick=("list", "fused"), scenes=("lj",), available=_has_fused,
-         what="neighbour list against the fused list-free LJ energy",
+    Knob("list-free", (Value("list", _same), Value("fused", _list_free()),
+                       Value("fused-xla", _fused_kernel("xla"),
+                             available=_fused_cell("xla")),
+                       Value("fused-pallas", _fused_kernel("pallas"),
+                             available=_fused_cell("pallas"))),
+         quick=("list", "fused", "fused-xla", "fused-pallas"),
+         scenes=("lj",), available=_has_fused,
+         what="neighbour list against the fused list-free LJ energy "
+              "(`fused`: its cell search as the backend \"cell\" picks it; "
+              "on a CUDA GPU, once the fused energy takes a "
+              "`jaxrt.backends.Cell`, also its XLA and Pallas kernels)",
          judge="force_rms_rel"),
+    Knob("pairs", (Value("list", _same),
+                   Value("jaxrt.pairs", _lj_as(LJPairs))),
+         quick=("list", "jaxrt.pairs"), scenes=("lj",), dims=(3,),
+         what="the LJ forces from `jaxrt.pairs` (pairs with lattice "
+              "shifts, searched every step at the cutoff: no skin, no "
+              "list kept) against the scene's neighbour list: the same "
+              "potential, another search (3D only, as jaxrt.pairs)"),
 )
 """Every knob; `knobs` picks those that apply and are available."""
 
 
-def knobs(kind: str, names: Sequence[str] | None = None) -> list[Knob]:
-    """The knobs for a scene of ``kind`` (``"lj"`` or ``"sph"``) that are
-    available here, optionally only ``names``."""
-    out = [k for k in KNOBS if kind in k.scenes and k.available()]
+def knobs(kind: str, names: Sequence[str] | None = None,
+          dim: int | None = None) -> list[Knob]:
+    """The knobs for a scene of ``kind`` (``"lj"`` or ``"sph"``) in ``dim``
+    dimensions (any if None) that are available here and have a value to
+    run, optionally only ``names``."""
+    out = [k for k in KNOBS if kind in k.scenes and k.available()
+           and (dim is None or dim in k.dims)
+           and k.selected(quick=False, dim=dim)]
     if names:
         unknown = set(names) - {k.name for k in KNOBS}
         if unknown:
@@ -299,55 +635,6 @@ def knobs(kind: str, names: Sequence[str] | None = None) -> list[Knob]:
         out = [k for k in out if k.name in names]
     return out
 
-
-@dataclasses.dataclass(frozen=True)
-class LJFused:
-    """The LJ effect on the list-free fused energy
-    (`jaxrt.energy.lennard_jones_fused`, backend ``cell``: the portable
-    one): ``pairwise = False``, so the compiled scene builds no list. The
-    fused energy is jax-md's smooth switch only; other truncations are
-    refused (the knob runs on the smooth base scene)."""
-
-    r_cutoff: float
-    sigma: object = 1.0
-    epsilon: object = 1.0
-    r_onset: float | None = None
-    truncation: str = "smooth"
-    backend: str = "cell"
-    kind = "lj_fused"
-    pairwise = False
-
-    @property
-    def cutoff(self) -> float:
-        return float(self.r_cutoff)
-
-    def validate(self, scene, where: str) -> None:
-        from jaxrt.sim import SceneError
-        if self.truncation != "smooth":
-            raise SceneError.at(f"{where}.truncation", "the fused energy is "
-                                "the smooth switch only; use 'smooth'.")
-        if np.ndim(self.sigma) or np.ndim(self.epsilon):
-            raise SceneError.at(f"{where}.sigma", "the fused energy takes "
-                                "scalar sigma and epsilon.")
-
-    def term(self, ctx):
-        import jaxrt.energy
-        from jaxrt.sim import Term
-        box = np.asarray(ctx.scene.box.size, float)
-        sigma = float(self.sigma)
-        r_onset = 0.8 * self.r_cutoff if self.r_onset is None else \
-            self.r_onset
-        # The fused factory takes r_onset / r_cutoff in units of sigma, as
-        # jax-md's does; the scene's are absolute.
-        energy = jaxrt.energy.lennard_jones_fused(
-            ctx.displacement, box, sigma=sigma, epsilon=float(self.epsilon),
-            r_onset=r_onset / sigma, r_cutoff=self.r_cutoff / sigma,
-            backend=self.backend, periodic=ctx.scene.box.periodic)
-
-        def lj_fused(R, nbrs):
-            return energy(R)
-        return Term(energy=lj_fused, notes=(
-            f"list-free fused LJ (backend {self.backend!r})",))
 
 
 # ---------------------------------------------------------------------------
@@ -579,17 +866,48 @@ FULL = Plan(n=16_384, dx=0.01, equilibrate=2000, steps=10_000, chunk=500,
 """Full mode's sizes, for a GPU (the H200)."""
 
 
+SCENES = ("lj-fluid", "lj-fluid-2d", "dam-break")
+"""The scenes `run` sweeps (``jaxrt accuracy SCENE``)."""
+
+
+def lj_fluid_2d(*, n: int = 1000, density: float = 0.7, kT: float = 1.0,
+                dt: float = 0.005, backend: str = "cell", seed: int = 0):
+    """The LJ fluid in 2D, where the Delaunay backend runs: ``n``
+    particles on a square lattice (the first ``n`` of ``ceil(sqrt n)^2``
+    cell centres) in a periodic square at number density ``density`` (a
+    dense liquid at ``kT`` 1), Maxwell-Boltzmann velocities, smooth cut
+    from 2.0 to 2.5 sigma, skin 0.3, time step ``dt``: `jaxrt.sim.lj_fluid`
+    but for the dimension. Positions float64 ``(n, 2)``."""
+    from jaxrt.sim import LJ, Box, Integrator, Neighbors, Scene
+    from jaxrt.sim.spec import make_particles
+    side = math.sqrt(n / density)
+    m = math.ceil(math.sqrt(n))
+    k = np.arange(n)
+    pos = (np.stack([k % m, k // m], -1) + 0.5) * (side / m)
+    return Scene(
+        particles=make_particles(positions=pos, temperature=kT, seed=seed),
+        box=Box((side,) * 2, ("periodic",) * 2),
+        effects=(LJ(r_cutoff=2.5, r_onset=2.0),),
+        integrator=Integrator(dt=dt),
+        neighbors=Neighbors(backend=backend, skin=0.3),
+        name="lj-fluid-2d",
+        description=f"2D Lennard-Jones fluid, N={n}, rho={density}, "
+                    "periodic, NVE")
+
+
 def base_scene(name: str, plan: Plan):
-    """The built-in scene ``name`` at the plan's size, float32, its
-    backend explicit (``cell``: the base of the backend knob)."""
+    """The scene ``name`` (one of `SCENES`) at the plan's size, float32,
+    its backend explicit (``cell``: the base of the backend knob)."""
     from jaxrt import sim
     if name == "lj-fluid":
         scene = sim.lj_fluid(n=plan.n, backend="cell")
+    elif name == "lj-fluid-2d":
+        scene = lj_fluid_2d(n=plan.n, backend="cell")
     elif name == "dam-break":
         scene = sim.dam_break(dx=plan.dx, backend="cell")
     else:
-        raise ValueError(f"accuracy: scene {name!r}: choose 'lj-fluid' or "
-                         "'dam-break'.")
+        raise ValueError(f"accuracy: scene {name!r}: choose one of "
+                         f"{', '.join(SCENES)}.")
     return dataclasses.replace(scene, dtype="float32")
 
 
@@ -700,6 +1018,8 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         compiled, state, nbrs = start
     rebuilds0 = int(state.rebuilds)
     n = scene.particles.n
+    own = _own_search(scene)  # a list-free effect's pairs, checked too
+    triangulated = 0  # Delaunay rebuilds of lists replaced after overflow
     row = {"force_rms_rel": force_rms_rel(state.accel,
                                           ref_forces["scene"])}
     if "full" in ref_forces:
@@ -718,6 +1038,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         dt = time.perf_counter() - t
         if new_nbrs is not None and new_nbrs.did_buffer_overflow:
             overflows += 1
+            triangulated += _triangulation_rebuilds(nbrs) or 0
             nbrs = compiled.neighbor_fn.allocate(state.position)
             new_state, new_nbrs, trace = compiled.chunk(state, nbrs,
                                                         steps=k)
@@ -735,9 +1056,11 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         frames.append(pos)
         energies.append(np.asarray(trace.kinetic, np.float64)
                         + np.asarray(trace.potential, np.float64))
-        if nbrs is not None:
-            want = exact_pairs(pos, scene.cutoff, side, periodic)
-            missed += pairs_missed(_pair_codes(nbrs, n), want)
+        if nbrs is not None or own is not None:
+            want = exact_pairs(pos, own[0] if own else scene.cutoff, side,
+                               periodic)
+            got = own[1](pos) if own else _pair_codes(nbrs, n)
+            missed += pairs_missed(got, want)
             checked += len(want)
     if nbrs is not None:
         from jaxrt.errors import check
@@ -754,10 +1077,33 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         d = energy_drift(np.concatenate(energies), n)
         row.update(drift_per_particle_1e4=d.slope, drift_se=d.se,
                    max_abs_dE_per_particle=d.max_dev)
-    if nbrs is not None:
+    if nbrs is not None or own is not None:
         row.update(pairs_missed=missed, pairs_checked=checked,
                    k=2.0 * checked / len(frames) / n)
+    tri = _triangulation_rebuilds(nbrs)
+    if tri is not None:
+        row["triangulation_rebuilds"] = triangulated + tri
     return Measured(row, frames, frames[-1])
+
+
+def _own_search(scene):
+    """``(cutoff, codes(position))`` of the scene's list-free effect that
+    searches pairs of its own (`LJPairs`), or None: its pairs are checked
+    against the brute force as a list's are."""
+    for e in scene.effects:
+        if hasattr(e, "pair_checker"):
+            return e.cutoff, e.pair_checker(scene)
+    return None
+
+
+def _triangulation_rebuilds(nbrs) -> int | None:
+    """Rebuilds from scratch of a Delaunay list's triangulation since its
+    ``allocate`` (`jaxrt.delaunay.stats`); None for other lists."""
+    from jaxrt import delaunay
+    if not isinstance(getattr(nbrs, "backend_state", None),
+                      delaunay.Triangulation):
+        return None
+    return int(delaunay.stats(nbrs)["rebuilds"])
 
 
 def finish_row(m: Measured, ref: Measured, scene, plan: Plan,
@@ -808,11 +1154,16 @@ def _describe(scene) -> dict:
         policy = getattr(backend, "policy", None)
         backend = backend.name + (f"[{type(policy).__name__.lower()}]"
                                   if policy is not None else "")
+    if not scene.pair_effects:  # the search of the list-free effect
+        backend = next((e.search for e in scene.effects
+                        if hasattr(e, "search")), "none (list-free)")
     out = {"N": scene.particles.n, "dtype": scene.dtype,
-           "backend": backend if scene.pair_effects else "none (list-free)",
-           "format": nb.format, "skin": nb.skin, "dt": scene.integrator.dt,
+           "backend": backend,
+           "format": nb.format, "skin": nb.skin,
+           "capacity_multiplier": nb.capacity_multiplier,
+           "dt": scene.integrator.dt,
            "cutoff": scene.cutoff}
-    lj = scene.effect("lj")
+    lj = next((e for e in scene.effects if e.kind.startswith("lj")), None)
     if lj is not None:
         out["truncation"] = lj.truncation
     return out
@@ -843,8 +1194,10 @@ COLUMNS = ("scene", "knob", "value", "status", "failed", "time_per_step_ms",
            "time_min_ms", "time_max_ms", "repeats", "time_per_tau_ms",
            "force_rms_rel", "force_rms_rel_full", "drift_per_particle_1e4",
            "drift_se", "max_abs_dE_per_particle", "pairs_missed", "pairs_checked",
-           "rdf_l2", "rdf_linf", "position_rms", "rebuilds", "overflows",
-           "steps", "N", "k", "dtype", "backend", "format", "skin", "dt",
+           "rdf_l2", "rdf_linf", "position_rms", "rebuilds",
+           "triangulation_rebuilds", "overflows",
+           "steps", "N", "k", "dtype", "backend", "format", "skin",
+           "capacity_multiplier", "dt",
            "cutoff", "truncation", "auto_backend")
 """The CSV's columns, then `PROVENANCE`."""
 
@@ -1077,8 +1430,9 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
         else:
             L.append("- No setting's list missed a pair (checked against a "
                      "float64 brute force after every chunk): the list "
-                     "knobs (skin, format, backend, BVH policy, ε) trade "
-                     "time only.")
+                     "knobs (skin, format, backend, cell kernel, Delaunay's "
+                     "options, BVH policy, ε, jaxrt.pairs) trade time "
+                     "only.")
     noise = meta.get("rdf_noise")
     if noise is not None and any(np.isfinite(_num(r, "rdf_l2")) for r in ok):
         above = [r for r in ok if _num(r, "rdf_l2") > 2 * noise]
@@ -1094,6 +1448,11 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
             f"{str(r.get('failed', ''))[:100]})" for r in bad) + ".")
     L.append("")
     L.append("## Per knob")
+    L.append("")
+    whats = {k.name: k.what for k in KNOBS}
+    L.append("What each knob varies: " + "; ".join(
+        f"**{k}**: {whats[k]}" for k in dict.fromkeys(r["knob"] for r in rows)
+        if whats.get(k)) + ".")
     L.append("")
     judges = {k.name: k.judge for k in KNOBS}
     for knob in dict.fromkeys(r["knob"] for r in rows):
@@ -1130,19 +1489,22 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
     rows = table
     cols = ["time_per_step_ms", "force_rms_rel", "force_rms_rel_full",
             "drift_per_particle_1e4", "drift_se", "max_abs_dE_per_particle",
-            "pairs_missed", "rdf_l2", "position_rms", "rebuilds"]
+            "pairs_missed", "rdf_l2", "position_rms", "rebuilds",
+            "triangulation_rebuilds"]
     cols = [c for c in cols if any(np.isfinite(_num(r, c)) for r in rows)]
     heads = {"time_per_step_ms": "ms/step", "force_rms_rel": "force err",
              "force_rms_rel_full": "force err vs r_ref",
              "drift_per_particle_1e4": "drift /N/1e4 steps",
              "drift_se": "± (s.e.)", "max_abs_dE_per_particle": "max |ΔE|/N",
              "pairs_missed": "missed", "rdf_l2": "RDF L2",
-             "position_rms": "pos. RMS", "rebuilds": "rebuilds"}
+             "position_rms": "pos. RMS", "rebuilds": "rebuilds",
+             "triangulation_rebuilds": "DT rebuilds"}
     L.append("| knob | value | " + " | ".join(heads[c] for c in cols)
              + " | status |")
     L.append("| --- | --- | " + " | ".join("---" for _ in cols) + " | --- |")
     for r in rows:
-        vals = [_fmt(_num(r, c)) if c not in ("pairs_missed", "rebuilds")
+        vals = [_fmt(_num(r, c)) if c not in ("pairs_missed", "rebuilds",
+                                              "triangulation_rebuilds")
                 or not np.isfinite(_num(r, c)) else str(int(_num(r, c)))
                 for c in cols]
         L.append(f"| {r['knob']} | {r['value']} | " + " | ".join(vals)
@@ -1208,8 +1570,8 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
     out.mkdir(parents=True, exist_ok=True)
     plan = plan or (QUICK if quick else FULL)
     base = base_scene(scene_name, plan)
-    kind = scene_kind(base)
-    chosen = knobs(kind, knob_names)
+    kind, dim = scene_kind(base), base.particles.dim
+    chosen = knobs(kind, knob_names, dim)
     prov = provenance()
     auto = auto_backend_for(base)
     log(f"accuracy: {scene_name}, N = {base.particles.n}, {plan.steps} steps"
@@ -1238,7 +1600,7 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
         done[next(iter(done))].pop(k, None)
     csv_path = out / "accuracy.csv"
     for knob in chosen:
-        for value in knob.selected(quick):
+        for value in knob.selected(quick, dim):
             row = {**common, "knob": knob.name, "value": value.label}
             if budget is not None and time.perf_counter() - t0 > budget:
                 rows.append({**row, "status": "skipped",

@@ -10,8 +10,8 @@
         CPU, D fake devices are made); LJ and SPH scenes.
     jaxrt scenes            the built-in scenes: name, default steps and
                             what each is, one line each
-    jaxrt accuracy [lj-fluid|dam-break] --out DIR [--quick] [--budget S]
-                   [--knobs a,b] [--n N] [--steps N]
+    jaxrt accuracy [lj-fluid|lj-fluid-2d|dam-break] --out DIR [--quick]
+                   [--budget S] [--knobs a,b] [--n N] [--steps N]
         what accuracy costs in time: every knob against a float64
         reference (CSV, one PNG per knob, summary.md; jaxrt.accuracy)
 """
@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     acc = sub.add_parser("accuracy", help="sweep the knobs that trade "
                          "accuracy for time against a float64 reference")
     acc.add_argument("scene", nargs="?", default="lj-fluid",
-                     choices=("lj-fluid", "dam-break"))
+                     choices=("lj-fluid", "lj-fluid-2d", "dam-break"))
     acc.add_argument("--out", default="jaxrt-accuracy")
     acc.add_argument("--quick", action="store_true",
                      help="small N, short runs, a subset of values (a CPU "
@@ -63,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
                      help="comma-separated knob names (default: all that "
                      "apply; see jaxrt.accuracy.KNOBS)")
     acc.add_argument("--n", type=int, default=None,
-                     help="particles (lj-fluid)")
+                     help="particles (lj-fluid, lj-fluid-2d)")
     acc.add_argument("--steps", type=int, default=None,
                      help="steps per run")
     for name in ("run", "demo"):

@@ -134,24 +134,152 @@ def test_pareto_front_of_given_points():
 
 def test_every_knob_value_applies_to_its_scenes():
     import jaxrt.energy
-    for name in ("lj-fluid", "dam-break"):
+    for name in accuracy.SCENES:
         base = accuracy.base_scene(name, accuracy.QUICK)
-        kind = accuracy.scene_kind(base)
-        for knob in accuracy.knobs(kind):
+        kind, dim = accuracy.scene_kind(base), base.particles.dim
+        for knob in accuracy.knobs(kind, dim=dim):
             assert knob.quick and set(knob.quick) <= {v.label
                                                        for v in knob.values}
-            for v in knob.selected(quick=False):
+            for v in knob.selected(quick=False, dim=dim):
                 try:
                     v.apply(base)
                 except Exception as e:  # only box-too-small refusals
                     assert "half the periodic box" in str(e), (knob.name, e)
     names = {k.name for k in accuracy.knobs("lj")}
-    assert {"dtype", "truncation", "skin", "dt", "format", "backend"} <= names
+    assert {"dtype", "truncation", "skin", "dt", "format", "backend",
+            "pairs", "delaunay-flips"} <= names
     assert ("list-free" in names) == hasattr(jaxrt.energy,
                                             "lennard_jones_fused")
     assert "truncation" not in {k.name for k in accuracy.knobs("sph")}
     with pytest.raises(ValueError, match="unknown knobs"):
         accuracy.knobs("lj", ["nope"])
+
+
+def test_knobs_by_dimension_and_availability():
+    # Delaunay is 2D only, jaxrt.pairs 3D only; the cell kernel knob and
+    # the fused Cell values only where the Pallas kernel runs.
+    in3 = {k.name for k in accuracy.knobs("lj", dim=3)}
+    in2 = {k.name for k in accuracy.knobs("lj", dim=2)}
+    sph = {k.name for k in accuracy.knobs("sph", dim=2)}
+    assert "pairs" in in3 and "pairs" not in in2
+    assert "delaunay-flips" in in2 and "delaunay-flips" in sph
+    assert "delaunay-flips" not in in3
+    backend = next(k for k in accuracy.KNOBS if k.name == "backend")
+    assert "delaunay" in {v.label for v in backend.selected(True, 2)}
+    assert "delaunay" not in {v.label for v in backend.selected(True, 3)}
+    pallas = accuracy._pallas_here()
+    assert ("cell-kernel" in in3) == pallas
+    free = next(k for k in accuracy.KNOBS if k.name == "list-free")
+    labels = {v.label for v in free.selected(quick=True, dim=3)}
+    assert {"list", "fused"} <= labels
+    if not pallas:  # a CPU: no Cell kernel values, and no crash probing
+        assert not labels & {"fused-xla", "fused-pallas"}
+    from jaxrt.backends import Cell
+    assert isinstance(accuracy._fused_takes(Cell(kernel="xla")), bool)
+
+
+def _tiny_step(scene, steps: int = 2):
+    """Compile ``scene`` and run ``steps`` steps: finite positions."""
+    from jaxrt import sim
+    compiled = sim.compile_scene(scene)
+    state, nbrs = compiled.init()
+    state, nbrs, _ = compiled.chunk(state, nbrs, steps=steps)
+    assert np.all(np.isfinite(np.asarray(state.position)))
+    return compiled, state, nbrs
+
+
+def _knob_value(knob: str, label: str):
+    k = next(k for k in accuracy.KNOBS if k.name == knob)
+    return next(v for v in k.values if v.label == label)
+
+
+@pytest.fixture
+def x64():
+    before = jax.config.jax_enable_x64
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", before)
+
+
+def test_the_2d_lj_fluid_scene():
+    s = accuracy.lj_fluid_2d(n=100, density=0.7)
+    assert s.particles.positions.shape == (100, 2)
+    assert s.box.size[0] == pytest.approx(math.sqrt(100 / 0.7))
+    assert len({tuple(np.round(p, 9)) for p in s.particles.positions}) == 100
+    base = accuracy.base_scene("lj-fluid-2d", accuracy.Plan(n=64))
+    assert base.dtype == "float32" and base.particles.n == 64
+    assert accuracy.scene_kind(base) == "lj"
+
+
+def test_delaunay_values_run_in_float64_and_count_rebuilds(x64):
+    base = accuracy.base_scene("lj-fluid-2d", accuracy.Plan(n=64))
+    sc = _knob_value("backend", "delaunay").apply(base)
+    assert sc.dtype == "float64" and sc.neighbors.backend.name == "delaunay"
+    assert sc.neighbors.capacity_multiplier == accuracy.DELAUNAY_CAPACITY
+    # The default options, reached by both knobs, are one setting.
+    same = _knob_value("delaunay-flips", "rounds 64, splits 32").apply(base)
+    assert accuracy._key(sc, None) == accuracy._key(same, None)
+    few = _knob_value("delaunay-flips", "rounds 1, splits 1").apply(base)
+    assert few.neighbors.backend.max_flip_rounds == 1
+    _, _, nbrs = _tiny_step(few)
+    assert accuracy._triangulation_rebuilds(nbrs) >= 0
+    assert accuracy._describe(few)["backend"] == "delaunay"
+
+
+def test_pairs_value_runs_lj_on_jaxrt_pairs_with_the_lists_forces(x64):
+    from jaxrt import sim
+    n = 216
+    base = dataclasses.replace(accuracy.base_scene("lj-fluid",
+                                                   accuracy.Plan(n=n)),
+                               dtype="float64")
+    sc = _knob_value("pairs", "jaxrt.pairs").apply(base)
+    assert not sc.pair_effects and sc.effects[0].kind == "lj_pairs"
+    assert accuracy._describe(sc)["backend"] == "jaxrt.pairs (no list)"
+    # Lattice start: jiggle it, so that forces are not ~0.
+    rng = np.random.default_rng(0)
+    pos = base.particles.positions + rng.normal(0, 0.05, (n, 3))
+    base, sc = (accuracy.with_state(s, np.mod(pos, s.box.size[0]),
+                                    s.particles.velocities)
+                for s in (base, sc))
+    a_list = sim.compile_scene(base).init()[0].accel
+    compiled, _, _ = _tiny_step(sc, steps=1)
+    a_pairs = compiled.init()[0].accel
+    np.testing.assert_allclose(a_pairs, a_list, rtol=1e-9, atol=1e-9)
+    # The effect's own pairs are checked as a list's are.
+    cutoff, codes = accuracy._own_search(sc)
+    want = accuracy.brute_pairs(pos, cutoff, sc.box.size, sc.box.periodic)
+    got = codes(np.mod(pos, sc.box.size[0]))
+    assert accuracy.pairs_missed(got, want) == 0 and len(got) == len(want)
+    # An overflowed search poisons the forces instead of dropping pairs.
+    tight = dataclasses.replace(sc.effects[0], capacity_margin=0.5)
+    bad = dataclasses.replace(sc, effects=(tight,))
+    assert not np.all(np.isfinite(sim.compile_scene(bad).init()[0].accel))
+
+
+def test_list_free_fused_values_apply(x64):
+    import jaxrt.energy
+    if not hasattr(jaxrt.energy, "lennard_jones_fused"):
+        pytest.skip("no fused energy")
+    from jaxrt.backends import Cell
+    base = accuracy.base_scene("lj-fluid", accuracy.Plan(n=216))
+    fused = _knob_value("list-free", "fused").apply(base)
+    assert fused.effects[0].backend == "cell"
+    assert accuracy._describe(fused)["backend"] == "fused cell (no list)"
+    for k in ("xla", "pallas"):
+        sc = _knob_value("list-free", f"fused-{k}").apply(base)
+        assert sc.effects[0].backend == Cell(kernel=k)
+        assert accuracy._describe(sc)["backend"] == f"fused cell[{k}] (no list)"
+    _tiny_step(fused, steps=1)
+
+
+def test_cell_kernel_values_set_the_kernel():
+    from jaxrt.backends import Cell
+    base = accuracy.base_scene("lj-fluid-2d", accuracy.Plan(n=64))
+    for k in ("auto", "xla", "pallas"):
+        assert _knob_value("cell-kernel", k).apply(base).neighbors.backend \
+            == Cell(kernel=k)
+    # No step: on a CPU "xla" is the program of every cell run here, and
+    # "pallas" runs on CUDA only (the knob's `available`).
 
 
 def test_truncation_knob_sets_cutoff_onset_and_truncation():
