@@ -605,8 +605,8 @@ KNOBS: tuple[Knob, ...] = (
          scenes=("lj",), available=_has_fused,
          what="neighbour list against the fused list-free LJ energy "
               "(`fused`: its cell search as the backend \"cell\" picks it; "
-              "on a CUDA GPU, once the fused energy takes a "
-              "`jaxrt.backends.Cell`, also its XLA and Pallas kernels)",
+              "on a CUDA GPU also `jaxrt.backends.Cell(kernel=\"xla\")` and "
+              "\"pallas\": its array-program walk and its kernel)",
          judge="force_rms_rel"),
     Knob("pairs", (Value("list", _same),
                    Value("jaxrt.pairs", _lj_as(LJPairs))),
