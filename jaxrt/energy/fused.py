@@ -282,60 +282,108 @@ class _Cell(_Backend):
     name: str = "cell"
 
     def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
-        from jaxrt import cell_list
-        from jaxrt._backend import Geometry, Query
-        from jax_md.partition import NeighborListFormat
         n = R3.shape[0]
         dtype = R3.dtype
-        geometry = Geometry(side=jnp.asarray(params.side, dtype),
-                            scale=jnp.ones((3,), dtype))
-        query = Query(cutoff=params.bound, periodic=params.periodic,
-                      mask_self=True, format=NeighborListFormat.Dense)
-        order, _, runs = cell_list._sorted_system(R3, geometry, query,
-                                                  sorted_runs=True)
+        order, runs = cell_runs(R3, params)
         Ri = R3[order]
         cut_i = None if radii is None else radii[order]
         rc = jnp.asarray(params.r_cutoff, dtype)
-        me = jnp.arange(n)[:, None]
 
-        def walk(start, length, acc):
-            """Slot by slot along runs (N, R) of the sorted order."""
-            def visit(slot, acc):
-                forces, e, ds, de, c = acc
-                valid = slot < length
-                j = jnp.where(valid, start + slot, me)  # sorted index
-                d = _min_image(Ri[:, None, :] - Ri[j], params)
-                d2 = jnp.sum(d * d, axis=-1)
-                cut = (rc if radii is None
-                       else jnp.maximum(cut_i[:, None], cut_i[j]))
-                keep = valid & (j != me) & (d2 < cut * cut)
-                scale = cut / rc
-                te, g, tds, tde = lj_terms(jnp.where(keep, d2, 0),
-                                           sigma * scale, epsilon,
-                                           params.r_onset * scale, rc * scale,
-                                           sigma)
-                return (forces + jnp.sum(g[..., None] * d, axis=1),
-                        e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
-                        de + jnp.sum(tde, axis=1),
-                        c + jnp.sum(keep, axis=1, dtype=jnp.int32))
-            return jax.lax.fori_loop(0, jnp.max(length, initial=0), visit,
-                                     acc)
+        def visit(j, keep, acc):
+            forces, e, ds, de, c = acc
+            d = _min_image(Ri[:, None, :] - Ri[j], params)
+            d2 = jnp.sum(d * d, axis=-1)
+            cut = (rc if radii is None
+                   else jnp.maximum(cut_i[:, None], cut_i[j]))
+            keep = keep & (d2 < cut * cut)
+            scale = cut / rc
+            te, g, tds, tde = lj_terms(jnp.where(keep, d2, 0),
+                                       sigma * scale, epsilon,
+                                       params.r_onset * scale, rc * scale,
+                                       sigma)
+            return (forces + jnp.sum(g[..., None] * d, axis=1),
+                    e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
+                    de + jnp.sum(tde, axis=1),
+                    c + jnp.sum(keep, axis=1, dtype=jnp.int32))
 
         zeros = jnp.zeros((n,), dtype)
         acc = (jnp.zeros_like(R3), zeros, zeros, zeros,
                jnp.zeros((n,), jnp.int32))
-        # The runs and the parts of periodic x rows that wrap around, in
-        # one loop: particles near the x ends have long wrapped parts, so a
-        # loop of their own would be as long as the first.
-        forces, e, ds, de, c = walk(
-            jnp.concatenate([runs[0], runs[2]], axis=1),
-            jnp.concatenate([runs[1], runs[3]], axis=1), acc)
+        forces, e, ds, de, c = walk_runs(runs, visit, acc)
         # Each pair was met from both of its particles.
         return FusedSums(_total(e) / 2,
                          jnp.zeros_like(R3).at[order].set(forces),
                          jnp.sum(ds) / 2, jnp.sum(de) / 2,
                          jnp.sum(c).astype(dtype) / 2,
                          jnp.zeros((), jnp.int32))
+
+
+class Runs(NamedTuple):
+    """Each particle's candidates in the cell-sorted order, one column per
+    stencil row (`cell_runs`); int32 ``(N, R)`` each, rows in sorted order.
+
+    Slot ``s`` of row ``r`` is sorted particle ``start[r] + s`` for
+    ``s < split[r]``, else ``wrapped[r] + s`` (the part of a periodic x row
+    that wraps around, shifted so that it continues the first), for
+    ``s < length[r]``.
+    """
+
+    start: Array
+    split: Array
+    wrapped: Array
+    length: Array
+
+
+def cell_runs(R: Array, params: _Params) -> tuple[Array, Runs]:
+    """The sorted cell grid of `jaxrt.cell_list` (cells ``bound / 4`` along
+    x and ``bound`` across), recomputed from ``R``: every pair closer than
+    ``params.bound`` is in both particles' runs.
+
+    Args:
+      R: float ``(N, dim)``, Cartesian, unwrapped; ``params.periodic`` and
+        ``params.side`` have ``dim`` entries.
+    Returns:
+      int32 ``(N,)`` ``order`` (sorted position -> caller's index) and the
+      `Runs`. Not differentiable (integers); pass R through
+      ``stop_gradient`` when it is traced for a derivative.
+    """
+    from jaxrt import cell_list
+    from jaxrt._backend import Geometry, Query
+    from jax_md.partition import NeighborListFormat
+    dim = R.shape[1]
+    geometry = Geometry(side=jnp.asarray(params.side, R.dtype),
+                        scale=jnp.ones((dim,), R.dtype))
+    query = Query(cutoff=params.bound, periodic=tuple(params.periodic),
+                  mask_self=True, format=NeighborListFormat.Dense)
+    order, _, (start1, len1, start2, len2) = cell_list._sorted_system(
+        R, geometry, query, sorted_runs=True)
+    # The wrapped part continues the first in one loop: particles near the
+    # x ends have long wrapped parts, so a loop (or a column) of their own
+    # would cost as much as the first for every particle.
+    return order, Runs(start1, len1, start2 - len1, len1 + len2)
+
+
+def walk_runs(runs: Runs, visit: Callable, acc):
+    """``acc = visit(j, keep, acc)`` for every slot of the runs, one slot of
+    every run per step of a loop as long as the longest run.
+
+    ``j``: int32 ``(N, R)`` sorted index of each row's candidate (the
+    particle's own index where the run is over); ``keep``: bool ``(N, R)``,
+    a real candidate that is not the particle itself. Each unordered pair
+    within the grid's bound is met from both of its particles; ``visit``
+    adds per-particle terms (no scatter). The trip count is dynamic, so the
+    loop cannot be reverse-differentiated: callers give their own VJP.
+    """
+    n = runs.start.shape[0]
+    me = jnp.arange(n, dtype=jnp.int32)[:, None]
+
+    def body(slot, acc):
+        inside = slot < runs.length
+        j = jnp.where(slot < runs.split, runs.start, runs.wrapped) + slot
+        j = jnp.where(inside, j, me)
+        return visit(j, inside & (j != me), acc)
+
+    return jax.lax.fori_loop(0, jnp.max(runs.length, initial=0), body, acc)
 
 
 class _Bvh(_Backend):

@@ -1,0 +1,536 @@
+"""SPH without a neighbour list: summation density, pressure and viscosity
+from a walk over the cell grid (issue #18), differentiable to first order.
+
+`density_fused` and `acceleration_fused` take the arguments of
+`jaxrt.energy.sph.density` and `jaxrt.energy.sph.acceleration` plus the box,
+and return functions with the same keywords and results, minus the
+neighbour list::
+
+    rho = sph.density(disp, kernel, mass=m)(R, nbrs)
+    rho = density_fused(disp, box, kernel, mass=m)(R)
+
+    acc = sph.acceleration(disp, kernel, eos, mass=m, alpha=0.1)(R, V, nbrs)
+    acc = acceleration_fused(disp, box, kernel, eos, mass=m, alpha=0.1)(R, V)
+
+Backends (``backend=``):
+
+* ``"cell"``: `jaxrt.cell_list`'s sorted grid, recomputed at every call
+  (`jaxrt.energy.fused.cell_runs`): every particle walks the runs of sorted
+  particles that hold its stencil cells, one slot of every run per step of
+  a loop as long as the longest run (`jaxrt.energy.fused.walk_runs`), and
+  sums its own terms. Each pair is met from both sides: no scatter, and
+  nothing of size N x k is stored. Pure JAX, the same program on CPU and
+  GPU. `acceleration_fused` sorts once and walks twice (densities, then
+  forces).
+* ``"brute"``: all pairs in row blocks, O(N^2); the reference.
+
+Derivatives. Each walk is a `jax.custom_vjp` (reverse mode through a loop
+of dynamic length is impossible): its backward pass is another walk over
+the same cells in which every particle, for each candidate, takes the VJP
+of the pair term from its own side *and* of the mirrored term (the pair
+seen from the other particle, with that particle's cotangent), so that it
+collects everything it owes without a scatter. Positions, velocities,
+``h``, masses, densities, pressures and the equation of state's
+parameters get gradients (the EOS and the self term are plain JAX around
+the walks). Only first order: a second derivative raises
+`jaxrt.energy.HigherOrderError`; forward mode (``jax.jvp``) is refused by
+JAX. Use the list path (`jaxrt.energy.sph`) for Hessians.
+
+Conventions are `jaxrt.energy.sph`'s: ``r_ij = R_i - R_j``, the self term
+``m_i W(0)`` in the density, the same kernels and `Tait`. Differences:
+
+* Everything is computed in R's dtype (masses, ``h``, the EOS parameters
+  are cast to it); the list path promotes.
+* ``h`` given at call time may be smaller than the factory kernel's, never
+  larger: the grid's cells are sized by the factory's support.
+* Boxes: free space, or orthorhombic with any axes periodic; the support
+  must stay below half of every periodic side. ``displacement`` is probed
+  for agreement with the box (the walk computes minimum images itself).
+
+Bad input raises `ValueError` when its value is known (outside ``jit``):
+a non-finite position (`jaxrt.energy.FusedInputError`), ``h`` above the
+factory's, negative densities, a kernel or EOS with non-positive
+parameters, arrays of the wrong shape (those always raise). Under ``jit``
+the value checks cannot raise, and the results are NaN instead: all of
+them for a non-finite position or too large an ``h``. An unknown keyword
+raises ``TypeError`` naming it and the accepted ones.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrt.energy import sph as _sph
+from jaxrt.energy._checks import concrete
+from jaxrt.energy._keywords import reject_unknown
+from jaxrt.energy.fused import (FusedInputError, HigherOrderError, _Params,
+                                _min_image, _static_params, cell_runs,
+                                walk_runs)
+
+Array = jax.Array
+
+BACKENDS = ("cell", "brute")
+
+_HIGHER_ORDER = (
+    "density_fused / acceleration_fused are differentiable once (their "
+    "VJP is a second walk over the cells); second derivatives (jax.hessian, "
+    "gradients of gradients) are not available. Use jaxrt.energy.sph.density"
+    " / acceleration on a neighbour list (jaxrt.neighbor_list) for those.")
+
+
+@jax.custom_jvp
+def _first_order_only(x):
+    """Identity whose derivative raises: guards the residuals of the walks'
+    VJPs, which only a second derivative differentiates."""
+    return x
+
+
+@_first_order_only.defjvp
+def _first_order_only_jvp(primals, tangents):
+    raise HigherOrderError(_HIGHER_ORDER)
+
+
+# ---------------------------------------------------------------------------
+# Per-particle data as one table: a candidate costs one gather of a row.
+
+
+def _pack(data: dict) -> tuple[Array, tuple]:
+    """dict of ``(N,)`` / ``(N, k)`` arrays -> float ``(N, F)`` and its
+    layout ``((name, first, stop, trailing), ...)``."""
+    cols, layout, at = [], [], 0
+    for name, v in data.items():
+        width = int(np.prod(v.shape[1:], dtype=int))
+        cols.append(v.reshape(v.shape[0], width))
+        layout.append((name, at, at + width, v.shape[1:]))
+        at += width
+    return jnp.concatenate(cols, axis=1), tuple(layout)
+
+
+def _unpack(rows: Array, layout: tuple) -> dict:
+    """Rows ``(..., F)`` -> dict of ``(...)`` / ``(..., k)``."""
+    return {name: rows[..., a:b].reshape(rows.shape[:-1] + trailing)
+            for name, a, b, trailing in layout}
+
+
+def _masked_sum(t: Array, keep: Array) -> Array:
+    """Sum over the candidate axis (1) of per-pair ``t`` where ``keep``."""
+    keep = keep.reshape(keep.shape + (1,) * (t.ndim - keep.ndim))
+    t = jnp.broadcast_to(t, jnp.broadcast_shapes(t.shape, keep.shape))
+    return jnp.sum(jnp.where(keep, t, 0), axis=1)
+
+
+def _inner(g: Array, t: Array) -> Array:
+    """Per-pair ``<g, t>`` over trailing axes beyond the pair axes (2)."""
+    return jnp.sum(g * t, axis=tuple(range(2, t.ndim))) if t.ndim > 2 \
+        else g * t
+
+
+# ---------------------------------------------------------------------------
+# The engine: out_i = sum_{j != i} pair(x_i, x_j, r_ij, theta).
+
+
+@dataclasses.dataclass(frozen=True)
+class _PairSum:
+    """A per-particle pair sum with its VJP, over a backend's traversal.
+
+    ``pair(mine, other, d, theta)``: ``mine`` / ``other`` dicts of the
+    per-particle data of the pair's two particles (broadcastable leading
+    shapes ``(M, K)``, trailing as given), ``d`` float ``(M, K, dim)`` the
+    minimum image of ``R_mine - R_other``, ``theta`` dict of scalars
+    (broadcastable to ``(M, 1)``); returns a tuple of per-pair terms
+    ``(M, K, ...)``. It must vanish, with all its derivatives, beyond the
+    grid's bound (the walk meets only pairs within it, and a pair beyond
+    may be met from one side only). The data must hold ``"R"``.
+    """
+
+    pair: Callable
+    grid: _Params
+    backend: str
+    block: int | None = None
+
+    def cells(self, R: Array):
+        """The sorted grid of R (None for brute), shared by the walks of
+        one configuration."""
+        if self.backend == "brute":
+            return None
+        return cell_runs(jax.lax.stop_gradient(R), self.grid)
+
+    def traverse(self, table: Array, cells, slot: Callable, acc):
+        """``acc += slot(mine, other, keep)`` over all candidates.
+
+        ``table``: float ``(N, F)``; ``slot`` gets rows ``(M, 1, F)`` and
+        ``(M, K, F)`` (or ``(1, K, F)``), bool ``keep`` ``(M, K)``, and
+        returns a pytree of per-particle ``(M, ...)`` terms; ``acc``: the
+        pytree of their ``(N, ...)`` sums, in the caller's order.
+        """
+        if cells is None:
+            return self._brute(table, slot, acc)
+        order, runs = cells
+        table = table[order]
+        mine = table[:, None, :]
+
+        def visit(j, keep, acc):
+            return jax.tree_util.tree_map(jnp.add, acc,
+                                          slot(mine, table[j], keep))
+
+        zeros = jax.tree_util.tree_map(jnp.zeros_like, acc)
+        out = walk_runs(runs, visit, zeros)
+        return jax.tree_util.tree_map(
+            lambda a, o: a + jnp.zeros_like(o).at[order].set(o), acc, out)
+
+    def _brute(self, table, slot, acc):
+        n = table.shape[0]
+        block = self.block or max(1, min(n, 2 ** 17 // max(n, 1)))
+        n_blocks = -(-n // block)
+        cols = jnp.arange(n)
+
+        def rows(start):
+            idx = start + jnp.arange(block)
+            valid = idx < n
+            safe = jnp.where(valid, idx, 0)
+            keep = valid[:, None] & (safe[:, None] != cols[None, :])
+            return slot(table[safe][:, None, :], table[None], keep)
+
+        out = jax.lax.map(rows, jnp.arange(n_blocks) * block)
+        return jax.tree_util.tree_map(
+            lambda a, o: a + o.reshape((n_blocks * block,) + o.shape[2:])[:n],
+            acc, out)
+
+    # The sums and their VJP.
+
+    def _forward(self, data, theta, cells):
+        table, layout = _pack(data)
+        grid = self.grid
+
+        def slot(mine_rows, other_rows, keep):
+            mine, other = _unpack(mine_rows, layout), _unpack(other_rows,
+                                                               layout)
+            d = _min_image(mine["R"] - other["R"], grid)
+            return tuple(_masked_sum(t, keep)
+                         for t in self.pair(mine, other, d, theta))
+
+        n = table.shape[0]
+        shapes = jax.eval_shape(lambda: slot(table[:1, None], table[None, :1],
+                                             jnp.ones((1, 1), bool)))
+        acc = tuple(jnp.zeros((n,) + s.shape[1:], s.dtype) for s in shapes)
+        return self.traverse(table, cells, slot, acc)
+
+    def _backward(self, data, theta, cells, g):
+        table, layout = _pack(data)
+        g_table, g_layout = _pack({str(i): t for i, t in enumerate(g)})
+        width = table.shape[1]
+        both = jnp.concatenate([table, g_table.astype(table.dtype)], axis=1)
+        grid, pair = self.grid, self.pair
+
+        def slot(mine_rows, other_rows, keep):
+            xm = _unpack(mine_rows[..., :width], layout)
+            xo = _unpack(other_rows[..., :width], layout)
+            gm = _unpack(mine_rows[..., width:], g_layout)
+            go = _unpack(other_rows[..., width:], g_layout)
+            rows = mine_rows.shape[0]
+            th = {k: jnp.broadcast_to(v, (rows, 1)) for k, v in theta.items()}
+
+            def phi(xm, th):
+                # i's own terms (i, j) with i's cotangent, and the mirrored
+                # terms (j, i) with j's: every derivative that lands on i,
+                # collected by i. theta's: from i's own terms only (the
+                # mirrored ones are counted when j is the centre).
+                t_ij = pair(xm, xo, _min_image(xm["R"] - xo["R"], grid), th)
+                t_ji = pair(xo, xm, _min_image(xo["R"] - xm["R"], grid),
+                            jax.lax.stop_gradient(th))
+                total = sum(_inner(gm[str(k)], a) + _inner(go[str(k)], b)
+                            for k, (a, b) in enumerate(zip(t_ij, t_ji)))
+                total = jnp.broadcast_to(total, keep.shape)
+                return jnp.sum(jnp.where(keep, total, 0))
+
+            dx, dth = jax.grad(phi, argnums=(0, 1))(xm, th)
+            return ({k: v[:, 0] for k, v in dx.items()},
+                    {k: v[:, 0] for k, v in dth.items()})
+
+        n = table.shape[0]
+        acc = ({k: jnp.zeros_like(v) for k, v in data.items()},
+               {k: jnp.zeros((n,), table.dtype) for k in theta})
+        d_data, d_theta = self.traverse(both, cells, slot, acc)
+        d_theta = {k: jnp.sum(v).astype(jnp.result_type(theta[k]))
+                   for k, v in d_theta.items()}
+        return d_data, d_theta
+
+    def make(self) -> Callable:
+        """``sums(data, theta, cells) -> tuple of (N, ...)``, with its VJP
+        (data: dict of float ``(N, ...)`` in one dtype; theta: dict of
+        float scalars; cells: from `cells`, not differentiated)."""
+
+        @jax.custom_vjp
+        def sums(data, theta, cells):
+            return self._forward(data, theta, cells)
+
+        def forward(data, theta, cells):
+            data, theta = _first_order_only((data, theta))
+            return self._forward(data, theta, cells), (data, theta, cells)
+
+        def backward(res, g):
+            data, theta, cells = res
+            d_data, d_theta = self._backward(data, theta, cells, g)
+            return d_data, d_theta, None
+
+        sums.defvjp(forward, backward)
+        return sums
+
+
+# ---------------------------------------------------------------------------
+# The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j).
+
+
+def _density_pair(kernel: _sph.Kernel) -> Callable:
+    cls, dim = type(kernel), kernel.dim
+
+    def pair(mine, other, d, theta):
+        r, _ = _sph._safe_norm(d)
+        return (other["m"] * cls(theta["h"], dim=dim).w(r),)
+    return pair
+
+
+def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
+    cls, dim = type(kernel), kernel.dim
+
+    def pair(mine, other, d, theta):
+        hh, a, b = theta["h"], theta["alpha"], theta["beta"]
+        r, unit = _sph._safe_norm(d)
+        grad_w = cls(hh, dim=dim).grad_w(r)[..., None] * unit
+        # q = P / rho**2 per particle: the list path's per-pair expression,
+        # bit for bit, computed once per particle.
+        p_pair = (mine["q"] + other["q"])[..., None] * grad_w
+        vr = jnp.sum((mine["V"] - other["V"]) * d, axis=-1)
+        mu = hh * vr / (r * r + epsilon * hh * hh)
+        c_mean = (mine["c"] + other["c"]) / 2
+        rho_mean = (mine["rho"] + other["rho"]) / 2
+        pi = jnp.where(vr < 0, (-a * c_mean * mu + b * mu * mu) / rho_mean, 0)
+        mj = other["m"][..., None]
+        return (-mj * p_pair, -mj * (pi[..., None] * grad_w))
+    return pair
+
+
+# ---------------------------------------------------------------------------
+# Factories
+
+
+def _grid(displacement, box, kernel: _sph.Kernel, periodic, backend):
+    """The walk's static geometry (`_Params`, ``dim`` entries) and the
+    factory kernel's support, checked."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend={backend!r} is not known; choose one of "
+                         f"{BACKENDS}.")
+    if not isinstance(kernel, _sph.Kernel):
+        raise TypeError(f"kernel must be a jaxrt.energy.sph kernel (e.g. "
+                        f"sph.kernel('cubic_spline', h, dim=2)); got "
+                        f"{type(kernel).__name__}.")
+    h = concrete(kernel.h)
+    if h is None or h.ndim:
+        raise ValueError("kernel.h must be a concrete scalar at construction "
+                         "(it sizes the cells); pass a traced h= to the "
+                         "returned function instead.")
+    _sph._check_displacement(displacement, kernel.dim)
+    dim = kernel.dim
+    cutoff = float(kernel.support * float(h))
+    p = _static_params(displacement, box, periodic, dim, 0.0, cutoff, cutoff)
+    grid = _Params(0.0, cutoff, cutoff, p.periodic[:dim], p.side[:dim])
+    return grid, float(h)
+
+
+def _positions(R, kernel: _sph.Kernel) -> Array:
+    R = jnp.asarray(R)
+    if not jnp.issubdtype(R.dtype, jnp.floating):
+        raise ValueError(f"R must be a float array; got dtype {R.dtype}.")
+    _sph._check_kernel_dim(kernel, R)
+    return R
+
+
+def _check_h(h, h0: float) -> None:
+    v = concrete(h)
+    if v is not None and np.any(v > h0):
+        raise ValueError(
+            f"h={float(v):g} is larger than the factory kernel's h={h0:g}, "
+            "which sizes the cells (pairs beyond its support would be "
+            "missed); build the function with the largest h you will pass.")
+
+
+def _column(value, n: int, dtype) -> Array:
+    """Scalar or ``(n,)`` -> ``(n,)`` in ``dtype``."""
+    return jnp.broadcast_to(jnp.asarray(value, dtype), (n,))
+
+
+def _poison(outputs, R, h, h0: float):
+    """NaN everywhere for non-finite positions or h above the factory's
+    (the checks that cannot raise under jit)."""
+    bad = ~jnp.all(jnp.isfinite(R)) | jnp.any(h > h0)
+    return tuple(jnp.where(bad, jnp.nan, o) for o in outputs)
+
+
+def _raise_if_bad(result, R) -> None:
+    """Outside a trace: a NaN result from non-finite positions raises."""
+    if isinstance(result, jax.core.Tracer):
+        return
+    if not bool(jnp.all(jnp.isfinite(result))) and not bool(
+            jnp.all(jnp.isfinite(R))):
+        raise FusedInputError("R has NaN or infinite entries: the SPH sums "
+                              "are NaN. Find where the simulation blew up "
+                              "(time step, pressure).")
+
+
+def _density_core(engine_sums, engine: _PairSum, kernel, h0: float):
+    """``rho(R, h, m, cells)`` in R's dtype, self term included."""
+
+    def rho(R, h, m, cells):
+        dtype, n = R.dtype, R.shape[0]
+        h = jnp.asarray(h, dtype)
+        m = _column(m, n, dtype)
+        k = type(kernel)(h, dim=kernel.dim)
+        (total,) = engine_sums(dict(R=R, m=m), dict(h=h), cells)
+        out = total + m * k.w(jnp.zeros((), dtype))
+        return _poison((out,), R, h, h0)[0]
+    return rho
+
+
+def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
+                  mass: Array = 1.0, backend: str = "cell",
+                  periodic=None) -> Callable[..., Array]:
+    """Summation density ``rho_i = m_i W(0) + sum_j m_j W(|r_ij|)`` with no
+    neighbour list (`jaxrt.energy.sph.density`'s, to rounding).
+
+    Args:
+      displacement: jax-md displacement function ``d(Ra, Rb) -> (dim,)``
+        (probed, not called on the particles).
+      box: None (free space), a scalar or ``(dim,)`` sides (orthorhombic).
+      kernel: a `jaxrt.energy.sph` kernel with a concrete ``h``, which
+        sizes the cells (its ``dim`` must match the positions).
+      mass: float scalar or ``(N,)``.
+      backend: ``"cell"`` (list-free walk) or ``"brute"`` (all pairs).
+      periodic: bool or one per axis; None infers it from ``displacement``.
+
+    Returns:
+      ``density_fn(R, *, h=None, mass=None) -> (N,)``: ``R`` float32 or
+      float64 ``(N, dim)``; ``h`` float scalar ``<=`` the kernel's, and
+      ``mass`` scalar or ``(N,)``, replace the factory's (may be traced and
+      differentiated). The result is in R's dtype; ``jax.grad`` through it
+      runs a second walk (first order only).
+    """
+    grid, h0 = _grid(displacement, box, kernel, periodic, backend)
+    engine = _PairSum(_density_pair(kernel), grid, backend)
+    core = _density_core(engine.make(), engine, kernel, h0)
+    default_mass = mass
+
+    @jax.jit
+    def compute(R, h, m):
+        return core(R, h, m, engine.cells(R))
+
+    def density_fn(R: Array, *, h: Array | None = None,
+                   mass: Array | None = None, **unknown) -> Array:
+        reject_unknown("density_fn", unknown, ("h", "mass"))
+        R = _positions(R, kernel)
+        k = kernel if h is None else dataclasses.replace(kernel, h=h)
+        _check_h(k.h, h0)
+        m = _sph._per_particle("mass", default_mass if mass is None else mass,
+                               R.shape[0])
+        rho = compute(R, k.h, m)
+        _raise_if_bad(rho, R)
+        return rho
+
+    return density_fn
+
+
+def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
+                       eos: _sph.Tait, *, mass: Array = 1.0,
+                       alpha: Array = 0.1, beta: Array = 0.0,
+                       epsilon: float = 0.01, backend: str = "cell",
+                       periodic=None) -> Callable[..., _sph.Acceleration]:
+    """Symmetric SPH pressure force and Monaghan's artificial viscosity with
+    no neighbour list (`jaxrt.energy.sph.acceleration`'s, to rounding).
+
+    ``dv_i/dt = -sum_j m_j (P_i/rho_i^2 + P_j/rho_j^2 + Pi_ij) grad_i W_ij``;
+    see `jaxrt.energy.sph.acceleration` for ``Pi_ij``.
+
+    Args:
+      displacement, box, kernel, backend, periodic: as `density_fused`.
+      eos: a `jaxrt.energy.sph.Tait` equation of state.
+      mass: float scalar or ``(N,)``.
+      alpha, beta: float scalars >= 0, viscosity coefficients.
+      epsilon: float, keeps ``mu`` finite as ``r -> 0`` (static).
+
+    Returns:
+      ``accel_fn(R, V, *, rho=None, pressure=None, h=None, mass=None,
+      eos=None, alpha=None, beta=None) -> jaxrt.energy.sph.Acceleration``
+      (``pressure``, ``viscosity`` float ``(N, dim)``, ``density`` ``(N,)``,
+      all in R's dtype). ``R``, ``V``: float ``(N, dim)``. ``rho``: float
+      ``(N,)``; by default the summation density, from the same sorted
+      grid as the forces (one sort, two walks). ``pressure``: float
+      ``(N,)``; by default ``eos.pressure(rho)``. The other keywords
+      replace the factory's values and may be traced and differentiated
+      (``h`` at most the kernel's). ``jax.grad`` through any output runs
+      second walks (first order only).
+    """
+    for name, value in (("alpha", alpha), ("beta", beta)):
+        v = concrete(value)
+        if v is not None and (v.ndim or v < 0):
+            raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
+    grid, h0 = _grid(displacement, box, kernel, periodic, backend)
+    density_engine = _PairSum(_density_pair(kernel), grid, backend)
+    rho_core = _density_core(density_engine.make(), density_engine, kernel,
+                             h0)
+    engine = _PairSum(_acceleration_pair(kernel, float(epsilon)), grid,
+                      backend)
+    sums = engine.make()
+    defaults = dict(mass=mass, eos=eos, alpha=alpha, beta=beta)
+
+    @jax.jit
+    def compute(R, V, rho, pressure, h, m, state, a, b):
+        dtype, n = R.dtype, R.shape[0]
+        h = jnp.asarray(h, dtype)
+        cells = engine.cells(R)
+        if rho is None:
+            rho = rho_core(R, h, m, cells)
+        rho = _column(rho, n, dtype)
+        if pressure is None:
+            pressure = state.pressure(rho)
+        pressure = _column(pressure, n, dtype)
+        c = state.sound_speed(rho).astype(dtype)
+        data = dict(R=R, V=V.astype(dtype), rho=rho, q=pressure / rho ** 2,
+                    c=c, m=_column(m, n, dtype))
+        theta = dict(h=h, alpha=jnp.asarray(a, dtype),
+                     beta=jnp.asarray(b, dtype))
+        acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
+        return _sph.Acceleration(acc_p, acc_v, rho)
+
+    def accel_fn(R: Array, V: Array, *, rho: Array | None = None,
+                 pressure: Array | None = None, h: Array | None = None,
+                 mass: Array | None = None, eos: _sph.Tait | None = None,
+                 alpha: Array | None = None, beta: Array | None = None,
+                 **unknown) -> _sph.Acceleration:
+        reject_unknown("accel_fn", unknown, ("rho", "pressure", "h", "mass",
+                                             "eos", "alpha", "beta"))
+        R = _positions(R, kernel)
+        V = jnp.asarray(V)
+        if V.shape != R.shape:
+            raise ValueError(f"V has shape {V.shape} but R has {R.shape}; "
+                             "pass one velocity per particle.")
+        k = kernel if h is None else dataclasses.replace(kernel, h=h)
+        _check_h(k.h, h0)
+        n = R.shape[0]
+        m = _sph._per_particle("mass", defaults["mass"] if mass is None
+                               else mass, n)
+        if rho is not None:
+            _sph._check_density(rho)
+            rho = _sph._per_particle("rho", rho, n)
+        if pressure is not None:
+            pressure = _sph._per_particle("pressure", pressure, n)
+        out = compute(R, V, rho, pressure, k.h, m,
+                      defaults["eos"] if eos is None else eos,
+                      defaults["alpha"] if alpha is None else alpha,
+                      defaults["beta"] if beta is None else beta)
+        _raise_if_bad(out.pressure, R)
+        return out
+
+    return accel_fn
