@@ -193,7 +193,9 @@ class _PairSum:
 
     def cells(self, R: Array):
         """The sorted grid of R (None for brute), shared by the walks of
-        one configuration: ``(order, runs)``, runs ``(R, N)``."""
+        one configuration: ``(order, runs)``, runs ``(R, N)``. With
+        ``order`` None, the data are already in the sorted order (and the
+        sums come back in it)."""
         if self.backend == "brute":
             return None
         order, runs = cell_runs(jax.lax.stop_gradient(R), self.grid)
@@ -211,18 +213,25 @@ class _PairSum:
         if cells is None:
             return self._brute(table, slot, acc)
         order, runs = cells
-        table = table[:, order]
+        if order is not None:
+            table = table[:, order]
         mine = table[:, None, :]
+        # Candidates are gathered as rows of the transposed table (one
+        # contiguous slice each, as GPUs like it; on the CPU it measured as
+        # fast as gathering strided columns), then turned particles-minor.
+        rows = table.T
 
         def visit(j, keep, acc):
+            other = jnp.moveaxis(rows[j], -1, 0)
             return jax.tree_util.tree_map(jnp.add, acc,
-                                          slot(mine, table[:, j], keep))
+                                          slot(mine, other, keep))
 
         zeros = jax.tree_util.tree_map(jnp.zeros_like, acc)
         out = walk_runs(runs, visit, zeros, transposed=True, unroll=unroll)
-        return jax.tree_util.tree_map(
-            lambda a, o: a + jnp.zeros_like(o).at[..., order].set(o), acc,
-            out)
+        if order is not None:
+            out = jax.tree_util.tree_map(
+                lambda o: jnp.zeros_like(o).at[..., order].set(o), out)
+        return jax.tree_util.tree_map(jnp.add, acc, out)
 
     def _brute(self, table, slot, acc):
         n = table.shape[1]
@@ -550,20 +559,34 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
     def compute(R, V, rho, pressure, h, m, state, a, b):
         dtype, n = R.dtype, R.shape[0]
         h = jnp.asarray(h, dtype)
+        m = _column(m, n, dtype)
+        V = V.astype(dtype)
         cells = engine.cells(R)
+        given = [None if x is None else _column(x, n, dtype)
+                 for x in (rho, pressure)]
+        if cells is not None:
+            # Both walks in the sorted order: the densities feed the second
+            # walk without a round trip through the caller's order.
+            order, runs = cells
+            R, V, m = R[order], V[order], m[order]
+            given = [None if x is None else x[order] for x in given]
+            cells = (None, runs)
+        rho, pressure = given
         if rho is None:
             rho = rho_core(R, h, m, cells)
-        rho = _column(rho, n, dtype)
         if pressure is None:
             pressure = state.pressure(rho)
-        pressure = _column(pressure, n, dtype)
         c = state.sound_speed(rho).astype(dtype)
-        data = dict(R=R, V=V.astype(dtype), rho=rho, q=pressure / rho ** 2,
-                    c=c, m=_column(m, n, dtype))
+        data = dict(R=R, V=V, rho=rho, q=pressure / rho ** 2, c=c, m=m)
         theta = dict(h=h, alpha=jnp.asarray(a, dtype),
                      beta=jnp.asarray(b, dtype))
         acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
-        return _sph.Acceleration(acc_p, acc_v, rho)
+        out = _sph.Acceleration(acc_p, acc_v, rho)
+        if cells is not None:
+            inverse = jnp.zeros((n,), jnp.int32).at[order].set(
+                jnp.arange(n, dtype=jnp.int32))
+            out = jax.tree_util.tree_map(lambda x: x[inverse], out)
+        return out
 
     def accel_fn(R: Array, V: Array, *, rho: Array | None = None,
                  pressure: Array | None = None, h: Array | None = None,
