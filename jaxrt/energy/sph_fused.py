@@ -96,7 +96,7 @@ def _first_order_only_jvp(primals, tangents):
 
 # ---------------------------------------------------------------------------
 # Per-particle data as one table, particles on the minor axis: a candidate
-# costs one gathered column, and every pair term is an array (K, M) whose
+# costs one gather of its row, and every pair term is an array (K, M) whose
 # long axis M (the particles) the CPU vectorises ((M, K) with K = 3 stencil
 # rows did not vectorise: 2-3x slower).
 
