@@ -24,6 +24,15 @@ Backends (``backend=``):
   forces).
 * ``"brute"``: all pairs in row blocks, O(N^2); the reference.
 
+Cost. A walk evaluates, per particle, one candidate of each stencil row (3
+in 2D, 9 in 3D) per step of a loop as long as the longest run (2.25 x the
+support along x): about 2x (2D) and 5x (3D) the pairs within the support,
+each pair from both sides, at every call, where a list path reads rows of
+support + skin rebuilt every few steps. On a shared 2-core CPU
+(`benchmarks/sph_step.py`, 2D water box, float32) the list-free step took
+7.2 ms at N = 10^4 against 10.2 (Dense list) and 5.3 (OrderedSparse), and
+lost more at 3·10^4 and in 3D; its case is the GPU (#18).
+
 Derivatives. Each walk is a `jax.custom_vjp` (reverse mode through a loop
 of dynamic length is impossible): its backward pass is another walk over
 the same cells in which every particle, for each candidate, takes the VJP
