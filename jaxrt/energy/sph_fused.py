@@ -29,9 +29,10 @@ in 2D, 9 in 3D) per step of a loop as long as the longest run (2.25 x the
 support along x): about 2x (2D) and 5x (3D) the pairs within the support,
 each pair from both sides, at every call, where a list path reads rows of
 support + skin rebuilt every few steps. On a shared 2-core CPU
-(`benchmarks/sph_step.py`, 2D water box, float32) the list-free step took
-7.2 ms at N = 10^4 against 10.2 (Dense list) and 5.3 (OrderedSparse), and
-lost more at 3·10^4 and in 3D; its case is the GPU (#18).
+(`benchmarks/sph_step.py`, water box, float32, ms per step) the list-free
+step took 6.1 at N = 10^4 in 2D against 4.4 (jaxrt cell list, Dense) and
+2.9 (OrderedSparse), 24.8 against 19.1 / 17.4 at 3·10^4, and 449 against
+120 / 123 in 3D at 27000: slower on the CPU; its case is the GPU (#18).
 
 Derivatives. Each walk is a `jax.custom_vjp` (reverse mode through a loop
 of dynamic length is impossible): its backward pass is another walk over
