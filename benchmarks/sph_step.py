@@ -34,7 +34,6 @@ acceleration; ~1e-6 in float32).
 """
 from __future__ import annotations
 
-import math
 import os
 import sys
 import warnings
