@@ -351,3 +351,18 @@ def test_scene_list_free_matches_list():
         dataclasses.replace(scene, effects=tuple(
             dataclasses.replace(e, list_free=True) if e.kind == "sph_density"
             else e for e in scene.effects))
+
+
+@pytest.mark.parametrize("table, wide", [(1000, False), (2 ** 40, True),
+                                         (2 ** 40, False)])
+def test_sort_by_key_branches(table, wide):
+    """`fused.cell_runs`'s sort: key and index packed in 32 bits, in 64
+    (x64 on), or the two-operand sort (neither fits)."""
+    from jaxrt.energy.fused import _sort_by_key
+    key = np.random.default_rng(0).integers(0, 1000, 500).astype(np.int32)
+    with jax.enable_x64(wide):
+        order, sorted_key = _sort_by_key(jnp.asarray(key), table)
+    order, sorted_key = np.asarray(order), np.asarray(sorted_key)
+    np.testing.assert_array_equal(sorted_key, np.sort(key))
+    np.testing.assert_array_equal(key[order], sorted_key)
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(key)))
