@@ -366,3 +366,18 @@ def test_sort_by_key_branches(table, wide):
     np.testing.assert_array_equal(sorted_key, np.sort(key))
     np.testing.assert_array_equal(key[order], sorted_key)
     np.testing.assert_array_equal(np.sort(order), np.arange(len(key)))
+
+
+def test_vmap(x64):
+    """A batch of configurations: each its own grid and loop length."""
+    R = jnp.asarray(np.random.default_rng(0).uniform(0, 8, (3, 50, 2)))
+    displacement, _ = space.periodic(8.0)
+    density = density_fused(displacement, 8.0, sph.CubicSpline(1.0, dim=2))
+
+    def loss(R):
+        return jnp.sum(density(R) ** 2)
+    batched = jax.vmap(jax.value_and_grad(loss))(R)
+    for b in range(3):
+        one = jax.value_and_grad(loss)(R[b])
+        close(batched[0][b], one[0])
+        close(batched[1][b], one[1])
