@@ -13,8 +13,11 @@ Without a list (`jaxrt.energy.fused`, seed 003 ORCS): `lennard_jones_fused`
 SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
 `WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
 `acceleration` -> `Acceleration`.
+Without a list (`jaxrt.energy.sph_fused`, #18): `density_fused`,
+`acceleration_fused` (the same results, a walk over the cell grid; first
+derivatives from a second walk).
 """
-from jaxrt.energy import fused, lj, sph
+from jaxrt.energy import fused, lj, sph, sph_fused
 from jaxrt.energy.fused import (
     FusedInputError,
     FusedSums,
@@ -43,6 +46,7 @@ from jaxrt.energy.sph import (
     density,
     kernel,
 )
+from jaxrt.energy.sph_fused import acceleration_fused, density_fused
 
 __all__ = [
     "KERNELS",
@@ -58,7 +62,9 @@ __all__ = [
     "WendlandC2",
     "WendlandC4",
     "acceleration",
+    "acceleration_fused",
     "density",
+    "density_fused",
     "fused",
     "kernel",
     "lennard_jones",
@@ -70,4 +76,5 @@ __all__ = [
     "lennard_jones_truncated",
     "lj",
     "sph",
+    "sph_fused",
 ]

@@ -189,11 +189,19 @@ class LJ:
 class SPHDensity:
     """Summation density with kernel ``kernel`` (one of
     `jaxrt.energy.sph.KERNELS`) of smoothing length ``h``; the list's
-    cutoff is the kernel's support (``2h`` or ``3h``)."""
+    cutoff is the kernel's support (``2h`` or ``3h``).
+
+    ``list_free``: no neighbour list, a walk over the cell grid at every
+    step (`jaxrt.energy.density_fused`, #18); sph_pressure and
+    sph_viscosity must say the same."""
     h: float
     kernel: str = "cubic_spline"
+    list_free: bool = False
     kind: ClassVar[str] = "sph_density"
-    pairwise: ClassVar[bool] = True
+
+    @property
+    def pairwise(self) -> bool:
+        return not self.list_free
 
     @property
     def cutoff(self) -> float:
@@ -213,23 +221,59 @@ class SPHDensity:
         check_reach(scene, self.cutoff, f"{where}.h")
 
     def term(self, ctx: Context) -> Term:
-        density = _sph.density(
-            ctx.displacement, self.smoothing_kernel(ctx.scene.particles.dim),
-            mass=ctx.mass)
+        kern = self.smoothing_kernel(ctx.scene.particles.dim)
+        if self.list_free:
+            from jaxrt.energy import density_fused
+            sides, periodic = _fused_box(ctx)
+            density = density_fused(ctx.displacement, sides, kern,
+                                    mass=ctx.mass, **periodic)
+
+            def sph_density(R, nbrs):
+                return density(R)
+            return Term(density=sph_density, notes=(
+                "sph: list-free (a walk over the cell grid per term and "
+                "step)",))
+        density = _sph.density(ctx.displacement, kern, mass=ctx.mass)
 
         def sph_density(R, nbrs):
             return density(R, nbrs)
         return Term(density=sph_density)
 
 
+def _fused_box(ctx: Context):
+    """(box sides, periodic axes) for the list-free SPH factories: the
+    sides are read on periodic axes only (free and wall axes get a positive
+    placeholder, as the list's box does)."""
+    box = ctx.scene.box
+    size = np.asarray(box.size, float)
+    sides = np.where(np.isfinite(size) & (size > 0), size, 1.0)
+    return tuple(float(x) for x in sides), dict(periodic=box.periodic)
+
+
 def _sph_acceleration(ctx: Context, **viscosity):
-    """`jaxrt.energy.sph.acceleration` with the scene's kernel and equation
-    of state (from its sph_density and sph_pressure effects)."""
-    kern = ctx.scene.effect("sph_density").smoothing_kernel(
-        ctx.scene.particles.dim)
+    """``accel(R, V, nbrs, **kw) -> Acceleration``: `jaxrt.energy.sph`'s
+    acceleration with the scene's kernel and equation of state (from its
+    sph_density and sph_pressure effects), on the list or list-free as the
+    sph_density effect says."""
+    density = ctx.scene.effect("sph_density")
+    kern = density.smoothing_kernel(ctx.scene.particles.dim)
     eos = ctx.scene.effect("sph_pressure").equation_of_state()
+    if density.list_free:
+        from jaxrt.energy import acceleration_fused
+        sides, periodic = _fused_box(ctx)
+        fused = acceleration_fused(ctx.displacement, sides, kern, eos,
+                                   mass=ctx.mass, **periodic, **viscosity)
+        return lambda R, V, nbrs, **kw: fused(R, V, **kw)
     return _sph.acceleration(ctx.displacement, kern, eos, mass=ctx.mass,
                              **viscosity)
+
+
+def _same_list_free(effect, scene, where: str) -> None:
+    density = scene.effect("sph_density")
+    if density is not None and effect.list_free != density.list_free:
+        raise SceneError.at(f"{where}.list_free", "must equal sph_density's "
+                            f"list_free ({density.list_free}): the SPH "
+                            "effects share one way to find pairs.")
 
 
 @register
@@ -237,14 +281,18 @@ def _sph_acceleration(ctx: Context, **viscosity):
 class SPHPressure:
     """Symmetric pressure force, Tait's equation of state (``rho0``, ``c0``,
     ``gamma``); ``clip_negative``: no tension (a free surface cannot pull).
-    Needs sph_density (kernel and densities)."""
+    Needs sph_density (kernel and densities); ``list_free`` as its."""
     rho0: float
     c0: float
     gamma: float = 7.0
     clip_negative: bool = True
+    list_free: bool = False
     kind: ClassVar[str] = "sph_pressure"
-    pairwise: ClassVar[bool] = True
     cutoff: ClassVar[float] = 0.0  # reads sph_density's pairs
+
+    @property
+    def pairwise(self) -> bool:
+        return not self.list_free
 
     def equation_of_state(self):
         return _sph.Tait(rho0=self.rho0, c0=self.c0, gamma=self.gamma)
@@ -253,6 +301,7 @@ class SPHPressure:
         _positive(self, where, "rho0", "c0", "gamma")
         _needs(scene, where, "sph_density", "sph_pressure needs an "
                "sph_density effect (it sets h and the kernel).")
+        _same_list_free(self, scene, where)
 
     def term(self, ctx: Context) -> Term:
         eos = self.equation_of_state()
@@ -271,12 +320,17 @@ class SPHPressure:
 @dataclasses.dataclass(frozen=True)
 class SPHViscosity:
     """Monaghan's artificial viscosity (``alpha``, ``beta``); needs
-    sph_density and sph_pressure (its c0 gives the sound speed)."""
+    sph_density and sph_pressure (its c0 gives the sound speed);
+    ``list_free`` as sph_density's."""
     alpha: float
     beta: float = 0.0
+    list_free: bool = False
     kind: ClassVar[str] = "sph_viscosity"
-    pairwise: ClassVar[bool] = True
     cutoff: ClassVar[float] = 0.0  # reads sph_density's pairs
+
+    @property
+    def pairwise(self) -> bool:
+        return not self.list_free
 
     def validate(self, scene, where: str) -> None:
         if not (self.alpha >= 0 and self.beta >= 0):
@@ -286,6 +340,7 @@ class SPHViscosity:
                "sph_density effect (it sets h and the kernel).")
         _needs(scene, where, "sph_pressure", "sph_viscosity needs "
                "sph_pressure (its c0 gives the sound speed).")
+        _same_list_free(self, scene, where)
 
     def term(self, ctx: Context) -> Term:
         accel = _sph_acceleration(ctx, alpha=self.alpha, beta=self.beta)

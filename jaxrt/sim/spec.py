@@ -92,7 +92,8 @@ class Effect(Protocol):
     keys of its ``[[effects]]`` table, defaults for the optional ones).
 
     kind: its name in TOML (``"lj"``), a class attribute.
-    pairwise: a class attribute, True if it reads the shared neighbour list.
+    pairwise: a class attribute (or a property of its fields: the SPH
+      effects' ``list_free``), True if it reads the shared neighbour list.
     cutoff: float, the pair distance it needs the list to reach (0.0 for an
       effect that only reads pairs another effect asked for, or none).
     validate(scene, where): raise `SceneError` (``SceneError.at``) naming
