@@ -130,16 +130,21 @@ _HIGHER_ORDER = (
     "matching.")
 
 
-@jax.custom_jvp
-def _first_order_only(x):
-    """Identity whose derivative raises: guards the inputs of the forward
-    pass, which only a second derivative differentiates."""
-    return x
+def first_order_only(message: str) -> Callable:
+    """An identity whose derivative raises `HigherOrderError(message)`: it
+    guards what only a second derivative differentiates (the inputs of a
+    forward pass whose VJP is custom, or that VJP's residuals)."""
+    @jax.custom_jvp
+    def identity(x):
+        return x
+
+    @identity.defjvp
+    def raise_higher_order(primals, tangents):
+        raise HigherOrderError(message)
+    return identity
 
 
-@_first_order_only.defjvp
-def _first_order_only_jvp(primals, tangents):
-    raise HigherOrderError(_HIGHER_ORDER)
+_first_order_only = first_order_only(_HIGHER_ORDER)
 
 
 # ---------------------------------------------------------------------------

@@ -79,7 +79,7 @@ from jaxrt.energy._checks import concrete
 from jaxrt.energy._keywords import reject_unknown
 from jaxrt.energy.fused import (FusedInputError, HigherOrderError, _Params,
                                 _periodicity, _sides, _static_params,
-                                cell_runs, walk_runs)
+                                cell_runs, first_order_only, walk_runs)
 
 Array = jax.Array
 
@@ -90,18 +90,7 @@ _HIGHER_ORDER = (
     "VJP is a second walk over the cells); second derivatives (jax.hessian, "
     "gradients of gradients) are not available. Use jaxrt.energy.sph.density"
     " / acceleration on a neighbour list (jaxrt.neighbor_list) for those.")
-
-
-@jax.custom_jvp
-def _first_order_only(x):
-    """Identity whose derivative raises: guards the residuals of the walks'
-    VJPs, which only a second derivative differentiates."""
-    return x
-
-
-@_first_order_only.defjvp
-def _first_order_only_jvp(primals, tangents):
-    raise HigherOrderError(_HIGHER_ORDER)
+_first_order_only = first_order_only(_HIGHER_ORDER)
 
 
 # ---------------------------------------------------------------------------
