@@ -77,7 +77,7 @@ import numpy as np
 from jaxrt.energy import sph as _sph
 from jaxrt.energy._checks import concrete
 from jaxrt.energy._keywords import reject_unknown
-from jaxrt.energy.fused import (FusedInputError, HigherOrderError, _Params,
+from jaxrt.energy.fused import (FusedInputError, _Params,
                                 _periodicity, _sides, _static_params,
                                 cell_runs, first_order_only, walk_runs)
 
