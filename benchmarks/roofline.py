@@ -65,22 +65,22 @@ def _system(n: int, dtype):
     return jnp.asarray(R, dtype), box, space.periodic(box)[0]
 
 
-def _work(R, box, cutoff):
-    """Candidates and pairs per particle of the cell grid at ``cutoff``."""
-    import jax.numpy as jnp
+def _grid(box):
+    """The fused energy's static parameters for md_step's LJ system."""
+    from jaxrt.energy import fused
+    return fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
+                         periodic=(True,) * 3, side=(box,) * 3)
+
+
+def _work(R, box):
+    """Candidates per particle and runs per particle of the cell grid the
+    fused energy walks (`jaxrt.energy.fused.cell_runs`)."""
     import numpy as np
-    from jax_md.partition import NeighborListFormat
-    from jaxrt import cell_list
-    from jaxrt._backend import Geometry, Query
-    dtype = R.dtype
-    geometry = Geometry(side=jnp.full((3,), box, dtype),
-                        scale=jnp.ones((3,), dtype))
-    query = Query(cutoff=cutoff, periodic=(True,) * 3, mask_self=True,
-                  format=NeighborListFormat.Dense)
-    _, _, runs = cell_list._sorted_system(R, geometry, query)
-    candidates = float(np.mean(np.sum(np.asarray(runs[1]) + np.asarray(runs[3]),
-                                      axis=1)))
-    return candidates, int(np.asarray(runs[0]).shape[1])
+    from jaxrt.energy import fused
+    _, runs = fused.cell_runs(R, _grid(box))
+    start1 = fused.kernel_runs(runs)[0]
+    return (float(np.mean(np.sum(np.asarray(runs.length), axis=1))),
+            int(start1.shape[1]))
 
 
 def run_row(job: dict) -> dict:
@@ -114,7 +114,7 @@ def run_row(job: dict) -> dict:
     from jaxrt.energy import lennard_jones_fused
     R, box, disp = _system(n, jnp.float32)
     n = R.shape[0]
-    candidates, runs = _work(R, box, 2.5)
+    candidates, runs = _work(R, box)
     inputs = [R, (R + 1e-3) % box]
     if row == "rebuild":
         nfn = jaxrt.neighbor_list(disp, box, 2.5, dr_threshold=0.0,
@@ -150,26 +150,18 @@ def _launched(box, launch: str):
     `jaxrt.energy.fused._Cell`, on the grid that ``sums`` would build."""
     import jax
     import jax.numpy as jnp
-    from jax_md.partition import NeighborListFormat
-    from jaxrt import cell_list
-    from jaxrt._backend import Geometry, Query
     from jaxrt.energy import fused
     block, warps = (int(v) for v in launch.split("x"))
-    params = fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
-                           periodic=(True,) * 3, side=(box,) * 3)
+    params = _grid(box)
 
     @jax.jit
     def forces(R):
-        geometry = Geometry(side=jnp.full((3,), box, R.dtype),
-                            scale=jnp.ones((3,), R.dtype))
-        query = Query(cutoff=2.5, periodic=(True,) * 3, mask_self=True,
-                      format=NeighborListFormat.Dense)
-        order, cart, runs = cell_list._sorted_system(R, geometry, query,
-                                                     sorted_runs=True)
+        order, runs = fused.cell_runs(R, params)
         one = jnp.asarray(1.0, R.dtype)
-        f = fused._Cell._kernel_walk(cart[order], runs, geometry.side, one,
-                                     one, None, order, params, False,
-                                     block=block, warps=warps)[0]
+        f = fused._Cell._kernel_walk(
+            fused._wrap(R, params)[order], fused.kernel_runs(runs),
+            jnp.full((3,), box, R.dtype), one, one, None, order, params,
+            False, block=block, warps=warps)[0]
         return jnp.zeros_like(R).at[order].set(f)
     return forces
 

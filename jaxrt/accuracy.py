@@ -872,27 +872,12 @@ SCENES = ("lj-fluid", "lj-fluid-2d", "dam-break")
 
 def lj_fluid_2d(*, n: int = 1000, density: float = 0.7, kT: float = 1.0,
                 dt: float = 0.005, backend: str = "cell", seed: int = 0):
-    """The LJ fluid in 2D, where the Delaunay backend runs: ``n``
-    particles on a square lattice (the first ``n`` of ``ceil(sqrt n)^2``
-    cell centres) in a periodic square at number density ``density`` (a
-    dense liquid at ``kT`` 1), Maxwell-Boltzmann velocities, smooth cut
-    from 2.0 to 2.5 sigma, skin 0.3, time step ``dt``: `jaxrt.sim.lj_fluid`
-    but for the dimension. Positions float64 ``(n, 2)``."""
-    from jaxrt.sim import LJ, Box, Integrator, Neighbors, Scene
-    from jaxrt.sim.spec import make_particles
-    side = math.sqrt(n / density)
-    m = math.ceil(math.sqrt(n))
-    k = np.arange(n)
-    pos = (np.stack([k % m, k // m], -1) + 0.5) * (side / m)
-    return Scene(
-        particles=make_particles(positions=pos, temperature=kT, seed=seed),
-        box=Box((side,) * 2, ("periodic",) * 2),
-        effects=(LJ(r_cutoff=2.5, r_onset=2.0),),
-        integrator=Integrator(dt=dt),
-        neighbors=Neighbors(backend=backend, skin=0.3),
-        name="lj-fluid-2d",
-        description=f"2D Lennard-Jones fluid, N={n}, rho={density}, "
-                    "periodic, NVE")
+    """The LJ fluid in 2D, where the Delaunay backend runs:
+    `jaxrt.sim.lj_fluid` with ``dim=2`` at a dense liquid's density (0.7
+    at ``kT`` 1). Positions float64 ``(n, 2)``."""
+    from jaxrt.sim import lj_fluid
+    return lj_fluid(n=n, density=density, kT=kT, dt=dt, backend=backend,
+                    seed=seed, dim=2)
 
 
 def base_scene(name: str, plan: Plan):

@@ -100,23 +100,27 @@ def sphere_surface(alpha: int, p: int, seed: int) -> tuple[np.ndarray, float]:
     return positions, sphere_surface_cutoff(n, p)
 
 
-def lattice(n: int, side: float = BOX_SIDE) -> np.ndarray:
+def lattice(n: int, side: float = BOX_SIDE, *, dim: int = 3) -> np.ndarray:
     """Seed 003 §4 Lattice: "grid positions".
 
-    The first ``n`` points, in x-fastest order, of the cubic grid of
-    ``m = ⌈n^(1/3)⌉`` points per side with spacing ``side / m``, at cell
-    centres (so the periodic images keep the spacing). Deterministic: no seed.
+    The first ``n`` points, in x-fastest order, of the cubic (``dim`` 2:
+    square) grid of ``m = ⌈n^(1/dim)⌉`` points per side with spacing
+    ``side / m``, at cell centres (so the periodic images keep the
+    spacing). Deterministic: no seed.
 
     Returns:
-      positions float64 ``(n, 3)`` in ``(0, side)``.
+      positions float64 ``(n, dim)`` in ``(0, side)``.
     """
     n = _check_positive_int("n", n)
     side = _check_side(side)
-    per_side = round(n ** (1.0 / 3.0))
-    if per_side ** 3 < n:
+    if dim not in (2, 3):
+        raise ValueError(f"dim={dim!r}: the lattice is 2D or 3D.")
+    per_side = round(n ** (1.0 / dim))
+    if per_side ** dim < n:
         per_side += 1
     k = np.arange(n)
-    cells = np.stack([k % per_side, (k // per_side) % per_side, k // per_side ** 2], axis=1)
+    cells = np.stack([(k // per_side ** a) % per_side for a in range(dim)],
+                     axis=1)
     return (cells + 0.5) * (side / per_side)
 
 

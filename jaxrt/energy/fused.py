@@ -328,12 +328,8 @@ class _Cell(_Backend):
                               None if radii is None else radii[order], params)
 
         def kernel(interpret=False):
-            # The kernel walks first and wrapped parts as runs of their own.
-            split = runs.split
-            sorted_runs = (runs.start, split, runs.wrapped + split,
-                           runs.length - split)
             return self._kernel_walk(
-                _wrap(R3, params)[order], sorted_runs,
+                _wrap(R3, params)[order], kernel_runs(runs),
                 jnp.asarray(params.side, dtype), sigma, epsilon, radii, order,
                 params, interpret)
 
@@ -465,6 +461,14 @@ def cell_runs(R: Array, params: _Params) -> tuple[Array, Runs]:
     # x ends have long wrapped parts, so a loop (or a column) of their own
     # would cost as much as the first for every particle.
     return order, Runs(start1, len1, start2 - len1, len1 + len2)
+
+
+def kernel_runs(runs: Runs) -> tuple[Array, Array, Array, Array]:
+    """`Runs` in the layout of `jaxrt._cell_kernel` (``cell_list._runs``'s):
+    ``(start1, len1, start2, len2)``, the wrapped parts as runs of their
+    own."""
+    return (runs.start, runs.split, runs.wrapped + runs.split,
+            runs.length - runs.split)
 
 
 def _sort_by_key(key: Array, table: int) -> tuple[Array, Array]:

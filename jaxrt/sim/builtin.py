@@ -20,25 +20,28 @@ from jaxrt.sim.spec import (Box, Integrator, Neighbors, Scene, SceneError,
 
 
 def lj_fluid(*, n: int = 2048, density: float = 0.8, kT: float = 1.0,
-             dt: float = 0.005, backend: str = "auto", seed: int = 0
-             ) -> Scene:
+             dt: float = 0.005, backend: str = "auto", seed: int = 0,
+             dim: int = 3) -> Scene:
     """Lennard-Jones fluid, periodic, NVE: watch the energy drift.
 
-    ``n`` particles on a cubic lattice at number density ``density``,
-    Maxwell-Boltzmann velocities at ``kT``, smooth cut from 2.0 to 2.5
-    sigma, skin 0.3, time step ``dt``.
+    ``n`` particles on a cubic (``dim`` 2: square) lattice at number
+    density ``density``, Maxwell-Boltzmann velocities at ``kT``, smooth
+    cut from 2.0 to 2.5 sigma, skin 0.3, time step ``dt``. Named
+    ``lj-fluid`` (``lj-fluid-2d`` in 2D).
     """
-    side = (n / density) ** (1 / 3)
-    pos = seed_distributions.lattice(n, side)
+    side = math.sqrt(n / density) if dim == 2 else (n / density) ** (1 / 3)
+    pos = seed_distributions.lattice(n, side, dim=dim)
+    flat = dim == 3  # the 3D scene keeps its name and description
     return Scene(
         particles=make_particles(positions=pos, temperature=kT, seed=seed),
-        box=Box((side,) * 3, ("periodic",) * 3),
+        box=Box((side,) * dim, ("periodic",) * dim),
         effects=(LJ(r_cutoff=2.5, r_onset=2.0),),
         integrator=Integrator(dt=dt),
         neighbors=Neighbors(backend=backend, skin=0.3),
-        name="lj-fluid",
-        description=f"Lennard-Jones fluid, N={n}, rho={density}, periodic, "
-                    "NVE (energy drift)")
+        name="lj-fluid" if flat else "lj-fluid-2d",
+        description=("" if flat else "2D ") + f"Lennard-Jones fluid, N={n}, "
+                    f"rho={density}, periodic, NVE"
+                    + (" (energy drift)" if flat else ""))
 
 
 def dam_break(*, dx: float = 0.05, backend: str = "auto") -> Scene:
