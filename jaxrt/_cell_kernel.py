@@ -220,13 +220,14 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         parameters such as sigma and epsilon).
       per_particle: float ``(N,)`` arrays in sorted order, handed to
         ``pair_terms`` for both particles of a pair (radii, densities).
-      pair_terms: ``(d2, valid, scalars, mine, theirs) -> (g, sums)``:
-        traced in the kernel on vectors of one value per thread; ``d2`` the
-        squared minimum-image distance, ``valid`` whether the candidate is
-        another particle, ``mine`` / ``theirs`` tuples of the
-        ``per_particle`` values; returns ``g`` (the particle's vector sum
-        gains ``g (x_i - x_j)``) and a tuple of ``n_sums`` scalar terms,
-        all zero where ``valid`` is false.
+      pair_terms: ``(d2, valid, scalars, mine, theirs, d) -> (g, sums)``:
+        traced in the kernel on arrays of candidates (one value per thread,
+        or a tile of them); ``d2`` the squared minimum-image distance,
+        ``valid`` whether the candidate is another particle, ``mine`` /
+        ``theirs`` tuples of the ``per_particle`` values, ``d`` the ``dim``
+        components of the minimum-image ``x_i - x_j``; returns ``g`` (the
+        particle's vector sum gains ``g (x_i - x_j)``) and a tuple of
+        ``n_sums`` scalar terms, all zero where ``valid`` is false.
       block, warps: particles per program and warps per program.
       interpret: run in Pallas' interpreter (any backend; for tests).
     Returns:
@@ -311,7 +312,7 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
             valid = inside & (j != me)
             theirs = tuple(plgpu.load(ref.at[j]) for ref in extra_refs)
             g, terms = pair_terms(jnp.where(valid, d2, 0), valid, scalars,
-                                  mine_extra, theirs)
+                                  mine_extra, theirs, tuple(d))
             vector = tuple(v + g * da for v, da in zip(acc[:dim], d))
             return vector + tuple(t + u for t, u in zip(acc[dim:], terms))
 

@@ -389,7 +389,7 @@ class _Cell(_Backend):
         r_cutoff, r_onset = params.r_cutoff, params.r_onset
         has_radii = radii is not None
 
-        def terms(d2, valid, scalars, mine, theirs):
+        def terms(d2, valid, scalars, mine, theirs, d):
             sigma, epsilon = scalars[0], scalars[1]
             if has_radii:
                 cut = jnp.maximum(mine[0], theirs[0])
