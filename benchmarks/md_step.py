@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import warnings
 
@@ -52,6 +53,20 @@ FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
 # fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
 FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
                  "cell[auto]": ("cell", "auto")}
+
+
+# fused:cell[32x4x32]: the kernel with that launch (particles and warps per
+# program, and the cluster layout's tile; no tile: a thread per particle).
+_LAUNCH = re.compile(r"cell\[(\d+)x(\d+)(?:x(\d+))?\]")
+
+
+def launched(label: str):
+    """The fused cell backend of ``cell[BLOCKxWARPS[xTILE]]`` (the
+    kernel, compiled: CUDA only)."""
+    from jaxrt.energy.fused import _Cell
+    block, warps, tile = _LAUNCH.fullmatch(label).groups()
+    return _Cell(kernel="pallas", block=int(block), warps=int(warps),
+                 tile=int(tile or 0))
 
 
 def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:
@@ -69,9 +84,10 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
     if label.startswith("fused:"):
         backend = label[len("fused:"):]
         known = FUSED_BACKENDS + tuple(FUSED_OPTIONS) + ("brute",)
-        if backend not in known:
+        if backend not in known and not _LAUNCH.fullmatch(backend):
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
-                             f"{known}")
+                             f"{known} or cell[BLOCKxWARPS[xTILE]] (the "
+                             "kernel's launch)")
         return "fused", backend, None
     lists, sep, fmt = label.rpartition("/")
     if not sep or fmt not in FORMATS:
@@ -170,6 +186,8 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     if backend in FUSED_OPTIONS:
         from jaxrt.backends import Cell
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
+    elif _LAUNCH.fullmatch(backend):
+        backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
                                     backend=backend)
     init, apply = simulate.nve(energy_fn, shift, dt=0.005)

@@ -12,9 +12,11 @@ Rows, each in its own worker (`_harness`), side by side in one run:
   (simple-cubic lattice at density 0.8, jittered by 0.1 of a spacing,
   cutoff 2.5).
 * ``fused``: the forces of `jaxrt.energy.lennard_jones_fused`
-  (``backend=Cell(kernel=...)``, one call of ``energy_fn.sums`` under
-  jit) on the same system; with ``--launches``, also the kernel at other
-  particles-per-program x warps shapes.
+  (``backend=Cell(kernel=...)``, ``jax.grad`` of the energy under jit, as
+  an MD step takes them: energy, forces and the pair count, no parameter
+  derivatives) on the same system; with ``--launches``, also the kernel
+  at other launches (particles x warps per program, and the cluster
+  layout's tile of candidates).
 
 For the two search rows the script also counts, on the device, what the
 work is: ``candidates`` per particle (the stencil runs' total length: every
@@ -41,10 +43,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _harness  # noqa: E402
 
 # Counted in `jaxrt._cell_kernel._sum_walk` with the LJ terms of
-# `jaxrt.energy.fused.lj_terms` (sqrt, divide and floor as one each):
-# minimum image and distance 18, the smooth-switched LJ with its sigma and
-# epsilon derivatives 48, the accumulation 10.
-FLOP_PER_CANDIDATE = 76
+# `jaxrt.energy.fused.lj_terms` (reciprocal, floor, compare and select as
+# one each): minimum image and distance 18, the smooth-switched LJ energy
+# and force factor 35, the accumulation 5.
+FLOP_PER_CANDIDATE = 58
 # The list kernel (`jaxrt._cell_kernel._walk`): distance 18, the two
 # threshold tests and the row and shell offsets 8.
 FLOP_PER_CANDIDATE_LIST = 26
@@ -130,8 +132,11 @@ def run_row(job: dict) -> dict:
     else:
         energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
                                         backend=Cell(kernel=job["kernel"]))
-        forces = (jax.jit(lambda R: energy_fn.sums(R).forces)
-                  if not job.get("launch") else _launched(box, job["launch"]))
+        if job.get("launch"):
+            energy_fn = lennard_jones_fused(
+                disp, box, r_onset=2.0, r_cutoff=2.5,
+                backend=_launched(job["launch"]))
+        forces = jax.jit(jax.grad(energy_fn))
         t = _harness.time_calls(forces, inputs, **timing)
         pairs = 2 * float(energy_fn.sums(R).count) / n
         # order, 3 coordinates, the runs in; 3 forces and 4 sums out
@@ -144,26 +149,13 @@ def run_row(job: dict) -> dict:
             "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
 
 
-def _launched(box, launch: str):
-    """The fused kernel's forces with another launch shape (``"block x
-    warps"``, e.g. ``"64x2"``): the private walk of
-    `jaxrt.energy.fused._Cell`, on the grid that ``sums`` would build."""
-    import jax
-    import jax.numpy as jnp
-    from jaxrt.energy import fused
-    block, warps = (int(v) for v in launch.split("x"))
-    params = _grid(box)
-
-    @jax.jit
-    def forces(R):
-        order, runs = fused.cell_runs(R, params)
-        one = jnp.asarray(1.0, R.dtype)
-        f = fused._Cell._kernel_walk(
-            fused._wrap(R, params)[order], fused.kernel_runs(runs),
-            jnp.full((3,), box, R.dtype), one, one, None, order, params,
-            False, block=block, warps=warps)[0]
-        return jnp.zeros_like(R).at[order].set(f)
-    return forces
+def _launched(launch: str):
+    """The fused cell backend of ``"BLOCKxWARPS[xTILE]"`` (e.g. ``"64x2"``,
+    ``"32x4x32"``): the kernel with that launch (CUDA only)."""
+    from jaxrt.energy.fused import _Cell
+    block, warps, *tile = (int(v) for v in launch.split("x"))
+    return _Cell(kernel="pallas", block=block, warps=warps,
+                 tile=tile[0] if tile else 0)
 
 
 COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",
@@ -215,9 +207,10 @@ def main(argv=None) -> None:
     parser.add_argument("--kernels", nargs="*", default=["auto", "xla"],
                         help="Cell(kernel=...) values of the search rows")
     parser.add_argument("--launches", nargs="*", default=[],
-                        help="extra fused rows with other launch shapes of "
-                        "the kernel, BLOCKxWARPS (e.g. 64x2 128x4; the "
-                        "default is 32x1); CUDA only")
+                        help="extra fused rows with other launches of the "
+                        "kernel, BLOCKxWARPS[xTILE] (e.g. 64x2, 32x4x32: "
+                        "with a tile, the cluster layout; the default is "
+                        "32x1, no tile); CUDA only")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 8000, small limit rows")
     _harness.add_common_args(parser, name="roofline.csv", repeats=10,

@@ -57,8 +57,8 @@ def _padding(n: int, block: int):
     padded = -(-n // block) * block
 
     def pad(x):
-        return jnp.pad(x, [(0, padded - n)] + [(0, 0)] * (x.ndim - 1),
-                       mode="edge")
+        return jnp.pad(x, [(0, padded - x.shape[0])]
+                       + [(0, 0)] * (x.ndim - 1), mode="edge")
     return padded, pad
 
 
@@ -202,13 +202,26 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
 
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
-              block: int = _BLOCK, warps: int = _WARPS,
+              block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
               interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
 
-    Every pair is met from both of its particles (no atomics, no list); a
-    thread keeps its particle's sums in registers while it walks its runs,
-    and stores them once.
+    Every pair is met from both of its particles (no atomics, no list); the
+    particle's sums stay in registers while its runs are walked, and are
+    stored once. Two layouts of the walk (``tile``):
+
+    - ``tile=0``, a thread per particle: each thread walks its own runs,
+      one candidate per step (loads of single values, shared by the
+      threads of a cell);
+    - ``tile=T``, clusters (GROMACS' nbnxm idea on the sorted order): a
+      program of ``block`` consecutive particles walks the union of their
+      runs in contiguous tiles of ``T`` candidates, each a coalesced load,
+      and decides all ``block x T`` pairs of the tile at once, every
+      particle keeping only the candidates of its own runs. It tests more
+      pairs than it keeps (the union is wider than each run), but with
+      vector loads and no divergence; gaps in the union that no particle
+      of the program needs (a program spanning two rows of cells) are
+      jumped.
 
     Args:
       sorted_cart: float ``(N, dim)`` wrapped Cartesian positions, sorted
@@ -229,6 +242,8 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         particle's vector sum gains ``g (x_i - x_j)``) and a tuple of
         ``n_sums`` scalar terms, all zero where ``valid`` is false.
       block, warps: particles per program and warps per program.
+      tile: 0, or the candidates per tile of the cluster layout (a power
+        of two, as ``block``).
       interpret: run in Pallas' interpreter (any backend; for tests).
     Returns:
       float ``(N, dim)`` vector sums and float ``(n_sums, N)`` scalar sums,
@@ -236,10 +251,21 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     """
     n, dim = sorted_cart.shape
     dtype = sorted_cart.dtype
+    for name, value in (("block", block), ("tile", tile)):
+        if value < 0 or value & (value - 1) or (name == "block" and not value):
+            raise ValueError(f"pair_sums: {name}={value} must be a power of "
+                             "two (Triton's blocks are)" + (" or 0." if name
+                                                            == "tile" else "."))
     padded, pad = _padding(n, block)
     extra = padded - n
+    if tile:
+        # A tile from any run's start stays in the arrays (a dynamic slice
+        # past the end would be clamped back onto other particles).
+        padded_j, pad_j = _padding(n + tile, block)
+    else:
+        padded_j, pad_j = padded, pad
 
-    coords = [pad(sorted_cart[:, a]) for a in range(dim)]
+    coords = [pad_j(sorted_cart[:, a]) for a in range(dim)]
     start1, len1, start2, len2 = sorted_runs
     starts = jnp.concatenate([start1, start2], axis=1)
     lengths = jnp.concatenate([len1, len2], axis=1)
@@ -251,11 +277,12 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     geometry = jnp.concatenate([side.astype(dtype),
                                 (1.0 / side).astype(dtype)])
     scalars = jnp.asarray(scalars, dtype).reshape(-1)
-    extras = [pad(jnp.asarray(p, dtype)) for p in per_particle]
+    extras = [pad_j(jnp.asarray(p, dtype)) for p in per_particle]
     kernel = functools.partial(
-        _sum_walk, n=n, dim=dim, periodic=periodic, block=block,
-        runs=starts.shape[0], n_extras=len(extras), n_sums=n_sums,
-        n_scalars=scalars.shape[0], pair_terms=pair_terms)
+        _tile_walk if tile else _sum_walk, n=n, dim=dim, periodic=periodic,
+        block=block, runs=starts.shape[0], n_extras=len(extras),
+        n_sums=n_sums, n_scalars=scalars.shape[0], pair_terms=pair_terms,
+        **({"tile": tile} if tile else {}))
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
     sums = pl.pallas_call(
@@ -317,6 +344,79 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
             return vector + tuple(t + u for t, u in zip(acc[dim:], terms))
 
         return jax.lax.fori_loop(0, jnp.max(length), step, acc)
+
+    acc = jax.lax.fori_loop(0, runs, walk_run, (zero,) * (dim + n_sums))
+    for ref, value in zip(out_refs, acc):
+        ref[lanes] = value
+
+
+def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
+               runs, n_extras, n_sums, n_scalars, pair_terms, tile):
+    """One program of `pair_sums`' cluster layout: ``block`` consecutive
+    sorted particles against tiles of ``tile`` consecutive candidates.
+
+    Refs as `_sum_walk`'s; the coordinates and per-particle values are
+    padded to hold a whole tile from any run's start.
+    """
+    coord_refs = refs[:dim]
+    starts_ref, lengths_ref = refs[dim:dim + 2]
+    extra_refs = refs[dim + 2:dim + 2 + n_extras]
+    out_refs = refs[dim + 2 + n_extras:]
+    first = pl.program_id(0) * block
+    lanes = pl.ds(first, block)
+    me = (first + jnp.arange(block, dtype=jnp.int32))[:, None]
+    mine = [ref[lanes][:, None] for ref in coord_refs]
+    mine_extra = tuple(ref[lanes][:, None] for ref in extra_refs)
+    side = [geometry_ref[a] for a in range(dim)]
+    inverse_side = [geometry_ref[dim + a] for a in range(dim)]
+    scalars = tuple(scalars_ref[k] for k in range(n_scalars))
+    dtype = mine[0].dtype
+    zero = jnp.zeros((block,), dtype)
+    offsets = jnp.arange(tile, dtype=jnp.int32)[None, :]
+    big = jnp.int32(2 ** 30)
+
+    def walk_run(r, acc):
+        start = starts_ref[r, lanes]
+        end = start + lengths_ref[r, lanes]
+        empty = end <= start
+        start_flat = jnp.where(empty, big, start)
+        end_flat = jnp.where(empty, 0, end)
+        lo, hi = jnp.min(start_flat), jnp.max(end_flat)
+        start, end = start[:, None], end[:, None]
+
+        def visit(base, acc):
+            j = base + offsets
+            valid = (j >= start) & (j < end) & (j != me)
+            d2 = jnp.zeros((block, tile), dtype)
+            d = []
+            for a in range(dim):
+                da = mine[a] - coord_refs[a][pl.ds(base, tile)][None, :]
+                if periodic[a]:
+                    da = da - side[a] * jnp.floor(da * inverse_side[a] + 0.5)
+                d.append(da)
+                d2 = d2 + da * da
+            theirs = tuple(ref[pl.ds(base, tile)][None, :]
+                           for ref in extra_refs)
+            g, terms = pair_terms(jnp.where(valid, d2, 0), valid, scalars,
+                                  mine_extra, theirs, tuple(d))
+            vector = tuple(v + jnp.sum(g * da, axis=1)
+                           for v, da in zip(acc[:dim], d))
+            return vector + tuple(s + jnp.sum(t, axis=1)
+                                  for s, t in zip(acc[dim:], terms))
+
+        def next_tile(carry):
+            base, acc = carry
+            acc = visit(base, acc)
+            # The next candidate that a run of the program still needs: a
+            # program whose particles lie in two rows of cells jumps the
+            # gap between their runs instead of walking it.
+            after = base + tile
+            wanted = jnp.where(end_flat > after,
+                               jnp.maximum(start_flat, after), big)
+            return jnp.min(wanted), acc
+
+        return jax.lax.while_loop(lambda carry: carry[0] < hi, next_tile,
+                                  (lo, acc))[1]
 
     acc = jax.lax.fori_loop(0, runs, walk_run, (zero,) * (dim + n_sums))
     for ref, value in zip(out_refs, acc):

@@ -24,6 +24,7 @@ from jax_md import energy as jmd_energy
 from jax_md import partition, space
 
 import jaxrt
+from jaxrt.energy.fused import _Cell
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           lennard_jones_fused, lennard_jones_neighbor_list,
                           lennard_jones_perse_step, lennard_jones_truncated)
@@ -35,8 +36,13 @@ ON_GPU = jax.default_backend() in ("gpu", "cuda")
 KERNEL = jaxrt.backends.Cell(kernel="pallas" if ON_GPU else "interpret")
 
 
+# The same kernel in its cluster layout (tiles of candidates per program of
+# particles), small tiles so that several are walked per run.
+TILES = _Cell(kernel=KERNEL.kernel, block=16, tile=16)
+
+
 def pick(backend):
-    return KERNEL if backend == "kernel" else backend
+    return {"kernel": KERNEL, "tiles": TILES}.get(backend, backend)
 
 E_RTOL, F_RTOL = 1e-12, 1e-10
 SLOW = pytest.mark.slow
@@ -105,6 +111,9 @@ def close(a, b, rtol):
     ("bvh", "periodic"), ("brute", "slab"), ("cell", "periodic"),
     ("kernel", "periodic"), pytest.param("kernel", "slab", marks=SLOW),
     pytest.param("kernel", "free", marks=SLOW),
+    pytest.param("tiles", "periodic", marks=SLOW),
+    pytest.param("tiles", "slab", marks=SLOW),
+    pytest.param("tiles", "free", marks=SLOW),
     pytest.param("cell", "free", marks=SLOW),
     pytest.param("cell", "slab", marks=SLOW),
     pytest.param("bvh", "free", marks=SLOW), pytest.param("bvh", "slab", marks=SLOW),
@@ -147,6 +156,7 @@ def test_energy_matches_jax_md_float64(x64, backend):
     ("cell", "periodic"), pytest.param("cell", "free", marks=SLOW),
     pytest.param("kernel", "periodic", marks=SLOW),
     pytest.param("kernel", "free", marks=SLOW),
+    pytest.param("tiles", "periodic", marks=SLOW),
     pytest.param("brute", "periodic", marks=SLOW),
     pytest.param("brute", "free", marks=SLOW)])
 def test_radii_match_list_path(x64, backend, geometry):
@@ -182,7 +192,8 @@ def test_parameter_gradients_match_list_path(x64, backend):
     assert all(np.all(np.isfinite(b)) for b in both)
 
 
-@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell", "kernel"))
+@pytest.mark.parametrize("backend", BRUTE_SLOW + ("cell", "kernel", pytest.param(
+    "tiles", marks=SLOW)))
 def test_coincident_and_exact_cutoff_pairs(x64, backend):
     side = 10.0
     R = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0],   # coincident
@@ -203,7 +214,8 @@ def test_coincident_and_exact_cutoff_pairs(x64, backend):
 
 
 @pytest.mark.parametrize("backend", BRUTE_SLOW + (
-    "cell", pytest.param("kernel", marks=SLOW)))
+    "cell", pytest.param("kernel", marks=SLOW),
+    pytest.param("tiles", marks=SLOW)))
 def test_jit_scan_and_2d(x64, backend):
     R, side = fluid(n_side=10, dim=2)
     R = jnp.asarray(R)
@@ -223,8 +235,9 @@ def test_jit_scan_and_2d(x64, backend):
 
 @pytest.mark.parametrize("backend, side_over_cutoff", [
     *[("cell", s) for s in (2.05, 2.6, 3.4, 7.0)],
-    ("kernel", 2.05),
-    *[pytest.param("kernel", s, marks=SLOW) for s in (2.6, 3.4, 7.0)]])
+    ("kernel", 2.05), ("tiles", 3.4),
+    *[pytest.param("kernel", s, marks=SLOW) for s in (2.6, 3.4, 7.0)],
+    *[pytest.param("tiles", s, marks=SLOW) for s in (2.05, 2.6, 7.0)]])
 def test_cell_small_periodic_boxes_count_each_pair_once(x64, backend,
                                                         side_over_cutoff):
     """Boxes of 2 to 7 cutoffs: the grid has one to a few cells across, so
@@ -309,7 +322,7 @@ def test_bad_arguments_raise():
 
 @pytest.mark.parametrize("backend, geometry", [
     ("bvh", "periodic"), ("bvh", "free"), ("kernel", "periodic"),
-    pytest.param("kernel", "free", marks=SLOW)])
+    pytest.param("kernel", "free", marks=SLOW), ("tiles", "free")])
 def test_float32_within_tolerance(geometry, backend):
     R, side = fluid()
     displacement, box, periodic = GEOMETRIES[geometry](side)

@@ -163,24 +163,30 @@ def lj_terms(d2, sigma, epsilon, r_onset, r_cutoff, sigma_base):
       Eq. 4 drops a factor 2) and derivatives in ``sigma_base`` and
       ``epsilon``. Zero where ``d2 == 0`` or beyond ``r_cutoff``.
     """
+    # Squared distances throughout: no square root, one reciprocal (the
+    # kernels' issue rate, not memory, bounds them). jax-md takes sqrt(d2)
+    # first; the switch is C1 at both ends, so comparing d2 with r_onset^2
+    # rather than dr with r_onset moves nothing but rounding.
     positive = d2 > 0
     d2 = jnp.where(positive, d2, 1)
-    dr = jnp.sqrt(d2)
-    idr = sigma / dr
-    idr = idr * idr
+    inverse = 1 / d2
+    idr = sigma * sigma * inverse
     idr6 = idr * idr * idr
     idr12 = idr6 * idr6
     lj_unit = 4 * (idr12 - idr6)
-    lj = 4 * epsilon * (idr12 - idr6)
+    lj = epsilon * lj_unit
     repulsion = 24 * (2 * idr12 - idr6)
-    rc2, ro2, u = r_cutoff * r_cutoff, r_onset * r_onset, dr * dr
-    denom = (rc2 - ro2) * (rc2 - ro2) * (rc2 - ro2)
-    before, inside = dr < r_onset, dr < r_cutoff
+    rc2, ro2 = r_cutoff * r_cutoff, r_onset * r_onset
+    width = rc2 - ro2
+    inverse_cube = 1 / (width * width * width)
+    before, inside = d2 < ro2, d2 < rc2
+    gap = rc2 - d2
     switch = jnp.where(before, 1, jnp.where(
-        inside, (rc2 - u) * (rc2 - u) * (rc2 + 2 * u - 3 * ro2) / denom, 0))
-    dswitch = jnp.where(before | ~inside, 0, -6 * (rc2 - u) * (u - ro2) / denom)
+        inside, gap * gap * (rc2 + 2 * d2 - 3 * ro2) * inverse_cube, 0))
+    dswitch = jnp.where(before | ~inside, 0,
+                        -6 * gap * (d2 - ro2) * inverse_cube)
     e = switch * lj
-    g = switch * epsilon * repulsion / d2 - 2 * dswitch * lj
+    g = switch * epsilon * repulsion * inverse - 2 * dswitch * lj
     ds = switch * epsilon * repulsion / sigma_base
     de = switch * lj_unit
     return tuple(jnp.where(positive, t, 0) for t in (e, g, ds, de))
@@ -203,13 +209,17 @@ class _Backend:
     ``sums(R3, sigma, epsilon, radii, params)`` with R3 float ``(N, 3)``
     (zero-padded Cartesian positions), sigma and epsilon float scalars in
     R3's dtype, radii float ``(N,)`` or None, ``params`` the static
-    `_Params`; returns `FusedSums`. ``perse`` (optional) is one fused
-    leapfrog step; backends without one get the leapfrog from ``sums``.
+    `_Params`; returns `FusedSums`. ``derivatives=False`` says that
+    nothing differentiates in sigma or epsilon: a backend may then leave
+    ``d_sigma`` and ``d_epsilon`` at zero and skip their terms. ``perse``
+    (optional) is one fused leapfrog step; backends without one get the
+    leapfrog from ``sums``.
     """
 
     name: str
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
+    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+             derivatives: bool = True) -> FusedSums:
         raise NotImplementedError
 
     def perse(self, R3, V3, sigma, epsilon, dt, mass, params: _Params):
@@ -242,7 +252,8 @@ class _Brute(_Backend):
     block: int | None = None
     name: str = "brute"
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
+    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+             derivatives: bool = True) -> FusedSums:
         n = R3.shape[0]
         block = self.block or max(1, min(n, 2 ** 21 // max(n, 1)))
         n_blocks = -(-n // block)
@@ -301,6 +312,12 @@ class _Cell(_Backend):
 
     kernel: str = "auto"
     name: str = "cell"
+    # The kernel's launch (`jaxrt._cell_kernel.pair_sums`): particles and
+    # warps per program, and the cluster layout's tile (0: a thread per
+    # particle). benchmarks/roofline.py measures the choices.
+    block: int = 32
+    warps: int = 1
+    tile: int = 0
 
     def __post_init__(self):
         from jaxrt import _cell_kernel
@@ -318,20 +335,23 @@ class _Cell(_Backend):
                 f"default backend is {jax.default_backend()!r}; use "
                 "Cell(kernel='auto') (the kernel where it can run) or 'xla'.")
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
+    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+             derivatives: bool = True) -> FusedSums:
         from jaxrt import _cell_kernel
         dtype = R3.dtype
         order, runs = cell_runs(R3, params)
 
         def portable():
             return self._walk(R3[order], runs, sigma, epsilon,
-                              None if radii is None else radii[order], params)
+                              None if radii is None else radii[order], params,
+                              derivatives)
 
         def kernel(interpret=False):
             return self._kernel_walk(
                 _wrap(R3, params)[order], kernel_runs(runs),
                 jnp.asarray(params.side, dtype), sigma, epsilon, radii, order,
-                params, interpret)
+                params, interpret, derivatives, block=self.block,
+                warps=self.warps, tile=self.tile)
 
         if self.kernel == "xla" or (self.kernel == "auto"
                                     and _cell_kernel.pl is None):
@@ -349,7 +369,8 @@ class _Cell(_Backend):
                          jnp.zeros((), jnp.int32))
 
     @staticmethod
-    def _walk(Ri, runs, sigma, epsilon, cut_i, params: _Params):
+    def _walk(Ri, runs, sigma, epsilon, cut_i, params: _Params,
+              derivatives: bool = True):
         """The array-program walk (`walk_runs`): per-particle sums, sorted
         order."""
         n, dtype = Ri.shape[0], Ri.dtype
@@ -367,9 +388,11 @@ class _Cell(_Backend):
                                        sigma * scale, epsilon,
                                        params.r_onset * scale, rc * scale,
                                        sigma)
+            if derivatives:
+                ds = ds + jnp.sum(tds, axis=1)
+                de = de + jnp.sum(tde, axis=1)
             return (forces + jnp.sum(g[..., None] * d, axis=1),
-                    e + jnp.sum(te, axis=1), ds + jnp.sum(tds, axis=1),
-                    de + jnp.sum(tde, axis=1),
+                    e + jnp.sum(te, axis=1), ds, de,
                     c + jnp.sum(keep, axis=1, dtype=jnp.int32))
 
         zeros = jnp.zeros((n,), dtype)
@@ -380,10 +403,12 @@ class _Cell(_Backend):
 
     @staticmethod
     def _kernel_walk(sorted_cart, runs, side, sigma, epsilon, radii, order,
-                     params: _Params, interpret: bool, **launch):
+                     params: _Params, interpret: bool,
+                     derivatives: bool = True, **launch):
         """`jaxrt._cell_kernel.pair_sums` with the LJ terms: per-particle
-        sums, sorted order. ``launch``: its ``block`` and ``warps``
-        (benchmarks/roofline.py tunes them)."""
+        sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
+        ``derivatives``). ``launch``: its launch options (``block``,
+        ``warps``, ``tile``; benchmarks/roofline.py tunes them)."""
         from jaxrt import _cell_kernel
         dtype = sorted_cart.dtype
         r_cutoff, r_onset = params.r_cutoff, params.r_onset
@@ -400,16 +425,22 @@ class _Cell(_Backend):
             e, g, ds, de = lj_terms(jnp.where(keep, d2, 0), sigma * scale,
                                     epsilon, r_onset * scale,
                                     r_cutoff * scale, sigma)
-            return g, (e, ds, de, keep.astype(d2.dtype))
+            count = keep.astype(d2.dtype)
+            return g, (e, ds, de, count) if derivatives else (e, count)
 
         # No tangent may reach the kernel: the custom_vjp differentiates.
         sorted_cart, side, sigma, epsilon = jax.lax.stop_gradient(
             (sorted_cart, side, sigma, epsilon))
-        forces, (e, ds, de, c) = _cell_kernel.pair_sums(
+        forces, sums = _cell_kernel.pair_sums(
             sorted_cart, runs, side, jnp.stack([sigma, epsilon]).astype(dtype),
             () if not has_radii else (radii[order],),
-            periodic=params.periodic, pair_terms=terms, n_sums=4,
-            interpret=interpret, **launch)
+            periodic=params.periodic, pair_terms=terms,
+            n_sums=4 if derivatives else 2, interpret=interpret, **launch)
+        if derivatives:
+            e, ds, de, c = sums
+        else:
+            (e, c), ds = sums, jnp.zeros_like(sums[0])
+            de = ds
         return forces, e, ds, de, c
 
 
@@ -558,7 +589,8 @@ class _Bvh(_Backend):
         values[orcs.DT], values[orcs.MASS] = dt, mass
         return jnp.stack([jnp.asarray(v, dtype) for v in values])
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params) -> FusedSums:
+    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+             derivatives: bool = True) -> FusedSums:
         dtype = R3.dtype
         reach = jnp.zeros((1,), dtype) if radii is None else radii
         side = jnp.asarray(params.side, dtype)[None, :]
@@ -582,6 +614,8 @@ class _Bvh(_Backend):
 
 def _backend(backend) -> _Backend:
     from jaxrt.rt import ffi
+    if isinstance(backend, _Cell):  # launch options (tests, benchmarks)
+        return backend
     if isinstance(backend, ffi.Bvh):
         return _Bvh(backend)
     if backend == "bvh":
@@ -756,8 +790,9 @@ def _make_energy(backend: _Backend, params: _Params, dim: int) -> Callable:
     def padded(R):
         return jnp.pad(R, ((0, 0), (0, 3 - dim)))
 
-    def run(R, sigma, epsilon, radii):
-        s = backend.sums(padded(R), sigma, epsilon, radii, params)
+    def run(R, sigma, epsilon, radii, derivatives=True):
+        s = backend.sums(padded(R), sigma, epsilon, radii, params,
+                         derivatives=derivatives)
         error = s.error | _input_errors(R, radii, params.bound)
         nan = jnp.asarray(jnp.nan, R.dtype)
         poison = error != 0
@@ -771,16 +806,23 @@ def _make_energy(backend: _Backend, params: _Params, dim: int) -> Callable:
         return run(R, sigma, epsilon, radii)[0]
 
     def forward(R, sigma, epsilon, radii):
-        R, sigma, epsilon = _first_order_only((R, sigma, epsilon))
-        e, (forces, ds, de) = run(R, sigma, epsilon, radii)
+        # Symbolic zeros say whether sigma or epsilon is differentiated: an
+        # MD step's forces skip their terms (a third of the kernel's work).
+        derivatives = sigma.perturbed or epsilon.perturbed
+        R, sigma, epsilon = _first_order_only((R.value, sigma.value,
+                                               epsilon.value))
+        radii = None if radii is None else radii.value
+        e, (forces, ds, de) = run(R, sigma, epsilon, radii, derivatives)
         return e, (forces, ds, de, radii)
 
     def backward(res, g):
         forces, ds, de, radii = res
+        if isinstance(g, jax.custom_derivatives.SymbolicZero):
+            g = jnp.zeros((), forces.dtype)
         return (-g * forces, g * ds, g * de,
                 None if radii is None else jnp.zeros_like(radii))
 
-    energy.defvjp(forward, backward)
+    energy.defvjp(forward, backward, symbolic_zeros=True)
     return energy
 
 
