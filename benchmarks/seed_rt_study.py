@@ -8,8 +8,9 @@ the headline table and the plots.
 
     python benchmarks/seed_rt_study.py --plan                         # dry run
     python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-    python benchmarks/seed_rt_study.py --time-budget 470 --hard-stop 505 \\
-        --timeout 100                                                 # GPU
+    python benchmarks/seed_rt_study.py --part 1/5 --time-budget 450 \\
+        --hard-stop 520 --timeout 240 --out DIR/part1                 # GPU, per part
+    python benchmarks/seed_rt_study.py --plot-only DIR/part*/seed_rt_study.csv --out DIR
 """
 from __future__ import annotations
 
