@@ -72,8 +72,8 @@ def release_memory() -> None:
     """Drop what jaxrt keeps between calls, before the next method runs:
     the kept BVHs (`jaxrt.rt.ffi.forget_trees`) and the last scene of the
     spheres / squares methods (their ``_scene``, held by the method objects
-    that `jaxrt.rt.ffi` keeps per options value; an internal, looked up
-    defensively)."""
+    that `jaxrt.rt.ffi` keeps per options value, for the lists and the
+    fused mode; an internal, looked up defensively)."""
     import gc
     try:
         from jaxrt.rt import ffi
@@ -81,7 +81,8 @@ def release_memory() -> None:
         gc.collect()
         return
     ffi.forget_trees()
-    for entry in list(getattr(ffi, "_METHOD_CALLABLES", {}).values()):
+    for entry in [*getattr(ffi, "_METHOD_CALLABLES", {}).values(),
+                  *getattr(ffi, "_FUSED_CALLABLES", {}).values()]:
         method = entry[0] if isinstance(entry, tuple) else entry
         if hasattr(method, "_scene"):
             method._scene = None
