@@ -136,9 +136,9 @@ def main(argv=None) -> None:
         return
     if args.part is not None:
         planned, skipped = plan.select_part(planned, skipped, args)
-        print(f"part {args.part[0]} of the plan above (--plan lists all parts):")
+        print(f"part {args.part[0]} of the plan (--plan lists all parts):")
         plan.print_plan(planned, skipped, argparse.Namespace(
-            **{**vars(args), "part_budget": 0}))
+            **{**vars(args), "part_budget": 0}), first_part=args.part[0])
     order = {(s, a, p): i for i, (s, a, p) in enumerate(plan.universe(args.small))}
 
     def finish(rows: list[dict]) -> None:

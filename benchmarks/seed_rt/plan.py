@@ -320,9 +320,11 @@ def parse_part(text: str) -> tuple[int, int | None]:
         raise SystemExit(f"--part {text!r}: give K or K/M (e.g. --part 3/12)")
 
 
-def print_plan(planned: list[dict], skipped: list[dict], args) -> None:
+def print_plan(planned: list[dict], skipped: list[dict], args,
+               first_part: int = 1) -> None:
     """The job order, one line per configuration (or per piece of one that
-    parts split), with its part when ``args.part_budget`` is set."""
+    parts split), with its part (numbered from ``first_part``) when
+    ``args.part_budget`` is set."""
     parts = split_parts(planned, args) if args.part_budget else [planned]
     n_configs = len({(c["scene"], c["param"], c["p"]) for c in planned})
     n_jobs = sum(len(c["methods"]) for c in planned)
@@ -335,7 +337,7 @@ def print_plan(planned: list[dict], skipped: list[dict], args) -> None:
           f"{'N':>10} {'k~':>5} {'jobs':>4} {'est s':>6} {'cum s':>6}")
     i = 0
     totals = []
-    for k, part in enumerate(parts, 1):
+    for k, part in enumerate(parts, first_part):
         cum = GUESS_STARTUP_S
         for c in part:
             est = GUESS_WORKER_S + sum(guess_job_s(c["scene"], c["param"], c["p"], m, args)
@@ -355,7 +357,7 @@ def print_plan(planned: list[dict], skipped: list[dict], args) -> None:
     if args.part_budget:
         print(f"{len(parts)} parts under --part-budget {args.part_budget:g} s "
               f"(guessed): " + ", ".join(f"{k}: {t:.0f} s" for k, t in
-                                         enumerate(totals, 1))
+                                         enumerate(totals, first_part))
               + f"; total {sum(totals):.0f} s")
     reasons: dict = {}
     for r in skipped:
