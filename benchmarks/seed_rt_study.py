@@ -8,8 +8,9 @@ the headline table and the plots.
 
     python benchmarks/seed_rt_study.py --plan                         # dry run
     python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-    python benchmarks/seed_rt_study.py --time-budget 470 --hard-stop 505 \\
-        --timeout 100                                                 # GPU
+    python benchmarks/seed_rt_study.py --part 1/5 --time-budget 450 \\
+        --hard-stop 520 --timeout 240 --out DIR/part1                 # GPU, per part
+    python benchmarks/seed_rt_study.py --plot-only DIR/part*/seed_rt_study.csv --out DIR
 """
 from __future__ import annotations
 
@@ -25,9 +26,11 @@ import seed_rt  # noqa: E402
 from seed_rt import plan, report  # noqa: E402
 
 COLUMNS = ["scene", "param", "p", "N", "tier", "cutoff", "method", "init_ms",
-           "compute_ms", "search_ms", "total_ms", "speedup_vs_jaxmd",
-           "speedup_vs_cell", "k_mean", "capacity", "overflow", "init_reps",
-           "compute_reps", "search_reps"]
+           "compute_ms", "search_ms", "total_ms", "build_ms", "query_ms",
+           "interaction_ms", "paper_init_ms", "paper_compute_ms",
+           "speedup_vs_jaxmd", "speedup_vs_cell", "k_mean", "pairs",
+           "energy_sum", "capacity", "overflow", "init_reps", "compute_reps",
+           "search_reps", "build_reps", "query_reps", "interaction_reps"]
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -36,7 +39,17 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="print the job order with N and an H100 time guess; run nothing")
     parser.add_argument("--small", action="store_true",
                         help="CPU smoke: beta in {4,8}, alpha in {8,16}, p in {1,4}")
-    parser.add_argument("--max-n", type=float, default=2e7)
+    parser.add_argument("--max-n", type=float, default=7e7,
+                        help="skip configurations with more particles (default: "
+                             "none of the seed's 60 is skipped)")
+    parser.add_argument("--part", type=plan.parse_part, default=None, metavar="K[/M]",
+                        help="run only part K of the plan cut by --part-budget "
+                             "(--plan lists the parts; M, if given, must match)")
+    parser.add_argument("--part-budget", type=float, default=480.0,
+                        help="guessed seconds per part, start-up included (--plan, --part)")
+    parser.add_argument("--no-split", dest="split", action="store_false",
+                        help="skip the Warp build-only / query-only timings "
+                             "(build_ms, query_ms)")
     parser.add_argument("--methods", nargs="+", default=list(plan.METHODS),
                         choices=list(plan.METHODS))
     parser.add_argument("--scenes", nargs="+", default=list(plan.SCENES),
@@ -73,7 +86,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "crash hang error oom")
     parser.add_argument("--out", default=None,
                         help="folder (default benchmarks/results/<device>/seed_rt/)")
-    parser.add_argument("--plot-only", metavar="CSV", default=None)
+    parser.add_argument("--plot-only", metavar="CSV", nargs="+", default=None,
+                        help="report from these CSVs (the parts' files are merged: "
+                             "per row, a measured one wins over a skipped one)")
     return parser.parse_args(argv)
 
 
@@ -92,7 +107,8 @@ def jobs_of(planned: list[dict], args) -> list[dict]:
                    "N": c["N"], "tier": c["tier"], "method": m,
                    "target_s": args.target_s, "min_repeats": args.min_repeats,
                    "max_repeats": args.max_repeats, "search": args.search,
-                   "search_limit_ms": args.search_limit_ms, "_group": key}
+                   "search_limit_ms": args.search_limit_ms, "split": args.split,
+                   "_group": key}
             if f"{key}:{m}" in faults:
                 job["_inject"] = faults[f"{key}:{m}"]
             jobs.append(job)
@@ -102,17 +118,27 @@ def jobs_of(planned: list[dict], args) -> list[dict]:
 def main(argv=None) -> None:
     args = parse_args(argv)
     if args.plot_only:
-        rows = _harness.read_csv(args.plot_only)
-        folder = Path(args.out) if args.out else Path(args.plot_only).parent
+        rows = merge_rows([_harness.read_csv(p) for p in args.plot_only])
+        folder = Path(args.out) if args.out else Path(args.plot_only[0]).parent
         folder.mkdir(parents=True, exist_ok=True)
+        if len(args.plot_only) > 1:
+            _harness.write_csv(rows, str(folder / "seed_rt_study.csv"))
+            print("merged", len(args.plot_only), "CSVs into",
+                  folder / "seed_rt_study.csv")
         report.report(rows, folder)
         return
 
     t0 = time.monotonic()
     planned, skipped = plan.build_plan(args)
-    plan.print_plan(planned, skipped, args)
+    if args.plan or args.part is None:
+        plan.print_plan(planned, skipped, args)
     if args.plan:
         return
+    if args.part is not None:
+        planned, skipped = plan.select_part(planned, skipped, args)
+        print(f"part {args.part[0]} of the plan (--plan lists all parts):")
+        plan.print_plan(planned, skipped, argparse.Namespace(
+            **{**vars(args), "part_budget": 0}), first_part=args.part[0])
     order = {(s, a, p): i for i, (s, a, p) in enumerate(plan.universe(args.small))}
 
     def finish(rows: list[dict]) -> None:
@@ -140,6 +166,26 @@ def main(argv=None) -> None:
         table=False)
     report.report(_harness.read_csv(str(path)), path.parent)
     print(f"elapsed {time.monotonic() - t0:.0f} s")
+
+
+def merge_rows(tables: list[list[dict]]) -> list[dict]:
+    """One row per (scene, param, p, method): the measured (or failed) row
+    of whichever part ran it, else a skipped one; in the first table's
+    order, then the rest."""
+    best: dict = {}
+    for rows in tables:
+        for r in rows:
+            key = (r["scene"], str(r["param"]), str(r["p"]), r["method"])
+            if key not in best or (best[key].get("status") == "skipped"
+                                   and r.get("status") != "skipped"):
+                best[key] = r
+    rows = list(best.values())
+    order = {(s, a, p): i for i, (s, a, p) in enumerate(plan.universe(False))}
+    rows.sort(key=lambda r: (order.get((r["scene"], int(r["param"]), int(r["p"])),
+                                       1 << 30),
+                             list(plan.METHODS).index(r["method"])
+                             if r["method"] in plan.METHODS else 99))
+    return rows
 
 
 if __name__ == "__main__":

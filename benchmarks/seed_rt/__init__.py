@@ -24,8 +24,21 @@ layout, ``dr_threshold = 0`` so every ``update`` searches again,
   squares        jaxrt ``"squares"``        (seed's double-squares method)
   cell           jaxrt ``"cell"``           (pure-JAX cell list)
   jax-md         ``jax_md.partition.neighbor_list`` (its dense cell list)
+  aabb-sorted-fused, aabb-unsorted-fused, spheres-fused, squares-fused
+                 seed 001's fused mode (`jaxrt.rt.FusedEnergy`,
+                 `jaxrt.rt.seed_energy`): the same methods, whose
+                 intersection program sums the LJ energy during the
+                 traversal (one atomic add per ray into energy[i]); no list.
   Speed-ups in the tables and on the plots are over "jax-md", the grid
   method (the seed's CUDA grid of cells), by total time.
+
+The interaction (every method): per-particle LJ energy
+``E_i = sum_j 4 eps [(sigma^2/r2)^6 - (sigma^2/r2)^3]``, σ = C/2, ε = 1,
+r² clamped at (σ/10)² (the seed's code takes σ = ε = 1, which overflows
+float32 at C = 1/32), summed over each Dense row in JAX for the list
+methods and inside the kernels for the fused ones, with the same
+arithmetic; ``pairs`` and ``energy_sum`` let the rows of one configuration
+be checked against each other (they agree to float32 rounding).
 
 What ``update`` redoes in the compute step: spheres, squares, cell and
 jax-md rebuild their structure (BVH / grid) on every call. The two aabb
@@ -37,17 +50,34 @@ excludes the build) than the grid methods' update is.
 Columns (three rotating input sets: the scene plus two copies jittered by
 1e-3·C, clipped to the box; each timed call reads the next set, so no call
 repeats the previous input):
-  init_ms     median wall time of ``allocate(R)``: builds the search
-              structure on the host path, measures the exact capacity and
-              allocates the Dense ``(N, capacity)`` buffer (the seed's
-              "initialization step").
-  compute_ms  median wall time of one jitted call
-              ``f(R, nbrs) = (update(R, nbrs), lj_forces(R, idx))``: the
-              list search plus an LJ-like force accumulation over the pairs
-              found (σ = C/2, ε = 1, r² clamped at (σ/10)², summed over each
-              Dense row: a gather + reduction in JAX, the same code for
-              every method). The seed's "computation step".
-  search_ms   the same with ``update`` alone (no forces), for reference
+  init_ms     list methods: median wall time of ``allocate(R)``: builds
+              the search structure on the host path, measures the exact
+              capacity and allocates the Dense ``(N, capacity)`` buffer.
+              Fused methods (no list): their build_ms.
+  compute_ms  list methods: median wall time of one jitted call
+              ``f(R, nbrs) = (update(R, nbrs), lj_energy(R, idx))``: the
+              list search plus the energy sum over the pairs found (a
+              gather + reduction in JAX, the same code for every method).
+              Fused methods: one jitted ``FusedEnergy`` call (aabb: refit
+              of the kept tree + rays; spheres / squares: build + rays).
+  build_ms, query_ms
+              Warp methods only (SPECS §7.2, the seed's own split): the
+              structure alone (aabb: extent, Morton sort, placement, boxes,
+              BVH rebuild; spheres / squares: survey, primitive boxes, new
+              BVH) and the rays alone on it (fused: with the interactions;
+              list: writing the Dense rows), timed in Warp outside JAX with
+              a device synchronise per sample (``--no-split`` skips them).
+  interaction_ms
+              list methods: the jitted JAX energy sum alone over the
+              allocate'd list (the seed's CUDA compute step is its
+              interaction kernel).
+  paper_init_ms, paper_compute_ms
+              the seed's init / compute: build_ms, and query_ms (+
+              interaction_ms for a list method).
+  pairs, energy_sum
+              ordered pairs found and the float64 sum of the per-particle
+              energies, on the first input set.
+  search_ms   the same with ``update`` alone (no energy), for reference
               (empty with ``--no-search``, or when compute_ms is above
               ``--search-limit-ms``; search_reps is then 0).
   total_ms    init_ms + compute_ms (what the bars stack).
@@ -87,8 +117,22 @@ methods of a configuration back to back:
   tier 4  p = 4 (the rest).
 The smallest configurations (N <= 2048) are dominated by fixed per-call
 overheads whatever the method; they come last inside each tier.
-Every row of the seed's grid is written to the CSV; rows not run say why.
-``--plan`` prints the order with N and a rough H100 time guess and exits.
+Every row of the seed's grid (60 configurations x 10 methods = 600 rows)
+is written to the CSV; rows not run say why. Jobs certain to fail are not
+run (`seed_rt.plan.refusal`): a Dense list whose mean row alone passes
+what the method can index (2**29 entries for the Warp lists, 2**31 for
+cell and jax-md; sphere α = 64, p >= 16 and α = 128, p >= 8), and
+squares at α = 128, p = 32 (4N triangle boxes pass Warp's 32-bit byte
+offsets). The fused methods run those configurations.
+``--plan`` prints the order with N, a rough H100/H200 time guess and the
+parts, and exits.
+
+Parts. ``--part K`` (or ``K/M``, checked against the plan) runs the K-th
+of the consecutive parts that ``--part-budget`` seconds (default 480,
+start-up included, by the guess) cut the plan into, largest first; a
+configuration is split over parts only if it alone exceeds the budget.
+Each part writes its own CSV; ``--plot-only CSV...`` merges them
+(benchmarks/RESULTS.md gives the GPU commands).
 
 Isolation (`_harness`). The methods of one configuration run back to back
 in one worker process, which keeps the configuration's inputs on the
@@ -104,8 +148,9 @@ in case the whole run is killed.
 Usage:
   python benchmarks/seed_rt_study.py --plan                         # dry run
   python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-  python benchmarks/seed_rt_study.py --time-budget 470 --hard-stop 505 \\
-      --timeout 100                                                 # GPU, < 9 min
+  python benchmarks/seed_rt_study.py --part 1/5 --time-budget 450 \\
+      --hard-stop 520 --timeout 240 --out DIR/part1                 # GPU, < 9 min
+  python benchmarks/seed_rt_study.py --plot-only DIR/part*/seed_rt_study.csv --out DIR
   python benchmarks/seed_rt_study.py --configs uniform:32:1 sphere:128:8
   python benchmarks/seed_rt_study.py --plot-only results.csv [--out DIR]
 Writes seed_rt_study.csv, seed_rt_uniform.png, seed_rt_sphere.png and

@@ -12,11 +12,30 @@ METHODS = {  # column name -> jaxrt backend label (None: jax-md itself)
     "squares": "squares",
     "cell": "cell",
     "jax-md": None,
+    # Seed 001's fused mode (jaxrt.rt.FusedEnergy): the energy summed during
+    # the traversal, no list. FUSED[name] is the list method it fuses.
+    "aabb-unsorted-fused": "bvh[unsorted]",
+    "aabb-sorted-fused": "bvh",
+    "spheres-fused": "spheres",
+    "squares-fused": "squares",
 }
-# Order inside a configuration: the Warp methods first, the pure-JAX ones
-# last (JAX's pool never shrinks with preallocation off, so a huge jax-md
-# attempt goes last; Warp allocates outside JAX's pool).
-RUN_ORDER = ["aabb-sorted", "aabb-unsorted", "squares", "spheres", "cell", "jax-md"]
+FUSED = {m: m.removesuffix("-fused") for m in METHODS if m.endswith("-fused")}
+# Methods with a Warp build / query split (build_ms, query_ms columns).
+WARP_METHODS = ("aabb-unsorted", "aabb-sorted", "spheres", "squares", *FUSED)
+# Order inside a configuration: the fused methods first (no list: least
+# memory), then the Warp list methods, the pure-JAX ones last (JAX's pool
+# never shrinks with preallocation off, so a huge jax-md attempt goes last;
+# Warp allocates outside JAX's pool).
+RUN_ORDER = ["aabb-sorted-fused", "aabb-unsorted-fused", "squares-fused",
+             "spheres-fused", "aabb-sorted", "aabb-unsorted", "squares", "spheres",
+             "cell", "jax-md"]
+# Dense-list entries each list method can index (jaxrt.rt.ffi.MAX_LIST_ENTRIES
+# for the Warp kernels' 32-bit byte offsets, int32 indices otherwise): a
+# configuration whose mean row alone (times capacity_multiplier 1.25)
+# passes it is refused at allocate, so the plan skips it and says why.
+LIST_LIMIT = {"aabb-unsorted": 2 ** 29 - 1, "aabb-sorted": 2 ** 29 - 1,
+              "spheres": 2 ** 29 - 1, "squares": 2 ** 29 - 1,
+              "cell": 2 ** 31 - 1, "jax-md": 2 ** 31 - 1}
 SCENES = {"uniform": ("beta", [2, 4, 8, 16, 32]),
           "sphere": ("alpha", [8, 16, 32, 64, 128])}
 P_FULL = [1, 2, 4, 8, 16, 32]
@@ -70,6 +89,10 @@ def scene_cells(scene: str, param: int, p: int) -> float:
 _GUESS = {"aabb-sorted": (1.0, 2e-7), "aabb-unsorted": (1.0, 6e-7),
           "spheres": (1.5, 1e-6), "squares": (1.5, 4e-7),
           "cell": (2.0, 4e-7), "jax-md": (0.15, 3e-7)}
+# Fused: the list method's rays without the row writes nor the JAX sum
+# (a guess: 0.7 of its per-pair cost).
+_GUESS.update({m: (_GUESS[base][0], 0.7 * _GUESS[base][1])
+               for m, base in FUSED.items()})
 # compiles etc. per job (partial run: ~2.4 s per job on average, with a
 # cache clear per job; on CPU the cell list compiles ~3x longer than the
 # rest); a fresh worker per configuration adds GUESS_WORKER_S
@@ -78,11 +101,18 @@ _GUESS_JOB_OVERHEAD_S = {"cell": 4.0, "jax-md": 2.0}
 GUESS_STARTUP_S = 60.0       # first worker: imports, Warp kernel compiles
 
 
+def list_entries(scene: str, param: int, p: int) -> int:
+    """Dense-list entries at the mean row, N * ceil(1.25 k) (a lower bound
+    of what allocate asks for)."""
+    return n_of(param, p) * math.ceil(1.25 * k_expected(scene, param, p))
+
+
 def guess_job_s(scene: str, param: int, p: int, method: str, args) -> float:
     n = n_of(param, p)
     pairs = n * k_expected(scene, param, p)
     fixed, per_pair = _GUESS[method]
     compute = fixed + per_pair * pairs
+    build = 0.5 + 1e-6 * n * (4 if method.startswith("squares") else 1)
     if method == "jax-md":
         compute += 1.5e-7 * scene_cells(scene, param, p)
         init = 15.0 + compute
@@ -91,9 +121,15 @@ def guess_job_s(scene: str, param: int, p: int, method: str, args) -> float:
     else:
         init = 35.0 + 2.0 * compute
     total = _GUESS_JOB_OVERHEAD_S.get(method, 1.3)
-    steps = [init, compute]
-    if args.search and compute <= args.search_limit_ms:
+    # A fused method's init is its build-only time (seed_rt's docstring),
+    # measured by the split below.
+    steps = [compute] if method in FUSED else [init, compute]
+    if args.search and compute <= args.search_limit_ms and method not in FUSED:
         steps.append(0.85 * compute)
+    if method not in FUSED:
+        steps.append(0.3 + 1e-7 * pairs)  # interaction_ms: the JAX sum alone
+    if method in WARP_METHODS and getattr(args, "split", True):
+        steps += [build, compute - build if method in FUSED else 0.85 * compute]
     for t_ms in steps:
         t = t_ms / 1e3
         reps = min(max(math.ceil(args.target_s / t), args.min_repeats), args.max_repeats)
@@ -170,31 +206,166 @@ def build_plan(args) -> tuple[list[dict], list[dict]]:
         for c in planned:
             skip(c["scene"], c["param"], c["p"], c["tier"],
                  "skipped: not selected (--methods)", unselected)
+    # Jobs certain to be refused (or to break Warp's 32-bit offsets) are not
+    # run; the CSV says why.
+    for c in planned:
+        doomed = {m: why for m in c["methods"]
+                  if (why := refusal(c["scene"], c["param"], c["p"], m))}
+        for m, why in doomed.items():
+            skip(c["scene"], c["param"], c["p"], c["tier"], why, [m])
+        c["methods"] = [m for m in c["methods"] if m not in doomed]
+    planned = [c for c in planned if c["methods"]]
     return planned, skipped
 
 
-def print_plan(planned: list[dict], skipped: list[dict], args) -> None:
-    print(f"{len(planned)} configurations, {sum(len(c['methods']) for c in planned)} "
-          f"jobs, in this order (est = rough H100 guess incl. compiles; "
-          f"first worker start-up ~{GUESS_STARTUP_S:.0f} s more):")
-    print(f"{'#':>3} {'tier':>4} {'scene':7s} {'param':>9s} {'p':>3} {'N':>10} "
-          f"{'k~':>5} {'est s':>6} {'cum s':>6}")
-    cum = GUESS_STARTUP_S
-    for i, c in enumerate(planned):
-        est = GUESS_WORKER_S + sum(guess_job_s(c["scene"], c["param"], c["p"], m, args)
-                                   for m in c["methods"])
-        mark = ""
-        if cum > args.time_budget:  # it would start after the budget
-            mark = "  (after --time-budget: would be skipped)"
-        cum += est
-        pname = SCENES[c["scene"]][0]
-        print(f"{i + 1:>3} {c['tier']:>4} {c['scene']:7s} {pname + '=' + str(c['param']):>9s} "
-              f"{c['p']:>3} {c['N']:>10,} {k_expected(c['scene'], c['param'], c['p']):>5.0f} "
-              f"{est:>6.1f} {cum:>6.0f}{mark}")
-    print(f"methods per configuration: {' '.join(planned[0]['methods']) if planned else '-'}")
+# Warp arrays address bytes with 32-bit ints: an array of vec3 (12 bytes)
+# must stay below 2**31 bytes.
+WARP_VEC3_LIMIT = (2 ** 31 - 1) // 12
+
+
+def refusal(scene: str, param: int, p: int, method: str) -> str | None:
+    """Why ``method`` cannot run this configuration (a "skipped: ..."
+    reason), or None."""
+    n = n_of(param, p)
+    base = FUSED.get(method, method)
+    if base == "squares" and 4 * n > WARP_VEC3_LIMIT:
+        return (f"skipped: 4N = {4 * n:,} triangle boxes pass Warp's 32-bit "
+                f"byte offsets ({WARP_VEC3_LIMIT:,} vec3)")
+    if method in LIST_LIMIT and list_entries(scene, param, p) > LIST_LIMIT[method]:
+        limit = LIST_LIMIT[method]
+        why = ("jaxrt refuses it at allocate" if method != "jax-md" else
+               "int32 flat indices; try it with --configs")
+        return (f"skipped: Dense list >= N*ceil(1.25k) entries, above "
+                f"{'2**29' if limit < 2 ** 30 else '2**31'} ({why}); "
+                f"the fused methods need no list")
+    return None
+
+
+def split_parts(planned: list[dict], args) -> list[list[dict]]:
+    """The plan cut into consecutive parts, each guessed (`guess_job_s`,
+    first-worker start-up included) under ``args.part_budget`` seconds; a
+    configuration stays in one part unless it alone exceeds the budget,
+    when its methods are spread over parts of their own (in order). Each
+    entry is a configuration dict whose ``methods`` are those of the part."""
+    budget = args.part_budget
+    parts: list[list[dict]] = []
+    current: list[dict] = []
+    used = GUESS_STARTUP_S
+
+    def close():
+        nonlocal current, used
+        if current:
+            parts.append(current)
+        current, used = [], GUESS_STARTUP_S
+
+    for c in planned:
+        est = {m: guess_job_s(c["scene"], c["param"], c["p"], m, args)
+               for m in c["methods"]}
+        whole = GUESS_WORKER_S + sum(est.values())
+        if used + whole <= budget:
+            current.append(c)
+            used += whole
+            continue
+        close()
+        if used + whole <= budget:
+            current.append(c)
+            used += whole
+            continue
+        take: list[str] = []
+        cost = GUESS_WORKER_S
+        for m in c["methods"]:
+            if take and used + cost + est[m] > budget:
+                current.append({**c, "methods": take})
+                close()
+                take, cost = [], GUESS_WORKER_S
+            take.append(m)
+            cost += est[m]
+        current.append({**c, "methods": take})
+        used += cost
+    close()
+    return parts
+
+
+def select_part(planned: list[dict], skipped: list[dict], args
+                ) -> tuple[list[dict], list[dict]]:
+    """``--part K``: the K-th part of `split_parts` (1-based); the other
+    parts' jobs become skipped rows ("not in --part K/M")."""
+    parts = split_parts(planned, args)
+    k, m = args.part
+    if m is not None and m != len(parts):
+        raise SystemExit(f"--part {k}/{m}: the plan has {len(parts)} parts with "
+                         f"--part-budget {args.part_budget:g} (see --plan); use "
+                         f"--part K/{len(parts)} or the same other options as --plan.")
+    if not 1 <= k <= len(parts):
+        raise SystemExit(f"--part {k}: choose 1..{len(parts)} (see --plan).")
+    chosen = parts[k - 1]
+    keep = {(c["scene"], c["param"], c["p"], meth) for c in chosen for meth in c["methods"]}
+    reason = f"skipped: not in --part {k}/{len(parts)}"
+    skipped = list(skipped)
+    for c in planned:
+        for meth in c["methods"]:
+            if (c["scene"], c["param"], c["p"], meth) not in keep:
+                skipped.append({"scene": c["scene"], "param": c["param"], "p": c["p"],
+                                "N": c["N"], "method": meth, "tier": c["tier"],
+                                "status": "skipped", "failed": reason})
+    return chosen, skipped
+
+
+def parse_part(text: str) -> tuple[int, int | None]:
+    """``K`` or ``K/M`` -> (K, M or None)."""
+    try:
+        k, _, m = text.partition("/")
+        return int(k), (int(m) if m else None)
+    except ValueError:
+        raise SystemExit(f"--part {text!r}: give K or K/M (e.g. --part 3/12)")
+
+
+def print_plan(planned: list[dict], skipped: list[dict], args,
+               first_part: int = 1) -> None:
+    """The job order, one line per configuration (or per piece of one that
+    parts split), with its part (numbered from ``first_part``) when
+    ``args.part_budget`` is set."""
+    parts = split_parts(planned, args) if args.part_budget else [planned]
+    n_configs = len({(c["scene"], c["param"], c["p"]) for c in planned})
+    n_jobs = sum(len(c["methods"]) for c in planned)
+    grid = len(universe(args.small))
+    print(f"{grid} configurations in the seed's grid x {len(METHODS)} methods = "
+          f"{grid * len(METHODS)} rows; planned: {n_configs} configurations, "
+          f"{n_jobs} jobs, in this order (est = rough H100/H200 guess incl. "
+          f"compiles; a worker start-up ~{GUESS_STARTUP_S:.0f} s more per part):")
+    print(f"{'part':>4} {'#':>3} {'tier':>4} {'scene':7s} {'param':>9s} {'p':>3} "
+          f"{'N':>10} {'k~':>5} {'jobs':>4} {'est s':>6} {'cum s':>6}")
+    i = 0
+    totals = []
+    for k, part in enumerate(parts, first_part):
+        cum = GUESS_STARTUP_S
+        for c in part:
+            est = GUESS_WORKER_S + sum(guess_job_s(c["scene"], c["param"], c["p"], m, args)
+                                       for m in c["methods"])
+            mark = ""
+            if cum > args.time_budget:  # it would start after the budget
+                mark = "  (after --time-budget: would be skipped)"
+            cum += est
+            i += 1
+            pname = SCENES[c["scene"]][0]
+            print(f"{k:>4} {i:>3} {c['tier']:>4} {c['scene']:7s} "
+                  f"{pname + '=' + str(c['param']):>9s} {c['p']:>3} {c['N']:>10,} "
+                  f"{k_expected(c['scene'], c['param'], c['p']):>5.0f} "
+                  f"{len(c['methods']):>4} {est:>6.1f} {cum:>6.0f}{mark}")
+        totals.append(cum)
+    print(f"methods: {' '.join(m for m in RUN_ORDER if m in args.methods)}")
+    if args.part_budget:
+        print(f"{len(parts)} parts under --part-budget {args.part_budget:g} s "
+              f"(guessed): " + ", ".join(f"{k}: {t:.0f} s" for k, t in
+                                         enumerate(totals, first_part))
+              + f"; total {sum(totals):.0f} s")
     reasons: dict = {}
     for r in skipped:
-        reasons.setdefault(r["failed"], set()).add((r["scene"], r["param"], r["p"]))
-    for reason, cfgs in sorted(reasons.items()):
+        cfgs, methods = reasons.setdefault(r["failed"], (set(), set()))
+        cfgs.add((r["scene"], r["param"], r["p"]))
+        methods.add(r["method"])
+    for reason, (cfgs, methods) in sorted(reasons.items()):
         names = ", ".join(f"{s[0]}{SCENES[s][0][0]}{a}p{p}" for s, a, p in sorted(cfgs))
-        print(f"{reason}: {len(cfgs)} configurations ({names})")
+        which = ("all methods" if len(methods) == len(METHODS)
+                 else " ".join(m for m in METHODS if m in methods))
+        print(f"{reason}: {len(cfgs)} configurations ({names}); {which}")

@@ -11,7 +11,10 @@ from seed_rt.plan import METHODS, SCENES, n_of
 
 COLORS = {"aabb-unsorted": "#ff7f0e", "aabb-sorted": "#d62728",
           "spheres": "#2ca02c", "squares": "#1f77b4", "cell": "#9467bd",
-          "jax-md": "#7f7f7f"}
+          "jax-md": "#7f7f7f",
+          # the fused mode: the list method's hue, darker
+          "aabb-unsorted-fused": "#a65206", "aabb-sorted-fused": "#8b1a1b",
+          "spheres-fused": "#1a661a", "squares-fused": "#0f4470"}
 
 
 def _ok(row) -> bool:

@@ -8,6 +8,8 @@ The backends (`jaxrt.rt.ffi`, re-exported by `jaxrt.backends`):
   `jaxrt.rt.aabb`, `jaxrt.rt.periodic`, `jaxrt.rt.ffi`.
 * `Spheres`, `Squares`: seed 001's other methods (`jaxrt.rt.spheres`,
   `jaxrt.rt.squares`).
+* `FusedEnergy`: seed 001's fused mode for those three methods, the LJ
+  energy summed during the traversal, no list (`jaxrt.rt.seed_energy`).
 
 Other pure-Warp methods follow `jaxrt.rt._method.RTMethod` and become
 backends through `jaxrt.rt.ffi.method_backend`.
@@ -17,10 +19,11 @@ import warp as _wp  # noqa: F401  (ImportError here: Warp absent, no RT backends
 from jaxrt.rt._method import RTMethod
 from jaxrt.rt import policy
 from jaxrt.rt.aabb import AabbMethod
-from jaxrt.rt.ffi import Bvh, MethodBackend, Spheres, Squares, method_backend
+from jaxrt.rt.ffi import (Bvh, FusedEnergy, MethodBackend, Spheres, Squares,
+                          method_backend)
 from jaxrt.rt.spheres import SpheresMethod
 from jaxrt.rt.squares import SquaresMethod
 
-__all__ = ["AabbMethod", "Bvh", "MethodBackend", "RTMethod", "policy",
+__all__ = ["AabbMethod", "Bvh", "FusedEnergy", "MethodBackend", "RTMethod", "policy",
            "Spheres", "SpheresMethod", "Squares", "SquaresMethod",
            "method_backend"]

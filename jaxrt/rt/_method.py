@@ -114,30 +114,72 @@ def check_find_arguments(method: str, points: wp.array, cutoff: float,
             raise ValueError(
                 f"{method}.find: {name} is on {array.device} but points are on "
                 f"{points.device}; allocate it on the points' device.")
+    return _check_geometry(f"{method}.find", cutoff, side, periodic, mask_self)
+
+
+def check_energy_arguments(method: str, points: wp.array, cutoff: float, side,
+                           periodic, params: wp.array, out_energy: wp.array,
+                           out_count: wp.array) -> FindArguments:
+    """Validate the fused mode's ``energy`` arguments (`jaxrt.rt.seed_energy`)
+    as `check_find_arguments` does ``find``'s; ``mask_self`` is True.
+
+    Args:
+      points: ``(N,)`` wp.vec3 or wp.vec3d.
+      params: ``(seed_energy.N_PARAMS,)``, out_energy ``(N,)``: the
+        positions' scalar type (float32 for wp.vec3, float64 for wp.vec3d);
+        out_count: int32 ``(N,)``; all on the points' device.
+    """
+    from jaxrt.rt.seed_energy import N_PARAMS
+    if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d) \
+            or points.ndim != 1:
+        raise TypeError(
+            f"{method}.energy: points must be a 1-D wp.array of wp.vec3 (float32) or "
+            f"wp.vec3d (float64); got {describe(points)}. Pad 2-D positions with z = 0.")
+    n = points.shape[0]
+    scalar = wp.float64 if points.dtype == wp.vec3d else wp.float32
+    for name, array, dtype, shape in (("params", params, scalar, (N_PARAMS,)),
+                                      ("out_energy", out_energy, scalar, (n,)),
+                                      ("out_count", out_count, wp.int32, (n,))):
+        if not isinstance(array, wp.array) or array.dtype != dtype \
+                or array.shape != shape:
+            raise TypeError(
+                f"{method}.energy: {name} must be a wp.array of "
+                f"{wp.types.type_repr(dtype)} with shape {shape} (the positions' "
+                f"precision); got {describe(array)}.")
+        if array.device != points.device:
+            raise ValueError(
+                f"{method}.energy: {name} is on {array.device} but points are on "
+                f"{points.device}; allocate it on the points' device.")
+    return _check_geometry(f"{method}.energy", cutoff, side, periodic, True)
+
+
+def _check_geometry(method: str, cutoff, side, periodic, mask_self) -> FindArguments:
+    """The cutoff, box and flags of `check_find_arguments`; ``method``
+    names the call in messages."""
     if isinstance(cutoff, (bool, np.bool_)) \
             or not isinstance(cutoff, (int, float, np.floating, np.integer)) \
             or not math.isfinite(cutoff) or cutoff <= 0:
-        raise ValueError(f"{method}.find: cutoff must be a finite number > 0; got {cutoff!r}.")
+        raise ValueError(f"{method}: cutoff must be a finite number > 0; got {cutoff!r}.")
     cutoff = float(cutoff)
     if not isinstance(mask_self, (bool, np.bool_)):
-        raise TypeError(f"{method}.find: mask_self must be a bool; got {mask_self!r}.")
+        raise TypeError(f"{method}: mask_self must be a bool; got {mask_self!r}.")
     periodic = tuple(periodic)
     if len(periodic) != 3 or not all(isinstance(p, (bool, np.bool_)) for p in periodic):
         raise ValueError(
-            f"{method}.find: periodic must be three bools (x, y, z; pad 2-D with False); "
+            f"{method}: periodic must be three bools (x, y, z; pad 2-D with False); "
             f"got {periodic!r}.")
     periodic = tuple(bool(p) for p in periodic)
     if not any(periodic):
         return FindArguments(cutoff, (0.0, 0.0, 0.0), periodic, bool(mask_self))
     if side is None or len(tuple(side)) != 3:
         raise ValueError(
-            f"{method}.find: periodic={periodic} needs side=(Lx, Ly, Lz), the box side "
+            f"{method}: periodic={periodic} needs side=(Lx, Ly, Lz), the box side "
             f"per axis; got side={side!r}.")
     side = tuple(float(s) for s in side)
     for axis in range(3):
         if periodic[axis] and not (math.isfinite(side[axis]) and side[axis] > 0):
             raise ValueError(
-                f"{method}.find: side[{axis}] must be finite and > 0 on a periodic axis; "
+                f"{method}: side[{axis}] must be finite and > 0 on a periodic axis; "
                 f"got {side[axis]!r}.")
     check_cutoff(cutoff, side, periodic)
     side = tuple(s if p else 0.0 for s, p in zip(side, periodic))

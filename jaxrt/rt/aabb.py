@@ -37,6 +37,7 @@ import warp as wp
 
 from jaxrt.rt import periodic as gamma
 from jaxrt.rt import policy as _policy
+from jaxrt.rt import seed_energy
 # The one cutoff rule of the ray-traced methods (also `jaxrt.rt.ffi`'s
 # ``aabb.check_cutoff``).
 from jaxrt.rt.periodic import check_cutoff
@@ -379,6 +380,52 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
 
 
 @wp.kernel
+def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
+                   item_coords: wp.array(dtype=Any),
+                   order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
+                   periodic: wp.vec3i, cutoff_sq: Any, half_width: wp.float32,
+                   extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
+                   params: wp.array(dtype=Any), energy: wp.array(dtype=Any),
+                   count: wp.array(dtype=wp.int32)):
+    """Seed 001 §4.4's fused mode (`jaxrt.rt.seed_energy`): the rays of
+    `_query_kernel` with ``cluster_size`` 1 and ``mask_self``, whose
+    intersection program adds ``U`` of every accepted pair to the ray's
+    payload instead of storing ``j``; one atomic add per ray into
+    ``energy[i]`` (zeroed before the launch), as the seed's code does.
+    ``count[i]``: pairs of i (the Dense row count)."""
+    k = wp.tid()
+    i = order[k]
+    xi = item_points[k]
+    ui = item_coords[k]
+    box = side[0]
+    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    face_reach = reach + drift_limit
+    any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
+    n = int(0)
+    for ray in range(gamma.RAYS_PER_PARTICLE):
+        shift = gamma.ray_shift(ray)
+        if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
+            origin = wp.vec3(gamma.shifted(ui, shift, box))
+            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            payload = cutoff_sq - cutoff_sq
+            hit = int(0)
+            while wp.bvh_query_next(query, hit, 0.0):
+                j = order[hit]
+                if j == i:
+                    continue
+                if any_periodic and not gamma.is_canonical_image(
+                        shift, ui, item_coords[hit], box, periodic):
+                    continue
+                d2 = _square_distance(xi, item_points[hit], box, periodic)
+                if not (d2 < cutoff_sq):
+                    continue
+                payload = payload + seed_energy.clamped_lj(d2, params)
+                n = n + 1
+            wp.atomic_add(energy, i, payload)
+    count[i] = n
+
+
+@wp.kernel
 def _pad_rows_kernel(count: wp.array(dtype=wp.int32), n_particles: wp.int32,
                      rows: wp.array2d(dtype=wp.int32)):
     """Pad row i past its count with N (after a query that appended to
@@ -424,6 +471,8 @@ _instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coor
 _instantiate(_cluster_box_kernel, vectors=("item_coords", "side"))
 _instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
              scalars=("cutoff_sq",))
+_instantiate(_energy_kernel, vectors=("item_points", "item_coords", "side"),
+             scalars=("cutoff_sq",), scalar_arrays=("params", "energy"))
 _instantiate(_query_radii_kernel, vectors=("item_points", "item_coords", "side"),
              scalar_arrays=("reach",))
 _instantiate(_item_reach_kernel, scalar_arrays=("reach",))
@@ -750,6 +799,58 @@ class AabbSearch:
         self.query(side, mask_self=mask_self, lower_only=False, mode=MODE_DENSE,
                    rows=rows, count=count)
 
+    def energy(self, side: wp.array, params: wp.array, *, energy: wp.array,
+               count: wp.array) -> None:
+        """Seed 001's fused mode on the tree of the last `update`: the LJ
+        energy of `jaxrt.rt.seed_energy` summed during the traversal, no
+        list (self pairs dropped).
+
+        Args:
+          side: as in `update`.
+          params: position-precision ``(seed_energy.N_PARAMS,)``
+            (`seed_energy.lj_params`).
+          energy: position-precision ``(N,)`` output, ``E_i = sum_j U(r_ij)``
+            (zeroed here).
+          count: int32 ``(N,)`` output, pairs of each particle (the Dense
+            row count with ``mask_self``).
+        Raises:
+          ValueError: a tree with per-particle radii or clusters (the
+            seed's method has neither), or arrays of the wrong type.
+        """
+        if self.bvh is None:
+            raise RuntimeError("energy before update: call update(points, ...) first.")
+        if self._reach is not None or self.cluster_size != 1:
+            raise ValueError(
+                "the fused energy is the seed's custom AABB method: one box of "
+                "half-width cutoff per particle. Fit the tree without reach "
+                f"(radii) and with cluster_size=1 (got cluster_size="
+                f"{self.cluster_size}, radii={self._reach is not None}).")
+        for name, array, dtype in (("params", params, self.scalar),
+                                   ("energy", energy, self.scalar),
+                                   ("count", count, wp.int32)):
+            if array.dtype != dtype:
+                raise ValueError(f"{name} must hold {dtype.__name__} for "
+                                 f"{self.vector.__name__} positions; got "
+                                 f"{array.dtype.__name__}.")
+        if energy.shape != (self.n,) or count.shape != (self.n,) \
+                or params.shape != (seed_energy.N_PARAMS,):
+            raise ValueError(f"energy and count must be ({self.n},), params "
+                             f"({seed_energy.N_PARAMS},); got {energy.shape}, "
+                             f"{count.shape}, {params.shape}.")
+        with wp.ScopedDevice(self.device):
+            started = None if self._timer is None else self._timer.start()
+            energy.zero_()
+            flags = wp.vec3i(*(int(p) for p in self._periodic))
+            wp.launch(_energy_kernel, self.n,
+                      inputs=[wp.uint64(self.bvh.id), self.item_points,
+                              self.item_coords, self.order, side, flags,
+                              self.scalar(float(self._cutoff) ** 2),
+                              float(np.float32(self._cutoff)), self.extent,
+                              self.drift_limit(self._cutoff), params, energy,
+                              count])
+            if started is not None:
+                self._timer.stop("query", started)
+
     def query_sparse(self, side, *, mask_self: bool, lower_only: bool,
                      pairs: wp.array, count: wp.array, offset: wp.array,
                      total: wp.array) -> None:
@@ -805,3 +906,22 @@ class AabbMethod:
         search.update(points, side_array, periodic, cutoff)
         search.query_dense(side_array, mask_self=mask_self, rows=out_idx,
                            count=out_count)
+
+    def energy(self, points: wp.array, *, cutoff: float,
+               side: tuple[float, float, float] | None,
+               periodic: tuple[bool, bool, bool], params: wp.array,
+               out_energy: wp.array, out_count: wp.array) -> None:
+        """The fused mode (`jaxrt.rt.seed_energy`) on a fresh tree; see
+        `jaxrt.rt.spheres.SpheresMethod.energy` for the arguments."""
+        vector = vector_type(points)
+        periodic = tuple(bool(p) for p in periodic)
+        if len(periodic) != 3:
+            raise ValueError(f"periodic must hold 3 bools; got {periodic}.")
+        if any(periodic) and side is None:
+            raise ValueError("side must give the box sides when an axis is periodic.")
+        box = (1.0, 1.0, 1.0) if side is None else tuple(float(s) for s in side)
+        check_cutoff(cutoff, box, periodic)
+        search = AabbSearch(points.shape[0], vector, points.device, sort=self.sort)
+        side_array = wp.array([box], dtype=vector, device=points.device)
+        search.update(points, side_array, periodic, cutoff)
+        search.energy(side_array, params, energy=out_energy, count=out_count)

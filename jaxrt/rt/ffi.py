@@ -12,6 +12,9 @@ Two ways in:
   `jaxrt.rt._method.RTMethod`: a backend through Dense rows and
   `jaxrt.backends.format_dense_rows`.
 
+* `FusedEnergy`: seed 001's fused mode (`jaxrt.rt.seed_energy`), the LJ
+  energy summed during the traversal of the custom AABB, spheres or
+  squares method, no list.
 * `orcs_forces`, `orcs_perse`: the list-free ORCS kernels of
   `jaxrt.rt.orcs` (used by `jaxrt.energy.fused`), on trees kept per call
   site exactly as `Bvh`'s (same slots, `TreeOwner` and policy).
@@ -60,7 +63,7 @@ from jax_md.partition import NeighborListFormat
 
 from jaxrt import _backend
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query, SearchResult
-from jaxrt.rt import aabb, orcs, periodic as gamma
+from jaxrt.rt import aabb, orcs, periodic as gamma, seed_energy
 from jaxrt.rt import policy as _policy
 from jaxrt.rt._method import RTMethod
 from jaxrt.rt.spheres import SpheresMethod
@@ -750,3 +753,180 @@ def method_backend(method: RTMethod, name: str | None = None) -> MethodBackend:
     """``method`` (an `RTMethod` object) as a jaxrt backend, to pass as
     ``backend=``."""
     return _Wrapped(method, method.name if name is None else name)
+
+
+# ---------------------------------------------------------------------------
+# Seed 001's fused (list-free) mode.
+
+_FUSED_CALLABLES: dict = {}
+
+
+def _fused_callable(options, vector):
+    """jax callable of the fused energy (`jaxrt.rt.seed_energy`) of
+    ``options`` (`Bvh`, `Spheres` or `Squares`) for positions of type
+    ``vector``. The custom AABB keeps its tree in a slot (refit or rebuilt
+    as `Bvh`'s lists); spheres and squares build a scene per call, as their
+    lists do."""
+    key = (options, vector)
+    if key in _FUSED_CALLABLES:
+        return _FUSED_CALLABLES[key][1]
+    scalar = aabb.scalar_type(vector)
+    if isinstance(options, Bvh):
+        method = None
+
+        def fused(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
+                  params: wp.array(dtype=scalar), cutoff: wp.float64,
+                  periodic: wp.int32, slot: wp.int32,
+                  energy: wp.array(dtype=scalar), count: wp.array(dtype=wp.int32)):
+            tree = _fit(slot, points, side, cutoff, periodic, params, 0)
+            tree.energy(side, params, energy=energy, count=count)
+
+        fused.__module__ = aabb.__name__  # see _aabb_callables
+        side_effect = True  # the kept tree
+    else:
+        method = options.method()
+
+        def fused(points: wp.array(dtype=vector), side: wp.array(dtype=vector),
+                  params: wp.array(dtype=scalar), cutoff: wp.float64,
+                  periodic: wp.int32, slot: wp.int32,
+                  energy: wp.array(dtype=scalar), count: wp.array(dtype=wp.int32)):
+            del slot  # nothing is kept between calls
+            axes = _axes(periodic)
+            box = tuple(float(s) for s in side.numpy()[0]) if any(axes) else None
+            method.energy(points, cutoff=float(cutoff), side=box, periodic=axes,
+                          params=params, out_energy=energy, out_count=count)
+
+        fused.__module__ = type(method).__module__
+        side_effect = False
+    callable_ = wp.jax_callable(fused, num_outputs=2,
+                                graph_mode=wp.JaxCallableGraphMode.NONE,
+                                vmap_method=None, has_side_effect=side_effect)
+    _FUSED_CALLABLES[key] = (method, callable_)
+    return callable_
+
+
+_FUSED_NAMES = {"aabb": lambda: Bvh(), "bvh": lambda: Bvh(),
+                "aabb-unsorted": lambda: Bvh(sort=False),
+                "bvh-unsorted": lambda: Bvh(sort=False),
+                "spheres": lambda: Spheres(), "squares": lambda: Squares()}
+
+
+class FusedEnergy:
+    """Seed 001's fused mode as a JAX function: each particle's LJ energy
+    summed during the traversal of a ray-traced method (Algis & Bramas 2024,
+    §4.2-4.4 and §5; `jaxrt.rt.seed_energy` defines the quantity), with no
+    neighbour list::
+
+        energy, count = FusedEnergy("aabb", cutoff=C, sigma=C / 2)(R)
+
+    ``energy`` (positions' dtype, ``(N,)``) is ``E_i = sum_j U(r_ij)`` over
+    the ``j != i`` with ``|r_ij| < cutoff`` (each pair in both rows, as the
+    seed's per-ray sums; ``U`` clamped below ``r_min``); ``count`` (int32,
+    ``(N,)``) the number of such ``j``, the method's Dense row count; the
+    number of interacting pairs is ``count.sum()`` (ordered; half that
+    unordered; sum it in int64 past 2**31).
+
+    jit, scan and vmap work as for the lists (`jaxrt.rt.ffi`'s docstring);
+    the custom AABB keeps one tree per traced call site (owned by this
+    object) and refits or rebuilds it as the ``"bvh"`` lists do. No
+    gradient: the call is an FFI custom call without a JVP (use a list and
+    `jaxrt.energy` for forces). The spheres method raises
+    `jaxrt.rt.epsilon.ParticlesTooCloseError` as its lists do (two
+    particles closer than its resolution may be missing from the energy);
+    the other two count coincident particles (clamped energy).
+
+    Args:
+      method: ``"aabb"`` (= ``"bvh"``, Morton-sorted), ``"aabb-unsorted"``
+        (= ``"bvh-unsorted"``), ``"spheres"``, ``"squares"``, or a `Bvh`
+        (``cluster_size=1``), `Spheres` or `Squares` options value.
+      cutoff: C > 0; below half the side on periodic axes.
+      box: None (free space), or the box side (scalar or one per axis),
+        needed on periodic axes.
+      periodic: bool, or one bool per axis.
+      sigma, epsilon, r_min: the pair's parameters
+        (`jaxrt.rt.seed_energy.lj_params`; ``r_min`` defaults to
+        ``sigma / 10``).
+    Raises:
+      ValueError, TypeError: a bad argument, named in the message.
+    """
+
+    def __init__(self, method="aabb", *, cutoff: float, box=None,
+                 periodic=False, sigma: float, epsilon: float = 1.0,
+                 r_min: float | None = None):
+        if isinstance(method, str):
+            if method not in _FUSED_NAMES:
+                raise ValueError(f"FusedEnergy(method={method!r}): choose one of "
+                                 f"{sorted(_FUSED_NAMES)}, or pass a Bvh, "
+                                 "Spheres or Squares options value.")
+            method = _FUSED_NAMES[method]()
+        if not isinstance(method, (Bvh, Spheres, Squares)):
+            raise TypeError(f"FusedEnergy(method={method!r}): the fused mode "
+                            "exists for the seed's three methods: Bvh, Spheres, "
+                            "Squares (or their names).")
+        if isinstance(method, Bvh) and method.cluster_size != 1:
+            raise ValueError("FusedEnergy: the seed's custom AABB has one box per "
+                             f"particle; use Bvh(cluster_size=1) (got "
+                             f"{method.cluster_size}).")
+        self.options = method
+        self.cutoff = float(cutoff)
+        if not (np.isfinite(self.cutoff) and self.cutoff > 0):
+            raise ValueError(f"FusedEnergy(cutoff={cutoff!r}): must be finite and > 0.")
+        self.periodic = periodic
+        self.box = box
+        # Checked now, in the positions' precision later.
+        seed_energy.lj_params(sigma=sigma, epsilon=epsilon, r_min=r_min)
+        self.lj = dict(sigma=sigma, epsilon=epsilon, r_min=r_min)
+        self.owner = TreeOwner(method) if isinstance(method, Bvh) else None
+        if isinstance(method, Bvh):
+            _load_kernels()
+
+    @property
+    def name(self) -> str:
+        base = {"bvh": "aabb", "bvh-unsorted": "aabb-unsorted"}.get(
+            self.options.name, self.options.name)
+        return base + "-fused"
+
+    def _geometry(self, dim: int, dtype):
+        """float ``(1, 3)`` sides (1 on free and padded axes), 3 periodic flags."""
+        periodic = self.periodic
+        if isinstance(periodic, (bool, np.bool_)):
+            periodic = (bool(periodic),) * dim
+        periodic = tuple(bool(p) for p in periodic)
+        if len(periodic) != dim:
+            raise ValueError(f"FusedEnergy(periodic={self.periodic!r}): need one "
+                             f"bool per axis of the (N, {dim}) positions.")
+        if self.box is None:
+            if any(periodic):
+                raise ValueError("FusedEnergy: periodic axes need box= (the side).")
+            side = np.ones(dim)
+        else:
+            side = np.broadcast_to(np.asarray(self.box, float), (dim,))
+        axes = periodic + (False,) * (3 - dim)
+        side3 = np.concatenate([side, np.ones(3 - dim)])
+        side3 = np.where(axes, side3, 1.0)
+        aabb.check_cutoff(self.cutoff, side3, axes)
+        return jnp.asarray(side3[None, :], dtype), axes
+
+    def __call__(self, position):
+        """``(energy (N,), count int32 (N,))`` at ``position``: float32 or
+        float64 ``(N, dim)`` Cartesian, dim 1..3 (unwrapped positions are
+        wrapped on periodic axes)."""
+        position = jnp.asarray(position)
+        if position.ndim != 2 or position.shape[1] not in (1, 2, 3):
+            raise ValueError("FusedEnergy: position must be (N, dim) with dim in "
+                             f"1..3; got shape {position.shape}.")
+        vector = _vector_of(position)
+        dtype = position.dtype
+        n, dim = position.shape
+        side, axes = self._geometry(dim, dtype)
+        points = jax.lax.stop_gradient(
+            jnp.pad(position, ((0, 0), (0, 3 - dim))))
+        params = jnp.asarray(seed_energy.lj_params(**self.lj, dtype=np.dtype(dtype)))
+        call_fused = _fused_callable(self.options, vector)
+
+        def call(points, side, params, slot):
+            return tuple(call_fused(points, side, params, self.cutoff,
+                                    _bits(axes), slot,
+                                    output_dims={"energy": (n,), "count": (n,)}))
+
+        return _sequential_vmap(call, self.owner)(points, side, params)

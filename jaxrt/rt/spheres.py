@@ -36,13 +36,15 @@ Resolved ambiguities (each also noted where it is coded):
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 import warp as wp
 
 from jaxrt.rt import periodic as gamma
-from jaxrt.rt._method import check_find_arguments
+from jaxrt.rt import seed_energy
+from jaxrt.rt._method import check_energy_arguments, check_find_arguments
 from jaxrt.rt.epsilon import (
     EPSILON_RELATIVE,
     ParticlesTooCloseError,
@@ -113,11 +115,22 @@ def _sphere_rays_kernel(
     periodic: wp.vec3i,
     mask_self: int,
     resolution_sq: wp.float64,          # pairs closer than this are flagged
+    params: wp.array(dtype=Any),        # fused mode's (seed_energy.N_PARAMS,)
     out_idx: wp.array2d(dtype=wp.int32),   # (N, width)
     out_count: wp.array(dtype=wp.int32),   # (N,)
     too_close: wp.array(dtype=wp.int32),   # (3,): flag, target, source
+    energy: wp.array(dtype=Any),        # (N,) fused mode, zeroed; else (0,)
 ):
+    """Algorithm 1 for every target's three rays (and their gamma images).
+
+    List mode (``energy`` empty): row ``target`` of ``out_idx``. Fused mode
+    (``energy`` of N; `jaxrt.rt.seed_energy`; width 0, ``mask_self``): the
+    "computation kernel" Algorithm 1 calls adds ``U`` to the ray's payload,
+    and each ray adds its payload to ``energy[target]`` atomically, as the
+    seed's code does. Either way ``out_count`` gets the exact count.
+    """
     target = wp.tid()
+    fused = energy.shape[0] > 0
     n = points.shape[0]
     width = out_idx.shape[1]
     position = gamma.wrap_into_box(wp.vec3d(points[target]), side, periodic)
@@ -147,6 +160,7 @@ def _sphere_rays_kernel(
             ray_start = wp.vec3(start)
             ray_start[axis] = ray_start[axis] - padding
             query = wp.bvh_query_ray(bvh, ray_start, direction)
+            payload = wp.float64(0.0)
             source = int(0)
             while wp.bvh_query_next(query, source, max_dist):
                 # (s − t) − translation: the rounding of the float64 oracle's
@@ -164,17 +178,23 @@ def _sphere_rays_kernel(
                 if segment_crosses_sphere(offset, offset_sq, axis, half_length, epsilon):
                     # Algorithm 1.
                     if dist_sq < cutoff_sq and closest_axis(offset_sq) == axis:
-                        if count < width:
+                        if fused:
+                            payload = payload + seed_energy.clamped_lj(dist_sq, params)
+                        elif count < width:
                             out_idx[target, count] = source
                         count += 1
+            if fused:
+                wp.atomic_add(energy, target, type(energy[target])(payload))
     for slot in range(wp.min(count, width), width):
         out_idx[target, slot] = n
     out_count[target] = count
 
 
-for _point_type in (wp.vec3, wp.vec3d):
+for _point_type, _scalar in ((wp.vec3, wp.float32), (wp.vec3d, wp.float64)):
     wp.overload(_sphere_boxes_kernel, {"points": wp.array(dtype=_point_type)})
-    wp.overload(_sphere_rays_kernel, {"points": wp.array(dtype=_point_type)})
+    wp.overload(_sphere_rays_kernel, {"points": wp.array(dtype=_point_type),
+                                      "params": wp.array(dtype=_scalar),
+                                      "energy": wp.array(dtype=_scalar)})
 
 
 class SpheresMethod:
@@ -249,11 +269,49 @@ class SpheresMethod:
         """
         args = check_find_arguments(self.name, points, cutoff, side, periodic,
                                     mask_self, out_idx, out_count)
-        device = points.device
-        self.separation_flag = wp.zeros(3, dtype=wp.int32, device=device)
-        n = points.shape[0]
-        if n == 0:
+        if points.shape[0] == 0:
+            self.separation_flag = wp.zeros(3, dtype=wp.int32, device=points.device)
             return
+        self.query(self.build(points, args), out_idx=out_idx, out_count=out_count)
+
+    def energy(self, points: wp.array, *, cutoff: float,
+               side: tuple[float, float, float] | None,
+               periodic: tuple[bool, bool, bool], params: wp.array,
+               out_energy: wp.array, out_count: wp.array) -> None:
+        """Seed 001's fused mode (`jaxrt.rt.seed_energy`): each particle's
+        LJ energy summed inside Algorithm 1, no list (self pairs dropped).
+
+        Args:
+          points, cutoff, side, periodic: as in `find`.
+          params: position-precision ``(seed_energy.N_PARAMS,)``
+            (`seed_energy.lj_params`).
+          out_energy: position-precision ``(N,)`` output,
+            ``E_i = sum_j U(r_ij)`` over the pairs `find` would list.
+          out_count: int32 ``(N,)`` output, the pairs of each particle
+            (`find`'s count with ``mask_self``).
+        Raises:
+          ParticlesTooCloseError: as `find` (the pair may be missing from
+            the energy).
+          TypeError, ValueError: a bad argument (the message names it).
+        """
+        args = check_energy_arguments(self.name, points, cutoff, side, periodic,
+                                      params, out_energy, out_count)
+        out_energy.zero_()
+        if points.shape[0] == 0:
+            self.separation_flag = wp.zeros(3, dtype=wp.int32, device=points.device)
+            return
+        self.query(self.build(points, args), params=params, out_energy=out_energy,
+                   out_count=out_count)
+
+    def build(self, points: wp.array, args) -> "SphereScene":
+        """The scene (init step): the spheres' boxes and their BVH.
+
+        Args:
+          points: ``(N,)`` wp.vec3 / wp.vec3d, N >= 1.
+          args: `jaxrt.rt._method.FindArguments` (checked).
+        """
+        device = points.device
+        n = points.shape[0]
         scan = survey(points, args, self.epsilon_relative)
         self.last_survey = scan
         half_length = args.cutoff * math.sqrt(2.0) / math.sqrt(3.0)
@@ -264,16 +322,51 @@ class SpheresMethod:
                   inputs=[points, args.side_vec, args.periodic_vec, float(radius + scan.padding)],
                   outputs=[lowers, uppers])
         bvh = wp.Bvh(lowers, uppers)
-        self._scene = (bvh, lowers, uppers)
+        self._scene = SphereScene(points, args, scan, half_length, bvh, lowers, uppers)
+        return self._scene
+
+    def query(self, scene: "SphereScene", *, out_idx: wp.array | None = None,
+              out_count: wp.array, params: wp.array | None = None,
+              out_energy: wp.array | None = None) -> None:
+        """The rays (compute step) on a `build`'s scene: Dense rows into
+        ``out_idx`` (as `find`), or, with ``params`` and ``out_energy``
+        (zeroed by the caller), the fused energy (as `energy`)."""
+        points, args, scan = scene.points, scene.args, scene.survey
+        device = points.device
+        n = points.shape[0]
+        scalar = wp.float64 if points.dtype == wp.vec3d else wp.float32
+        fused = out_energy is not None
+        if not fused:
+            params = wp.empty(0, dtype=scalar, device=device)
+            out_energy = wp.empty(0, dtype=scalar, device=device)
+        else:
+            out_idx = wp.empty((1, 0), dtype=wp.int32, device=device)
+        self.separation_flag = wp.zeros(3, dtype=wp.int32, device=device)
         resolution = sphere_resolution(scan.epsilon)
         wp.launch(_sphere_rays_kernel, dim=n, device=device,
-                  inputs=[wp.uint64(bvh.id), points, wp.float64(args.cutoff),
-                          wp.float64(half_length), wp.float64(scan.epsilon),
+                  inputs=[wp.uint64(scene.bvh.id), points, wp.float64(args.cutoff),
+                          wp.float64(scene.half_length), wp.float64(scan.epsilon),
                           float(scan.padding), args.side_vec, args.periodic_vec,
-                          int(args.mask_self), wp.float64(resolution * resolution)],
-                  outputs=[out_idx, out_count, self.separation_flag])
+                          int(args.mask_self or fused), wp.float64(resolution * resolution),
+                          params],
+                  outputs=[out_idx, out_count, self.separation_flag, out_energy])
         if self.check_separation:
             _raise_if_too_close(self.separation_flag, resolution, scan)
+
+
+@dataclasses.dataclass
+class SphereScene:
+    """What `SpheresMethod.build` made: the inputs it was built for, the
+    survey (ε, padding), the rays' half-length, and the BVH with the bounds
+    arrays it points into."""
+
+    points: wp.array
+    args: object
+    survey: Survey
+    half_length: float
+    bvh: wp.Bvh
+    lowers: wp.array
+    uppers: wp.array
 
 
 def _raise_if_too_close(flag: wp.array, resolution: float, scan: Survey) -> None:

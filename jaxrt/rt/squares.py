@@ -58,12 +58,14 @@ Resolved ambiguities (each also noted where it is coded):
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import warp as wp
 
 from jaxrt.rt import periodic as gamma
-from jaxrt.rt._method import check_find_arguments
+from jaxrt.rt import seed_energy
+from jaxrt.rt._method import check_energy_arguments, check_find_arguments
 from jaxrt.rt.epsilon import (
     Survey,
     geometry_point,
@@ -155,10 +157,21 @@ def _square_rays_kernel(
     side: wp.vec3d,
     periodic: wp.vec3i,
     mask_self: int,
+    params: wp.array(dtype=Any),        # fused mode's (seed_energy.N_PARAMS,)
     out_idx: wp.array2d(dtype=wp.int32),   # (N, width)
     out_count: wp.array(dtype=wp.int32),   # (N,)
+    energy: wp.array(dtype=Any),        # (N,) fused mode, zeroed; else (0,)
 ):
+    """Algorithm 2 for every target's four rays (and their gamma images).
+
+    List mode (``energy`` empty): row ``target`` of ``out_idx``. Fused mode
+    (``energy`` of N; `jaxrt.rt.seed_energy`; width 0, ``mask_self``): the
+    computation Algorithm 2 calls adds ``U`` to the ray's payload, and each
+    ray adds its payload to ``energy[target]`` atomically, as the seed's
+    code does. Either way ``out_count`` gets the exact count.
+    """
     target = wp.tid()
+    fused = energy.shape[0] > 0
     n = points.shape[0]
     width = out_idx.shape[1]
     position = gamma.wrap_into_box(wp.vec3d(points[target]), side, periodic)
@@ -195,6 +208,7 @@ def _square_rays_kernel(
                                          centre[2] + sign_z * half_side))
             ray_start[0] = ray_start[0] - padding
             query = wp.bvh_query_ray(bvh, ray_start, direction)
+            payload = wp.float64(0.0)
             primitive = int(0)
             while wp.bvh_query_next(query, primitive, max_dist):
                 source = primitive // _TRIANGLES_PER_PARTICLE
@@ -211,17 +225,23 @@ def _square_rays_kernel(
                 offset_sq = wp.cw_mul(offset, offset)
                 dist_sq = offset_sq[0] + offset_sq[1] + offset_sq[2]
                 if dist_sq < cutoff_sq and is_ray_for_compute(offset, ray):
-                    if count < width:
+                    if fused:
+                        payload = payload + seed_energy.clamped_lj(dist_sq, params)
+                    elif count < width:
                         out_idx[target, count] = source
                     count += 1
+            if fused:
+                wp.atomic_add(energy, target, type(energy[target])(payload))
     for slot in range(wp.min(count, width), width):
         out_idx[target, slot] = n
     out_count[target] = count
 
 
-for _point_type in (wp.vec3, wp.vec3d):
+for _point_type, _scalar in ((wp.vec3, wp.float32), (wp.vec3d, wp.float64)):
     wp.overload(_triangle_boxes_kernel, {"points": wp.array(dtype=_point_type)})
-    wp.overload(_square_rays_kernel, {"points": wp.array(dtype=_point_type)})
+    wp.overload(_square_rays_kernel, {"points": wp.array(dtype=_point_type),
+                                      "params": wp.array(dtype=_scalar),
+                                      "energy": wp.array(dtype=_scalar)})
 
 
 class SquaresMethod:
@@ -268,10 +288,35 @@ class SquaresMethod:
         """
         args = check_find_arguments(self.name, points, cutoff, side, periodic,
                                     mask_self, out_idx, out_count)
+        if points.shape[0] == 0:
+            return
+        self.query(self.build(points, args), out_idx=out_idx, out_count=out_count)
+
+    def energy(self, points: wp.array, *, cutoff: float,
+               side: tuple[float, float, float] | None,
+               periodic: tuple[bool, bool, bool], params: wp.array,
+               out_energy: wp.array, out_count: wp.array) -> None:
+        """Seed 001's fused mode (`jaxrt.rt.seed_energy`): each particle's
+        LJ energy summed inside Algorithm 2, no list (self pairs dropped).
+        Arguments as `jaxrt.rt.spheres.SpheresMethod.energy`; coincident
+        particles are found and clamped (`jaxrt.rt.seed_energy`)."""
+        args = check_energy_arguments(self.name, points, cutoff, side, periodic,
+                                      params, out_energy, out_count)
+        out_energy.zero_()
+        if points.shape[0] == 0:
+            return
+        self.query(self.build(points, args), params=params, out_energy=out_energy,
+                   out_count=out_count)
+
+    def build(self, points: wp.array, args) -> "SquareScene":
+        """The scene (init step): Code 1's triangles' boxes and their BVH.
+
+        Args:
+          points: ``(N,)`` wp.vec3 / wp.vec3d, N >= 1.
+          args: `jaxrt.rt._method.FindArguments` (checked).
+        """
         device = points.device
         n = points.shape[0]
-        if n == 0:
-            return
         scan = survey(points, args)
         self.last_survey = scan
         half_cutoff = 0.5 * args.cutoff
@@ -283,9 +328,39 @@ class SquaresMethod:
                           wp.float64(half_side), float(scan.padding)],
                   outputs=[lowers, uppers])
         bvh = wp.Bvh(lowers, uppers)
-        self._scene = (bvh, lowers, uppers)
-        wp.launch(_square_rays_kernel, dim=n, device=device,
-                  inputs=[wp.uint64(bvh.id), points, wp.float64(args.cutoff),
+        self._scene = SquareScene(points, args, scan, bvh, lowers, uppers)
+        return self._scene
+
+    def query(self, scene: "SquareScene", *, out_idx: wp.array | None = None,
+              out_count: wp.array, params: wp.array | None = None,
+              out_energy: wp.array | None = None) -> None:
+        """The rays (compute step) on a `build`'s scene: Dense rows into
+        ``out_idx`` (as `find`), or, with ``params`` and ``out_energy``
+        (zeroed by the caller), the fused energy (as `energy`)."""
+        points, args, scan = scene.points, scene.args, scene.survey
+        device = points.device
+        scalar = wp.float64 if points.dtype == wp.vec3d else wp.float32
+        fused = out_energy is not None
+        if not fused:
+            params = wp.empty(0, dtype=scalar, device=device)
+            out_energy = wp.empty(0, dtype=scalar, device=device)
+        else:
+            out_idx = wp.empty((1, 0), dtype=wp.int32, device=device)
+        wp.launch(_square_rays_kernel, dim=points.shape[0], device=device,
+                  inputs=[wp.uint64(scene.bvh.id), points, wp.float64(args.cutoff),
                           wp.float64(scan.epsilon), float(scan.padding), args.side_vec,
-                          args.periodic_vec, int(args.mask_self)],
-                  outputs=[out_idx, out_count])
+                          args.periodic_vec, int(args.mask_self or fused), params],
+                  outputs=[out_idx, out_count, out_energy])
+
+
+@dataclasses.dataclass
+class SquareScene:
+    """What `SquaresMethod.build` made: the inputs it was built for, the
+    survey (ε, padding), and the BVH with the bounds arrays it points into."""
+
+    points: wp.array
+    args: object
+    survey: Survey
+    bvh: wp.Bvh
+    lowers: wp.array
+    uppers: wp.array
