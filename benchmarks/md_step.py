@@ -55,18 +55,25 @@ FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"
                  "cell[auto]": ("cell", "auto")}
 
 
-# fused:cell[32x4x32]: the kernel with that launch (particles and warps per
-# program, and the cluster layout's tile; no tile: a thread per particle).
-_LAUNCH = re.compile(r"cell\[(\d+)x(\d+)(?:x(\d+))?\]")
+# fused:cell[32x4x32]: the kernel with that launch: particles and warps per
+# program, then optionally the cluster layout's tile (no tile: a thread per
+# particle), uN the thread walk's unroll, aN cells per cutoff across x.
+LAUNCH = r"(\d+)x(\d+)(?:x(\d+))?(?:u(\d+))?(?:a(\d+))?"
+_LAUNCH = re.compile(r"cell\[" + LAUNCH + r"\]")
 
 
 def launched(label: str):
-    """The fused cell backend of ``cell[BLOCKxWARPS[xTILE]]`` (the
-    kernel, compiled: CUDA only)."""
+    """The fused cell backend of ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS]]``
+    or of the bare launch (the kernel, compiled: CUDA only)."""
     from jaxrt.energy.fused import _Cell
-    block, warps, tile = _LAUNCH.fullmatch(label).groups()
-    return _Cell(kernel="pallas", block=int(block), warps=int(warps),
-                 tile=int(tile or 0))
+    match = _LAUNCH.fullmatch(label) or re.fullmatch(LAUNCH, label)
+    if match is None:
+        raise ValueError(f"launch {label!r}: write BLOCKxWARPS[xTILE]"
+                         "[uUNROLL][aACROSS], e.g. 32x1u2a2 or 16x1x16")
+    block, warps, tile, unroll, across = (int(v) if v else 0
+                                          for v in match.groups())
+    return _Cell(kernel="pallas", block=block, warps=warps, tile=tile,
+                 unroll=unroll or 1, across=across or 1)
 
 
 def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:

@@ -74,12 +74,12 @@ def _grid(box):
                          periodic=(True,) * 3, side=(box,) * 3)
 
 
-def _work(R, box):
+def _work(R, box, across: int = 1):
     """Candidates per particle and runs per particle of the cell grid the
     fused energy walks (`jaxrt.energy.fused.cell_runs`)."""
     import numpy as np
     from jaxrt.energy import fused
-    _, runs = fused.cell_runs(R, _grid(box))
+    _, runs = fused.cell_runs(R, _grid(box), across=across)
     start1 = fused.kernel_runs(runs)[0]
     return (float(np.mean(np.sum(np.asarray(runs.length), axis=1))),
             int(start1.shape[1]))
@@ -116,7 +116,8 @@ def run_row(job: dict) -> dict:
     from jaxrt.energy import lennard_jones_fused
     R, box, disp = _system(n, jnp.float32)
     n = R.shape[0]
-    candidates, runs = _work(R, box)
+    across = _launched(job["launch"]).across if job.get("launch") else 1
+    candidates, runs = _work(R, box, across)
     inputs = [R, (R + 1e-3) % box]
     if row == "rebuild":
         nfn = jaxrt.neighbor_list(disp, box, 2.5, dr_threshold=0.0,
@@ -150,12 +151,9 @@ def run_row(job: dict) -> dict:
 
 
 def _launched(launch: str):
-    """The fused cell backend of ``"BLOCKxWARPS[xTILE]"`` (e.g. ``"64x2"``,
-    ``"32x4x32"``): the kernel with that launch (CUDA only)."""
-    from jaxrt.energy.fused import _Cell
-    block, warps, *tile = (int(v) for v in launch.split("x"))
-    return _Cell(kernel="pallas", block=block, warps=warps,
-                 tile=tile[0] if tile else 0)
+    """The fused cell backend of a launch (`md_step.launched`)."""
+    from md_step import launched
+    return launched(launch)
 
 
 COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",
@@ -208,9 +206,9 @@ def main(argv=None) -> None:
                         help="Cell(kernel=...) values of the search rows")
     parser.add_argument("--launches", nargs="*", default=[],
                         help="extra fused rows with other launches of the "
-                        "kernel, BLOCKxWARPS[xTILE] (e.g. 64x2, 32x4x32: "
-                        "with a tile, the cluster layout; the default is "
-                        "32x1, no tile); CUDA only")
+                        "kernel, BLOCKxWARPS[xTILE][uUNROLL][aACROSS] (e.g. "
+                        "64x2, 32x1u2a2, 16x1x16: with a tile, the cluster "
+                        "layout; the default is 32x1, no tile); CUDA only")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 8000, small limit rows")
     _harness.add_common_args(parser, name="roofline.csv", repeats=10,

@@ -203,7 +203,7 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
               block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
-              interpret: bool = False):
+              unroll: int = 1, interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
 
     Every pair is met from both of its particles (no atomics, no list); the
@@ -244,6 +244,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
       block, warps: particles per program and warps per program.
       tile: 0, or the candidates per tile of the cluster layout (a power
         of two, as ``block``).
+      unroll: candidates per loop step of the thread walk (>= 1).
       interpret: run in Pallas' interpreter (any backend; for tests).
     Returns:
       float ``(N, dim)`` vector sums and float ``(n_sums, N)`` scalar sums,
@@ -256,6 +257,8 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
             raise ValueError(f"pair_sums: {name}={value} must be a power of "
                              "two (Triton's blocks are)" + (" or 0." if name
                                                             == "tile" else "."))
+    if unroll < 1:
+        raise ValueError(f"pair_sums: unroll={unroll} must be >= 1.")
     padded, pad = _padding(n, block)
     extra = padded - n
     if tile:
@@ -282,7 +285,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         _tile_walk if tile else _sum_walk, n=n, dim=dim, periodic=periodic,
         block=block, runs=starts.shape[0], n_extras=len(extras),
         n_sums=n_sums, n_scalars=scalars.shape[0], pair_terms=pair_terms,
-        **({"tile": tile} if tile else {}))
+        **({"tile": tile} if tile else {"unroll": unroll}))
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
     sums = pl.pallas_call(
@@ -297,7 +300,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
 
 
 def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
-              runs, n_extras, n_sums, n_scalars, pair_terms):
+              runs, n_extras, n_sums, n_scalars, pair_terms, unroll=1):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
 
     Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
@@ -325,7 +328,7 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
         start = starts_ref[r, lanes]
         length = lengths_ref[r, lanes]
 
-        def step(s, acc):
+        def one(s, acc):
             inside = s < length
             j = jnp.where(inside, start + s, 0)
             d2 = zero
@@ -343,7 +346,13 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
             vector = tuple(v + g * da for v, da in zip(acc[:dim], d))
             return vector + tuple(t + u for t, u in zip(acc[dim:], terms))
 
-        return jax.lax.fori_loop(0, jnp.max(length), step, acc)
+        def step(s, acc):
+            for u in range(unroll):
+                acc = one(s * unroll + u, acc)
+            return acc
+
+        steps = (jnp.max(length) + unroll - 1) // unroll
+        return jax.lax.fori_loop(0, steps, step, acc)
 
     acc = jax.lax.fori_loop(0, runs, walk_run, (zero,) * (dim + n_sums))
     for ref, value in zip(out_refs, acc):

@@ -154,7 +154,8 @@ def _key(coord, n):
     return key
 
 
-def _runs(sorted_key, cell, n, query: Query):
+def _runs(sorted_key, cell, n, query: Query,
+          reach: tuple[int, int] = _REACH):
     """Runs of the sorted order that hold each particle's candidate cells.
 
     Args:
@@ -167,7 +168,8 @@ def _runs(sorted_key, cell, n, query: Query):
       the cells that wrap around (empty for most particles).
     """
     dim = query.dim
-    rx, across = _REACH
+    rx, across = reach
+    assert rx == _REACH[0], "_cell_starts pads for _REACH[0] cells along x"
     # Stencil rows as arrays (one op per step, not per row: compile time).
     offsets = np.array(list(itertools.product(range(-across, across + 1),
                                               repeat=dim - 1)), np.int32)

@@ -315,9 +315,13 @@ class _Cell(_Backend):
     # The kernel's launch (`jaxrt._cell_kernel.pair_sums`): particles and
     # warps per program, and the cluster layout's tile (0: a thread per
     # particle). benchmarks/roofline.py measures the choices.
+    # ``unroll`` candidates per step of the thread walk (independent loads
+    # in flight), and ``across`` cells per cutoff across x (`cell_runs`).
     block: int = 32
     warps: int = 1
     tile: int = 0
+    unroll: int = 1
+    across: int = 1
 
     def __post_init__(self):
         from jaxrt import _cell_kernel
@@ -339,7 +343,7 @@ class _Cell(_Backend):
              derivatives: bool = True) -> FusedSums:
         from jaxrt import _cell_kernel
         dtype = R3.dtype
-        order, runs = cell_runs(R3, params)
+        order, runs = cell_runs(R3, params, across=self.across)
 
         def portable():
             return self._walk(R3[order], runs, sigma, epsilon,
@@ -351,7 +355,7 @@ class _Cell(_Backend):
                 _wrap(R3, params)[order], kernel_runs(runs),
                 jnp.asarray(params.side, dtype), sigma, epsilon, radii, order,
                 params, interpret, derivatives, block=self.block,
-                warps=self.warps, tile=self.tile)
+                warps=self.warps, tile=self.tile, unroll=self.unroll)
 
         if self.kernel == "xla" or (self.kernel == "auto"
                                     and _cell_kernel.pl is None):
@@ -460,10 +464,13 @@ class Runs(NamedTuple):
     length: Array
 
 
-def cell_runs(R: Array, params: _Params) -> tuple[Array, Runs]:
+def cell_runs(R: Array, params: _Params, *, across: int = 1
+              ) -> tuple[Array, Runs]:
     """The sorted cell grid of `jaxrt.cell_list` (cells ``bound / 4`` along
-    x and ``bound`` across), recomputed from ``R``: every pair closer than
-    ``params.bound`` is in both particles' runs.
+    x and ``bound / across`` across), recomputed from ``R``: every pair
+    closer than ``params.bound`` is in both particles' runs. ``across``:
+    finer cells across make ``(2 across + 1)^(dim - 1)`` shorter runs with
+    fewer candidates in all.
 
     Args:
       R: float ``(N, dim)``, Cartesian, unwrapped; ``params.periodic`` and
@@ -482,12 +489,13 @@ def cell_runs(R: Array, params: _Params) -> tuple[Array, Runs]:
     query = Query(cutoff=params.bound, periodic=tuple(params.periodic),
                   mask_self=True, format=NeighborListFormat.Dense)
     # `cell_list._sorted_system`, with a faster sort.
+    reach = (cell_list._REACH[0], across)
     _, cell, cells = cell_list._grid(geometry.grid_coordinates(R), geometry,
-                                     query)
+                                     query, reach)
     key = cell_list._key(cell, cells)
     order, sorted_key = _sort_by_key(key, cell_list._table_size(R.shape[0]))
     start1, len1, start2, len2 = cell_list._runs(sorted_key, cell[order],
-                                                 cells, query)
+                                                 cells, query, reach)
     # The wrapped part continues the first in one loop: particles near the
     # x ends have long wrapped parts, so a loop (or a column) of their own
     # would cost as much as the first for every particle.
