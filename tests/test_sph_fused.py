@@ -401,6 +401,38 @@ def test_scene_list_free_matches_list():
             else e for e in scene.effects))
 
 
+def test_scene_walk_key():
+    """sph_density's ``walk``: read from TOML and written back, checked,
+    and handed to the list-free factories as ``Cell(kernel=walk)``."""
+    import dataclasses
+
+    from jaxrt import sim
+    from jaxrt.sim.builtin import dam_break
+    from jaxrt.sim.spec import SceneError
+    scene = dam_break(dx=0.1)
+
+    def with_density(**kw):
+        return dataclasses.replace(scene, effects=tuple(
+            dataclasses.replace(e, list_free=True,
+                                **(kw if e.kind == "sph_density" else {}))
+            if e.kind.startswith("sph") else e for e in scene.effects))
+    xla = with_density(walk="xla")
+    text = sim.to_toml(xla)
+    assert 'walk = "xla"' in text
+    assert sim.from_toml(text).effect("sph_density").walk == "xla"
+    assert xla.effect("sph_density").walk_backend() == Cell(kernel="xla")
+    assert any("walk 'xla'" in line for line in sim.compile_scene(xla).plan)
+    with pytest.raises(SceneError, match=r"walk.*one of \['auto'"):
+        with_density(walk="cuda")
+    with pytest.raises(SceneError, match="walk.*needs list_free"):
+        dataclasses.replace(scene, effects=tuple(
+            dataclasses.replace(e, walk="xla") if e.kind == "sph_density"
+            else e for e in scene.effects))
+    if not ON_GPU:
+        with pytest.raises(ValueError, match="kernel='pallas'.*CUDA"):
+            sim.compile_scene(with_density(walk="pallas"))
+
+
 @pytest.mark.parametrize("table, wide", [(1000, False), (2 ** 40, True),
                                          (2 ** 40, False)])
 def test_sort_by_key_branches(table, wide):

@@ -97,6 +97,8 @@ from jaxrt.energy.fused import (_CELL_KERNELS, FusedInputError, _Params,
 Array = jax.Array
 
 BACKENDS = ("cell", "brute")
+# The cell walk's programs (``jaxrt.backends.Cell(kernel=...)``).
+WALKS = _CELL_KERNELS
 
 _HIGHER_ORDER = (
     "density_fused / acceleration_fused are differentiable once (their "
@@ -606,7 +608,7 @@ def _traversal(backend) -> tuple[str, str]:
         return backend, "auto" if backend == "cell" else "xla"
     raise ValueError(f"backend={backend!r} is not known; choose one of "
                      f"{BACKENDS}, or jaxrt.backends.Cell(kernel=...) with "
-                     f"kernel one of {_CELL_KERNELS} (the cell walk's "
+                     f"kernel one of {WALKS} (the cell walk's "
                      "program: 'xla' array programs, 'pallas' the CUDA "
                      "kernel, 'auto' the kernel on CUDA and the arrays "
                      "elsewhere, 'interpret' the kernel in Pallas' "
