@@ -120,9 +120,6 @@ def _pack(data: dict) -> tuple[Array, tuple]:
     layout ``((name, first, stop, trailing), ...)``."""
     rows, layout, at = [], [], 0
     for name, v in data.items():
-        if v.ndim > 2:
-            raise ValueError(f"{name}: per-particle data are (N,) or (N, k); "
-                             f"got shape {v.shape}.")
         width = int(np.prod(v.shape[1:], dtype=int))
         rows.append(v.reshape(v.shape[0], width).T)
         layout.append((name, at, at + width, v.shape[1:]))
@@ -131,16 +128,11 @@ def _pack(data: dict) -> tuple[Array, tuple]:
 
 
 def _unpack(table: Array, layout: tuple) -> dict:
-    """Table ``(F, ...)`` -> dict of ``(...)`` arrays (scalars) and tuples
-    of ``k`` such arrays (vectors, by component: the pair terms' form)."""
+    """Table ``(F, ...)`` -> dict of ``(...)`` (scalars) / ``(k, ...)``
+    (vectors: components first)."""
     return {name: table[a] if trailing == () else
-            tuple(table[i] for i in range(a, b))
+            table[a:b].reshape(trailing + table.shape[1:])
             for name, a, b, trailing in layout}
-
-
-def _stack(t) -> Array:
-    """A per-pair term: an array, or a vector's components -> ``(k, ...)``."""
-    return jnp.stack(jnp.broadcast_arrays(*t)) if isinstance(t, tuple) else t
 
 
 def _components_last(x: Array, layout_trailing: tuple) -> Array:
@@ -155,39 +147,51 @@ def _masked_sum(t: Array, keep: Array) -> Array:
     return jnp.sum(jnp.where(keep, t, 0), axis=-2)
 
 
-def _add(terms):
-    """The sum of a non-empty sequence (no ``0 +`` in front: one rounding
-    fewer than ``sum``)."""
-    return functools.reduce(operator.add, terms)
+def _min_image_first(d: Array, grid: _Params) -> Array:
+    """`jaxrt.energy.fused._min_image` with components first."""
+    shape = (len(grid.side),) + (1,) * (d.ndim - 1)
+    side = jnp.asarray(grid.side, d.dtype).reshape(shape)
+    wrapped = jnp.mod(d + side * 0.5, side) - side * 0.5
+    return jnp.where(np.reshape(grid.periodic, shape), wrapped, d)
+
+
+# Vectors in the pair terms: arrays with the components on a leading axis
+# in the array walk (the form XLA fuses best), tuples of components in the
+# kernel (one value per thread: Triton's tensors are sized in powers of
+# two, so no (3, block) stack). The terms are written once, with these.
+
+
+def _map(f: Callable, *xs):
+    """``f`` component by component over vectors (scalars broadcast)."""
+    k = next((len(x) for x in xs if isinstance(x, tuple)), None)
+    if k is None:
+        return f(*xs)
+    return tuple(f(*(x[a] if isinstance(x, tuple) else x for x in xs))
+                 for a in range(k))
+
+
+def _components_sum(v):
+    """The sum of a vector's components."""
+    return (functools.reduce(operator.add, v) if isinstance(v, tuple)
+            else jnp.sum(v, axis=0))
 
 
 def _inner(g, t):
-    """Per-pair ``<g, t>``: arrays, or vectors' component tuples."""
-    return _add([a * b for a, b in zip(g, t)]) if isinstance(t, tuple) \
+    """Per-pair ``<g, t>`` (scalars, or vectors over their components)."""
+    if isinstance(t, tuple):
+        return _components_sum(_map(operator.mul, g, t))
+    return jnp.sum(g * t, axis=tuple(range(t.ndim - 2))) if t.ndim > 2 \
         else g * t
 
 
-def _norm(d: tuple) -> tuple[Array, tuple]:
-    """`jaxrt.energy.sph._safe_norm` by components: ``d`` a tuple of
-    ``dim`` float arrays -> ``|d|`` and the unit vector's components, 0
-    where ``d = 0``, all with finite gradients there."""
-    r2 = _add([x * x for x in d])
+def _norm(d):
+    """`jaxrt.energy.sph._safe_norm` of a vector ``d`` -> ``|d|`` and the
+    unit vector, 0 where ``d = 0``, both with finite gradients there."""
+    r2 = _components_sum(_map(lambda x: x * x, d))
     nonzero = r2 > 0
     r = jnp.sqrt(jnp.where(nonzero, r2, 1))
-    unit = tuple(jnp.where(nonzero, x / r, 0) for x in d)
+    unit = _map(lambda x: jnp.where(nonzero, x / r, 0), d)
     return jnp.where(nonzero, r, 0), unit
-
-
-def _min_image(d: tuple, grid: _Params) -> tuple:
-    """`jaxrt.energy.fused._min_image` by components."""
-    return tuple(jnp.mod(x + side * 0.5, side) - side * 0.5 if periodic
-                 else x for x, side, periodic in
-                 zip(d, grid.side, grid.periodic))
-
-
-def _difference(a: tuple, b: tuple, grid: _Params) -> tuple:
-    """Minimum image of ``a - b``, positions by components."""
-    return _min_image(tuple(x - y for x, y in zip(a, b)), grid)
 
 
 # ---------------------------------------------------------------------------
@@ -360,8 +364,8 @@ class _PairSum:
             def slot(mine_cols, other_cols, keep):
                 mine = _unpack(mine_cols, layout)
                 other = _unpack(other_cols, layout)
-                d = _difference(mine["R"], other["R"], grid)
-                return tuple(_masked_sum(_stack(t), keep)
+                d = _min_image_first(mine["R"] - other["R"], grid)
+                return tuple(_masked_sum(t, keep)
                              for t in pair(mine, other, d, theta))
 
             n = table.shape[1]
@@ -413,13 +417,13 @@ class _PairSum:
                       for k, v in theta.items()}
 
                 def phi(xm, th):
-                    d = _difference(xm["R"], xo["R"], grid)
+                    d = _min_image_first(xm["R"] - xo["R"], grid)
                     total = _mirrored(pair, xm, xo, d, th, gm, go)
                     total = jnp.broadcast_to(total, keep.shape)
                     return jnp.sum(jnp.where(keep, total, 0))
 
                 dx, dth = jax.grad(phi, argnums=(0, 1))(xm, th)
-                return ({k: _stack(v)[..., 0, :] for k, v in dx.items()},
+                return ({k: v[..., 0, :] for k, v in dx.items()},
                         {k: v[0] for k, v in dth.items()})
 
             n = table.shape[1]
@@ -501,9 +505,9 @@ def _mirrored(pair, xm, xo, d, th, gm, go):
     own terms only (the mirrored ones are counted when j is the centre).
     ``d``: the minimum image of ``R_i - R_j``, by components."""
     t_ij = pair(xm, xo, d, th)
-    t_ji = pair(xo, xm, tuple(-x for x in d), jax.lax.stop_gradient(th))
-    return _add([_inner(gm[str(k)], a) + _inner(go[str(k)], b)
-                 for k, (a, b) in enumerate(zip(t_ij, t_ji))])
+    t_ji = pair(xo, xm, _map(operator.neg, d), jax.lax.stop_gradient(th))
+    return sum(_inner(gm[str(k)], a) + _inner(go[str(k)], b)
+               for k, (a, b) in enumerate(zip(t_ij, t_ji)))
 
 
 class _Columns:
@@ -548,8 +552,8 @@ class _Columns:
 
 
 # ---------------------------------------------------------------------------
-# The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j), vectors
-# by components (one definition for the array walk and the kernel).
+# The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j); vectors
+# through `_map` (one definition for the array walk and the kernel).
 
 
 def _density_pair(kernel: _sph.Kernel) -> Callable:
@@ -568,19 +572,19 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
         hh, a, b = theta["h"], theta["alpha"], theta["beta"]
         r, unit = _norm(d)
         dw = cls(hh, dim=dim).grad_w(r)
-        grad_w = tuple(dw * u for u in unit)
+        grad_w = _map(lambda u: dw * u, unit)
         # q = P / rho**2 per particle: the list path's per-pair expression,
         # bit for bit, computed once per particle.
         q = mine["q"] + other["q"]
-        vr = _add([(vi - vj) * x for vi, vj, x in
-                   zip(mine["V"], other["V"], d)])
+        vr = _components_sum(_map(lambda vi, vj, x: (vi - vj) * x,
+                                  mine["V"], other["V"], d))
         mu = hh * vr / (r * r + epsilon * hh * hh)
         c_mean = (mine["c"] + other["c"]) / 2
         rho_mean = (mine["rho"] + other["rho"]) / 2
         pi = jnp.where(vr < 0, (-a * c_mean * mu + b * mu * mu) / rho_mean, 0)
         mj = other["m"]
-        return (tuple(-mj * (q * gw) for gw in grad_w),
-                tuple(-mj * (pi * gw) for gw in grad_w))
+        return (_map(lambda gw: -mj * (q * gw), grad_w),
+                _map(lambda gw: -mj * (pi * gw), grad_w))
     return pair
 
 
