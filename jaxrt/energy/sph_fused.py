@@ -212,14 +212,14 @@ class _PairSum:
     """A per-particle pair sum with its VJP, over a backend's traversal.
 
     ``pair(mine, other, d, theta)``: ``mine`` / ``other`` dicts of the
-    per-particle data of the pair's two particles (scalars as arrays,
-    vectors as tuples of their components), ``d`` a tuple of the ``dim``
-    components of the minimum image of ``R_mine - R_other``, ``theta`` a
-    dict of scalars; all of them broadcast together (``(K, M)``: M
-    centres, K candidates each, in the array walk; one candidate per
-    thread in the kernel). Returns a tuple of per-pair terms, arrays or
-    component tuples, elementwise in its inputs (the kernel traces it on
-    a thread's values). It must vanish, with all its derivatives, beyond
+    per-particle data of the pair's two particles, ``d`` the minimum image
+    of ``R_mine - R_other``, ``theta`` a dict of scalars. In the array
+    walk scalars are ``(K, M)``-broadcastable (M centres, K candidates
+    each) and vectors ``(k, K, M)`` (components first); in the kernel
+    scalars are one value per thread and vectors tuples of components.
+    Written with `_map` / `_components_sum` / `_norm`, one definition
+    serves both. Returns a tuple of per-pair terms (scalars or vectors),
+    elementwise in its inputs. It must vanish, with all its derivatives, beyond
     the grid's bound (the walk meets only pairs within it, and a pair
     beyond may be met from one side only). The data must hold ``"R"``.
 
