@@ -14,10 +14,17 @@ Setup labels (``--list`` prints the defaults):
                            particle moved half of it; <backend> a label of
                            `_harness.parse_backend`: cell, cell[xla], bvh...)
                            + sph.density + sph.acceleration
-  fused:<backend>          no list: energy.acceleration_fused (cell or
-                           brute), which sorts once and walks the cell runs
-                           twice (densities, then forces)
+  fused:<backend>          no list: energy.acceleration_fused, which sorts
+                           once and walks the cell runs twice (densities,
+                           then forces); <backend> cell (the Pallas kernel
+                           on CUDA, array programs elsewhere), cell[xla]
+                           (the arrays), cell[pallas] (the kernel; CUDA
+                           only), cell[auto] (= cell) or brute
 
+``walk``: the program a fused row's cell walk ran (``pallas`` or
+``xla``; ``brute``). The default rows compare, in one run, the list step
+with the list-free step as the kernel and as array programs (on a CPU
+``fused:cell`` is the arrays too).
 ``k``: mean list neighbours (support + skin), of the list after the
 timing (list rows) or at the start (fused rows). A list that overflowed
 during the timing is allocated again with a larger capacity multiplier,
@@ -30,6 +37,8 @@ acceleration; ~1e-6 in float32).
     python benchmarks/sph_step.py                       # CPU, N = 10^4, 2D
     python benchmarks/sph_step.py --n 1000000           # a GPU
     python benchmarks/sph_step.py --n 100000 --dim 3 --only list:cell/Dense fused:cell
+    python benchmarks/sph_step.py --n 1000000 --only list:cell/OrderedSparse \\
+        fused:cell[xla] fused:cell[pallas]                  # a GPU, side by side
     python benchmarks/sph_step.py --quick               # CPU smoke
 """
 from __future__ import annotations
@@ -43,9 +52,11 @@ import _harness  # noqa: E402
 
 FORMATS = ("Dense", "OrderedSparse")
 LIST_BACKENDS = ("cell",)
-FUSED_BACKENDS = ("cell", "brute")
+# fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
+FUSED_BACKENDS = ("cell", "cell[xla]", "cell[pallas]", "cell[auto]",
+                  "brute")
 DEFAULT = [f"list:{b}/{f}" for b in LIST_BACKENDS for f in FORMATS] + [
-    "fused:cell"]
+    "fused:cell", "fused:cell[xla]"]
 
 DX = 0.01
 
@@ -68,6 +79,19 @@ def parse_label(label: str) -> tuple[str, str, str | None]:
         return "list", backend, fmt
     raise ValueError(f"setup {label!r}: list:<backend>/<format> or "
                      "fused:<backend>")
+
+
+def walk_of(backend: str) -> str:
+    """The program a fused row's walk runs here: ``pallas``, ``xla``,
+    ``interpret`` or ``brute``."""
+    import jax
+    name, opts = _harness.parse_backend(backend)
+    if name == "brute":
+        return "brute"
+    kernel = opts.get("kernel", "auto")
+    if kernel == "auto":
+        return "pallas" if jax.default_backend() in ("gpu", "cuda") else "xla"
+    return kernel
 
 
 def fluid(n: int, dim: int, seed: int = 0):
@@ -163,7 +187,9 @@ def run_row(job: dict) -> dict:
         return {**row, **timing.columns()}
 
     fused = acceleration_fused(disp, side, kernel, eos, mass=mass,
-                               alpha=alpha, backend=backend)
+                               alpha=alpha,
+                               backend=_harness.backend(backend))
+    row["walk"] = walk_of(backend)
 
     @jax.jit
     def run(carry):
@@ -192,7 +218,7 @@ def run_row(job: dict) -> dict:
     return row
 
 
-COLUMNS = ["dim", "list", "N", "k", "median_ms", "min_ms", "max_ms",
+COLUMNS = ["dim", "list", "walk", "N", "k", "median_ms", "min_ms", "max_ms",
            "repeats", "speedup", "capacity_multiplier", "max_rel_diff"]
 
 

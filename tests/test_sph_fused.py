@@ -10,6 +10,11 @@ cancel to O(1) sums; the worst seen is ~5e-14).
 
 The default run keeps one case per property; the other geometries and
 backends run with ``-m slow``.
+
+``"pallas"`` in the parameter lists is the cell walk as one kernel
+(`jaxrt._cell_kernel.pair_sums`): compiled on a GPU, in Pallas'
+interpreter elsewhere (small systems: it is slow there). On the GPU,
+``-k pallas`` runs them all compiled.
 """
 from __future__ import annotations
 
@@ -22,11 +27,21 @@ import pytest
 from jax import lax
 from jax_md import partition, space
 
+from jaxrt.backends import Cell
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           acceleration_fused, density_fused, sph)
 
 SLOW = pytest.mark.slow
 RTOL = 1e-12
+ON_GPU = jax.default_backend() in ("gpu", "cuda")
+WALKS = {"pallas": Cell(kernel="pallas" if ON_GPU else "interpret"),
+         "xla": Cell(kernel="xla")}
+
+
+def pick(backend):
+    """A test's backend label -> ``backend=``: "pallas" and "xla" are the
+    cell walk as the kernel and as array programs."""
+    return WALKS.get(backend, backend)
 
 
 @pytest.fixture
@@ -98,6 +113,11 @@ EOS = sph.Tait(rho0=1.0, c0=10.0, gamma=7.0)
 
 @pytest.mark.parametrize("dim, geometry, backend", [
     (2, "periodic", "cell"), (2, "slab", "brute"),
+    (2, "periodic", "pallas"), pytest.param(3, "slab", "pallas", marks=SLOW),
+    pytest.param(2, "free", "pallas", marks=SLOW),
+    pytest.param(2, "slab", "pallas", marks=SLOW),
+    pytest.param(3, "periodic", "pallas", marks=SLOW),
+    pytest.param(3, "free", "pallas", marks=SLOW),
     # 3D free space: test_density_gradients_and_given_pressure.
     pytest.param(3, "free", "cell", marks=SLOW),
     pytest.param(3, "periodic", "cell", marks=SLOW),
@@ -111,30 +131,41 @@ def test_density_and_acceleration_match_list_path(x64, dim, geometry,
     nbrs = neighbours(displacement, box, periodic, R, float(kernel.cutoff))
     kw = dict(mass=mass, alpha=0.5, beta=0.4)
     rho = density_fused(displacement, box, kernel, mass=mass,
-                        backend=backend, periodic=periodic)(R)
+                        backend=pick(backend), periodic=periodic)(R)
     assert rho.dtype == jnp.float64 and rho.shape == (len(R),)
     close(rho, jax.jit(sph.density(displacement, kernel, mass=mass))(R, nbrs))
-    acc = acceleration_fused(displacement, box, kernel, EOS, backend=backend,
-                             periodic=periodic, **kw)(R, V)
+    acc = acceleration_fused(displacement, box, kernel, EOS,
+                             backend=pick(backend), periodic=periodic,
+                             **kw)(R, V)
     ref = jax.jit(sph.acceleration(displacement, kernel, EOS, **kw))(R, V,
                                                                       nbrs)
     for a, b in zip(acc, ref):
         close(a, b)
+    if backend == "pallas":
+        # The kernel and the array walk: the same terms, to rounding.
+        xla = acceleration_fused(displacement, box, kernel, EOS,
+                                 backend=pick("xla"), periodic=periodic,
+                                 **kw)(R, V)
+        for a, b in zip(acc, xla):
+            close(a, b)
     # Momentum: every pair term is antisymmetric.
     total = jnp.sum(mass[:, None] * acc.total, axis=0)
     assert float(jnp.max(jnp.abs(total))) < 1e-10 * float(
         jnp.max(jnp.abs(mass[:, None] * acc.total)))
 
 
-def test_gradients_match_list_path(x64):
+@pytest.mark.parametrize("dim, backend", [
+    (2, "cell"), (2, "pallas"), pytest.param(3, "pallas", marks=SLOW)])
+def test_gradients_match_list_path(x64, dim, backend):
     """Every differentiable input at once: positions, velocities, h,
     per-particle masses, alpha, beta and the Tait parameters, through the
-    densities into the forces."""
-    R, V, mass, displacement, box, periodic = system(2, "periodic",
-                                                     n_side=9)
-    kernel = KERNEL[2]
+    densities into the forces (the kernel: through its VJP walks too)."""
+    R, V, mass, displacement, box, periodic = system(
+        dim, "periodic", n_side=9 if dim == 2 else 6)
+    kernel = KERNEL[dim]
     nbrs = neighbours(displacement, box, periodic, R, float(kernel.cutoff))
-    fused = acceleration_fused(displacement, box, kernel, EOS)
+    fused = acceleration_fused(displacement, box, kernel, EOS,
+                               backend=pick(backend))
     ref = sph.acceleration(displacement, kernel, EOS)
     weights = jnp.asarray(np.random.default_rng(5).normal(size=R.shape))
 
@@ -155,15 +186,16 @@ def test_gradients_match_list_path(x64):
         close(x, y)
 
 
-@pytest.mark.parametrize("backend", ["cell", pytest.param("brute",
-                                                          marks=SLOW)])
+@pytest.mark.parametrize("backend", [
+    "cell", pytest.param("pallas", marks=SLOW),
+    pytest.param("brute", marks=SLOW)])
 def test_density_gradients_and_given_pressure(x64, backend):
     """density_fn's own VJP (R, h, scalar mass), and accel_fn with given
     rho and pressure (their gradients)."""
     R, V, _, displacement, box, periodic = system(3, "free")
     kernel = KERNEL[3]
     nbrs = neighbours(displacement, box, periodic, R, float(kernel.cutoff))
-    fused = density_fused(displacement, box, kernel, backend=backend)
+    fused = density_fused(displacement, box, kernel, backend=pick(backend))
     ref = sph.density(displacement, kernel)
 
     def loss(fn, R, h, m):
@@ -177,7 +209,7 @@ def test_density_gradients_and_given_pressure(x64, backend):
         close(x, y)
 
     accel = acceleration_fused(displacement, box, kernel, EOS,
-                               backend=backend)
+                               backend=pick(backend))
     accel_ref = sph.acceleration(displacement, kernel, EOS)
     rho = jax.jit(ref)(R, nbrs)
     pressure = jnp.maximum(EOS.pressure(rho), 0)
@@ -193,21 +225,24 @@ def test_density_gradients_and_given_pressure(x64, backend):
         close(x, y)
 
 
-@pytest.mark.parametrize("backend", ["cell", pytest.param("brute",
-                                                          marks=SLOW)])
+@pytest.mark.parametrize("backend", ["cell", "pallas",
+                                     pytest.param("brute", marks=SLOW)])
 def test_coincident_and_exact_support_pairs(x64, backend):
     h = 0.5
     kernel = sph.CubicSpline(h, dim=2)   # support 2h = 1.0
     R = jnp.asarray([[1.0, 1.0], [1.0, 1.0],     # coincident
                      [5.0, 5.0], [6.0, 5.0],     # exactly the support
-                     [1.0, 8.0], [1.6, 8.0]])    # inside
+                     [1.0, 8.0], [1.6, 8.0],     # inside
+                     [8.0, 1.0], [8.0, 1.0 + 1e-9]])  # nearly coincident
     V = jnp.asarray(np.random.default_rng(0).normal(size=R.shape))
     displacement, _ = space.free()
-    rho = density_fused(displacement, None, kernel, backend=backend)(R)
+    rho = density_fused(displacement, None, kernel, backend=pick(backend))(R)
     w0, w = kernel.w(jnp.zeros(())), kernel.w(jnp.asarray(0.6))
-    close(rho, jnp.asarray([2 * w0, 2 * w0, w0, w0, w0 + w, w0 + w]))
+    w_near = kernel.w(jnp.asarray(1e-9))
+    close(rho, jnp.asarray([2 * w0, 2 * w0, w0, w0, w0 + w, w0 + w,
+                            w0 + w_near, w0 + w_near]))
     accel = acceleration_fused(displacement, None, kernel, EOS, alpha=1.0,
-                               beta=1.0, backend=backend)
+                               beta=1.0, backend=pick(backend))
     nbrs = neighbours(displacement, None, False, R, float(kernel.cutoff))
     ref = sph.acceleration(displacement, kernel, EOS, alpha=1.0, beta=1.0)
     out = accel(R, V)
@@ -316,6 +351,19 @@ def test_bad_arguments(x64):
         density(jnp.zeros((4, 3)))
     with pytest.raises(ValueError, match="backend"):
         density_fused(displacement, box, kernel, backend="bvh")
+    # The walk: an unknown program, or a name that is not a backend.
+    with pytest.raises(ValueError, match=r"kernel='cuda'.*choose one of"):
+        density_fused(displacement, box, kernel, backend=Cell(kernel="cuda"))
+    with pytest.raises(ValueError, match=r"backend='pallas' is not known.*"
+                       r"Cell\(kernel=\.\.\.\)"):
+        acceleration_fused(displacement, box, kernel, EOS, backend="pallas")
+    with pytest.raises(ValueError, match="radius_classes"):
+        density_fused(displacement, box, kernel,
+                      backend=Cell(radius_classes=2))
+    if not ON_GPU:
+        with pytest.raises(ValueError, match="kernel='pallas'.*CUDA"):
+            acceleration_fused(displacement, box, kernel, EOS,
+                               backend=Cell(kernel="pallas"))
     with pytest.raises(ValueError, match="alpha"):
         acceleration_fused(displacement, box, kernel, EOS, alpha=-1.0)
     with pytest.raises(ValueError, match="half"):
@@ -353,6 +401,38 @@ def test_scene_list_free_matches_list():
             else e for e in scene.effects))
 
 
+def test_scene_walk_key():
+    """sph_density's ``walk``: read from TOML and written back, checked,
+    and handed to the list-free factories as ``Cell(kernel=walk)``."""
+    import dataclasses
+
+    from jaxrt import sim
+    from jaxrt.sim.builtin import dam_break
+    from jaxrt.sim.spec import SceneError
+    scene = dam_break(dx=0.1)
+
+    def with_density(**kw):
+        return dataclasses.replace(scene, effects=tuple(
+            dataclasses.replace(e, list_free=True,
+                                **(kw if e.kind == "sph_density" else {}))
+            if e.kind.startswith("sph") else e for e in scene.effects))
+    xla = with_density(walk="xla")
+    text = sim.to_toml(xla)
+    assert 'walk = "xla"' in text
+    assert sim.from_toml(text).effect("sph_density").walk == "xla"
+    assert xla.effect("sph_density").walk_backend() == Cell(kernel="xla")
+    assert any("walk 'xla'" in line for line in sim.compile_scene(xla).plan)
+    with pytest.raises(SceneError, match=r"walk.*one of \['auto'"):
+        with_density(walk="cuda")
+    with pytest.raises(SceneError, match="walk.*needs list_free"):
+        dataclasses.replace(scene, effects=tuple(
+            dataclasses.replace(e, walk="xla") if e.kind == "sph_density"
+            else e for e in scene.effects))
+    if not ON_GPU:
+        with pytest.raises(ValueError, match="kernel='pallas'.*CUDA"):
+            sim.compile_scene(with_density(walk="pallas"))
+
+
 @pytest.mark.parametrize("table, wide", [(1000, False), (2 ** 40, True),
                                          (2 ** 40, False)])
 def test_sort_by_key_branches(table, wide):
@@ -381,3 +461,30 @@ def test_vmap(x64):
         one = jax.value_and_grad(loss)(R[b])
         close(batched[0][b], one[0])
         close(batched[1][b], one[1])
+
+
+@pytest.mark.parametrize("dim, dtype", [(2, jnp.float32), (3, jnp.float64)])
+def test_kernel_walks_lower_for_cuda(x64, dim, dtype):
+    """Density, forces and both VJP walks lower to Triton (four kernels):
+    on a CPU too, by exporting for CUDA (no GPU needed to find a primitive
+    Pallas' Triton lowering lacks)."""
+    from jax import export
+
+    from jaxrt import _cell_kernel
+    if _cell_kernel.pl is None:
+        pytest.skip("this JAX has no Pallas Triton backend")
+    R, V, _, displacement, box, periodic = system(dim, "periodic", n_side=6)
+    accel = acceleration_fused(displacement, box, KERNEL[dim], EOS,
+                               backend=Cell(kernel="auto"))
+
+    def loss(R, V, h):
+        out = accel(R, V, h=h)
+        return jnp.sum(out.total ** 2) + jnp.sum(jnp.sin(out.density))
+    exported = export.export(
+        jax.jit(jax.grad(loss, argnums=(0, 1, 2))), platforms=["cuda"],
+        disabled_checks=[export.DisabledSafetyCheck.custom_call(
+            "__gpu$xla.gpu.triton")])(R.astype(dtype), V.astype(dtype),
+                                      dtype(1.2))
+    module = exported.mlir_module()
+    assert module.count("xla.gpu.triton") == 4
+    assert module.count('name = "jaxrt_cell_pair_sums"') == 4

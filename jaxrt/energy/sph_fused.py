@@ -16,12 +16,21 @@ Backends (``backend=``):
 
 * ``"cell"``: `jaxrt.cell_list`'s sorted grid, recomputed at every call
   (`jaxrt.energy.fused.cell_runs`): every particle walks the runs of sorted
-  particles that hold its stencil cells, one slot of every run per step of
-  a loop as long as the longest run (`jaxrt.energy.fused.walk_runs`), and
-  sums its own terms. Each pair is met from both sides: no scatter, and
-  nothing of size N x k is stored. Pure JAX, the same program on CPU and
-  GPU. `acceleration_fused` sorts once and walks twice (densities, then
-  forces).
+  particles that hold its stencil cells and sums its own terms. Each pair
+  is met from both sides: no scatter, and nothing of size N x k is
+  stored. On CUDA the walk is one Pallas kernel
+  (`jaxrt._cell_kernel.pair_sums`: a thread per particle, its sums in
+  registers), elsewhere array programs (`jaxrt.energy.fused.walk_runs`:
+  one slot of every run per step of a loop as long as the longest run);
+  ``jaxrt.backends.Cell(kernel=...)`` picks one, as for
+  `jaxrt.energy.lennard_jones_fused`: ``"auto"`` (what ``"cell"`` is:
+  the kernel where the program is lowered for CUDA, else the arrays),
+  ``"pallas"`` (the kernel; an error off CUDA), ``"xla"`` (the arrays
+  everywhere), ``"interpret"`` (the kernel in Pallas' interpreter, for
+  tests). The pair terms are one definition for both, so they agree to
+  rounding (the kernel takes minimum images of wrapped positions, the
+  arrays of the caller's). `acceleration_fused` sorts once and walks
+  twice (densities, then forces); each VJP walks once more, the same way.
 * ``"brute"``: all pairs in row blocks, O(N^2); the reference.
 
 Cost. A walk evaluates, per particle, one candidate of each stencil row (3
@@ -36,10 +45,12 @@ step took 6.1 at N = 10^4 in 2D against 4.4 (jaxrt cell list, Dense) and
 
 Derivatives. Each walk is a `jax.custom_vjp` (reverse mode through a loop
 of dynamic length is impossible): its backward pass is another walk over
-the same cells in which every particle, for each candidate, takes the VJP
-of the pair term from its own side *and* of the mirrored term (the pair
-seen from the other particle, with that particle's cotangent), so that it
-collects everything it owes without a scatter. Positions, velocities,
+the same cells (array programs or kernel, as the forward) in which every
+particle, for each candidate, takes the VJP of the pair term from its own
+side *and* of the mirrored term (the pair seen from the other particle,
+with that particle's cotangent), so that it collects everything it owes
+without a scatter; in the kernel each thread differentiates its own
+candidate's terms (`jax.vjp` traced into the kernel). Positions, velocities,
 ``h``, masses, densities, pressures and the equation of state's
 parameters get gradients (the EOS and the self term are plain JAX around
 the walks). Only first order: a second derivative raises
@@ -68,6 +79,8 @@ raises ``TypeError`` naming it and the accepted ones.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import operator
 from typing import Callable
 
 import jax
@@ -77,13 +90,15 @@ import numpy as np
 from jaxrt.energy import sph as _sph
 from jaxrt.energy._checks import concrete
 from jaxrt.energy._keywords import reject_unknown
-from jaxrt.energy.fused import (FusedInputError, _Params,
+from jaxrt.energy.fused import (_CELL_KERNELS, FusedInputError, _Params,
                                 _periodicity, _sides, _static_params,
                                 cell_runs, first_order_only, walk_runs)
 
 Array = jax.Array
 
 BACKENDS = ("cell", "brute")
+# The cell walk's programs (``jaxrt.backends.Cell(kernel=...)``).
+WALKS = _CELL_KERNELS
 
 _HIGHER_ORDER = (
     "density_fused / acceleration_fused are differentiable once (their "
@@ -132,29 +147,51 @@ def _masked_sum(t: Array, keep: Array) -> Array:
     return jnp.sum(jnp.where(keep, t, 0), axis=-2)
 
 
-def _inner(g: Array, t: Array) -> Array:
-    """Per-pair ``<g, t>`` over the leading component axes."""
-    return jnp.sum(g * t, axis=tuple(range(t.ndim - 2))) if t.ndim > 2 \
-        else g * t
-
-
-def _norm(d: Array) -> tuple[Array, Array]:
-    """`jaxrt.energy.sph._safe_norm` with components first: ``d`` float
-    ``(dim, ...)`` -> ``|d|`` ``(...)`` and the unit vector ``(dim, ...)``,
-    0 where ``d = 0``, both with finite gradients there."""
-    r2 = jnp.sum(d * d, axis=0)
-    nonzero = r2 > 0
-    r = jnp.sqrt(jnp.where(nonzero, r2, 1))
-    unit = jnp.where(nonzero, d / r, 0)
-    return jnp.where(nonzero, r, 0), unit
-
-
 def _min_image_first(d: Array, grid: _Params) -> Array:
     """`jaxrt.energy.fused._min_image` with components first."""
     shape = (len(grid.side),) + (1,) * (d.ndim - 1)
     side = jnp.asarray(grid.side, d.dtype).reshape(shape)
     wrapped = jnp.mod(d + side * 0.5, side) - side * 0.5
     return jnp.where(np.reshape(grid.periodic, shape), wrapped, d)
+
+
+# Vectors in the pair terms: arrays with the components on a leading axis
+# in the array walk (the form XLA fuses best), tuples of components in the
+# kernel (one value per thread: Triton's tensors are sized in powers of
+# two, so no (3, block) stack). The terms are written once, with these.
+
+
+def _map(f: Callable, *xs):
+    """``f`` component by component over vectors (scalars broadcast)."""
+    k = next((len(x) for x in xs if isinstance(x, tuple)), None)
+    if k is None:
+        return f(*xs)
+    return tuple(f(*(x[a] if isinstance(x, tuple) else x for x in xs))
+                 for a in range(k))
+
+
+def _components_sum(v):
+    """The sum of a vector's components."""
+    return (functools.reduce(operator.add, v) if isinstance(v, tuple)
+            else jnp.sum(v, axis=0))
+
+
+def _inner(g, t):
+    """Per-pair ``<g, t>`` (scalars, or vectors over their components)."""
+    if isinstance(t, tuple):
+        return _components_sum(_map(operator.mul, g, t))
+    return jnp.sum(g * t, axis=tuple(range(t.ndim - 2))) if t.ndim > 2 \
+        else g * t
+
+
+def _norm(d):
+    """`jaxrt.energy.sph._safe_norm` of a vector ``d`` -> ``|d|`` and the
+    unit vector, 0 where ``d = 0``, both with finite gradients there."""
+    r2 = _components_sum(_map(lambda x: x * x, d))
+    nonzero = r2 > 0
+    r = jnp.sqrt(jnp.where(nonzero, r2, 1))
+    unit = _map(lambda x: jnp.where(nonzero, x / r, 0), d)
+    return jnp.where(nonzero, r, 0), unit
 
 
 # ---------------------------------------------------------------------------
@@ -175,19 +212,30 @@ class _PairSum:
     """A per-particle pair sum with its VJP, over a backend's traversal.
 
     ``pair(mine, other, d, theta)``: ``mine`` / ``other`` dicts of the
-    per-particle data of the pair's two particles, components first
-    (scalars ``(K, M)``-broadcastable, vectors ``(k, K, M)``: M centres, K
-    candidates each), ``d`` float ``(dim, K, M)`` the minimum image of
-    ``R_mine - R_other``, ``theta`` dict of scalars (broadcastable to
-    ``(1, M)``); returns a tuple of per-pair terms ``(..., K, M)``. It must
-    vanish, with all its derivatives, beyond the grid's bound (the walk
-    meets only pairs within it, and a pair beyond may be met from one side
-    only). The data must hold ``"R"``.
+    per-particle data of the pair's two particles, ``d`` the minimum image
+    of ``R_mine - R_other``, ``theta`` a dict of scalars. In the array
+    walk scalars are ``(K, M)``-broadcastable (M centres, K candidates
+    each) and vectors ``(k, K, M)`` (components first); in the kernel
+    scalars are one value per thread and vectors tuples of components.
+    Written with `_map` / `_components_sum` / `_norm`, one definition
+    serves both. Returns a tuple of per-pair terms (scalars or vectors),
+    elementwise in its inputs. It must vanish, with all its derivatives, beyond
+    the grid's bound (the walk meets only pairs within it, and a pair
+    beyond may be met from one side only). The data must hold ``"R"``.
+
+    ``walk`` (backend ``"cell"``): ``"xla"``, the array walk
+    (`walk_runs`); ``"pallas"``, the kernel
+    (`jaxrt._cell_kernel.pair_sums`: a thread per particle, its sums in
+    registers, on wrapped positions); ``"auto"``, the kernel where the
+    program is lowered for CUDA, else the array walk; ``"interpret"``,
+    the kernel in Pallas' interpreter (tests). The forward sums and the
+    VJP's second walk both take it.
     """
 
     pair: Callable
     grid: _Params
     backend: str
+    walk: str = "xla"
     block: int | None = None
 
     def cells(self, R: Array):
@@ -199,6 +247,17 @@ class _PairSum:
             return None
         order, runs = cell_runs(jax.lax.stop_gradient(R), self.grid)
         return order, type(runs)(*(x.T for x in runs))
+
+    def _dispatch(self, cells, portable: Callable, kernel: Callable):
+        """``portable()`` or ``kernel(interpret)`` as ``walk`` says (the
+        array walk for brute, and where this JAX has no Pallas)."""
+        from jaxrt import _cell_kernel
+        if (cells is None or self.walk == "xla"
+                or (self.walk == "auto" and _cell_kernel.pl is None)):
+            return portable()
+        if self.walk == "auto":
+            return jax.lax.platform_dependent(cuda=kernel, default=portable)
+        return kernel(self.walk == "interpret")
 
     def traverse(self, table: Array, cells, slot: Callable, acc,
                  unroll: int = 1):
@@ -250,76 +309,177 @@ class _PairSum:
             lambda a, o: a + jnp.moveaxis(o, 0, -2).reshape(
                 o.shape[1:-1] + (n_blocks * block,))[..., :n], acc, out)
 
+    def _kernel(self, data, theta, cells, extra, terms, n_sums, interpret):
+        """`jaxrt._cell_kernel.pair_sums` over the grid's runs.
+
+        ``data``: as `make`'s; ``extra``: more float ``(N,)`` columns, in
+        the caller's order; ``terms(scalars, mine, theirs, d, valid)``:
+        the kernel's pair terms, ``mine`` / ``theirs`` the data's
+        `_Columns` values (R left out: the kernel gives ``d``) followed by
+        the extra columns, ``scalars`` theta's values in its key order,
+        ``d`` zero where ``valid`` is false; returns ``n_sums`` float
+        terms. Returns float ``(n_sums, N)`` sums, caller's order.
+        """
+        from jaxrt import _cell_kernel
+        from jaxrt.energy.fused import _wrap, kernel_runs
+        order, runs = cells
+        dtype = data["R"].dtype
+        columns = _Columns(data)
+        values = columns.values(data) + [x.astype(dtype) for x in extra]
+        R = data["R"]
+        if order is not None:
+            R, values = R[order], [v[order] for v in values]
+        keys = tuple(theta)
+        scalars = jnp.stack([jnp.asarray(theta[k], dtype) for k in keys])
+
+        def pair_terms(d2, valid, scalars, mine, theirs, d):
+            # Candidates that are not others (the particle itself, slots
+            # past a run) see d = 0, where every term and derivative is
+            # finite; their terms are dropped.
+            d = tuple(jnp.where(valid, x, 0) for x in d)
+            out = terms(scalars, mine, theirs, d, valid)
+            return (jnp.zeros_like(d2),
+                    tuple(jnp.where(valid, t, 0) for t in out))
+
+        # No tangent may reach the kernel: the custom_vjp differentiates.
+        R, values, scalars = jax.lax.stop_gradient((R, values, scalars))
+        grid = self.grid
+        _, sums = _cell_kernel.pair_sums(
+            _wrap(R, grid), kernel_runs(type(runs)(*(x.T for x in runs))),
+            jnp.asarray(grid.side, dtype), scalars, tuple(values),
+            periodic=tuple(grid.periodic), pair_terms=pair_terms,
+            n_sums=n_sums, interpret=interpret)
+        if order is not None:
+            sums = jnp.zeros_like(sums).at[:, order].set(sums)
+        return sums
+
     # The sums and their VJP.
 
     def _forward(self, data, theta, cells):
-        table, layout = _pack(data)
-        grid = self.grid
-
-        def slot(mine_cols, other_cols, keep):
-            mine, other = _unpack(mine_cols, layout), _unpack(other_cols,
-                                                              layout)
-            d = _min_image_first(mine["R"] - other["R"], grid)
-            return tuple(_masked_sum(t, keep)
-                         for t in self.pair(mine, other, d, theta))
-
-        n = table.shape[1]
-        shapes = jax.eval_shape(lambda: slot(table[:, None, :1],
-                                             table[:, :1, None],
-                                             jnp.ones((1, 1), bool)))
-        acc = tuple(jnp.zeros(s.shape[:-1] + (n,), s.dtype) for s in shapes)
-        out = self.traverse(table, cells, slot, acc, unroll=_unroll())
-        return tuple(jnp.moveaxis(o, -1, 0) for o in out)
-
-    def _backward(self, data, theta, cells, g):
-        table, layout = _pack(data)
-        g_table, g_layout = _pack({str(i): t for i, t in enumerate(g)})
-        width = table.shape[0]
-        both = jnp.concatenate([table, g_table.astype(table.dtype)], axis=0)
         grid, pair = self.grid, self.pair
 
-        def slot(mine_cols, other_cols, keep):
-            xm = _unpack(mine_cols[:width], layout)
-            xo = _unpack(other_cols[:width], layout)
-            gm = _unpack(mine_cols[width:], g_layout)
-            go = _unpack(other_cols[width:], g_layout)
-            centres = mine_cols.shape[-1]
-            th = {k: jnp.broadcast_to(v, (1, centres))
-                  for k, v in theta.items()}
+        def portable():
+            table, layout = _pack(data)
 
-            def phi(xm, th):
-                # i's own terms (i, j) with i's cotangent, and the mirrored
-                # terms (j, i) with j's: every derivative that lands on i,
-                # collected by i. theta's: from i's own terms only (the
-                # mirrored ones are counted when j is the centre).
-                t_ij = pair(xm, xo, _min_image_first(xm["R"] - xo["R"], grid),
-                            th)
-                t_ji = pair(xo, xm, _min_image_first(xo["R"] - xm["R"], grid),
-                            jax.lax.stop_gradient(th))
-                total = sum(_inner(gm[str(k)], a) + _inner(go[str(k)], b)
-                            for k, (a, b) in enumerate(zip(t_ij, t_ji)))
-                total = jnp.broadcast_to(total, keep.shape)
-                return jnp.sum(jnp.where(keep, total, 0))
+            def slot(mine_cols, other_cols, keep):
+                mine = _unpack(mine_cols, layout)
+                other = _unpack(other_cols, layout)
+                d = _min_image_first(mine["R"] - other["R"], grid)
+                return tuple(_masked_sum(t, keep)
+                             for t in pair(mine, other, d, theta))
 
-            dx, dth = jax.grad(phi, argnums=(0, 1))(xm, th)
-            return ({k: v[..., 0, :] for k, v in dx.items()},
-                    {k: v[0] for k, v in dth.items()})
+            n = table.shape[1]
+            shapes = jax.eval_shape(lambda: slot(table[:, None, :1],
+                                                 table[:, :1, None],
+                                                 jnp.ones((1, 1), bool)))
+            acc = tuple(jnp.zeros(s.shape[:-1] + (n,), s.dtype)
+                        for s in shapes)
+            out = self.traverse(table, cells, slot, acc, unroll=_unroll())
+            return tuple(jnp.moveaxis(o, -1, 0) for o in out)
 
-        n = table.shape[1]
-        acc = ({name: jnp.zeros(trailing + (n,), table.dtype)
-                for name, _, _, trailing in layout},
-               {k: jnp.zeros((n,), table.dtype) for k in theta})
-        d_data, d_theta = self.traverse(both, cells, slot, acc)
-        d_data = {name: _components_last(d_data[name], trailing).astype(
-            data[name].dtype) for name, _, _, trailing in layout}
+        def kernel(interpret=False):
+            columns = _Columns(data)
+            keys = tuple(theta)
+            treedef = jax.tree_util.tree_structure(jax.eval_shape(
+                lambda: self.pair(*columns.dummy(data), theta)))
+
+            def terms(scalars, mine, theirs, d, valid):
+                th = dict(zip(keys, scalars))
+                out = pair(columns.rebuild(mine), columns.rebuild(theirs), d,
+                           th)
+                return jax.tree_util.tree_leaves(out)
+
+            sums = self._kernel(data, theta, cells, (), terms,
+                                treedef.num_leaves, interpret)
+            out = treedef.unflatten(list(sums))
+            return tuple(jnp.stack(t, axis=-1) if isinstance(t, tuple) else t
+                         for t in out)
+
+        return self._dispatch(cells, portable, kernel)
+
+    def _backward(self, data, theta, cells, g):
+        grid, pair = self.grid, self.pair
+
+        def portable():
+            table, layout = _pack(data)
+            g_table, g_layout = _pack({str(i): t for i, t in enumerate(g)})
+            width = table.shape[0]
+            both = jnp.concatenate([table, g_table.astype(table.dtype)],
+                                   axis=0)
+
+            def slot(mine_cols, other_cols, keep):
+                xm = _unpack(mine_cols[:width], layout)
+                xo = _unpack(other_cols[:width], layout)
+                gm = _unpack(mine_cols[width:], g_layout)
+                go = _unpack(other_cols[width:], g_layout)
+                centres = mine_cols.shape[-1]
+                th = {k: jnp.broadcast_to(v, (1, centres))
+                      for k, v in theta.items()}
+
+                def phi(xm, th):
+                    d = _min_image_first(xm["R"] - xo["R"], grid)
+                    total = _mirrored(pair, xm, xo, d, th, gm, go)
+                    total = jnp.broadcast_to(total, keep.shape)
+                    return jnp.sum(jnp.where(keep, total, 0))
+
+                dx, dth = jax.grad(phi, argnums=(0, 1))(xm, th)
+                return ({k: v[..., 0, :] for k, v in dx.items()},
+                        {k: v[0] for k, v in dth.items()})
+
+            n = table.shape[1]
+            acc = ({name: jnp.zeros(trailing + (n,), table.dtype)
+                    for name, _, _, trailing in layout},
+                   {k: jnp.zeros((n,), table.dtype) for k in theta})
+            d_data, d_theta = self.traverse(both, cells, slot, acc)
+            return ({name: _components_last(d_data[name], trailing)
+                     for name, _, _, trailing in layout}, d_theta)
+
+        def kernel(interpret=False):
+            columns = _Columns(data)
+            gs = {str(i): t for i, t in enumerate(g)}
+            g_columns = _Columns(gs, skip=())
+            width, keys = columns.width, tuple(theta)
+
+            def terms(scalars, mine, theirs, d, valid):
+                xm, xo = (columns.rebuild(x[:width]) for x in (mine, theirs))
+                gm, go = (g_columns.rebuild(x[width:]) for x in (mine,
+                                                                 theirs))
+                # theta per thread: each gets its own derivative.
+                th = {k: jnp.broadcast_to(s, valid.shape)
+                      for k, s in zip(keys, scalars)}
+
+                def phi(xm, d, th):
+                    return _mirrored(pair, xm, xo, d, th, gm, go)
+
+                total, vjp = jax.vjp(phi, xm, d, th)
+                dx, dd, dth = vjp(jnp.ones_like(total))
+                # d = R_i - R_j: its derivative is R_i's.
+                return (columns.values(dx) + list(dd)
+                        + [dth[k] for k in keys])
+
+            n_sums = columns.width + len(grid.side) + len(keys)
+            sums = self._kernel(data, theta, cells, g_columns.values(gs),
+                                terms, n_sums, interpret)
+            dx = columns.rebuild(list(sums[:columns.width]))
+            dim = len(grid.side)
+            dx["R"] = tuple(sums[columns.width:columns.width + dim])
+            d_data = {name: (jnp.stack(dx[name], axis=-1)
+                             if isinstance(dx[name], tuple) else dx[name])
+                      for name in data}
+            d_theta = dict(zip(keys, sums[columns.width + dim:]))
+            return d_data, d_theta
+
+        d_data, d_theta = self._dispatch(cells, portable, kernel)
+        d_data = {name: d_data[name].astype(data[name].dtype)
+                  for name in data}
         d_theta = {k: jnp.sum(v).astype(jnp.result_type(theta[k]))
                    for k, v in d_theta.items()}
         return d_data, d_theta
 
     def make(self) -> Callable:
         """``sums(data, theta, cells) -> tuple of (N, ...)``, with its VJP
-        (data: dict of float ``(N, ...)`` in one dtype; theta: dict of
-        float scalars; cells: from `cells`, not differentiated)."""
+        (data: dict of float ``(N,)`` / ``(N, k)`` in one dtype; theta:
+        dict of float scalars; cells: from `cells`, not differentiated)."""
 
         @jax.custom_vjp
         def sums(data, theta, cells):
@@ -338,9 +498,62 @@ class _PairSum:
         return sums
 
 
+def _mirrored(pair, xm, xo, d, th, gm, go):
+    """What the VJP's walk differentiates, per pair: i's own terms (i, j)
+    with i's cotangent, and the mirrored terms (j, i) with j's, so that
+    every derivative that lands on i is collected by i. theta's: from i's
+    own terms only (the mirrored ones are counted when j is the centre).
+    ``d``: the minimum image of ``R_i - R_j``, by components."""
+    t_ij = pair(xm, xo, d, th)
+    t_ji = pair(xo, xm, _map(operator.neg, d), jax.lax.stop_gradient(th))
+    return sum(_inner(gm[str(k)], a) + _inner(go[str(k)], b)
+               for k, (a, b) in enumerate(zip(t_ij, t_ji)))
+
+
+class _Columns:
+    """A data dict as ``(N,)`` columns, vectors by component (the kernel
+    takes per-particle values as flat arrays), and back.
+
+    ``skip``: names left out (``"R"``: the kernel gives ``d`` instead).
+    """
+
+    def __init__(self, data: dict, skip=("R",)):
+        self.spec = tuple((name, None if v.ndim == 1 else v.shape[1])
+                          for name, v in data.items() if name not in skip)
+        self.width = sum(1 if k is None else k for _, k in self.spec)
+
+    def values(self, data: dict) -> list:
+        """float ``(N,)`` columns of ``(N,)`` / ``(N, k)`` data, or the
+        flat values of a `rebuild` dict, in the columns' order."""
+        out = []
+        for name, k in self.spec:
+            v = data[name]
+            out.extend([v] if k is None else list(v) if isinstance(v, tuple)
+                       else [v[:, a] for a in range(k)])
+        return out
+
+    def rebuild(self, values) -> dict:
+        """Columns (or any per-column values) -> dict of values and
+        component tuples."""
+        out, at = {}, 0
+        for name, k in self.spec:
+            out[name] = (values[at] if k is None
+                         else tuple(values[at:at + k]))
+            at += 1 if k is None else k
+        return out
+
+    def dummy(self, data: dict):
+        """``(mine, other, d)`` scalars shaped as a thread's, for tracing
+        the pair's output structure."""
+        dtype = data["R"].dtype
+        x = self.rebuild([jnp.zeros((), dtype)] * self.width)
+        d = tuple(jnp.zeros((), dtype) for _ in range(data["R"].shape[1]))
+        return x, x, d
+
+
 # ---------------------------------------------------------------------------
-# The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j), with
-# vector components first.
+# The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j); vectors
+# through `_map` (one definition for the array walk and the kernel).
 
 
 def _density_pair(kernel: _sph.Kernel) -> Callable:
@@ -358,17 +571,20 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
     def pair(mine, other, d, theta):
         hh, a, b = theta["h"], theta["alpha"], theta["beta"]
         r, unit = _norm(d)
-        grad_w = cls(hh, dim=dim).grad_w(r) * unit
+        dw = cls(hh, dim=dim).grad_w(r)
+        grad_w = _map(lambda u: dw * u, unit)
         # q = P / rho**2 per particle: the list path's per-pair expression,
         # bit for bit, computed once per particle.
-        p_pair = (mine["q"] + other["q"]) * grad_w
-        vr = jnp.sum((mine["V"] - other["V"]) * d, axis=0)
+        q = mine["q"] + other["q"]
+        vr = _components_sum(_map(lambda vi, vj, x: (vi - vj) * x,
+                                  mine["V"], other["V"], d))
         mu = hh * vr / (r * r + epsilon * hh * hh)
         c_mean = (mine["c"] + other["c"]) / 2
         rho_mean = (mine["rho"] + other["rho"]) / 2
         pi = jnp.where(vr < 0, (-a * c_mean * mu + b * mu * mu) / rho_mean, 0)
         mj = other["m"]
-        return (-mj * p_pair, -mj * (pi * grad_w))
+        return (_map(lambda gw: -mj * (q * gw), grad_w),
+                _map(lambda gw: -mj * (pi * gw), grad_w))
     return pair
 
 
@@ -376,12 +592,36 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
 # Factories
 
 
-def _grid(displacement, box, kernel: _sph.Kernel, periodic, backend):
+def _traversal(backend) -> tuple[str, str]:
+    """``backend=`` -> ``(name, walk)`` of `_PairSum`, as
+    `jaxrt.energy.fused._backend` parses the LJ energy's: ``"cell"`` is
+    ``Cell(kernel="auto")``; a `jaxrt.backends.Cell` picks the walk (its
+    own checks reject an unknown ``kernel``; `jaxrt.energy.fused._Cell`'s,
+    a kernel this JAX or device cannot run)."""
+    from jaxrt import cell_list
+    from jaxrt.energy.fused import _Cell
+    if isinstance(backend, cell_list.Cell):
+        if backend.radius_classes is not None:
+            raise ValueError(
+                f"backend=Cell(radius_classes={backend.radius_classes!r}): "
+                "the SPH walks use one grid of the kernel's support; leave "
+                "radius_classes at None.")
+        _Cell(kernel=backend.kernel)
+        return "cell", backend.kernel
+    if isinstance(backend, str) and backend in BACKENDS:
+        return backend, "auto" if backend == "cell" else "xla"
+    raise ValueError(f"backend={backend!r} is not known; choose one of "
+                     f"{BACKENDS}, or jaxrt.backends.Cell(kernel=...) with "
+                     f"kernel one of {WALKS} (the cell walk's "
+                     "program: 'xla' array programs, 'pallas' the CUDA "
+                     "kernel, 'auto' the kernel on CUDA and the arrays "
+                     "elsewhere, 'interpret' the kernel in Pallas' "
+                     "interpreter).")
+
+
+def _grid(displacement, box, kernel: _sph.Kernel, periodic):
     """The walk's static geometry (`_Params`, ``dim`` entries) and the
     factory kernel's support, checked."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend={backend!r} is not known; choose one of "
-                         f"{BACKENDS}.")
     if not isinstance(kernel, _sph.Kernel):
         raise TypeError(f"kernel must be a jaxrt.energy.sph kernel (e.g. "
                         f"sph.kernel('cubic_spline', h, dim=2)); got "
@@ -465,7 +705,7 @@ def _density_core(engine_sums, engine: _PairSum, kernel, h0: float):
 
 
 def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
-                  mass: Array = 1.0, backend: str = "cell",
+                  mass: Array = 1.0, backend="cell",
                   periodic=None) -> Callable[..., Array]:
     """Summation density ``rho_i = m_i W(0) + sum_j m_j W(|r_ij|)`` with no
     neighbour list (`jaxrt.energy.sph.density`'s, to rounding).
@@ -477,7 +717,12 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
       kernel: a `jaxrt.energy.sph` kernel with a concrete ``h``, which
         sizes the cells (its ``dim`` must match the positions).
       mass: float scalar or ``(N,)``.
-      backend: ``"cell"`` (list-free walk) or ``"brute"`` (all pairs).
+      backend: ``"cell"`` (list-free walk), ``"brute"`` (all pairs), or
+        ``jaxrt.backends.Cell(kernel=...)``: the cell walk as the CUDA
+        kernel (``"pallas"``), as array programs (``"xla"``), the kernel
+        on CUDA and the arrays elsewhere (``"auto"``, what ``"cell"``
+        is), or the kernel in Pallas' interpreter (``"interpret"``,
+        tests). All agree to rounding.
       periodic: bool or one per axis; None infers it from ``displacement``.
 
     Returns:
@@ -487,8 +732,9 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
       differentiated). The result is in R's dtype; ``jax.grad`` through it
       runs a second walk (first order only).
     """
-    grid, h0 = _grid(displacement, box, kernel, periodic, backend)
-    engine = _PairSum(_density_pair(kernel), grid, backend)
+    name, walk = _traversal(backend)
+    grid, h0 = _grid(displacement, box, kernel, periodic)
+    engine = _PairSum(_density_pair(kernel), grid, name, walk)
     core = _density_core(engine.make(), engine, kernel, h0)
     default_mass = mass
 
@@ -514,7 +760,7 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
 def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
                        eos: _sph.Tait, *, mass: Array = 1.0,
                        alpha: Array = 0.1, beta: Array = 0.0,
-                       epsilon: float = 0.01, backend: str = "cell",
+                       epsilon: float = 0.01, backend="cell",
                        periodic=None) -> Callable[..., _sph.Acceleration]:
     """Symmetric SPH pressure force and Monaghan's artificial viscosity with
     no neighbour list (`jaxrt.energy.sph.acceleration`'s, to rounding).
@@ -545,12 +791,13 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
         v = concrete(value)
         if v is not None and (v.ndim or v < 0):
             raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
-    grid, h0 = _grid(displacement, box, kernel, periodic, backend)
-    density_engine = _PairSum(_density_pair(kernel), grid, backend)
+    name, walk = _traversal(backend)
+    grid, h0 = _grid(displacement, box, kernel, periodic)
+    density_engine = _PairSum(_density_pair(kernel), grid, name, walk)
     rho_core = _density_core(density_engine.make(), density_engine, kernel,
                              h0)
     engine = _PairSum(_acceleration_pair(kernel, float(epsilon)), grid,
-                      backend)
+                      name, walk)
     sums = engine.make()
     defaults = dict(mass=mass, eos=eos, alpha=alpha, beta=beta)
 

@@ -193,10 +193,16 @@ class SPHDensity:
 
     ``list_free``: no neighbour list, a walk over the cell grid at every
     step (`jaxrt.energy.density_fused`, #18); sph_pressure and
-    sph_viscosity must say the same."""
+    sph_viscosity must say the same. ``walk`` (with ``list_free`` only),
+    the walk's program for all three (`jaxrt.energy.sph_fused.WALKS`):
+    ``"auto"``, the Pallas kernel on CUDA and array programs elsewhere;
+    ``"xla"``, the arrays; ``"pallas"``, the kernel (CUDA only; the scene
+    fails to compile elsewhere); ``"interpret"``, the kernel in Pallas'
+    interpreter (tests)."""
     h: float
     kernel: str = "cubic_spline"
     list_free: bool = False
+    walk: str = "auto"
     kind: ClassVar[str] = "sph_density"
 
     @property
@@ -218,7 +224,18 @@ class SPHDensity:
                                 f"one of {list(_sph.KERNELS)}.")
         if scene.particles.dim not in (2, 3):
             raise SceneError.at(f"{where}", "SPH needs 2D or 3D positions.")
+        from jaxrt.energy.sph_fused import WALKS
+        if self.walk not in WALKS:
+            raise SceneError.at(f"{where}.walk", f"one of {list(WALKS)}.")
+        if self.walk != "auto" and not self.list_free:
+            raise SceneError.at(f"{where}.walk", "needs list_free = true "
+                                "(the list path has no cell walk).")
         check_reach(scene, self.cutoff, f"{where}.h")
+
+    def walk_backend(self):
+        """``backend=`` of the list-free SPH factories."""
+        from jaxrt.backends import Cell
+        return Cell(kernel=self.walk)
 
     def term(self, ctx: Context) -> Term:
         kern = self.smoothing_kernel(ctx.scene.particles.dim)
@@ -226,13 +243,14 @@ class SPHDensity:
             from jaxrt.energy import density_fused
             sides, periodic = _fused_box(ctx)
             density = density_fused(ctx.displacement, sides, kern,
-                                    mass=ctx.mass, **periodic)
+                                    mass=ctx.mass,
+                                    backend=self.walk_backend(), **periodic)
 
             def sph_density(R, nbrs):
                 return density(R)
             return Term(density=sph_density, notes=(
                 "sph: list-free (a walk over the cell grid per term and "
-                "step)",))
+                f"step; walk {self.walk!r})",))
         density = _sph.density(ctx.displacement, kern, mass=ctx.mass)
 
         def sph_density(R, nbrs):
@@ -262,7 +280,9 @@ def _sph_acceleration(ctx: Context, **viscosity):
         from jaxrt.energy import acceleration_fused
         sides, periodic = _fused_box(ctx)
         fused = acceleration_fused(ctx.displacement, sides, kern, eos,
-                                   mass=ctx.mass, **periodic, **viscosity)
+                                   mass=ctx.mass,
+                                   backend=density.walk_backend(),
+                                   **periodic, **viscosity)
         return lambda R, V, nbrs, **kw: fused(R, V, **kw)
     return _sph.acceleration(ctx.displacement, kern, eos, mass=ctx.mass,
                              **viscosity)
