@@ -39,10 +39,15 @@ KERNEL = jaxrt.backends.Cell(kernel="pallas" if ON_GPU else "interpret")
 # The same kernel in its cluster layout (tiles of candidates per program of
 # particles), small tiles so that several are walked per run.
 TILES = _Cell(kernel=KERNEL.kernel, block=16, tile=16)
+# The thread walk two candidates per step, on cells half a cutoff across (25
+# runs in 3D); and the array walk on those cells.
+FINE = _Cell(kernel=KERNEL.kernel, unroll=2, across=2)
+FINE_XLA = _Cell(kernel="xla", across=2)
 
 
 def pick(backend):
-    return {"kernel": KERNEL, "tiles": TILES}.get(backend, backend)
+    return {"kernel": KERNEL, "tiles": TILES, "fine": FINE,
+            "fine-xla": FINE_XLA}.get(backend, backend)
 
 E_RTOL, F_RTOL = 1e-12, 1e-10
 SLOW = pytest.mark.slow
@@ -112,7 +117,9 @@ def close(a, b, rtol):
     ("kernel", "periodic"), pytest.param("kernel", "slab", marks=SLOW),
     pytest.param("kernel", "free", marks=SLOW),
     pytest.param("tiles", "periodic", marks=SLOW),
-    pytest.param("tiles", "slab", marks=SLOW),
+    pytest.param("tiles", "slab", marks=SLOW), ("fine-xla", "slab"),
+    pytest.param("fine", "periodic", marks=SLOW),
+    pytest.param("fine", "free", marks=SLOW),
     pytest.param("tiles", "free", marks=SLOW),
     pytest.param("cell", "free", marks=SLOW),
     pytest.param("cell", "slab", marks=SLOW),
@@ -235,7 +242,9 @@ def test_jit_scan_and_2d(x64, backend):
 
 @pytest.mark.parametrize("backend, side_over_cutoff", [
     *[("cell", s) for s in (2.05, 2.6, 3.4, 7.0)],
-    ("kernel", 2.05), ("tiles", 3.4),
+    ("kernel", 2.05), ("tiles", 3.4), ("fine", 2.6),
+    *[pytest.param("fine", s, marks=SLOW) for s in (2.05, 3.4)],
+    *[("fine-xla", s) for s in (2.05, 3.4)],
     *[pytest.param("kernel", s, marks=SLOW) for s in (2.6, 3.4, 7.0)],
     *[pytest.param("tiles", s, marks=SLOW) for s in (2.05, 2.6, 7.0)]])
 def test_cell_small_periodic_boxes_count_each_pair_once(x64, backend,
@@ -322,7 +331,8 @@ def test_bad_arguments_raise():
 
 @pytest.mark.parametrize("backend, geometry", [
     ("bvh", "periodic"), ("bvh", "free"), ("kernel", "periodic"),
-    pytest.param("kernel", "free", marks=SLOW), ("tiles", "free")])
+    pytest.param("kernel", "free", marks=SLOW), ("tiles", "free"),
+    ("fine", "periodic")])
 def test_float32_within_tolerance(geometry, backend):
     R, side = fluid()
     displacement, box, periodic = GEOMETRIES[geometry](side)
