@@ -18,13 +18,13 @@ One function per concern:
   backend option, or an effect in place of the LJ: `LJFused`, `LJPairs`)
   and may run in some dimensions only (Delaunay 2D, `jaxrt.pairs` 3D) or
   only where it can (the Pallas kernels: CUDA GPUs);
-* not swept: per-particle radii (``radii=``, ``Cell(radius_classes=)``).
-  No scene here has them: `jaxrt.sim` builds its shared list without
-  radii, and its LJ reads radii as ``sigma_ij = r_i + r_j``, not the cut at
-  ``max(r_i, r_j)`` of `jaxrt.energy.lennard_jones_radii` that a list with
-  radii serves; a knob needs a polydisperse scene with that energy, the
-  list's radii passed through ``compile_scene(neighbor_list_fn=)`` and a
-  radius-aware brute-force pair check;
+* a knob may need a scene of its own (`Knob.own_scene`): per-particle
+  cutoff radii (the ``radii`` knob: one grid of the largest radius,
+  ``Cell(radius_classes=)``, the BVH, the fused LJ with ``radii=``) run on
+  `polydisperse` (`jaxrt.sim.lj_polydisperse`, ``jaxrt.sim.LJ(radii=)``:
+  pair ``ij`` cut at ``max(r_i, r_j)``, the list built with those radii),
+  against that scene's own float64 reference, its pairs checked at
+  ``max(r_i, r_j)`` (`brute_pairs` ``radii=``);
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
   brute force), `measure` of the float64 scene itself (continuing the
   equilibration, its list by the scene's backend, ``cell``);
@@ -50,7 +50,8 @@ Definitions (the CSV's columns):
   force of the *scene's own* potential (so it isolates precision and list
   effects); ``force_rms_rel_full``: the same against float64 LJ cut plainly
   at ``r_ref`` (the longest cutoff the box allows, at most 5 sigma): the
-  error of the truncation itself. (SPH: accelerations.)
+  error of the truncation itself (none with cutoff radii: each pair has
+  its own stretched potential). (SPH: accelerations.)
 * ``drift_per_particle_1e4``: the least-squares slope of
   ``(E(t) - E(t_1)) / N`` against the step number, times 10^4: energy drift
   per particle per 10^4 steps of the setting's own Hamiltonian, NVE;
@@ -59,8 +60,8 @@ Definitions (the CSV's columns):
   (the energy excursion, robust in short runs: it scales as dt^2).
   Empty for non-conservative scenes (dam break).
 * ``pairs_missed``: after every chunk, the pairs within the interaction
-  cutoff at the current positions (float64 brute force, minimum image on
-  periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
+  cutoff (with radii: ``max(r_i, r_j)``) at the current positions (float64
+  brute force, minimum image on periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
   `jaxrt.pairs` finds at those positions), summed over the checks
   (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
   mean neighbours within the cutoff per particle).
@@ -1260,7 +1261,10 @@ def _describe(scene) -> dict:
            "format": nb.format, "skin": nb.skin,
            "capacity_multiplier": nb.capacity_multiplier,
            "dt": scene.integrator.dt,
-           "cutoff": scene.cutoff}
+           # A list-free effect's own cutoff (no list: scene.cutoff is 0).
+           "cutoff": scene.cutoff or max(
+               (e.cutoff for e in scene.effects if hasattr(e, "search")),
+               default=0.0)}
     lj = next((e for e in scene.effects if e.kind.startswith("lj")), None)
     if lj is not None:
         out["truncation"] = lj.truncation
@@ -1583,9 +1587,14 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
         best = min(mine, key=lambda r: (_err(r, judge)
                                         if np.isfinite(_err(r, judge))
                                         else math.inf))
-        if all(_err(r, judge) == _err(mine[0], judge) for r in mine):
-            L.append(f"- **{knob}** ({judge} the same for every value, "
-                     f"{_fmt(_err(mine[0], judge))}): fastest "
+        # Values without the measure (a list-free value's pairs) do not
+        # make the others differ.
+        measured = [_err(r, judge) for r in mine
+                    if np.isfinite(_err(r, judge))]
+        if all(v == measured[0] for v in measured):
+            some = "" if len(measured) == len(mine) else " that has it"
+            L.append(f"- **{knob}** ({judge} the same for every value{some}"
+                     f", {_fmt(measured[0])}): fastest "
                      f"`{fast['value']}` ({_cost(fast)}).")
             continue
         L.append(f"- **{knob}** (by {judge}): fastest `{fast['value']}` "
@@ -1730,10 +1739,10 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
                 if k.own_scene is not None and k.own_scene in noise},
             "own_scenes": own,
             "base": ", ".join(f"{k} {v}" for k, v in _describe(
-                dataclasses.replace(base, dtype="float32")).items()
+                dataclasses.replace(scene, dtype="float32")).items()
                 if k != "N"), **prov}
     if None not in groups:  # only knobs of their own scenes ran
-        meta["base"] = "none of the sweep's own (see below)"
+        meta["base"] = f"{scene.name}'s ({meta['base']}; see below)"
         meta["rdf_noise"] = None
     write_summary(rows, meta, out / "summary.md")
     log(f"accuracy: {len(rows)} rows in {time.perf_counter() - t0:.0f} s -> "
