@@ -18,13 +18,13 @@ One function per concern:
   backend option, or an effect in place of the LJ: `LJFused`, `LJPairs`)
   and may run in some dimensions only (Delaunay 2D, `jaxrt.pairs` 3D) or
   only where it can (the Pallas kernels: CUDA GPUs);
-* not swept: per-particle radii (``radii=``, ``Cell(radius_classes=)``).
-  No scene here has them: `jaxrt.sim` builds its shared list without
-  radii, and its LJ reads radii as ``sigma_ij = r_i + r_j``, not the cut at
-  ``max(r_i, r_j)`` of `jaxrt.energy.lennard_jones_radii` that a list with
-  radii serves; a knob needs a polydisperse scene with that energy, the
-  list's radii passed through ``compile_scene(neighbor_list_fn=)`` and a
-  radius-aware brute-force pair check;
+* a knob may need a scene of its own (`Knob.own_scene`): per-particle
+  cutoff radii (the ``radii`` knob: one grid of the largest radius,
+  ``Cell(radius_classes=)``, the BVH, the fused LJ with ``radii=``) run on
+  `polydisperse` (`jaxrt.sim.lj_polydisperse`, ``jaxrt.sim.LJ(radii=)``:
+  pair ``ij`` cut at ``max(r_i, r_j)``, the list built with those radii),
+  against that scene's own float64 reference, its pairs checked at
+  ``max(r_i, r_j)`` (`brute_pairs` ``radii=``);
 * the reference: `equilibrate` (float64), `reference_forces` (float64,
   brute force), `measure` of the float64 scene itself (continuing the
   equilibration, its list by the scene's backend, ``cell``);
@@ -50,7 +50,8 @@ Definitions (the CSV's columns):
   force of the *scene's own* potential (so it isolates precision and list
   effects); ``force_rms_rel_full``: the same against float64 LJ cut plainly
   at ``r_ref`` (the longest cutoff the box allows, at most 5 sigma): the
-  error of the truncation itself. (SPH: accelerations.)
+  error of the truncation itself (none with cutoff radii: each pair has
+  its own stretched potential). (SPH: accelerations.)
 * ``drift_per_particle_1e4``: the least-squares slope of
   ``(E(t) - E(t_1)) / N`` against the step number, times 10^4: energy drift
   per particle per 10^4 steps of the setting's own Hamiltonian, NVE;
@@ -59,8 +60,8 @@ Definitions (the CSV's columns):
   (the energy excursion, robust in short runs: it scales as dt^2).
   Empty for non-conservative scenes (dam break).
 * ``pairs_missed``: after every chunk, the pairs within the interaction
-  cutoff at the current positions (float64 brute force, minimum image on
-  periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
+  cutoff (with radii: ``max(r_i, r_j)``) at the current positions (float64
+  brute force, minimum image on periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
   `jaxrt.pairs` finds at those positions), summed over the checks
   (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
   mean neighbours within the cutoff per particle).
@@ -157,19 +158,28 @@ class LJFused:
     `jaxrt.backends.Cell` for the cell search's kernel, where the fused
     energy takes one). The fused energy is jax-md's smooth switch only;
     other truncations are refused (the knob runs on the smooth base
-    scene)."""
+    scene). ``radii``: per-particle cutoff radii as `jaxrt.sim.LJ`'s (pair
+    ``ij`` cut at ``max(r_i, r_j)``, the potential stretched), passed to
+    the fused energy's ``radii=``."""
 
     r_cutoff: float
     sigma: object = 1.0
     epsilon: object = 1.0
     r_onset: float | None = None
     truncation: str = "smooth"
+    radii: tuple[float, ...] | None = None
     backend: object = "cell"
     kind = "lj_fused"
     pairwise = False
 
+    def __post_init__(self):
+        from jaxrt.sim.effects import _radii_as_tuple
+        _radii_as_tuple(self)
+
     @property
     def cutoff(self) -> float:
+        if self.radii is not None:
+            return max(self.radii, default=0.0)
         return float(self.r_cutoff)
 
     @property
@@ -188,6 +198,9 @@ class LJFused:
         if np.ndim(self.sigma) or np.ndim(self.epsilon):
             raise SceneError.at(f"{where}.sigma", "the fused energy takes "
                                 "scalar sigma and epsilon.")
+        if self.radii is not None:
+            from jaxrt.sim.effects import check_cutoff_radii
+            check_cutoff_radii(self, scene, where)
 
     def term(self, ctx):
         import jaxrt.energy
@@ -196,10 +209,15 @@ class LJFused:
         sigma = float(self.sigma)
         # The fused factory takes r_onset / r_cutoff in units of sigma, as
         # jax-md's does; the scene's are absolute.
+        # Its radii stretch the potential by max(r_i, r_j) / (r_cutoff
+        # sigma), r_cutoff in units of sigma: the list LJ's rule.
+        radii = (None if self.radii is None
+                 else np.asarray(self.radii, np.float64))
         energy = jaxrt.energy.lennard_jones_fused(
             ctx.displacement, box, sigma=sigma, epsilon=float(self.epsilon),
             r_onset=_lj_r_onset(self) / sigma, r_cutoff=self.r_cutoff / sigma,
-            backend=self.backend, periodic=ctx.scene.box.periodic)
+            backend=self.backend, periodic=ctx.scene.box.periodic,
+            radii=radii)
 
         def lj_fused(R, nbrs):
             return energy(R)
@@ -225,6 +243,7 @@ class LJPairs:
     epsilon: object = 1.0
     r_onset: float | None = None
     truncation: str = "smooth"
+    radii: tuple[float, ...] | None = None
     capacity_margin: float = 1.25
     kind = "lj_pairs"
     pairwise = False
@@ -245,6 +264,10 @@ class LJPairs:
         r = scene.particles.radius
         if r is not None and np.ptp(r) > 0:
             raise SceneError.at(where, "no per-particle radii.")
+        if self.radii is not None:
+            raise SceneError.at(f"{where}.radii", "jaxrt.pairs searches one "
+                                "cutoff; no per-particle cutoff radii (the "
+                                "LJ on a list or the fused LJ take them).")
 
     def searcher(self, scene) -> Callable:
         """``search(R) -> jaxrt.Pairs`` for ``R`` float ``(N, 3)``, jitted,
@@ -349,6 +372,16 @@ class Knob:
     judge: str = "pairs_missed"
     """The error column the summary judges the knob's values by."""
     dims: tuple[int, ...] = (2, 3)
+    own_scene: Callable | None = None
+    """None, or ``own_scene(base, plan) -> Scene``: the knob's own base
+    scene (float32, backend explicit) built from the sweep's ``base`` at
+    the plan's size, in place of it: the knob's values apply to it and its
+    reference is its own float64 run (`run`). For knobs that need what the
+    sweep's scenes lack (per-particle radii: `polydisperse`)."""
+
+    def base_for(self, base, plan: "Plan"):
+        """The scene this knob's values apply to (`own_scene`)."""
+        return base if self.own_scene is None else self.own_scene(base, plan)
 
     def selected(self, quick: bool, dim: int | None = None
                  ) -> tuple[Value, ...]:
@@ -515,6 +548,36 @@ def _same(s):
     return s
 
 
+POLYDISPERSE_DENSITY = 0.45
+"""The radii knob's number density (`polydisperse`), where the box fits."""
+
+
+def polydisperse(base, plan: "Plan"):
+    """The radii knob's scene: `jaxrt.sim.lj_polydisperse` (1 % of the
+    particles of cutoff radius 6 in a fluid of radius 2.5: two radius
+    classes) with ``base``'s particle count and dimension, float32, backend
+    ``cell``, at `POLYDISPERSE_DENSITY`, or lower where that box would be
+    shorter than twice the largest radius plus the skin (small ``n``, in
+    tests: the minimum image needs it)."""
+    del plan  # the size is the base's (the plan's n, QUICK or FULL)
+    from jaxrt import sim
+    p = base.particles
+    # Box side >= 2 (6.0 + skin 0.3) + 0.2 of margin.
+    density = min(POLYDISPERSE_DENSITY, p.n / 12.8 ** p.dim)
+    return dataclasses.replace(
+        sim.lj_polydisperse(n=p.n, density=density, dim=p.dim,
+                            backend="cell"), dtype="float32")
+
+
+def _with_radius_classes(classes: int | None):
+    """The cell list with ``radius_classes`` (1: one grid of the largest
+    radius; None: as many classes as the radii need)."""
+    def apply(s):
+        from jaxrt.backends import Cell
+        return _replace_neighbors(s, backend=Cell(radius_classes=classes))
+    return apply
+
+
 def _eps(e: int) -> Value:
     def apply(s):
         from jaxrt.backends import Spheres
@@ -608,6 +671,23 @@ KNOBS: tuple[Knob, ...] = (
               "on a CUDA GPU also `jaxrt.backends.Cell(kernel=\"xla\")` and "
               "\"pallas\": its array-program walk and its kernel)",
          judge="force_rms_rel"),
+    Knob("radii", (Value("one grid", _with_radius_classes(1)),
+                   Value("radius classes", _with_radius_classes(None)),
+                   Value("bvh", _with_backend("bvh"), available=_warp),
+                   Value("brute", _with_backend("brute")),
+                   Value("fused", _list_free(), available=_has_fused),
+                   Value("fused-bvh", _list_free("bvh"),
+                         available=lambda: _warp() and _has_fused())),
+         quick=("one grid", "radius classes", "bvh", "fused"),
+         scenes=("lj",), own_scene=polydisperse,
+         what="per-particle cutoff radii (pair ij within max(r_i, r_j), "
+              "the LJ stretched to it) on their own polydisperse scene "
+              "(`polydisperse`: a few particles of radius 6 among radius "
+              "2.5), its reference that scene's float64 run: the cell list "
+              "as one grid of the largest radius (`Cell(radius_classes=1)`)"
+              " or one grid per radius class, the BVH, the brute force, "
+              "or the list-free fused LJ (its cell search; `fused-bvh`: "
+              "ORCS-forces); all exact, so mostly time"),
     Knob("pairs", (Value("list", _same),
                    Value("jaxrt.pairs", _lj_as(LJPairs))),
          quick=("list", "jaxrt.pairs"), scenes=("lj",), dims=(3,),
@@ -691,31 +771,58 @@ def _min_image(d, side, periodic):
     return np.where(per, d - wrap, d)
 
 
+def _pair_cut(cutoff: float, radii, i, j):
+    """The cut of pairs ``(i, j)``: ``cutoff``, or ``max(r_i, r_j)``."""
+    if radii is None:
+        return cutoff
+    return np.maximum(radii[i], radii[j])
+
+
+def _radii64(radii, n: int):
+    if radii is None:
+        return None
+    r = np.asarray(radii, np.float64)
+    if r.shape != (n,):
+        raise ValueError(f"radii has shape {r.shape}; the positions have {n} "
+                         "particles: pass one radius each.")
+    return r
+
+
 def brute_pairs(position, cutoff: float, side, periodic,
-                block: int = 1024) -> np.ndarray:
+                block: int = 1024, *, radii=None) -> np.ndarray:
     """Sorted codes ``i * n + j`` (i < j) of the pairs closer than
-    ``cutoff``, float64 brute force, minimum image on periodic axes."""
+    ``cutoff`` (with ``radii``, float ``(n,)``: closer than ``max(r_i,
+    r_j)``, the lists' rule; ``cutoff`` is then unused), float64 brute
+    force, minimum image on periodic axes."""
     r = np.asarray(position, np.float64)
     n = len(r)
+    radii = _radii64(radii, n)
     codes = []
     for start in range(0, n, block):
         d = _min_image(r[start:start + block, None, :] - r[None], side,
                        periodic)
-        i, j = np.nonzero(np.sum(d * d, -1) < cutoff ** 2)
+        rows = np.arange(start, min(start + block, n))
+        cut = _pair_cut(cutoff, radii, rows[:, None], np.arange(n)[None])
+        i, j = np.nonzero(np.sum(d * d, -1) < cut ** 2)
         i = i + start
         keep = i < j
         codes.append(i[keep].astype(np.int64) * n + j[keep])
     return np.sort(np.concatenate(codes)) if codes else np.zeros(0, np.int64)
 
 
-def exact_pairs(position, cutoff: float, side, periodic) -> np.ndarray:
-    """`brute_pairs`, by scipy's cKDTree in float64 for large ``n`` (all
-    axes periodic or none); equal to the brute force (tested)."""
+def exact_pairs(position, cutoff: float, side, periodic, *, radii=None
+                ) -> np.ndarray:
+    """`brute_pairs` (``radii`` as there), by scipy's cKDTree in float64
+    for large ``n`` (all axes periodic or none); equal to the brute force
+    (tested)."""
     r = np.asarray(position, np.float64)
     n = len(r)
     per = np.asarray(periodic, bool)
     if n <= 4096 or (per.any() and not per.all()):
-        return brute_pairs(r, cutoff, side, periodic)
+        return brute_pairs(r, cutoff, side, periodic, radii=radii)
+    radii = _radii64(radii, n)
+    if radii is not None:
+        cutoff = float(radii.max())  # the candidates, cut per pair below
     from scipy.spatial import cKDTree
     side = np.asarray(side, np.float64)
     tree = cKDTree(_wrapped(r, side) if per.all() else r,
@@ -723,7 +830,8 @@ def exact_pairs(position, cutoff: float, side, periodic) -> np.ndarray:
     ij = tree.query_pairs(cutoff, output_type="ndarray").astype(np.int64)
     # query_pairs keeps d <= cutoff; the lists keep d < cutoff.
     d = _min_image(r[ij[:, 0]] - r[ij[:, 1]], side, periodic)
-    ij = ij[np.sum(d * d, -1) < cutoff ** 2]
+    ij = ij[np.sum(d * d, -1) < _pair_cut(cutoff, radii, ij[:, 0],
+                                          ij[:, 1]) ** 2]
     i, j = np.minimum(ij[:, 0], ij[:, 1]), np.maximum(ij[:, 0], ij[:, 1])
     return np.sort(i * n + j)
 
@@ -833,8 +941,9 @@ def auto_backend_for(scene) -> str:
     """What ``backend="auto"`` resolves to for ``scene`` on this device."""
     import jax
     from jaxrt.neighbors import choose_backend
-    del scene  # a scene's shared list takes no radii (jaxrt.sim.compile)
-    return choose_backend(platform=jax.default_backend(), has_radii=False,
+    from jaxrt.sim import list_radii
+    return choose_backend(platform=jax.default_backend(),
+                          has_radii=list_radii(scene) is not None,
                           warp=_warp())
 
 
@@ -946,6 +1055,8 @@ def long_cutoff(scene) -> float | None:
     is shorter (LJ scenes only; None otherwise)."""
     if scene_kind(scene) != "lj":
         return None
+    if scene.effect("lj").radii is not None:
+        return None  # stretched per pair: no one plain LJ to compare with
     side = min(np.asarray(scene.box.size, float))
     return float(min(5.0, 0.5 * side - scene.neighbors.skin - 0.01))
 
@@ -1004,6 +1115,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
     rebuilds0 = int(state.rebuilds)
     n = scene.particles.n
     own = _own_search(scene)  # a list-free effect's pairs, checked too
+    radii = sim.list_radii(scene)  # a list with radii: max(r_i, r_j) each
     triangulated = 0  # Delaunay rebuilds of lists replaced after overflow
     row = {"force_rms_rel": force_rms_rel(state.accel,
                                           ref_forces["scene"])}
@@ -1043,7 +1155,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
                         + np.asarray(trace.potential, np.float64))
         if nbrs is not None or own is not None:
             want = exact_pairs(pos, own[0] if own else scene.cutoff, side,
-                               periodic)
+                               periodic, radii=None if own else radii)
             got = own[1](pos) if own else _pair_codes(nbrs, n)
             missed += pairs_missed(got, want)
             checked += len(want)
@@ -1137,8 +1249,10 @@ def _describe(scene) -> dict:
     backend = nb.backend
     if not isinstance(backend, str):
         policy = getattr(backend, "policy", None)
+        classes = getattr(backend, "radius_classes", None)
         backend = backend.name + (f"[{type(policy).__name__.lower()}]"
-                                  if policy is not None else "")
+                                  if policy is not None else "") + (
+            f"[radius_classes={classes}]" if classes is not None else "")
     if not scene.pair_effects:  # the search of the list-free effect
         backend = next((e.search for e in scene.effects
                         if hasattr(e, "search")), "none (list-free)")
@@ -1147,7 +1261,10 @@ def _describe(scene) -> dict:
            "format": nb.format, "skin": nb.skin,
            "capacity_multiplier": nb.capacity_multiplier,
            "dt": scene.integrator.dt,
-           "cutoff": scene.cutoff}
+           # A list-free effect's own cutoff (no list: scene.cutoff is 0).
+           "cutoff": scene.cutoff or max(
+               (e.cutoff for e in scene.effects if hasattr(e, "search")),
+               default=0.0)}
     lj = next((e for e in scene.effects if e.kind.startswith("lj")), None)
     if lj is not None:
         out["truncation"] = lj.truncation
@@ -1369,6 +1486,10 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
              "brute force). \"Cheapest\" ranks by time per unit of simulated "
              "time (time per step / dt), which orders every knob but `dt` "
              "as the time per step does.")
+    if meta.get("own_scenes"):
+        L.append("")
+        L.append("Knobs run elsewhere: " + "; ".join(meta["own_scenes"])
+                 + " (its reference row: `reference = float64, <scene>`).")
     L.append("")
     L.append(f"`backend=\"auto\"` chose **{meta['auto']}** for this scene "
              "on this device (`jaxrt.neighbors.choose_backend`).")
@@ -1414,15 +1535,23 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
                 f"{_fmt(_num(r, 'pairs_checked'))})" for r in lossy) + ".")
         else:
             L.append("- No setting's list missed a pair (checked against a "
-                     "float64 brute force after every chunk): the list "
-                     "knobs (skin, format, backend, cell kernel, Delaunay's "
-                     "options, BVH policy, ε, jaxrt.pairs) trade time "
-                     "only.")
-    noise = meta.get("rdf_noise")
-    if noise is not None and any(np.isfinite(_num(r, "rdf_l2")) for r in ok):
-        above = [r for r in ok if _num(r, "rdf_l2") > 2 * noise]
+                     "float64 brute force after every chunk, with radii at "
+                     "max(r_i, r_j)): the list knobs (skin, format, "
+                     "backend, cell kernel, Delaunay's options, BVH policy, "
+                     "ε, jaxrt.pairs, radii) trade time only.")
+    by_knob = meta.get("rdf_noise_by_knob") or {}
+
+    def floor(r):
+        v = by_knob.get(r["knob"], meta.get("rdf_noise"))
+        return math.nan if v is None else v
+    floors = [f"{_fmt(meta['rdf_noise'])} (L2)"] if meta.get(
+        "rdf_noise") is not None else []
+    floors += [f"{_fmt(v)} for `{k}`'s own scene" for k, v in by_knob.items()
+               if v is not None]
+    if floors and any(np.isfinite(_num(r, "rdf_l2")) for r in ok):
+        above = [r for r in ok if _num(r, "rdf_l2") > 2 * floor(r)]
         L.append(f"- The RDFs of the reference run's two halves differ by "
-                 f"{_fmt(noise)} (L2): the noise floor. Settings beyond "
+                 f"{', '.join(floors)}: the noise floor. Settings beyond "
                  "twice that: " + (", ".join(
                      f"{_setting(r)} ({_fmt(_num(r, 'rdf_l2'))})"
                      for r in above) if above else "none") + ".")
@@ -1458,9 +1587,14 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
         best = min(mine, key=lambda r: (_err(r, judge)
                                         if np.isfinite(_err(r, judge))
                                         else math.inf))
-        if all(_err(r, judge) == _err(mine[0], judge) for r in mine):
-            L.append(f"- **{knob}** ({judge} the same for every value, "
-                     f"{_fmt(_err(mine[0], judge))}): fastest "
+        # Values without the measure (a list-free value's pairs) do not
+        # make the others differ.
+        measured = [_err(r, judge) for r in mine
+                    if np.isfinite(_err(r, judge))]
+        if all(v == measured[0] for v in measured):
+            some = "" if len(measured) == len(mine) else " that has it"
+            L.append(f"- **{knob}** ({judge} the same for every value{some}"
+                     f", {_fmt(measured[0])}): fastest "
                      f"`{fast['value']}` ({_cost(fast)}).")
             continue
         L.append(f"- **{knob}** (by {judge}): fastest `{fast['value']}` "
@@ -1558,10 +1692,84 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
     kind, dim = scene_kind(base), base.particles.dim
     chosen = knobs(kind, knob_names, dim)
     prov = provenance()
-    auto = auto_backend_for(base)
+    # Knobs on the sweep's base first, then each own scene (Knob.own_scene)
+    # with its own reference; a knob's rows follow its reference row.
+    groups: dict = {}
+    for knob in chosen:
+        groups.setdefault(knob.own_scene, []).append(knob)
+    groups = dict(sorted(groups.items(), key=lambda kv: kv[0] is not None))
     log(f"accuracy: {scene_name}, N = {base.particles.n}, {plan.steps} steps"
-        f" per run, knobs {[k.name for k in chosen]}, auto -> {auto}")
+        f" per run, knobs {[k.name for k in chosen]}, auto -> "
+        f"{auto_backend_for(base)}")
     load0 = _load()
+    csv_path = out / "accuracy.csv"
+    rows: list[dict] = []
+    noise: dict = {}
+    own: list[str] = []
+    first = None
+    for hook, members in groups.items():
+        scene = members[0].base_for(base, plan)
+        auto = auto_backend_for(scene)
+        if first is None:
+            first = (scene, auto)
+        if hook is not None:
+            own.append(f"{', '.join(f'`{k.name}`' for k in members)} on "
+                       f"its own scene, {scene.description} "
+                       f"(`{hook.__name__}`; `backend=\"auto\"` chose "
+                       f"**{auto}** for it), against its own float64 run")
+        _sweep_group(scene, members, hook, rows=rows, plan=plan, quick=quick,
+                     budget=budget, t0=t0,
+                     common={"scene": scene_name, "auto_backend": auto,
+                             **prov},
+                     noise=noise, csv_path=csv_path, log=log)
+    write_csv(rows, csv_path)
+    for knob in chosen:
+        plot_knob(rows, knob.name, out / f"{knob.name}.png")
+    load1 = _load()
+    scene, auto = first if first is not None else (base, auto_backend_for(base))
+    meta = {"scene": scene_name, "N": scene.particles.n, "steps": plan.steps,
+            "load": (f", CPU load average {load0:.1f} at the start and "
+                     f"{load1:.1f} at the end (on {os.cpu_count()} cores: "
+                     "other work shares them, so compare times loosely)"
+                     if load0 is not None and jax.default_backend() == "cpu"
+                     else ""),
+            "chunk": plan.chunk, "auto": auto,
+            "rdf_noise": noise.get(None), "rdf_noise_by_knob": {
+                k.name: noise[k.own_scene] for k in chosen
+                if k.own_scene is not None and k.own_scene in noise},
+            "own_scenes": own,
+            "base": ", ".join(f"{k} {v}" for k, v in _describe(
+                dataclasses.replace(scene, dtype="float32")).items()
+                if k != "N"), **prov}
+    if None not in groups:  # only knobs of their own scenes ran
+        meta["base"] = f"{scene.name}'s ({meta['base']}; see below)"
+        meta["rdf_noise"] = None
+    write_summary(rows, meta, out / "summary.md")
+    log(f"accuracy: {len(rows)} rows in {time.perf_counter() - t0:.0f} s -> "
+        f"{out}")
+    return rows
+
+
+def _spent(budget, t0: float) -> bool:
+    return budget is not None and time.perf_counter() - t0 > budget
+
+
+def _sweep_group(base, members, hook, *, rows: list, plan: Plan,
+                 quick: bool, budget, t0: float, common: dict, noise: dict,
+                 csv_path, log) -> None:
+    """Append to ``rows`` (and rewrite ``csv_path`` after each) the
+    reference run of ``base`` and the rows of the knobs ``members`` (those
+    whose `Knob.base_for` is ``base``); the reference row's value is
+    ``float64`` (``float64, <scene name>`` for an own scene). Sets
+    ``noise[hook]`` (`rdf_noise`). An own scene whose turn comes after the
+    budget is spent runs nothing, not even its reference."""
+    dim = base.particles.dim
+    if hook is not None and _spent(budget, t0):
+        rows += [{**common, "knob": k.name, "value": v.label,
+                  "status": "skipped", "failed": f"budget of {budget:g} s "
+                  "spent"} for k in members for v in k.selected(quick, dim)]
+        write_csv(rows, csv_path)
+        return
     start = None
     if plan.equilibrate:  # the reference run continues the equilibration
         start = equilibrate(base, plan.equilibrate, plan.chunk)
@@ -1572,22 +1780,24 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
     ref_forces = reference_forces(base)
     ref_scene = dataclasses.replace(base, dtype="float64")
     ref = measure(ref_scene, plan, ref_forces=ref_forces, start=start)
-    noise = rdf_noise(ref, base, plan)
-    common = {"scene": scene_name, "auto_backend": auto, **prov}
-    rows = [{**common, "knob": "reference", "value": "float64",
-             "status": "ok", **_describe(ref_scene),
-             **finish_row(ref, ref, base, plan)}]
-    log(f"  reference done ({time.perf_counter() - t0:.0f} s)")
-    done: dict[str, dict] = {_key(ref_scene, Value("", _same)): rows[0]
+    noise[hook] = rdf_noise(ref, base, plan)
+    label = "float64" if hook is None else f"float64, {base.name}"
+    rows.append({**common, "knob": "reference", "value": label,
+                 "status": "ok", **_describe(ref_scene),
+                 **finish_row(ref, ref, base, plan)})
+    write_csv(rows, csv_path)
+    log(f"  reference {label} done ({time.perf_counter() - t0:.0f} s)")
+    # Settings two knobs reach run once; keys are per base scene (they do
+    # not hold the particles).
+    done: dict[str, dict] = {_key(ref_scene, Value("", _same)): rows[-1]
                              | {"knob": None, "value": None}}
     for k in ("knob", "value", "status", "scene", "auto_backend",
               *PROVENANCE):
         done[next(iter(done))].pop(k, None)
-    csv_path = out / "accuracy.csv"
-    for knob in chosen:
+    for knob in members:
         for value in knob.selected(quick, dim):
             row = {**common, "knob": knob.name, "value": value.label}
-            if budget is not None and time.perf_counter() - t0 > budget:
+            if _spent(budget, t0):
                 rows.append({**row, "status": "skipped",
                              "failed": f"budget of {budget:g} s spent"})
                 continue
@@ -1607,21 +1817,3 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
                 f"{_fmt(_num(row, 'time_per_step_ms'))} ms/step "
                 f"({time.perf_counter() - t0:.0f} s)")
             write_csv(rows, csv_path)
-    write_csv(rows, csv_path)
-    for knob in chosen:
-        plot_knob(rows, knob.name, out / f"{knob.name}.png")
-    load1 = _load()
-    meta = {"scene": scene_name, "N": base.particles.n, "steps": plan.steps,
-            "load": (f", CPU load average {load0:.1f} at the start and "
-                     f"{load1:.1f} at the end (on {os.cpu_count()} cores: "
-                     "other work shares them, so compare times loosely)"
-                     if load0 is not None and jax.default_backend() == "cpu"
-                     else ""),
-            "chunk": plan.chunk, "auto": auto, "rdf_noise": noise,
-            "base": ", ".join(f"{k} {v}" for k, v in _describe(
-                dataclasses.replace(base, dtype="float32")).items()
-                if k != "N"), **prov}
-    write_summary(rows, meta, out / "summary.md")
-    log(f"accuracy: {len(rows)} rows in {time.perf_counter() - t0:.0f} s -> "
-        f"{out}")
-    return rows

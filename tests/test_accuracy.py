@@ -140,14 +140,16 @@ def test_every_knob_value_applies_to_its_scenes():
         for knob in accuracy.knobs(kind, dim=dim):
             assert knob.quick and set(knob.quick) <= {v.label
                                                        for v in knob.values}
+            own = knob.base_for(base, accuracy.QUICK)  # the radii knob's
             for v in knob.selected(quick=False, dim=dim):
                 try:
-                    v.apply(base)
+                    v.apply(own)
                 except Exception as e:  # only box-too-small refusals
                     assert "half the periodic box" in str(e), (knob.name, e)
     names = {k.name for k in accuracy.knobs("lj")}
     assert {"dtype", "truncation", "skin", "dt", "format", "backend",
-            "pairs", "delaunay-flips"} <= names
+            "pairs", "delaunay-flips", "radii"} <= names
+    assert "radii" not in {k.name for k in accuracy.knobs("sph")}
     assert ("list-free" in names) == hasattr(jaxrt.energy,
                                             "lennard_jones_fused")
     assert "truncation" not in {k.name for k in accuracy.knobs("sph")}
@@ -306,6 +308,239 @@ def test_auto_rule():
     base = accuracy.base_scene("lj-fluid", accuracy.QUICK)
     assert accuracy.auto_backend_for(base) == choose_backend(
         platform=jax.default_backend())
+
+
+# ---------------------------------------------------------------------------
+# Per-particle cutoff radii: the polydisperse scene and the radii knob
+
+
+def _smooth_lj_radii_oracle(r, side, radii, r_onset=2.0, r_cutoff=2.5):
+    """Float64 brute force, NumPy only: every pair i < j (minimum image)
+    cut at c = max(r_i, r_j), jax-md's smooth LJ with sigma, r_onset and
+    r_cutoff all stretched by c / r_cutoff (epsilon 1)."""
+    r = np.asarray(r, np.float64)
+    i, j = np.triu_indices(len(r), 1)
+    d = r[i] - r[j]
+    d -= side * np.round(d / side)
+    dr = np.sqrt(np.sum(d * d, -1))
+    c = np.maximum(radii[i], radii[j])
+    s = c / r_cutoff
+    sig, ro, rc = s, r_onset * s, c
+    lj = 4 * ((sig / dr) ** 12 - (sig / dr) ** 6)
+    sw = np.where(dr < ro, 1.0, np.where(
+        dr < rc, (rc ** 2 - dr ** 2) ** 2 * (rc ** 2 + 2 * dr ** 2
+                                             - 3 * ro ** 2)
+        / (rc ** 2 - ro ** 2) ** 3, 0.0))
+    return float(np.sum(lj * sw))
+
+
+def _small_polydisperse(n=128, **kw):
+    from jaxrt import sim
+    kw.setdefault("radii", (2.0, 4.5))  # reaches 2.3, 4.8: two classes
+    kw.setdefault("fractions", (0.95, 0.05))
+    kw.setdefault("density", 0.12)  # side 10.2 > 2 (4.5 + skin 0.3)
+    return sim.lj_polydisperse(n=n, backend="cell", **kw)
+
+
+def test_polydisperse_scene_places_no_pair_inside_its_core():
+    s = _small_polydisperse(n=300, seed=3)
+    lj = s.effect("lj")
+    radii = np.asarray(lj.radii)
+    assert s.particles.positions.shape == (300, 3)
+    assert sorted(set(lj.radii)) == [2.0, 4.5]
+    assert int(np.sum(radii == 4.5)) == 15 and s.cutoff == 4.5
+    r = s.particles.positions
+    i, j = np.triu_indices(300, 1)
+    d = r[i] - r[j]
+    d -= s.box.size[0] * np.round(d / s.box.size[0])
+    sigma_ij = np.maximum(radii[i], radii[j]) / 2.5
+    assert np.min(np.sqrt(np.sum(d * d, -1)) / sigma_ij) >= 2 ** (1 / 6) - 1e-9
+    flat = _small_polydisperse(n=200, dim=2)
+    assert flat.particles.dim == 2 and flat.box.size == (flat.box.size[0],) * 2
+    # A scene's radii survive TOML both ways.
+    from jaxrt import sim
+    back = sim.from_toml(sim.to_toml(s))
+    assert back.effect("lj") == lj and isinstance(back.effect("lj").radii,
+                                                  tuple)
+
+
+def test_polydisperse_list_energy_equals_fused_and_brute_force(x64):
+    """The scene's LJ on its radii list, the fused LJ (list-free, brute
+    and cell searches) and a NumPy float64 brute force give one energy;
+    the forces agree, and with central differences of the oracle."""
+    import jax.numpy as jnp
+    import jaxrt.energy
+    from jaxrt import sim
+    s = _small_polydisperse()
+    side = s.box.size[0]
+    rng = np.random.default_rng(0)
+    pos = np.mod(s.particles.positions + rng.normal(0, 0.05, (128, 3)), side)
+    # The brute-force list (with radii): the radius classes' allocate takes
+    # seconds to compile on a CPU, and the knob's test below runs them.
+    s = accuracy.with_state(dataclasses.replace(
+        s, dtype="float64", neighbors=sim.Neighbors(backend="brute")), pos,
+        np.zeros((128, 3)))
+    radii = np.asarray(s.effect("lj").radii)
+    compiled = sim.compile_scene(s)
+    assert any("per-particle radii" in line for line in compiled.plan)
+    state, nbrs = compiled.init()
+    e_list = float(compiled.energy(state, nbrs))  # velocities are 0
+    f_list = np.asarray(state.accel)  # masses are 1
+    e_ref = _smooth_lj_radii_oracle(pos, side, radii)
+    assert abs(e_ref) > 1.0  # the sum has something in it
+    assert e_list == pytest.approx(e_ref, rel=1e-10)
+    fused = jaxrt.energy.lennard_jones_fused(
+        compiled.displacement, side, sigma=1.0, r_onset=2.0, r_cutoff=2.5,
+        radii=radii, backend="brute")
+    R = jnp.asarray(pos)
+    assert float(fused(R)) == pytest.approx(e_ref, rel=1e-10)
+    np.testing.assert_allclose(-np.asarray(jax.grad(fused)(R)), f_list,
+                               rtol=1e-9, atol=1e-10)
+    # The accuracy sweep's fused effect (its cell search), in the scene, is
+    # the same LJ.
+    sc = _knob_value("radii", "fused").apply(s)
+    assert not sc.pair_effects and sc.effects[0].radii == tuple(radii)
+    np.testing.assert_allclose(sim.compile_scene(sc).init()[0].accel, f_list,
+                               rtol=1e-9, atol=1e-10)
+    # Central differences of the oracle, on the particles of the large radius.
+    h = 1e-6
+    for k in np.flatnonzero(radii == radii.max())[:2]:
+        for a in range(3):
+            up, dn = pos.copy(), pos.copy()
+            up[k, a] += h
+            dn[k, a] -= h
+            fd = -(_smooth_lj_radii_oracle(up, side, radii)
+                   - _smooth_lj_radii_oracle(dn, side, radii)) / (2 * h)
+            assert f_list[k, a] == pytest.approx(fd, rel=1e-5, abs=1e-6)
+
+
+def test_brute_pairs_with_radii_by_hand():
+    # On a line, free space: 0 at x = 0 (radius 1), 1 at 1.5 (radius 2),
+    # 2 at 4.0 (radius 0.5): d01 = 1.5 < max(1, 2), d12 = 2.5 >= 2,
+    # d02 = 4 >= 2.
+    r = np.array([[0.0, 0, 0], [1.5, 0, 0], [4.0, 0, 0]])
+    radii = np.array([1.0, 2.0, 0.5])
+    got = accuracy.brute_pairs(r, 99.0, np.ones(3), (False,) * 3,
+                               radii=radii)
+    assert got.tolist() == [0 * 3 + 1]
+    radii[2] = 2.6  # now d12 = 2.5 < 2.6 and d02 = 4 >= 2.6
+    got = accuracy.brute_pairs(r, 99.0, np.ones(3), (False,) * 3,
+                               radii=radii)
+    assert got.tolist() == [0 * 3 + 1, 1 * 3 + 2]
+    with pytest.raises(ValueError, match="radii has shape"):
+        accuracy.brute_pairs(r, 1.0, np.ones(3), (False,) * 3,
+                             radii=radii[:2])
+    # Large n: the cKDTree path cuts each pair at max(r_i, r_j) as well.
+    rng = np.random.default_rng(1)
+    big = rng.random((4200, 3)) * 12.0
+    rad = rng.choice([0.4, 1.0], 4200)
+    a = accuracy.exact_pairs(big, 0.0, np.full(3, 12.0), (True,) * 3,
+                             radii=rad)
+    b = accuracy.brute_pairs(big, 0.0, np.full(3, 12.0), (True,) * 3,
+                             radii=rad)
+    plain = accuracy.brute_pairs(big, 1.0, np.full(3, 12.0), (True,) * 3)
+    assert np.array_equal(a, b) and 1000 < len(a) < len(plain)
+
+
+def test_bad_radii_raise_clear_errors():
+    from jaxrt import sim
+    from jaxrt.sim import SceneError
+    s = _small_polydisperse()
+    lj = s.effect("lj")
+
+    def with_lj(**kw):
+        return dataclasses.replace(s, effects=(dataclasses.replace(lj, **kw),))
+    with pytest.raises(SceneError, match=r"effects\[0\]\.radii: needs one "
+                       r"radius per particle \(128\); got 127"):
+        with_lj(radii=lj.radii[:-1])
+    bad = list(lj.radii)
+    bad[5] = -1.0
+    with pytest.raises(SceneError, match=r"radii\[5\] = -1.0; radii must be "
+                       "finite and >= 0"):
+        with_lj(radii=bad)
+    bad[5] = float("nan")
+    with pytest.raises(SceneError, match=r"radii\[5\] = nan"):
+        with_lj(radii=bad)
+    with pytest.raises(SceneError, match="all radii are 0"):
+        with_lj(radii=np.zeros(128))
+    with pytest.raises(SceneError, match=r"lj\.radii: must be a flat"):
+        with_lj(radii=np.ones((128, 1)))
+    with pytest.raises(SceneError, match="half the periodic box"):
+        with_lj(radii=np.full(128, s.box.size[0] / 2))
+    with pytest.raises(SceneError, match="scalar sigma and epsilon"):
+        dataclasses.replace(s, effects=(dataclasses.replace(
+            lj, epsilon=[[1.0, 1.0], [1.0, 1.0]]),), particles=dataclasses
+            .replace(s.particles, species=np.zeros(128, int)))
+    with pytest.raises(SceneError, match="give one of the two"):
+        dataclasses.replace(s, particles=dataclasses.replace(
+            s.particles, radius=np.linspace(0.5, 0.6, 128)))
+    with pytest.raises(SceneError, match="'perse' needs one cutoff"):
+        dataclasses.replace(s, integrator=sim.Integrator(dt=0.005,
+                                                         kind="perse"),
+                            neighbors=sim.Neighbors(backend="bvh"))
+    # A backend without radii is refused where the list is built.
+    spheres = dataclasses.replace(s, neighbors=sim.Neighbors(
+        backend="brute" if not accuracy._warp() else "spheres"))
+    if accuracy._warp():
+        with pytest.raises(SceneError, match="neighbors.backend: 'spheres' "
+                           "has no per-particle radii"):
+            sim.compile_scene(spheres)
+    # jaxrt.pairs searches one cutoff: the pairs knob refuses radii.
+    with pytest.raises(SceneError, match=r"effects\[0\]\.radii: jaxrt.pairs "
+                       "searches one cutoff"):
+        accuracy._lj_as(accuracy.LJPairs)(s)
+
+
+def test_radii_knob_one_grid_misses_no_pair(x64):
+    """The cell list as one grid of the largest radius on the polydisperse
+    scene finds every pair within max(r_i, r_j) (float64 brute force after
+    every chunk) and gives the reference's forces; the check counts the
+    pairs of that rule, fewer than a plain cut at the largest radius (the
+    sweep runs the other values: the slow test below)."""
+    n = 216
+    base = accuracy.base_scene("lj-fluid", accuracy.Plan(n=n))
+    knob = next(k for k in accuracy.KNOBS if k.name == "radii")
+    s = knob.base_for(base, accuracy.Plan(n=n))
+    assert s.name == "lj-polydisperse" and s.dtype == "float32"
+    assert s.particles.n == n and s.effect("lj").radii is not None
+    rng = np.random.default_rng(2)
+    side = s.box.size[0]
+    s = accuracy.with_state(s, np.mod(s.particles.positions + rng.normal(
+        0, 0.05, (n, 3)), side), s.particles.velocities)
+    ref = accuracy.reference_forces(s)
+    assert set(ref) == {"scene"}  # no plain LJ to compare stretched pairs to
+    plan = accuracy.Plan(n=n, equilibrate=0, steps=20, chunk=10)
+    sc = _knob_value("radii", "one grid").apply(s)
+    assert accuracy._describe(sc)["backend"] == "cell[radius_classes=1]"
+    m = accuracy.measure(sc, plan, ref_forces=ref)
+    assert m.row["pairs_missed"] == 0 and m.row["pairs_checked"] > 0
+    assert m.row["force_rms_rel"] < 1e-5  # float32 against float64
+    plain = sum(len(accuracy.brute_pairs(f, s.cutoff, s.box.size,
+                                         s.box.periodic)) for f in m.frames)
+    assert m.row["pairs_checked"] < plain
+
+
+@pytest.mark.slow
+def test_radii_sweep_rows_have_their_own_reference(tmp_path):
+    plan = accuracy.Plan(n=216, equilibrate=20, steps=40, chunk=20)
+    rows = accuracy.run("lj-fluid", out=tmp_path, quick=True, plan=plan,
+                        knob_names=["radii"], log=lambda s: None)
+    assert rows[0]["knob"] == "reference"
+    assert rows[0]["value"] == "float64, lj-polydisperse"
+    mine = [r for r in rows if r["knob"] == "radii"]
+    knob = next(k for k in accuracy.KNOBS if k.name == "radii")
+    assert [r["value"] for r in mine] == [v.label for v in
+                                          knob.selected(True, 3)]
+    for r in mine:
+        assert r["status"] == "ok", r
+        assert r["cutoff"] == 6.0  # the largest radius, list or not
+        assert r["force_rms_rel"] < 1e-4
+        assert math.isfinite(r["drift_per_particle_1e4"])
+        if not r["backend"].startswith("fused"):
+            assert r["pairs_missed"] == 0 and r["pairs_checked"] > 0
+    md = (tmp_path / "summary.md").read_text()
+    assert "`radii` on its own scene" in md
+    assert (tmp_path / "radii.png").stat().st_size > 1000
 
 
 # ---------------------------------------------------------------------------

@@ -32,10 +32,11 @@ from jaxrt.sim.effects import (EFFECTS, LJ, Boids, Gravity, Registry,
                                registered, unregister)
 from jaxrt.sim.validate import check_backend
 from jaxrt.sim.toml import from_toml, load, to_toml
-from jaxrt.sim.compile import FORMATS, Compiled, State, Trace, compile_scene
+from jaxrt.sim.compile import (FORMATS, Compiled, State, Trace, compile_scene,
+                               list_radii)
 from jaxrt.sim.run import BlowUpError, RunStats, run_chunk
 from jaxrt.sim.builtin import (BUILTIN, boids, builtin, dam_break,
-                               lj_fluid, sphere_surface)
+                               lj_fluid, lj_polydisperse, sphere_surface)
 
 __all__ = [
     # spec
@@ -49,8 +50,10 @@ __all__ = [
     "check_backend", "from_toml", "load", "to_toml",
     # compile, run
     "FORMATS", "BlowUpError", "Compiled", "State", "Trace", "compile_scene",
+    "list_radii",
     "RunStats",
     "run_chunk",
     # builtin
-    "BUILTIN", "boids", "builtin", "dam_break", "lj_fluid", "sphere_surface",
+    "BUILTIN", "boids", "builtin", "dam_break", "lj_fluid", "lj_polydisperse",
+    "sphere_surface",
 ]

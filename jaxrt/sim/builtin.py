@@ -44,6 +44,100 @@ def lj_fluid(*, n: int = 2048, density: float = 0.8, kT: float = 1.0,
                     + (" (energy drift)" if flat else ""))
 
 
+def lj_polydisperse(*, n: int = 1000, density: float = 0.45,
+                    kT: float = 1.0, dt: float = 0.005,
+                    radii: tuple[float, ...] = (2.5, 6.0),
+                    fractions: tuple[float, ...] = (0.99, 0.01),
+                    backend: str = "auto", seed: int = 0, dim: int = 3
+                    ) -> Scene:
+    """Lennard-Jones mixture with per-particle cutoff radii, periodic, NVE.
+
+    Species ``k`` has the cutoff radius ``radii[k]`` (absolute) and makes
+    ``fractions[k]`` of the ``n`` particles (the first species takes what
+    rounding leaves). Pair ``ij`` is cut at ``max(r_i, r_j)``, its LJ
+    stretched by ``max(r_i, r_j) / 2.5`` (`jaxrt.sim.LJ` ``radii=``, smooth
+    from 2.0 to 2.5 before stretching): a particle of radius 2.5 is the
+    plain fluid's, one of 6.0 has sigma 2.4 with everyone. The default, a
+    few large particles in a fluid of small ones, spans two radius classes
+    (`jaxrt.radius_classes`: reaches 2.8 and 6.3 with the skin 0.3).
+
+    Placement, so that no pair starts inside its core: the species other
+    than the smallest at random positions (``seed``), each pair at least
+    ``2**(1/6) sigma_ij`` apart (minimum image); the smallest on the
+    sites of a cubic (``dim`` 2: square) lattice, those closer than that
+    to a larger particle left out, ``n_small`` of the rest picked at
+    random. Maxwell-Boltzmann velocities at ``kT``, number density
+    ``density``, skin 0.3, time step ``dt``. Positions float64 ``(n,
+    dim)``; the LJ's radii float ``(n,)``, in the particles' order.
+    """
+    r = np.asarray(radii, float)
+    f = np.asarray(fractions, float)
+    if r.ndim != 1 or not r.size or not np.all(np.isfinite(r) & (r > 0)):
+        raise SceneError.at("lj_polydisperse.radii", f"must be a sequence of "
+                            f"finite radii > 0, one per species; got {radii}.")
+    if f.shape != r.shape or not np.all(f >= 0) or \
+            not math.isclose(f.sum(), 1.0, abs_tol=1e-9):
+        raise SceneError.at("lj_polydisperse.fractions", f"must be one "
+                            f"fraction >= 0 per radius, summing to 1; got "
+                            f"{fractions} for radii {radii}.")
+    if dim not in (2, 3):
+        raise SceneError.at("lj_polydisperse.dim", f"2 or 3; got {dim!r}.")
+    r_cut = 2.5
+    side = math.sqrt(n / density) if dim == 2 else (n / density) ** (1 / 3)
+    counts = np.round(f * n).astype(int)
+    smallest = int(np.argmin(r))
+    counts[smallest] += n - counts.sum()
+    rng = np.random.default_rng(seed)
+    core = 2.0 ** (1 / 6) / r_cut  # 2^(1/6) sigma_ij per unit of max(r)
+
+    def gaps(x, pts):
+        d = x[None, :] - pts
+        d -= side * np.round(d / side)
+        return np.sqrt(np.sum(d * d, -1))
+
+    # Larger species first, largest first (rejection sampling).
+    pos, rad = [], []
+    for k in sorted(np.flatnonzero(np.arange(r.size) != smallest),
+                    key=lambda k: -r[k]):
+        for _ in range(counts[k]):
+            for _try in range(10_000):
+                x = rng.uniform(0, side, dim)
+                if not pos or np.all(gaps(x, np.array(pos))
+                                     >= core * np.maximum(r[k], rad)):
+                    break
+            else:
+                raise SceneError.at("lj_polydisperse.density", "no room for "
+                                    f"the particles of radius {r[k]:g}; "
+                                    "lower the density or their fraction.")
+            pos.append(x)
+            rad.append(r[k])
+    # The smallest on the free sites of the finest lattice that has enough.
+    need = int(counts[smallest])
+    per_side = max(1, math.ceil(need ** (1 / dim)))
+    while True:
+        sites = seed_distributions.lattice(per_side ** dim, side, dim=dim)
+        free = np.ones(len(sites), bool)
+        for x, rx in zip(pos, rad):
+            free &= gaps(x, sites) >= core * rx
+        if free.sum() >= need:
+            break
+        per_side += 1
+    pick = np.sort(rng.choice(np.flatnonzero(free), need, replace=False))
+    pos = np.concatenate([np.reshape(pos, (-1, dim)), sites[pick]])
+    rad = np.concatenate([rad, np.full(need, r[smallest])])
+    return Scene(
+        particles=make_particles(positions=np.mod(pos, side), temperature=kT,
+                                 seed=seed),
+        box=Box((side,) * dim, ("periodic",) * dim),
+        effects=(LJ(r_cutoff=r_cut, r_onset=2.0, radii=tuple(rad)),),
+        integrator=Integrator(dt=dt),
+        neighbors=Neighbors(backend=backend, skin=0.3),
+        name="lj-polydisperse",
+        description=f"{dim}D Lennard-Jones mixture with cutoff radii "
+                    + ", ".join(f"{x:g} ({c})" for x, c in zip(r, counts))
+                    + f", N={n}, rho={density}, periodic, NVE")
+
+
 def dam_break(*, dx: float = 0.05, backend: str = "auto") -> Scene:
     """2D SPH dam break: a water column collapses in a walled tank.
 

@@ -9,7 +9,10 @@ a velocity Verlet step (plus a Langevin velocity step for NVT) around them:
   cutoffs (``lj``: ``r_cutoff``; ``sph_*``: the kernel support ``2h`` or
   ``3h``). Each effect truncates itself at its own cutoff, so a longer list
   only costs extra pairs, never wrong forces; one list means one search and
-  one overflow check per step instead of one per effect;
+  one overflow check per step instead of one per effect; with per-particle
+  cutoff radii (``lj.radii``) the list takes radii too (`list_radii`:
+  pair ``ij`` within ``max(r_i, r_j)``), so the search skips the pairs no
+  effect needs;
 * periodic image work (minimum image in the displacement, wrapping in the
   shift, ``periodic=`` of `jaxrt.neighbor_list`) on periodic axes only;
   wall and free axes use a plain difference;
@@ -222,6 +225,39 @@ def _list_sides(box: Box) -> np.ndarray:
     return np.where(ok, size, 1.0)
 
 
+def list_radii(scene: Scene) -> np.ndarray | None:
+    """The shared list's per-particle radii: float64 ``(N,)``, or None when
+    no pair effect has ``radii`` (the list then has one cutoff).
+
+    Effect ``e`` needs pair ``ij`` within ``max(a_i, a_j)``, ``a`` its radii
+    (or its ``cutoff`` for every particle), so the list needs it within
+    ``max_e max(a_i, a_j) = max(r_i, r_j)`` with ``r = max_e a``, the
+    elementwise largest: exactly the union of what the effects need.
+    """
+    effects = scene.pair_effects
+    if all(getattr(e, "radii", None) is None for e in effects):
+        return None
+    n = scene.particles.n
+    return np.max([np.broadcast_to(
+        np.asarray(e.cutoff if getattr(e, "radii", None) is None
+                   else e.radii, np.float64), (n,)) for e in effects], axis=0)
+
+
+def _check_radii_backend(scene: Scene) -> None:
+    """`SceneError` at ``neighbors.backend`` if the scene's list needs
+    radii and its backend has none."""
+    backend = scene.neighbors.backend
+    if isinstance(backend, str):
+        if backend == "auto":
+            return  # auto picks one with radii (jaxrt.neighbors)
+        from jaxrt import backends
+        backend = backends.resolve(backend)
+    if not getattr(backend, "supports_radii", False):
+        raise SceneError.at("neighbors.backend", f"{backend.name!r} has no "
+                            "per-particle radii, which the scene's lj.radii "
+                            "need; use 'cell', 'bvh', 'brute' or 'auto'.")
+
+
 def _neighbor_fn(scene: Scene, displacement, nl_fn, plan: list):
     """The shared list's functions, or None without pair effects; appends
     to ``plan`` what it chose."""
@@ -229,13 +265,23 @@ def _neighbor_fn(scene: Scene, displacement, nl_fn, plan: list):
     neighbor_fn = None
     if scene.pair_effects:
         nb = scene.neighbors
+        radii = list_radii(scene)
+        # Only a list with radii gets the keyword: a caller's factory
+        # (jax_md.partition.neighbor_list) may not take it.
+        extra = {}
+        if radii is not None:
+            _check_radii_backend(scene)
+            extra["radii"] = radii
         neighbor_fn = nl_fn(
             displacement, _list_sides(box), scene.cutoff, nb.skin,
             capacity_multiplier=nb.capacity_multiplier,
             format=FORMATS[nb.format], backend=nb.backend,
-            periodic=box.periodic)
+            periodic=box.periodic, **extra)
         plan.append(f"one neighbour list, cutoff {scene.cutoff:.4g} + skin "
-                    f"{nb.skin:.4g}, periodic={box.periodic}")
+                    f"{nb.skin:.4g}, periodic={box.periodic}"
+                    + ("" if radii is None else
+                       f", per-particle radii {radii.min():.4g} to "
+                       f"{radii.max():.4g} (pair ij within max(r_i, r_j))"))
     else:
         plan.append("no neighbour list (no pair effect)")
     if not any(box.periodic):

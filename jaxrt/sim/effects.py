@@ -105,6 +105,54 @@ def _needs(scene, where: str, kind: str, why: str) -> None:
 
 
 # ---------------------------------------------------------------------------
+# Per-particle cutoff radii (the LJ effect's ``radii``; the accuracy sweep's
+# list-free LJ effects share these)
+
+
+def _radii_as_tuple(effect) -> None:
+    """``effect.radii`` as a tuple of floats (TOML and NumPy give lists and
+    arrays: a tuple keeps the frozen effect hashable and comparable)."""
+    r = effect.radii
+    if r is None or isinstance(r, tuple):
+        return
+    a = np.asarray(r)
+    if a.ndim != 1:
+        raise SceneError.at(f"{effect.kind}.radii", f"must be a flat sequence of floats, one "
+                            f"per particle; got shape {a.shape}.")
+    try:
+        object.__setattr__(effect, "radii", tuple(float(x) for x in a))
+    except (TypeError, ValueError):
+        raise SceneError.at(f"{effect.kind}.radii", f"must be floats; got "
+                            f"dtype {a.dtype}.") from None
+
+
+def check_cutoff_radii(effect, scene, where: str) -> None:
+    """Raise `SceneError` at ``{where}.radii`` unless ``effect.radii`` is one
+    finite radius >= 0 per particle, some > 0, with scalar sigma and
+    epsilon and no differing ``particles.radius``."""
+    r = np.asarray(effect.radii, float)
+    n = scene.particles.n
+    if r.shape != (n,):
+        raise SceneError.at(f"{where}.radii", f"needs one radius per particle "
+                            f"({n}); got {r.size}.")
+    if not np.all(np.isfinite(r) & (r >= 0)):
+        k = int(np.flatnonzero(~(np.isfinite(r) & (r >= 0)))[0])
+        raise SceneError.at(f"{where}.radii", f"radii[{k}] = {r[k]}; radii "
+                            "must be finite and >= 0.")
+    if not r.max() > 0:
+        raise SceneError.at(f"{where}.radii", "all radii are 0: nothing "
+                            "interacts; give positive radii or none.")
+    if np.ndim(effect.sigma) or np.ndim(effect.epsilon):
+        raise SceneError.at(f"{where}.radii", "radii stretch one scalar "
+                            "sigma and epsilon; give scalars with them.")
+    p = scene.particles
+    if p.radius is not None and np.ptp(p.radius) > 0:
+        raise SceneError.at(f"{where}.radii", "particles.radius that differ "
+                            "set sigma_ij = r_i + r_j; cutoff radii set it "
+                            "from max(r_i, r_j): give one of the two.")
+
+
+# ---------------------------------------------------------------------------
 # Pair effects
 
 
@@ -118,17 +166,34 @@ class LJ:
     ``sigma`` / ``epsilon``: float, or ``(S, S)`` nested lists with
     ``particles.species``. Per-particle radii that differ replace sigma by
     ``sigma_ij = r_i + r_j``; equal radii give the scalar ``2 r``.
+
+    ``radii``: None, or per-particle *cutoff* radii (seed 003 §3; float,
+    one per particle, >= 0, absolute; a tuple, converted from any
+    sequence): pair ``ij`` is cut at ``max(r_i, r_j)`` and its potential
+    is the one above stretched by ``s_ij = max(r_i, r_j) / r_cutoff``
+    (``sigma s_ij``, ``r_onset s_ij``; `jaxrt.energy.lennard_jones_radii`),
+    as `jaxrt.energy.lennard_jones_fused` (``radii=``) defines it. The
+    effect's ``cutoff`` is then ``max(radii)`` and the shared list is built
+    with these radii (`jaxrt.sim.compile.list_radii`). Scalar sigma and
+    epsilon only, and not with ``particles.radius`` that differ (those set
+    sigma_ij instead).
     """
     r_cutoff: float
     sigma: Any = 1.0
     epsilon: Any = 1.0
     r_onset: float | None = None
     truncation: str = "smooth"
+    radii: tuple[float, ...] | None = None
     kind: ClassVar[str] = "lj"
     pairwise: ClassVar[bool] = True
 
+    def __post_init__(self):
+        _radii_as_tuple(self)
+
     @property
     def cutoff(self) -> float:
+        if self.radii is not None:
+            return max(self.radii, default=0.0)
         return float(self.r_cutoff)
 
     def validate(self, scene, where: str) -> None:
@@ -148,7 +213,11 @@ class LJ:
             raise SceneError.at(f"{where}.sigma", "per-particle radii set "
                                 "sigma (r_i + r_j); give no sigma matrix "
                                 "with them.")
-        check_reach(scene, self.cutoff, f"{where}.r_cutoff")
+        if self.radii is not None:
+            check_cutoff_radii(self, scene, where)
+            check_reach(scene, self.cutoff, f"{where}.radii")
+        else:
+            check_reach(scene, self.cutoff, f"{where}.r_cutoff")
 
     def _sigma(self, radius, dtype):
         """sigma for the energy, and the plan's note on radii."""
@@ -174,10 +243,18 @@ class LJ:
                    (np.ndim(sigma) < 2 and np.ndim(epsilon) < 2)
                    else jnp.asarray(p.species))
         r_onset = 0.8 * self.r_cutoff if self.r_onset is None else self.r_onset
+        radii = None
+        if self.radii is not None:
+            # In the run's dtype, as the list's reach is (radii + skin).
+            radii = jnp.asarray(self.radii, ctx.dtype)
+            notes = notes + (f"cutoff radii: pair ij cut at max(r_i, r_j), "
+                             f"{min(self.radii):.4g} to "
+                             f"{max(self.radii):.4g}, the potential "
+                             f"stretched from r_cutoff {self.r_cutoff:.4g}",)
         energy = _lj.lennard_jones_pair_neighbor_list(
             ctx.displacement, species=species, sigma=sigma, epsilon=epsilon,
             r_onset=r_onset, r_cutoff=self.r_cutoff,
-            truncation=self.truncation)
+            truncation=self.truncation, radii=radii)
 
         def lj(R, nbrs):
             return energy(R, nbrs)

@@ -96,6 +96,10 @@ class Effect(Protocol):
       effects' ``list_free``), True if it reads the shared neighbour list.
     cutoff: float, the pair distance it needs the list to reach (0.0 for an
       effect that only reads pairs another effect asked for, or none).
+    radii (optional): None, or per-particle cutoff radii, float, one per
+      particle: the effect needs pair ``ij`` only within ``max(r_i, r_j)``
+      (its ``cutoff`` is then their largest), and the shared list is built
+      with radii (`jaxrt.sim.compile.list_radii`).
     validate(scene, where): raise `SceneError` (``SceneError.at``) naming
       ``f"{where}.<field>"`` if it cannot run in ``scene``, also when it
       needs another effect; ``where`` is ``"effects[i]"``.
@@ -341,6 +345,10 @@ def _check_perse(scene: "Scene") -> None:
             or getattr(lj, "truncation", "smooth") != "smooth"):
         raise SceneError.at(field, "'perse' needs scalar sigma and epsilon "
                             "and truncation 'smooth'. Use 'verlet'.")
+    if getattr(lj, "radii", None) is not None:
+        raise SceneError.at(field, "'perse' needs one cutoff for every pair "
+                            "(with cutoff radii each pair is found from one "
+                            "side only); drop lj.radii or use 'verlet'.")
     p = scene.particles
     if p.radius is not None and np.ptp(p.radius) > 0:
         raise SceneError.at(field, "'perse' needs equal radii (with "
