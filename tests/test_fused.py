@@ -456,3 +456,27 @@ def test_scene_integrator_perse_matches_verlet(x64):
     close(t_perse.potential[1:], t_verlet.potential[:-1], 1e-9)
     with pytest.raises(sim.SceneError, match="perse"):
         dataclasses.replace(perse, effects=perse.effects + (sim.Gravity(g=(0, 0, -1.0)),))
+
+
+@pytest.mark.parametrize("launch", [
+    {}, {"block": 16, "tile": 16}, {"unroll": 2, "across": 2}])
+def test_kernel_lowers_for_cuda(x64, launch):
+    """The fused kernel's layouts lower to Triton (energy and forces in one
+    kernel): on a CPU too, by exporting for CUDA, so a primitive that
+    Pallas' Triton lowering lacks fails here without a GPU."""
+    from jax import export
+
+    from jaxrt import _cell_kernel
+    if _cell_kernel.pl is None:
+        pytest.skip("this JAX has no Pallas Triton backend")
+    R, side = fluid(n_side=6)
+    displacement, _ = space.periodic(side)
+    energy_fn = lennard_jones_fused(displacement, side,
+                                    backend=_Cell(kernel="auto", **launch))
+    for dtype in (jnp.float32, jnp.float64):
+        exported = export.export(
+            jax.jit(jax.value_and_grad(energy_fn)), platforms=["cuda"],
+            disabled_checks=[export.DisabledSafetyCheck.custom_call(
+                "__gpu$xla.gpu.triton")])(jnp.asarray(R, dtype))
+        module = exported.mlir_module()
+        assert module.count('name = "jaxrt_cell_pair_sums"') == 1
