@@ -299,6 +299,13 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     return vector, scalar
 
 
+def _sum_refs(refs, dim: int, n_extras: int):
+    """`pair_sums`' refs after the geometry and scalars: (coordinates, run
+    starts, run lengths, per-particle values, outputs)."""
+    return (refs[:dim], refs[dim], refs[dim + 1],
+            refs[dim + 2:dim + 2 + n_extras], refs[dim + 2 + n_extras:])
+
+
 def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
               runs, n_extras, n_sums, n_scalars, pair_terms, unroll=1):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
@@ -308,10 +315,8 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
     padded)`` run starts and lengths; ``n_extras`` float ``(padded,)``
     per-particle values; then ``dim + n_sums`` float ``(padded,)`` outputs.
     """
-    coord_refs = refs[:dim]
-    starts_ref, lengths_ref = refs[dim:dim + 2]
-    extra_refs = refs[dim + 2:dim + 2 + n_extras]
-    out_refs = refs[dim + 2 + n_extras:]
+    coord_refs, starts_ref, lengths_ref, extra_refs, out_refs = _sum_refs(
+        refs, dim, n_extras)
     first = pl.program_id(0) * block
     lanes = pl.ds(first, block)
     me = first + jnp.arange(block, dtype=jnp.int32)
@@ -367,10 +372,8 @@ def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
     Refs as `_sum_walk`'s; the coordinates and per-particle values are
     padded to hold a whole tile from any run's start.
     """
-    coord_refs = refs[:dim]
-    starts_ref, lengths_ref = refs[dim:dim + 2]
-    extra_refs = refs[dim + 2:dim + 2 + n_extras]
-    out_refs = refs[dim + 2 + n_extras:]
+    coord_refs, starts_ref, lengths_ref, extra_refs, out_refs = _sum_refs(
+        refs, dim, n_extras)
     first = pl.program_id(0) * block
     lanes = pl.ds(first, block)
     me = (first + jnp.arange(block, dtype=jnp.int32))[:, None]

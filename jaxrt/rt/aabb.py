@@ -888,11 +888,9 @@ class AabbMethod:
         self.sort = sort
         self.name = "aabb" if sort else "aabb-unsorted"
 
-    def find(self, points: wp.array, *, cutoff: float,
-             side: tuple[float, float, float] | None,
-             periodic: tuple[bool, bool, bool], mask_self: bool,
-             out_idx: wp.array2d, out_count: wp.array) -> None:
-        """See `jaxrt.rt._method.RTMethod.find`."""
+    def _fresh_search(self, points: wp.array, cutoff: float, side, periodic):
+        """An `AabbSearch` built on ``points`` (arguments checked) and its
+        ``(1,)`` side array."""
         vector = vector_type(points)
         periodic = tuple(bool(p) for p in periodic)
         if len(periodic) != 3:
@@ -904,6 +902,14 @@ class AabbMethod:
         search = AabbSearch(points.shape[0], vector, points.device, sort=self.sort)
         side_array = wp.array([box], dtype=vector, device=points.device)
         search.update(points, side_array, periodic, cutoff)
+        return search, side_array
+
+    def find(self, points: wp.array, *, cutoff: float,
+             side: tuple[float, float, float] | None,
+             periodic: tuple[bool, bool, bool], mask_self: bool,
+             out_idx: wp.array2d, out_count: wp.array) -> None:
+        """See `jaxrt.rt._method.RTMethod.find`."""
+        search, side_array = self._fresh_search(points, cutoff, side, periodic)
         search.query_dense(side_array, mask_self=mask_self, rows=out_idx,
                            count=out_count)
 
@@ -913,15 +919,5 @@ class AabbMethod:
                out_energy: wp.array, out_count: wp.array) -> None:
         """The fused mode (`jaxrt.rt.seed_energy`) on a fresh tree; see
         `jaxrt.rt.spheres.SpheresMethod.energy` for the arguments."""
-        vector = vector_type(points)
-        periodic = tuple(bool(p) for p in periodic)
-        if len(periodic) != 3:
-            raise ValueError(f"periodic must hold 3 bools; got {periodic}.")
-        if any(periodic) and side is None:
-            raise ValueError("side must give the box sides when an axis is periodic.")
-        box = (1.0, 1.0, 1.0) if side is None else tuple(float(s) for s in side)
-        check_cutoff(cutoff, box, periodic)
-        search = AabbSearch(points.shape[0], vector, points.device, sort=self.sort)
-        side_array = wp.array([box], dtype=vector, device=points.device)
-        search.update(points, side_array, periodic, cutoff)
+        search, side_array = self._fresh_search(points, cutoff, side, periodic)
         search.energy(side_array, params, energy=out_energy, count=out_count)
