@@ -96,7 +96,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--backend", default=None,
                        help="neighbour backend (see jaxrt.available_backends)")
         p.add_argument("--n", type=int, default=None,
-                       help="particles (lj-fluid and boids only)")
+                       help="particles (lj-fluid, lj-polydisperse and "
+                       "boids only)")
     return ap
 
 
@@ -199,9 +200,9 @@ def _load(args):
         kw["backend"] = args.backend
     if args.scene in sim.BUILTIN:
         if args.n is not None:
-            if args.scene not in ("lj-fluid", "boids"):
-                raise sim.SceneError("--n: only lj-fluid and boids take a "
-                                     "particle count.")
+            if args.scene not in ("lj-fluid", "boids", "lj-polydisperse"):
+                raise sim.SceneError("--n: only lj-fluid, lj-polydisperse "
+                                     "and boids take a particle count.")
             kw["n"] = args.n
         scene = sim.builtin(args.scene, **kw)
         steps = sim.BUILTIN[args.scene][1]
@@ -211,8 +212,8 @@ def _load(args):
             raise sim.SceneError(f"{args.scene!r} is neither a file nor a "
                                  f"built-in scene ({', '.join(sim.BUILTIN)}).")
         if args.n is not None:
-            raise sim.SceneError("--n: only for the built-in lj-fluid and "
-                                 "boids.")
+            raise sim.SceneError("--n: only for the built-in lj-fluid, "
+                                 "lj-polydisperse and boids.")
         scene, steps = sim.load(path), 1000
         if args.backend:
             scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
@@ -238,20 +239,32 @@ def _pair_codes(nbrs, n: int) -> np.ndarray:
     return np.unique(np.minimum(i, j) * n + np.maximum(i, j))
 
 
+def _pair_cut(scene, i, j, extra: float = 0.0):
+    """The distance under which pair ``(i, j)`` (int arrays) is in the
+    scene's list: its cutoff, or ``max(r_i, r_j)`` with the list's radii
+    (`jaxrt.sim.compile.list_radii`), plus ``extra``."""
+    from jaxrt.sim.compile import list_radii
+    radii = list_radii(scene)
+    if radii is None:
+        return scene.cutoff + extra
+    return np.maximum(radii[i], radii[j]) + extra
+
+
 def _pairs_within(codes: np.ndarray, position: np.ndarray, scene
                   ) -> np.ndarray:
     """The pair codes ``i * N + j`` whose particles are closer than the
-    scene's cutoff at ``position`` (minimum image on periodic axes)."""
+    scene's cutoff (per pair with radii, `_pair_cut`) at ``position``
+    (minimum image on periodic axes)."""
     r = np.asarray(position, np.float64)
     i, j = np.divmod(codes, len(r))
     d = r[i] - r[j]
     side = np.asarray(scene.box.size, float)
     per = np.asarray(scene.box.periodic)
     d = np.where(per, d - side * np.round(d / np.where(per, side, 1.0)), d)
-    return codes[np.sum(d * d, axis=-1) < scene.cutoff ** 2]
+    return codes[np.sum(d * d, axis=-1) < _pair_cut(scene, i, j) ** 2]
 
 
-_BRUTE_CHECKED = ("boids",)
+_BRUTE_CHECKED = ("boids", "lj-polydisperse")
 """Built-in scenes whose lists `run` checks against brute force."""
 
 
@@ -261,7 +274,8 @@ class _BruteCheck:
 
     def __init__(self, compiled):
         sc = compiled.scene
-        self.reach = sc.cutoff + sc.neighbors.skin
+        self.scene = sc
+        self.skin = sc.neighbors.skin
         self.periodic = np.asarray(sc.box.periodic)
         self.side = np.asarray(sc.box.size, float)
         self.checks = 0
@@ -276,7 +290,10 @@ class _BruteCheck:
             wrap = self.side * np.round(d / np.where(self.periodic,
                                                      self.side, 1.0))
             d = np.where(self.periodic, d - wrap, d)
-            i, j = np.nonzero(np.sum(d * d, axis=-1) < self.reach ** 2)
+            rows = np.arange(start, min(start + 1024, n))[:, None]
+            reach = _pair_cut(self.scene, rows, np.arange(n)[None, :],
+                              self.skin)
+            i, j = np.nonzero(np.sum(d * d, axis=-1) < reach ** 2)
             i = i + start
             keep = i < j
             codes.append(i[keep].astype(np.int64) * n + j[keep])

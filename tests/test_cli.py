@@ -106,3 +106,14 @@ def test_bad_scene_exit_code(tmp_path, capsys):
     assert cli.main(["run", str(p), "--steps", "2"]) == 2
     assert "particles" in capsys.readouterr().err
     assert cli.main(["run", "no-such-scene"]) == 2
+
+
+def test_polydisperse_run_checks_its_list_with_radii(tmp_path, capsys):
+    """The built-in radii scene's list holds pairs up to max(r_i, r_j) + skin
+    (6.3 for its 1 % of large particles, 2.8 for the rest): the brute-force
+    check must cut each pair there. With the scene's single cutoff (6.0) it
+    would count every small pair out to 6.3 and report a mismatch."""
+    assert cli.main(["run", "lj-polydisperse", "--steps", "20", "--chunk",
+                     "10", "--check-brute", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "lists equal to brute force      yes" in out

@@ -235,6 +235,7 @@ BUILTIN: dict[str, tuple[Callable[..., Scene], int]] = {
     "dam-break": (dam_break, 1000),
     "sphere-surface": (sphere_surface, 500),
     "boids": (boids, 200),
+    "lj-polydisperse": (lj_polydisperse, 500),
 }
 """Built-in scenes: name -> (factory, default steps)."""
 
