@@ -1719,8 +1719,9 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
                        f"**{auto}** for it), against its own float64 run")
         _sweep_group(scene, members, hook, rows=rows, plan=plan, quick=quick,
                      budget=budget, t0=t0,
-                     common={"scene": scene_name, "auto_backend": auto,
-                             **prov},
+                     # An own scene's rows (and plot titles) name it.
+                     common={"scene": scene.name if hook is not None
+                             else scene_name, "auto_backend": auto, **prov},
                      noise=noise, csv_path=csv_path, log=log)
     write_csv(rows, csv_path)
     for knob in chosen:
