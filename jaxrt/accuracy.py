@@ -1490,9 +1490,10 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
         L.append("")
         L.append("Knobs run elsewhere: " + "; ".join(meta["own_scenes"])
                  + " (its reference row: `reference = float64, <scene>`).")
-    L.append("")
-    L.append(f"`backend=\"auto\"` chose **{meta['auto']}** for this scene "
-             "on this device (`jaxrt.neighbors.choose_backend`).")
+    if not meta.get("only_own_scenes"):  # else stated with its scene
+        L.append("")
+        L.append(f"`backend=\"auto\"` chose **{meta['auto']}** for this "
+                 "scene on this device (`jaxrt.neighbors.choose_backend`).")
     backends_ok = [r for r in ok if r["knob"] == "backend"]
     if backends_ok:
         fastest = min(backends_ok, key=lambda r: _num(r, "time_per_step_ms"))
@@ -1745,6 +1746,7 @@ def _run(scene_name: str, *, out, quick: bool, budget, plan, knob_names,
     if None not in groups:  # only knobs of their own scenes ran
         meta["base"] = f"{scene.name}'s ({meta['base']}; see below)"
         meta["rdf_noise"] = None
+        meta["only_own_scenes"] = True
     write_summary(rows, meta, out / "summary.md")
     log(f"accuracy: {len(rows)} rows in {time.perf_counter() - t0:.0f} s -> "
         f"{out}")
