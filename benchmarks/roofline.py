@@ -116,7 +116,9 @@ def run_row(job: dict) -> dict:
     from jaxrt.energy import lennard_jones_fused
     R, box, disp = _system(n, jnp.float32)
     n = R.shape[0]
-    across = _launched(job["launch"]).across if job.get("launch") else 1
+    from md_step import launched  # the fused backend of a launch label
+    backend = launched(job["launch"]) if job.get("launch") else None
+    across = backend.across if backend is not None else 1
     candidates, runs = _work(R, box, across)
     inputs = [R, (R + 1e-3) % box]
     if row == "rebuild":
@@ -131,29 +133,21 @@ def run_row(job: dict) -> dict:
         bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * nbrs.idx.shape[1]
         flops = FLOP_PER_CANDIDATE_LIST * candidates
     else:
-        energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
-                                        backend=Cell(kernel=job["kernel"]))
-        if job.get("launch"):
-            energy_fn = lennard_jones_fused(
-                disp, box, r_onset=2.0, r_cutoff=2.5,
-                backend=_launched(job["launch"]))
+        energy_fn = lennard_jones_fused(
+            disp, box, r_onset=2.0, r_cutoff=2.5,
+            backend=backend or Cell(kernel=job["kernel"]))
         forces = jax.jit(jax.grad(energy_fn))
         t = _harness.time_calls(forces, inputs, **timing)
         pairs = 2 * float(energy_fn.sums(R).count) / n
-        # order, 3 coordinates, the runs in; 3 forces and 4 sums out
-        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * 7
+        # order, 3 coordinates, the runs in; 3 forces, the energy and the
+        # pair count out (grad skips the sigma / epsilon sums)
+        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * 5
         flops = FLOP_PER_CANDIDATE * candidates
     return {"N": n, "k": round(pairs, 2),
             "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch")
                                        else ""),
             "candidates": round(candidates, 1), "bytes_min": bytes_min,
             "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
-
-
-def _launched(launch: str):
-    """The fused cell backend of a launch (`md_step.launched`)."""
-    from md_step import launched
-    return launched(launch)
 
 
 COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",

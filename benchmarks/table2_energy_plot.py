@@ -116,8 +116,12 @@ def plot_efficiency(rows: list[dict], path: Path) -> Path:
             ax.set_title(_title(scene, radii, boundary, rows), fontsize=9)
             if c == 0:
                 ax.set_ylabel("interactions / J")
-    fig.suptitle("Energy efficiency (seed 003 Fig 12; energy over the "
-                 "energy window)", fontsize=10)
+    return _save(plt, fig, path, "Energy efficiency (seed 003 Fig 12; "
+                 "energy over the energy window)")
+
+
+def _save(plt, fig, path: Path, title: str) -> Path:
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -154,12 +158,8 @@ def plot_power(rows: list[dict], traces: dict, path: Path) -> Path:
             ax.set_xlabel("s into the energy window", fontsize=8)
             if c == 0:
                 ax.set_ylabel("GPU power (W)")
-    fig.suptitle("Power (seed 003 Fig 11; NVML power usage, a 1 s average "
-                 "on Hopper)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path, "Power (seed 003 Fig 11; NVML power "
+                 "usage, a 1 s average on Hopper)")
 
 
 def plot_run(csv_path: str | Path, power: str | Path | None = None

@@ -200,6 +200,10 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
 # every candidate into its own particle's sums instead of writing it down.
 
 
+def _power_of_two(value: int) -> bool:
+    return value > 0 and not value & (value - 1)
+
+
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
               block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
@@ -252,21 +256,20 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     """
     n, dim = sorted_cart.shape
     dtype = sorted_cart.dtype
-    for name, value in (("block", block), ("tile", tile)):
-        if value < 0 or value & (value - 1) or (name == "block" and not value):
-            raise ValueError(f"pair_sums: {name}={value} must be a power of "
-                             "two (Triton's blocks are)" + (" or 0." if name
-                                                            == "tile" else "."))
+    if not _power_of_two(block):
+        raise ValueError(f"pair_sums: block={block} must be a power of two "
+                         "(Triton's blocks are).")
+    if tile and not _power_of_two(tile):
+        raise ValueError(f"pair_sums: tile={tile} must be 0 or a power of "
+                         "two (Triton's blocks are).")
     if unroll < 1:
         raise ValueError(f"pair_sums: unroll={unroll} must be >= 1.")
     padded, pad = _padding(n, block)
     extra = padded - n
-    if tile:
-        # A tile from any run's start stays in the arrays (a dynamic slice
-        # past the end would be clamped back onto other particles).
-        padded_j, pad_j = _padding(n + tile, block)
-    else:
-        padded_j, pad_j = padded, pad
+    # Candidates' arrays: a tile from any run's start stays in them (a
+    # dynamic slice past the end would be clamped back onto other
+    # particles); without tiles, the particles' own padding.
+    pad_j = _padding(n + tile, block)[1]
 
     coords = [pad_j(sorted_cart[:, a]) for a in range(dim)]
     start1, len1, start2, len2 = sorted_runs

@@ -95,6 +95,8 @@ from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
+from jaxrt.sim.effects import LJFields
+
 # ---------------------------------------------------------------------------
 # Provenance: benchmarks/_harness.py's, when the repository is here.
 
@@ -149,7 +151,7 @@ def _lj_r_onset(effect) -> float:
 
 
 @dataclasses.dataclass(frozen=True)
-class LJFused:
+class LJFused(LJFields):
     """The LJ effect on the list-free fused energy
     (`jaxrt.energy.lennard_jones_fused`): ``pairwise = False``, so the
     compiled scene builds no list. ``backend``: the fused energy's search,
@@ -162,25 +164,9 @@ class LJFused:
     ``ij`` cut at ``max(r_i, r_j)``, the potential stretched), passed to
     the fused energy's ``radii=``."""
 
-    r_cutoff: float
-    sigma: object = 1.0
-    epsilon: object = 1.0
-    r_onset: float | None = None
-    truncation: str = "smooth"
-    radii: tuple[float, ...] | None = None
     backend: object = "cell"
     kind = "lj_fused"
     pairwise = False
-
-    def __post_init__(self):
-        from jaxrt.sim.effects import _radii_as_tuple
-        _radii_as_tuple(self)
-
-    @property
-    def cutoff(self) -> float:
-        if self.radii is not None:
-            return max(self.radii, default=0.0)
-        return float(self.r_cutoff)
 
     @property
     def search(self) -> str:
@@ -226,7 +212,7 @@ class LJFused:
 
 
 @dataclasses.dataclass(frozen=True)
-class LJPairs:
+class LJPairs(LJFields):
     """The LJ effect on pairs from `jaxrt.pairs` (a full list with lattice
     shifts, ``(i, j, S)`` and ``(j, i, -S)``, the pair list of the ML
     potentials), searched every step at ``r_cutoff`` itself: no skin and
@@ -238,12 +224,6 @@ class LJPairs:
     `jaxrt.sim.LJ` (`jaxrt.energy.lj.lennard_jones_truncated`), scalar
     sigma and epsilon; 3D (`jaxrt.pairs` is)."""
 
-    r_cutoff: float
-    sigma: object = 1.0
-    epsilon: object = 1.0
-    r_onset: float | None = None
-    truncation: str = "smooth"
-    radii: tuple[float, ...] | None = None
     capacity_margin: float = 1.25
     kind = "lj_pairs"
     pairwise = False

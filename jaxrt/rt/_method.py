@@ -93,12 +93,7 @@ def check_find_arguments(method: str, points: wp.array, cutoff: float,
         below half a periodic side gets `jaxrt.rt.periodic.check_cutoff`'s
         error, as from every ray-traced method.
     """
-    if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d) \
-            or points.ndim != 1:
-        raise TypeError(
-            f"{method}.find: points must be a 1-D wp.array of wp.vec3 (float32) or "
-            f"wp.vec3d (float64); got {describe(points)}. Pad 2-D positions with z = 0.")
-    n = points.shape[0]
+    n = _check_points(f"{method}.find", points)
     if not isinstance(out_idx, wp.array) or out_idx.dtype != wp.int32 or out_idx.ndim != 2 \
             or out_idx.shape[0] != n:
         raise TypeError(
@@ -110,10 +105,7 @@ def check_find_arguments(method: str, points: wp.array, cutoff: float,
             f"{method}.find: out_count must be a wp.array of int32 with shape ({n},); "
             f"got {describe(out_count)}.")
     for name, array in (("out_idx", out_idx), ("out_count", out_count)):
-        if array.device != points.device:
-            raise ValueError(
-                f"{method}.find: {name} is on {array.device} but points are on "
-                f"{points.device}; allocate it on the points' device.")
+        _check_device(f"{method}.find", name, array, points)
     return _check_geometry(f"{method}.find", cutoff, side, periodic, mask_self)
 
 
@@ -130,12 +122,7 @@ def check_energy_arguments(method: str, points: wp.array, cutoff: float, side,
         out_count: int32 ``(N,)``; all on the points' device.
     """
     from jaxrt.rt.seed_energy import N_PARAMS
-    if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d) \
-            or points.ndim != 1:
-        raise TypeError(
-            f"{method}.energy: points must be a 1-D wp.array of wp.vec3 (float32) or "
-            f"wp.vec3d (float64); got {describe(points)}. Pad 2-D positions with z = 0.")
-    n = points.shape[0]
+    n = _check_points(f"{method}.energy", points)
     scalar = wp.float64 if points.dtype == wp.vec3d else wp.float32
     for name, array, dtype, shape in (("params", params, scalar, (N_PARAMS,)),
                                       ("out_energy", out_energy, scalar, (n,)),
@@ -146,11 +133,26 @@ def check_energy_arguments(method: str, points: wp.array, cutoff: float, side,
                 f"{method}.energy: {name} must be a wp.array of "
                 f"{wp.types.type_repr(dtype)} with shape {shape} (the positions' "
                 f"precision); got {describe(array)}.")
-        if array.device != points.device:
-            raise ValueError(
-                f"{method}.energy: {name} is on {array.device} but points are on "
-                f"{points.device}; allocate it on the points' device.")
+        _check_device(f"{method}.energy", name, array, points)
     return _check_geometry(f"{method}.energy", cutoff, side, periodic, True)
+
+
+def _check_points(call: str, points) -> int:
+    """N of ``points``, a 1-D wp.array of wp.vec3 / wp.vec3d, else TypeError
+    naming ``call``."""
+    if not isinstance(points, wp.array) or points.dtype not in (wp.vec3, wp.vec3d) \
+            or points.ndim != 1:
+        raise TypeError(
+            f"{call}: points must be a 1-D wp.array of wp.vec3 (float32) or "
+            f"wp.vec3d (float64); got {describe(points)}. Pad 2-D positions with z = 0.")
+    return points.shape[0]
+
+
+def _check_device(call: str, name: str, array, points) -> None:
+    if array.device != points.device:
+        raise ValueError(
+            f"{call}: {name} is on {array.device} but points are on "
+            f"{points.device}; allocate it on the points' device.")
 
 
 def _check_geometry(method: str, cutoff, side, periodic, mask_self) -> FindArguments:

@@ -156,9 +156,32 @@ def check_cutoff_radii(effect, scene, where: str) -> None:
 # Pair effects
 
 
+@dataclasses.dataclass(frozen=True)
+class LJFields:
+    """The fields of the Lennard-Jones effect (`LJ`) and of the effects that
+    stand in for it with another search (`jaxrt.accuracy`'s `LJFused`,
+    `LJPairs`): the potential, its cutoff and the cutoff radii."""
+
+    r_cutoff: float
+    sigma: Any = 1.0
+    epsilon: Any = 1.0
+    r_onset: float | None = None
+    truncation: str = "smooth"
+    radii: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        _radii_as_tuple(self)
+
+    @property
+    def cutoff(self) -> float:
+        if self.radii is not None:
+            return max(self.radii, default=0.0)
+        return float(self.r_cutoff)
+
+
 @register
 @dataclasses.dataclass(frozen=True)
-class LJ:
+class LJ(LJFields):
     """Lennard-Jones (`jaxrt.energy.lj`), absolute ``r_cutoff`` /
     ``r_onset`` (default ``0.8 r_cutoff``), ``truncation`` one of
     `jaxrt.energy.lj.TRUNCATIONS`.
@@ -178,23 +201,8 @@ class LJ:
     epsilon only, and not with ``particles.radius`` that differ (those set
     sigma_ij instead).
     """
-    r_cutoff: float
-    sigma: Any = 1.0
-    epsilon: Any = 1.0
-    r_onset: float | None = None
-    truncation: str = "smooth"
-    radii: tuple[float, ...] | None = None
     kind: ClassVar[str] = "lj"
     pairwise: ClassVar[bool] = True
-
-    def __post_init__(self):
-        _radii_as_tuple(self)
-
-    @property
-    def cutoff(self) -> float:
-        if self.radii is not None:
-            return max(self.radii, default=0.0)
-        return float(self.r_cutoff)
 
     def validate(self, scene, where: str) -> None:
         p = scene.particles
