@@ -54,6 +54,11 @@ from jaxrt.rt.epsilon import (
     survey,
 )
 
+# Bit-compatibility with the float64 oracle: no FMA contraction in the
+# distances and in Algorithm 1's closest-axis sums (contracted differently
+# in each unrolled ray, a tie went to two rays or none on the H200).
+wp.set_module_options({"fuse_fp": False})
+
 
 @wp.kernel
 def _sphere_boxes_kernel(points: wp.array(dtype=Any), side: wp.vec3d, periodic: wp.vec3i,

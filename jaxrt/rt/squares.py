@@ -72,6 +72,11 @@ from jaxrt.rt.epsilon import (
     survey,
 )
 
+# Bit-compatibility with the float64 oracle: no FMA contraction in the
+# distances and in Algorithm 1's closest-axis sums (contracted differently
+# in each unrolled ray, a tie went to two rays or none on the H200).
+wp.set_module_options({"fuse_fp": False})
+
 _TRIANGLES_PER_PARTICLE = wp.constant(4)
 _RAYS_PER_TARGET = wp.constant(4)
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import itertools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -70,23 +69,16 @@ RT_ARITHMETIC = (
     "final test, so it is not a one-line change.")
 
 
-ON_GPU = jax.default_backend() in ("gpu", "cuda")
-
-
 def rt_fails(backend, dtype, periodic, cutoff):
     """The combinations where RT_ARITHMETIC shows (measured: in free space
-    with cutoff 1.1 the float32 roundings happen to agree on a CPU). On the
-    H200 (at 6752a97) squares in float64 in free space with cutoff 1.1
-    failed too: the CUDA build of its Warp kernel rounds its own float64
-    distance differently (contracted multiply-adds, presumably: the pairs
-    were not logged)."""
+    with cutoff 1.1 the float32 roundings happen to agree on a CPU). The
+    CUDA build of squares once failed in float64 too (H200, 6752a97): its
+    kernels contracted multiply-adds, which jaxrt.rt.squares now forbids
+    (``fuse_fp``), as aabb and spheres do."""
     if backend not in ("spheres", "squares"):
         return None
     if periodic or (dtype is np.float32 and cutoff == 1.25):
         return RT_ARITHMETIC
-    if (ON_GPU and backend == "squares" and dtype is np.float64
-            and cutoff == 1.1):
-        return RT_ARITHMETIC + " (float64: seen on the GPU only)"
     return None
 
 
