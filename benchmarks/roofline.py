@@ -17,6 +17,11 @@ Rows, each in its own worker (`_harness`), side by side in one run:
   derivatives) on the same system; with ``--launches``, also the kernel
   at other launches (particles x warps per program, and the cluster
   layout's tile of candidates).
+* ``grid`` and ``walk``: the two halves of ``fused`` (``--parts``): the
+  cell grid it rebuilds at every call (`jaxrt.energy.fused.cell_runs`:
+  keys, sort, runs) and the kernel alone on that grid
+  (`jaxrt._cell_kernel.pair_sums` with the LJ terms, as ``fused`` calls
+  it: energy and pair count, no parameter derivatives).
 
 For the two search rows the script also counts, on the device, what the
 work is: ``candidates`` per particle (the stencil runs' total length: every
@@ -50,7 +55,7 @@ FLOP_PER_CANDIDATE = 58
 # The list kernel (`jaxrt._cell_kernel._walk`): distance 18, the two
 # threshold tests and the row and shell offsets 8.
 FLOP_PER_CANDIDATE_LIST = 26
-ROWS = ("copy", "fma", "rebuild", "fused")
+ROWS = ("copy", "fma", "rebuild", "fused", "grid", "walk")
 
 
 def _system(n: int, dtype):
@@ -121,6 +126,9 @@ def run_row(job: dict) -> dict:
     across = backend.across if backend is not None else 1
     candidates, runs = _work(R, box, across)
     inputs = [R, (R + 1e-3) % box]
+    if row in ("grid", "walk"):
+        return _part_row(job, R, box, inputs, candidates, runs, backend,
+                         timing)
     if row == "rebuild":
         nfn = jaxrt.neighbor_list(disp, box, 2.5, dr_threshold=0.0,
                                   format=partition.Dense,
@@ -150,6 +158,43 @@ def run_row(job: dict) -> dict:
             "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
 
 
+def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
+    """`grid` or `walk`: one half of the fused forces (module docstring)."""
+    import jax
+    import jax.numpy as jnp
+    from jaxrt.energy import fused
+    params = _grid(box)
+    cell = backend or fused._Cell()
+    interpret = jax.default_backend() not in ("gpu", "cuda")  # CPU smoke
+    n = R.shape[0]
+    if job["row"] == "grid":
+        t = _harness.time_calls(jax.jit(lambda R: fused.cell_runs(
+            R, params, across=cell.across)), inputs, **timing)
+        # positions in; keys, order and 2 x runs x (start, length) out
+        return {"N": n, "kernel": job["kernel"], "candidates": round(candidates, 1),
+                "bytes_min": 4 * 3 + 4 * 2 + 4 * 4 * runs, **t.columns()}
+
+    def walk(R):
+        order, grid = fused.cell_runs(R, params, across=cell.across)
+        return order, fused._wrap(R, params)[order], fused.kernel_runs(grid)
+
+    walks = [jax.jit(walk)(x) for x in inputs]
+    one = jnp.ones((), R.dtype)
+
+    @jax.jit
+    def kernel(order, sorted_cart, grid):
+        return cell._kernel_walk(
+            sorted_cart, grid, jnp.asarray(params.side, R.dtype), one, one,
+            None, order, params, interpret, False, block=cell.block,
+            warps=cell.warps, tile=cell.tile, unroll=cell.unroll)
+
+    t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)
+    return {"N": n, "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch") else ""),
+            "candidates": round(candidates, 1),
+            "bytes_min": 4 * (3 + 4 * runs) + 4 * 5, "bytes_l2": 12 * candidates,
+            "flops": FLOP_PER_CANDIDATE * candidates, **t.columns()}
+
+
 COLUMNS = ["row", "kernel", "N", "k", "candidates", "median_ms", "rate",
            "rate_unit", "limit_ms", "bound", "of_limit"]
 
@@ -162,7 +207,7 @@ def _finish(rows: list[dict]) -> None:
         return
     bandwidth, fp32 = rate["copy"] * 1e12, rate["fma"] * 1e12
     for r in rows:
-        if r.get("status") != "ok" or r["row"] not in ("rebuild", "fused"):
+        if r.get("status") != "ok" or r["row"] not in ("rebuild", "fused", "walk"):
             continue
         n = float(r["N"])
         limits = {"memory (compulsory)": n * float(r["bytes_min"]) / bandwidth,
@@ -186,6 +231,10 @@ def plan(args) -> list[dict]:
         for kernel in args.kernels:
             jobs.append({"row": row, "N": args.n, "kernel": kernel,
                          "repeats": args.repeats, "warmup": args.warmup})
+    if args.parts:
+        jobs += [{"row": r, "N": args.n, "kernel": "pallas",
+                  "repeats": args.repeats, "warmup": args.warmup}
+                 for r in ("grid", "walk")]
     for launch in args.launches:
         jobs.append({"row": "fused", "N": args.n, "kernel": "pallas",
                      "launch": launch, "repeats": args.repeats,
@@ -203,6 +252,9 @@ def main(argv=None) -> None:
                         "kernel, BLOCKxWARPS[xTILE][uUNROLL][aACROSS] (e.g. "
                         "64x2, 32x1u2a2, 16x1x16: with a tile, the cluster "
                         "layout; the default is 32x1, no tile); CUDA only")
+    parser.add_argument("--parts", action="store_true",
+                        help="also the fused forces' two halves, the grid "
+                        "and the kernel's walk (rows grid, walk); CUDA only")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 8000, small limit rows")
     _harness.add_common_args(parser, name="roofline.csv", repeats=10,
