@@ -185,7 +185,7 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     def kernel(order, sorted_cart, grid):
         return cell._kernel_walk(
             sorted_cart, grid, jnp.asarray(params.side, R.dtype), one, one,
-            None, order, params, interpret, False, block=cell.block,
+            None, order, params, interpret, False, False, block=cell.block,
             warps=cell.warps, tile=cell.tile, unroll=cell.unroll)
 
     t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)

@@ -211,7 +211,9 @@ class _Backend:
     R3's dtype, radii float ``(N,)`` or None, ``params`` the static
     `_Params`; returns `FusedSums`. ``derivatives=False`` says that
     nothing differentiates in sigma or epsilon: a backend may then leave
-    ``d_sigma`` and ``d_epsilon`` at zero and skip their terms. ``perse``
+    ``d_sigma`` and ``d_epsilon`` at zero and skip their terms;
+    ``count=False``, that nobody reads the pair count (the energy's path):
+    a backend may then leave it at zero. ``perse``
     (optional) is one fused leapfrog step; backends without one get the
     leapfrog from ``sums``.
     """
@@ -219,7 +221,7 @@ class _Backend:
     name: str
 
     def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
-             derivatives: bool = True) -> FusedSums:
+             derivatives: bool = True, count: bool = True) -> FusedSums:
         raise NotImplementedError
 
     def perse(self, R3, V3, sigma, epsilon, dt, mass, params: _Params):
@@ -253,7 +255,7 @@ class _Brute(_Backend):
     name: str = "brute"
 
     def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
-             derivatives: bool = True) -> FusedSums:
+             derivatives: bool = True, count: bool = True) -> FusedSums:
         n = R3.shape[0]
         block = self.block or max(1, min(n, 2 ** 21 // max(n, 1)))
         n_blocks = -(-n // block)
@@ -340,7 +342,7 @@ class _Cell(_Backend):
                 "Cell(kernel='auto') (the kernel where it can run) or 'xla'.")
 
     def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
-             derivatives: bool = True) -> FusedSums:
+             derivatives: bool = True, count: bool = True) -> FusedSums:
         from jaxrt import _cell_kernel
         dtype = R3.dtype
         order, runs = cell_runs(R3, params, across=self.across)
@@ -354,7 +356,7 @@ class _Cell(_Backend):
             return self._kernel_walk(
                 _wrap(R3, params)[order], kernel_runs(runs),
                 jnp.asarray(params.side, dtype), sigma, epsilon, radii, order,
-                params, interpret, derivatives, block=self.block,
+                params, interpret, derivatives, count, block=self.block,
                 warps=self.warps, tile=self.tile, unroll=self.unroll)
 
         if self.kernel == "xla" or (self.kernel == "auto"
@@ -408,11 +410,13 @@ class _Cell(_Backend):
     @staticmethod
     def _kernel_walk(sorted_cart, runs, side, sigma, epsilon, radii, order,
                      params: _Params, interpret: bool,
-                     derivatives: bool = True, **launch):
+                     derivatives: bool = True, count: bool = True, **launch):
         """`jaxrt._cell_kernel.pair_sums` with the LJ terms: per-particle
         sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
-        ``derivatives``). ``launch``: its launch options (``block``,
-        ``warps``, ``tile``; benchmarks/roofline.py tunes them)."""
+        ``derivatives``, the count zero unless ``count``: each sum the
+        kernel skips is instructions per candidate saved). ``launch``: its
+        launch options (``block``, ``warps``, ``tile``;
+        benchmarks/roofline.py tunes them)."""
         from jaxrt import _cell_kernel
         dtype = sorted_cart.dtype
         r_cutoff, r_onset = params.r_cutoff, params.r_onset
@@ -429,8 +433,8 @@ class _Cell(_Backend):
             e, g, ds, de = lj_terms(jnp.where(keep, d2, 0), sigma * scale,
                                     epsilon, r_onset * scale,
                                     r_cutoff * scale, sigma)
-            count = keep.astype(d2.dtype)
-            return g, (e, ds, de, count) if derivatives else (e, count)
+            terms = (e, ds, de) if derivatives else (e,)
+            return g, terms + ((keep.astype(d2.dtype),) if count else ())
 
         # No tangent may reach the kernel: the custom_vjp differentiates.
         sorted_cart, side, sigma, epsilon = jax.lax.stop_gradient(
@@ -439,13 +443,11 @@ class _Cell(_Backend):
             sorted_cart, runs, side, jnp.stack([sigma, epsilon]).astype(dtype),
             () if not has_radii else (radii[order],),
             periodic=params.periodic, pair_terms=terms,
-            n_sums=4 if derivatives else 2, interpret=interpret, **launch)
-        if derivatives:
-            e, ds, de, c = sums
-        else:
-            (e, c), ds = sums, jnp.zeros_like(sums[0])
-            de = ds
-        return forces, e, ds, de, c
+            n_sums=(3 if derivatives else 1) + count, interpret=interpret,
+            **launch)
+        zero = jnp.zeros_like(sums[0])
+        e, ds, de = tuple(sums[:3]) if derivatives else (sums[0], zero, zero)
+        return forces, e, ds, de, sums[-1] if count else zero
 
 
 class Runs(NamedTuple):
@@ -598,7 +600,7 @@ class _Bvh(_Backend):
         return jnp.stack([jnp.asarray(v, dtype) for v in values])
 
     def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
-             derivatives: bool = True) -> FusedSums:
+             derivatives: bool = True, count: bool = True) -> FusedSums:
         dtype = R3.dtype
         reach = jnp.zeros((1,), dtype) if radii is None else radii
         side = jnp.asarray(params.side, dtype)[None, :]
@@ -800,7 +802,7 @@ def _make_energy(backend: _Backend, params: _Params, dim: int) -> Callable:
 
     def run(R, sigma, epsilon, radii, derivatives=True):
         s = backend.sums(padded(R), sigma, epsilon, radii, params,
-                         derivatives=derivatives)
+                         derivatives=derivatives, count=False)
         error = s.error | _input_errors(R, radii, params.bound)
         nan = jnp.asarray(jnp.nan, R.dtype)
         poison = error != 0
