@@ -19,7 +19,7 @@ Rows, each in its own worker (`_harness`), side by side in one run:
   layout's tile of candidates).
 * ``grid`` and ``walk``: the two halves of ``fused`` (``--parts``): the
   cell grid it rebuilds at every call (`jaxrt.energy.fused.cell_runs`:
-  keys, sort, runs) and the kernel alone on that grid
+  keys, sort, runs and their periodic images) and the kernel alone on that grid
   (`jaxrt._cell_kernel.pair_sums` with the LJ terms, as ``fused`` calls
   it: energy and pair count, no parameter derivatives).
 
@@ -49,9 +49,11 @@ import _harness  # noqa: E402
 
 # Counted in `jaxrt._cell_kernel._sum_walk` with the LJ terms of
 # `jaxrt.energy.fused.lj_terms` (reciprocal, floor, compare and select as
-# one each): minimum image and distance 18, the smooth-switched LJ energy
-# and force factor 35, the accumulation 5.
-FLOP_PER_CANDIDATE = 58
+# one each): distance 9, the smooth-switched LJ energy and force factor
+# 35, the accumulation 5. The md_step box is large enough that each run's
+# periodic image is added once per run (`fused.run_image_axes`): no
+# per-candidate minimum image (3 more per axis, 58 in all).
+FLOP_PER_CANDIDATE = 49
 # The list kernel (`jaxrt._cell_kernel._walk`): distance 18, the two
 # threshold tests and the row and shell offsets 8.
 FLOP_PER_CANDIDATE_LIST = 26
@@ -84,7 +86,7 @@ def _work(R, box, across: int = 1):
     fused energy walks (`jaxrt.energy.fused.cell_runs`)."""
     import numpy as np
     from jaxrt.energy import fused
-    _, runs = fused.cell_runs(R, _grid(box), across=across)
+    _, runs, _ = fused.cell_runs(R, _grid(box), across=across)
     start1 = fused.kernel_runs(runs)[0]
     return (float(np.mean(np.sum(np.asarray(runs.length), axis=1))),
             int(start1.shape[1]))
@@ -147,9 +149,9 @@ def run_row(job: dict) -> dict:
         forces = jax.jit(jax.grad(energy_fn))
         t = _harness.time_calls(forces, inputs, **timing)
         pairs = 2 * float(energy_fn.sums(R).count) / n
-        # order, 3 coordinates, the runs in; 3 forces, the energy and the
-        # pair count out (grad skips the sigma / epsilon sums)
-        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * 5
+        # order, 3 coordinates, the runs and their images in; 3 forces, the
+        # energy and the pair count out (grad skips the sigma / epsilon sums)
+        bytes_min = 4 * (1 + 3 + 6 * runs) + 4 * 5
         flops = FLOP_PER_CANDIDATE * candidates
     return {"N": n, "k": round(pairs, 2),
             "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch")
@@ -170,28 +172,30 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     if job["row"] == "grid":
         t = _harness.time_calls(jax.jit(lambda R: fused.cell_runs(
             R, params, across=cell.across)), inputs, **timing)
-        # positions in; keys, order and 2 x runs x (start, length) out
+        # positions in; keys, order, 2 x runs x (start, length, image) and
+        # the sorted wrapped positions out
         return {"N": n, "kernel": job["kernel"], "candidates": round(candidates, 1),
-                "bytes_min": 4 * 3 + 4 * 2 + 4 * 4 * runs, **t.columns()}
+                "bytes_min": 4 * 3 + 4 * 2 + 4 * 6 * runs + 4 * 3,
+                **t.columns()}
 
     def walk(R):
-        order, grid = fused.cell_runs(R, params, across=cell.across)
-        return order, fused._wrap(R, params)[order], fused.kernel_runs(grid)
+        order, grid, images = fused.cell_runs(R, params, across=cell.across)
+        return order, images, fused.kernel_runs(grid)
 
     walks = [jax.jit(walk)(x) for x in inputs]
     one = jnp.ones((), R.dtype)
 
     @jax.jit
-    def kernel(order, sorted_cart, grid):
+    def kernel(order, images, grid):
         return cell._kernel_walk(
-            sorted_cart, grid, jnp.asarray(params.side, R.dtype), one, one,
+            images, grid, jnp.asarray(params.side, R.dtype), one, one,
             None, order, params, interpret, False, False, block=cell.block,
             warps=cell.warps, tile=cell.tile, unroll=cell.unroll)
 
     t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)
     return {"N": n, "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch") else ""),
             "candidates": round(candidates, 1),
-            "bytes_min": 4 * (3 + 4 * runs) + 4 * 5, "bytes_l2": 12 * candidates,
+            "bytes_min": 4 * (3 + 6 * runs) + 4 * 5, "bytes_l2": 12 * candidates,
             "flops": FLOP_PER_CANDIDATE * candidates, **t.columns()}
 
 

@@ -34,6 +34,9 @@ try:
 except (ImportError, AttributeError):  # an older JAX: the portable path
     pl = plgpu = None
 
+# Bits per axis of the run image codes (`jaxrt.cell_list._run_images`).
+IMAGE_BITS = 2
+
 # Particles per program (one per thread) and warps per program: one warp
 # per program was the fastest of 32-256 particles and 1-8 warps on the GPU
 # (`benchmarks/results/h100/neighbors_cell_kernel.csv`).
@@ -206,6 +209,7 @@ def _power_of_two(value: int) -> bool:
 
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
+              images=None, image_axes: tuple[bool, ...] | None = None,
               block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
               unroll: int = 1, interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
@@ -227,9 +231,19 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
       of the program needs (a program spanning two rows of cells) are
       jumped.
 
+    Minimum images: on a periodic axis each candidate's difference is
+    rounded to its nearest image (3 instructions per axis per candidate,
+    and the walk is bound by instruction issue), except on the
+    ``image_axes``, where each run's image (``images``) is subtracted from
+    the particle's own position once per run instead. That is exact where
+    every run lies in one image of the box (`jaxrt.cell_list._run_images`;
+    `jaxrt.cell_list._image_axes` says where, statically).
+
     Args:
       sorted_cart: float ``(N, dim)`` wrapped Cartesian positions, sorted
-        by cell.
+        by cell; with ``image_axes``, exactly those the cells were binned
+        from (`jaxrt.cell_list._grid`'s): a run's image is right only for
+        a position in its cell.
       sorted_runs: ``(start1, len1, start2, len2)``, int32 ``(N, R)`` in
         sorted order (`jaxrt.cell_list._runs`).
       side: float ``(dim,)`` box sides (used on periodic axes only).
@@ -237,6 +251,14 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         parameters such as sigma and epsilon).
       per_particle: float ``(N,)`` arrays in sorted order, handed to
         ``pair_terms`` for both particles of a pair (radii, densities).
+      images: None, or ``(first, wrapped)``, int32 ``(N, R)`` in sorted
+        order as ``sorted_runs``: the image codes of each run's first and
+        wrapped parts (`jaxrt.cell_list._run_images`: ``s_a + 1`` in bits
+        ``2 a`` and up, the run's candidates standing for their images at
+        ``x_a + s_a side_a``).
+      image_axes: static ``dim`` bools, periodic axes on which the
+        ``images`` are used instead of per-candidate minimum images; None:
+        none.
       pair_terms: ``(d2, valid, scalars, mine, theirs, d) -> (g, sums)``:
         traced in the kernel on arrays of candidates (one value per thread,
         or a tile of them); ``d2`` the squared minimum-image distance,
@@ -244,7 +266,10 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         ``theirs`` tuples of the ``per_particle`` values, ``d`` the ``dim``
         components of the minimum-image ``x_i - x_j``; returns ``g`` (the
         particle's vector sum gains ``g (x_i - x_j)``) and a tuple of
-        ``n_sums`` scalar terms, all zero where ``valid`` is false.
+        ``n_sums`` scalar terms, all zero where ``valid`` is false. (On
+        the ``image_axes`` a candidate beyond the grid's cutoff may be
+        seen through another image than its nearest, never closer: the
+        terms must vanish beyond the cutoff, as the walk's do anyway.)
       block, warps: particles per program and warps per program.
       tile: 0, or the candidates per tile of the cluster layout (a power
         of two, as ``block``).
@@ -264,6 +289,14 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
                          "two (Triton's blocks are).")
     if unroll < 1:
         raise ValueError(f"pair_sums: unroll={unroll} must be >= 1.")
+    image_axes = tuple(bool(x) for x in image_axes or (False,) * dim)
+    if len(image_axes) != dim or any(
+            x and not p for x, p in zip(image_axes, periodic)):
+        raise ValueError(f"pair_sums: image_axes={image_axes} must be {dim} "
+                         f"bools, true only on periodic axes ({periodic}).")
+    if any(image_axes) and images is None:
+        raise ValueError("pair_sums: image_axes needs the runs' images "
+                         "(images=(first, wrapped)).")
     padded, pad = _padding(n, block)
     extra = padded - n
     # Candidates' arrays: a tile from any run's start stays in them (a
@@ -280,14 +313,19 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     # The spare threads of the last block walk nothing.
     lengths = jnp.pad(lengths, [(0, extra), (0, 0)]).T
     starts = jnp.clip(pad(starts), 0, n).T
+    codes = []
+    if any(image_axes):  # the runs' images, laid out as their starts
+        codes = jnp.concatenate(images, axis=1)[:, :starts.shape[0]]
+        codes = [pad(codes).T]
     geometry = jnp.concatenate([side.astype(dtype),
                                 (1.0 / side).astype(dtype)])
     scalars = jnp.asarray(scalars, dtype).reshape(-1)
     extras = [pad_j(jnp.asarray(p, dtype)) for p in per_particle]
     kernel = functools.partial(
         _tile_walk if tile else _sum_walk, n=n, dim=dim, periodic=periodic,
-        block=block, runs=starts.shape[0], n_extras=len(extras),
-        n_sums=n_sums, n_scalars=scalars.shape[0], pair_terms=pair_terms,
+        image_axes=image_axes, block=block, runs=starts.shape[0],
+        n_extras=len(extras), n_sums=n_sums, n_scalars=scalars.shape[0],
+        pair_terms=pair_terms,
         **({"tile": tile} if tile else {"unroll": unroll}))
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
@@ -295,31 +333,60 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         kernel, out_shape=outputs, grid=(padded // block,),
         compiler_params=_COMPILER_PARAMS(num_warps=warps),
         interpret=interpret, name="jaxrt_cell_pair_sums",
-    )(geometry, scalars, *coords, starts, lengths, *extras)
+    )(geometry, scalars, *coords, starts, lengths, *codes, *extras)
     vector = jnp.stack([s[:n] for s in sums[:dim]], axis=1)
     scalar = jnp.stack([s[:n] for s in sums[dim:]]) if n_sums else (
         jnp.zeros((0, n), dtype))
     return vector, scalar
 
 
-def _sum_refs(refs, dim: int, n_extras: int):
+def _sum_refs(refs, dim: int, n_extras: int, images: bool):
     """`pair_sums`' refs after the geometry and scalars: (coordinates, run
-    starts, run lengths, per-particle values, outputs)."""
-    return (refs[:dim], refs[dim], refs[dim + 1],
-            refs[dim + 2:dim + 2 + n_extras], refs[dim + 2 + n_extras:])
+    starts, run lengths, run image codes or None, per-particle values,
+    outputs)."""
+    coords, (starts, lengths), refs = (refs[:dim], refs[dim:dim + 2],
+                                       refs[dim + 2:])
+    codes = None
+    if images:
+        codes, refs = refs[0], refs[1:]
+    return coords, starts, lengths, codes, refs[:n_extras], refs[n_extras:]
 
 
-def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
-              runs, n_extras, n_sums, n_scalars, pair_terms, unroll=1):
+def _run_origin(mine, codes_ref, r, lanes, side, image_axes):
+    """The lanes' own positions as run ``r`` sees them: minus the run's
+    image ``s_a side_a`` on the ``image_axes`` (``x_i - (x_j + s side) =
+    (x_i - s side) - x_j``), once per run instead of a rounding per
+    candidate. ``mine``: ``dim`` float arrays, the lanes on their leading
+    axis (``(block,)`` or ``(block, 1)``)."""
+    if codes_ref is None:
+        return list(mine)
+    code = codes_ref[r, lanes]
+    if mine[0].ndim == 2:
+        code = code[:, None]
+    out = []
+    for a, x in enumerate(mine):
+        if image_axes[a]:
+            s = ((code >> (IMAGE_BITS * a)) & 3) - 1
+            x = x - s.astype(x.dtype) * side[a]
+        out.append(x)
+    return out
+
+
+def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
+              block, runs, n_extras, n_sums, n_scalars, pair_terms,
+              unroll=1):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
 
     Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
     scalars; ``dim`` float ``(padded,)`` coordinates; int32 ``(runs,
-    padded)`` run starts and lengths; ``n_extras`` float ``(padded,)``
+    padded)`` run starts and lengths; where any ``image_axes``, int32
+    ``(runs, padded)`` run image codes; ``n_extras`` float ``(padded,)``
     per-particle values; then ``dim + n_sums`` float ``(padded,)`` outputs.
     """
-    coord_refs, starts_ref, lengths_ref, extra_refs, out_refs = _sum_refs(
-        refs, dim, n_extras)
+    coord_refs, starts_ref, lengths_ref, codes_ref, extra_refs, out_refs = (
+        _sum_refs(refs, dim, n_extras, any(image_axes)))
+    # Per-candidate minimum images only where the runs' images are not used.
+    rounded = [p and not x for p, x in zip(periodic, image_axes)]
     first = pl.program_id(0) * block
     lanes = pl.ds(first, block)
     me = first + jnp.arange(block, dtype=jnp.int32)
@@ -335,6 +402,7 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
     def walk_run(r, acc):
         start = starts_ref[r, lanes]
         length = lengths_ref[r, lanes]
+        origin = _run_origin(mine, codes_ref, r, lanes, side, image_axes)
 
         def one(s, acc):
             inside = s < length
@@ -342,8 +410,8 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
             d2 = zero
             d = []
             for a in range(dim):
-                da = mine[a] - plgpu.load(coord_refs[a].at[j])
-                if periodic[a]:
+                da = origin[a] - plgpu.load(coord_refs[a].at[j])
+                if rounded[a]:
                     da = da - side[a] * jnp.floor(da * inverse_side[a] + 0.5)
                 d.append(da)
                 d2 = d2 + da * da
@@ -367,16 +435,20 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
         ref[lanes] = value
 
 
-def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
-               runs, n_extras, n_sums, n_scalars, pair_terms, tile):
+def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic,
+               image_axes, block, runs, n_extras, n_sums, n_scalars,
+               pair_terms, tile):
     """One program of `pair_sums`' cluster layout: ``block`` consecutive
     sorted particles against tiles of ``tile`` consecutive candidates.
 
     Refs as `_sum_walk`'s; the coordinates and per-particle values are
-    padded to hold a whole tile from any run's start.
+    padded to hold a whole tile from any run's start. Each particle keeps
+    only the candidates of its own run, so its own image serves the whole
+    tile.
     """
-    coord_refs, starts_ref, lengths_ref, extra_refs, out_refs = _sum_refs(
-        refs, dim, n_extras)
+    coord_refs, starts_ref, lengths_ref, codes_ref, extra_refs, out_refs = (
+        _sum_refs(refs, dim, n_extras, any(image_axes)))
+    rounded = [p and not x for p, x in zip(periodic, image_axes)]
     first = pl.program_id(0) * block
     lanes = pl.ds(first, block)
     me = (first + jnp.arange(block, dtype=jnp.int32))[:, None]
@@ -398,6 +470,7 @@ def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
         end_flat = jnp.where(empty, 0, end)
         lo, hi = jnp.min(start_flat), jnp.max(end_flat)
         start, end = start[:, None], end[:, None]
+        origin = _run_origin(mine, codes_ref, r, lanes, side, image_axes)
 
         def visit(base, acc):
             j = base + offsets
@@ -405,8 +478,8 @@ def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, block,
             d2 = jnp.zeros((block, tile), dtype)
             d = []
             for a in range(dim):
-                da = mine[a] - coord_refs[a][pl.ds(base, tile)][None, :]
-                if periodic[a]:
+                da = origin[a] - coord_refs[a][pl.ds(base, tile)][None, :]
+                if rounded[a]:
                     da = da - side[a] * jnp.floor(da * inverse_side[a] + 0.5)
                 d.append(da)
                 d2 = d2 + da * da

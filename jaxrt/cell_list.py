@@ -154,6 +154,15 @@ def _key(coord, n):
     return key
 
 
+def _stencil_rows(dim: int, across: int) -> np.ndarray:
+    """int32 ``(R, dim - 1)``: the offsets across (axes 1..) of the stencil
+    rows, in the order of `_runs`' columns. As arrays: one op per step, not
+    per row (compile time)."""
+    offsets = np.array(list(itertools.product(range(-across, across + 1),
+                                              repeat=dim - 1)), np.int32)
+    return offsets.reshape(len(offsets), dim - 1)
+
+
 def _runs(sorted_key, cell, n, query: Query,
           reach: tuple[int, int] = _REACH):
     """Runs of the sorted order that hold each particle's candidate cells.
@@ -170,10 +179,7 @@ def _runs(sorted_key, cell, n, query: Query,
     dim = query.dim
     rx, across = reach
     assert rx == _REACH[0], "_cell_starts pads for _REACH[0] cells along x"
-    # Stencil rows as arrays (one op per step, not per row: compile time).
-    offsets = np.array(list(itertools.product(range(-across, across + 1),
-                                              repeat=dim - 1)), np.int32)
-    offsets = offsets.reshape(len(offsets), dim - 1)  # (R, dim - 1)
+    offsets = _stencil_rows(dim, across)
     valid = jnp.ones((cell.shape[0], len(offsets)), bool)
     other = []
     for a in range(1, dim):
@@ -218,6 +224,102 @@ def _runs(sorted_key, cell, n, query: Query,
     len1 = jnp.where(valid, end1 - start1, 0)
     len2 = jnp.where(valid & wraps, end2 - start2, 0)
     return start1, len1, start2, len2
+
+
+def _run_images(cell, n, query: Query, reach: tuple[int, int] = _REACH):
+    """The periodic image that each run of `_runs` names, per axis.
+
+    A stencil row's cell across, ``cell[:, a] + d``, is wrapped into
+    ``[0, n)`` by `_runs`: from below, its particles stand for their image
+    at ``x_a - side_a`` (``s = -1``); from above, at ``x_a + side_a``
+    (``s = +1``); else as they are (``s = 0``). Along x a row's first part
+    (cells clipped to the row) is as it is, and its wrapped part at
+    ``-side_x`` where the stencil poked out below the row, else at
+    ``+side_x``. Free axes are ``s = 0``.
+
+    They are the minimum images of all pairs within the cutoff, for the
+    positions `_grid` binned (so a walk may add them once per run instead
+    of rounding every candidate's difference), where every stencil cell
+    is a distinct cell: a partner within the cutoff has its nearest image
+    in the unwrapped cell at most ``across`` (``reach``) away, and the one
+    stencil offset that names its cell names that image. Not on an axis
+    that aliases (``n <= 2 across``, where `_runs` drops repeated offsets)
+    nor along a periodic x with ``n <= 2 reach + 1`` (the whole row is
+    one run): `_image_axes` says statically where they are exact. Beyond
+    the cutoff a run's image is never closer than the nearest.
+
+    Args:
+      cell: int32 ``(N, dim)`` cell coordinates (the order of `_runs`').
+      n: int32 ``(dim,)`` cells per axis.
+    Returns:
+      ``(first, wrapped)``, int32 ``(N, R)``, `_runs`' columns: image codes
+      of each row's first and wrapped parts, ``s_a + 1`` in bits
+      ``2 a`` and up (`_cell_kernel.IMAGE_BITS` per axis; decode:
+      ``(code >> 2 a & 3) - 1``).
+    """
+    dim = query.dim
+    rx, across = reach
+    offsets = _stencil_rows(dim, across)
+    code = jnp.ones((cell.shape[0], len(offsets)), jnp.int32)  # x: s = 0
+    for a in range(1, dim):
+        s = jnp.zeros_like(code)
+        if query.periodic[a]:
+            c = cell[:, a:a + 1] + offsets[:, a - 1]
+            s = (c >= n[a]).astype(jnp.int32) - (c < 0).astype(jnp.int32)
+        code = code + ((s + 1) << (_cell_kernel.IMAGE_BITS * a))
+    wrapped = code
+    if query.periodic[0]:
+        below = cell[:, :1] - rx < 0
+        wrapped = code + jnp.where(below, -1, 1)  # s_x = -1 or +1
+    return code, wrapped
+
+
+def _image_axes(n_particles: int, side, query: Query,
+                reach: tuple[int, int] = _REACH,
+                flat: tuple[bool, ...] = ()) -> tuple[bool, ...]:
+    """Static: the periodic axes on which `_run_images` is every pair's
+    minimum image, whatever the positions.
+
+    `_grid`'s cells per axis are static where every axis is periodic (the
+    box sets them) or ``flat`` (all positions equal there: one cell); its
+    coarsening loop is replayed here in float64 with a relative slack of
+    ``2**-12`` on every cell count, which covers the rounding of the
+    traced float32 loop. An axis is accepted where its fewest possible
+    cells exceed ``2 across`` (``2 reach + 1`` along x). A free axis that
+    is not flat can coarsen the grid without bound: nothing is accepted.
+
+    Args:
+      n_particles: N (the cell-start table's budget).
+      side: ``dim`` Python floats, the box (periodic axes).
+      flat: ``dim`` bools (or empty: none), free axes whose positions the
+        caller keeps all equal (zero padding).
+    Returns:
+      ``dim`` bools.
+    """
+    dim = query.dim
+    flat = tuple(flat) or (False,) * dim
+    periodic = query.periodic
+    if not all(p or f for p, f in zip(periodic, flat)):
+        return (False,) * dim
+    slack = 2.0 ** -12
+    budget = _table_size(n_particles) - 1
+    min_size = [query.cutoff * (1.0 + _CELL_MARGIN) / reach[a > 0]
+                for a in range(dim)]
+
+    def cells(coarsen, slack):
+        return [max(math.floor(side[a] / (min_size[a] * coarsen)
+                               * (1 + slack)), 1) if periodic[a] else 1
+                for a in range(dim)]
+
+    # The traced loop stops no later than this one: its counts are at most
+    # these, and its product is compared with the budget to float rounding.
+    coarsen = 1.0
+    while math.prod(cells(coarsen, slack)) > budget * (1 - slack):
+        coarsen *= 1.25
+    fewest = cells(coarsen, -slack)
+    need = [2 * reach[0] + 2] + [2 * reach[1] + 1] * (dim - 1)
+    return tuple(bool(periodic[a] and fewest[a] >= need[a])
+                 for a in range(dim))
 
 
 def _table_size(n: int) -> int:

@@ -481,3 +481,153 @@ def test_kernel_lowers_for_cuda(x64, launch):
                 "__gpu$xla.gpu.triton")])(jnp.asarray(R, dtype))
         module = exported.mlir_module()
         assert module.count('name = "jaxrt_cell_pair_sums"') == 1
+
+
+# ---------------------------------------------------------------------------
+# Run images (issue #18): the kernel adds each run's periodic image to its
+# particle once, instead of rounding every candidate's difference, on the
+# axes where `fused.run_image_axes` proves it exact.
+
+
+def image_axes(R, box, periodic=None, across=1, cutoff=2.5):
+    """The static decision of the fused energy's kernel for these
+    positions (`fused.run_image_axes`), on the padded 3 axes."""
+    from jaxrt.energy import fused
+    R = np.asarray(R)
+    box = float(box) if np.ndim(box) == 0 else np.asarray(box)
+    dim = R.shape[1]
+    displacement, _, _ = GEOMETRIES["periodic" if periodic is None
+                                    else "slab"](box)
+    params = fused._static_params(displacement, box, periodic, dim, 2.0,
+                                  cutoff, cutoff)
+    return fused.run_image_axes(params, len(R), across=across)
+
+
+def test_run_image_axes_decisions():
+    """Which axes take the runs' images: all where no stencil cell repeats
+    (3 cells across, 10 along x), none where a free axis could coarsen the
+    grid, per axis in between; the 2D energy's padding axis is flat."""
+    big = np.zeros((343, 3))  # fluid(7): 7.54 = 3.01 cutoffs
+    assert image_axes(big, 7.54) == (True, True, True)
+    assert image_axes(big, 7.54, across=2) == (True, True, True)
+    # 6.46 = 2.58 cutoffs: 2 cells across (aliased), 10 along x.
+    assert image_axes(np.zeros((216, 3)), 6.46) == (True, False, False)
+    assert image_axes(np.zeros((216, 3)), 6.2) == (False, False, False)
+    assert image_axes(big, (7.54, 7.54, 6.0)) == (True, True, False)
+    # A slab's free z can coarsen the grid without bound.
+    assert image_axes(big, 7.54, (True, True, False)) == (False,) * 3
+    assert image_axes(np.zeros((100, 2)), 8.0) == (True, True, False)
+    # Sparse: the cell table's budget coarsens the grid (12 x 3 x 3 cells
+    # need 108 > 4 N + 63).
+    assert image_axes(np.zeros((11, 3)), 8.0) == (True, False, False)
+    assert image_axes(np.zeros((12, 3)), 8.0) == (True, True, True)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_run_image_axes_bound_the_traced_grid(dtype):
+    """Wherever `run_image_axes` takes an axis, `cell_list._grid` (traced,
+    in the positions' dtype) has enough cells on it: boxes a hair around
+    whole numbers of cells, and N around the coarsening budget."""
+    from jaxrt import cell_list
+    from jaxrt._backend import Geometry
+    from jaxrt.energy import fused
+    rng = np.random.default_rng(7)
+    query = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True,) * 3,
+                                            (1.0,) * 3))
+
+    @jax.jit
+    def cells(side, R):
+        geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
+        return cell_list._grid(R, geometry, query)[2]
+
+    need = np.array([10, 3, 3])
+    taken = 0
+    with jax.enable_x64(dtype == "float64"):
+        for n in (12, 200, 2000):
+            R = jnp.zeros((n, 3), dtype)
+            for _ in range(30):
+                k = rng.integers(2, 30, 3) / np.array([4, 1, 1])
+                side = tuple(float(x) for x in 2.5 * (1 + 2.0 ** -10) * k
+                             * (1 + rng.uniform(-1e-6, 1e-6, 3)))
+                params = fused._Params(2.0, 2.5, 2.5, (True,) * 3, side)
+                axes = np.array(fused.run_image_axes(params, n))
+                got = np.asarray(cells(jnp.asarray(side, dtype), R))
+                assert np.all(got[axes] >= need[axes]), (side, n, got)
+                taken += int(np.sum(axes))
+    assert taken > 100  # the rule is not just "never"
+
+
+def faces_and_corners(dim, dtype):
+    """Particles on the box's faces and corners and a hair below 0 (which
+    the grid's ``mod`` rounds to ``side``, into the top cell), on a lattice
+    of fillers, in a box of 8 (3.2 cutoffs): every pair's distance is far
+    from 0 and from the cutoff, so float32 and float64 count the same
+    pairs. Returns (R in ``dtype``, side)."""
+    side = 8.0
+    tiny = 1e-9 if dtype == jnp.float32 else 1e-17  # below half an ulp of 8
+    g = np.stack(np.meshgrid(*[np.array([1.0, 3.0, 5.0, 7.0])] * dim,
+                             indexing="ij"), -1).reshape(-1, dim)
+    if dim == 3:
+        special = [[-tiny, -tiny, -tiny], [-tiny, 2, 2], [4, -tiny, 4],
+                   [4, 4, -tiny], [0, 6, 6], [side, side, 4]]
+    else:
+        special = [[-tiny, -tiny], [4, -tiny], [-tiny, 4], [0, 6],
+                   [side, 2]]
+    R = np.concatenate([g, np.asarray(special)])
+    d = np.abs(R[:, None] - R[None])
+    d = np.minimum(d, side - d)
+    r = np.sqrt(np.sum(d * d, -1))[~np.eye(len(R), dtype=bool)]
+    assert r.min() > 1.0 and np.abs(r - 2.5).min() > 1e-2
+    R = jnp.asarray(R, dtype)
+    assert np.any(np.asarray(jnp.mod(R, jnp.asarray(side, dtype))) == side)
+    return R, side
+
+
+@pytest.mark.parametrize("dim, dtype, backend, geometry", [
+    (3, "float32", "kernel", "periodic"), (3, "float64", "tiles", "periodic"),
+    (2, "float64", "kernel", "periodic"), (3, "float64", "kernel", "slab"),
+    pytest.param(3, "float64", "kernel", "periodic", marks=SLOW),
+    pytest.param(3, "float64", "fine", "periodic", marks=SLOW),
+    pytest.param(3, "float32", "tiles", "periodic", marks=SLOW),
+    pytest.param(2, "float32", "kernel", "periodic", marks=SLOW)])
+def test_run_images_on_faces_and_corners(x64, dim, dtype, backend, geometry):
+    """The kernel with the runs' images (or, in the slab, without: its free
+    z can coarsen the grid) against float64 brute force on the same
+    positions: exact pair counts, energies and forces. A particle a hair
+    below 0 sits at ``side`` in the top cell: walked with the position
+    the grid binned, its runs' images are right (with positions wrapped
+    into [0, side) by another rounding it would stand a box away from its
+    cell, and its pairs through that face would be missed)."""
+    dtype = jnp.dtype(dtype)
+    R, side = faces_and_corners(dim, dtype)
+    periodic = (True, True, False) if geometry == "slab" else None
+    cell = pick(backend)
+    axes = image_axes(R, side, periodic, across=getattr(cell, "across", 1))
+    want = {"slab": (False,) * 3, "periodic": (True,) * dim}[geometry]
+    assert axes[:dim] == want
+    displacement, box, _ = GEOMETRIES[geometry](side)
+    fused = lennard_jones_fused(displacement, box, backend=cell,
+                                periodic=periodic)
+    brute = lennard_jones_fused(displacement, box, backend="brute",
+                                periodic=periodic)
+    R64 = R.astype(jnp.float64)
+    assert int(fused.sums(R).count) == int(brute.sums(R64).count)
+    rtol = (E_RTOL, F_RTOL) if dtype == jnp.float64 else (1e-5, 1e-4)
+    close(fused(R), brute(R64), rtol[0])
+    close(jax.grad(fused)(R), jax.grad(brute)(R64), rtol[1])
+
+
+@pytest.mark.parametrize("backend", ["kernel", pytest.param("tiles",
+                                                            marks=SLOW)])
+def test_run_images_dense_fluid(x64, backend):
+    """The md_step fluid's box with every axis on the runs' images (3 cells
+    across): against brute force, float64."""
+    R, side = fluid(n_side=7)
+    R = jnp.asarray(R)
+    assert image_axes(R, side) == (True, True, True)
+    displacement, _ = space.periodic(side)
+    fused = lennard_jones_fused(displacement, side, backend=pick(backend))
+    brute = lennard_jones_fused(displacement, side, backend="brute")
+    assert int(fused.sums(R).count) == int(brute.sums(R).count)
+    close(fused(R), brute(R), E_RTOL)
+    close(jax.grad(fused)(R), jax.grad(brute)(R), F_RTOL)

@@ -473,7 +473,10 @@ def test_kernel_walks_lower_for_cuda(x64, dim, dtype):
     from jaxrt import _cell_kernel
     if _cell_kernel.pl is None:
         pytest.skip("this JAX has no Pallas Triton backend")
-    R, V, _, displacement, box, periodic = system(dim, "periodic", n_side=6)
+    # Boxes of 4 and 3 supports: the walks add the runs' images on every
+    # axis (`test_kernel_walks_take_run_images`).
+    R, V, _, displacement, box, periodic = system(
+        dim, "periodic", n_side=11 if dim == 2 else 8)
     accel = acceleration_fused(displacement, box, KERNEL[dim], EOS,
                                backend=Cell(kernel="auto"))
 
@@ -488,3 +491,24 @@ def test_kernel_walks_lower_for_cuda(x64, dim, dtype):
     module = exported.mlir_module()
     assert module.count("xla.gpu.triton") == 4
     assert module.count('name = "jaxrt_cell_pair_sums"') == 4
+
+
+def test_kernel_walks_take_run_images():
+    """Which axes the kernel walks of these tests' systems take the runs'
+    images on (`jaxrt.energy.fused.run_image_axes`; elsewhere they round
+    every candidate's difference): all axes of the 2D periodic boxes and
+    of the 3D export's, none in the 3D box of 6 (9 cells along x, the
+    whole row a run; 2 across, aliased) nor in a slab (its free axes can
+    coarsen the grid)."""
+    from jaxrt.energy import fused, sph_fused
+
+    def axes(dim, geometry, n_side):
+        R, _, _, displacement, box, periodic = system(dim, geometry, n_side)
+        grid, _ = sph_fused._grid(displacement, box, KERNEL[dim], periodic)
+        return fused.run_image_axes(grid, len(R))
+
+    assert axes(2, "periodic", 11) == (True, True)
+    assert axes(2, "periodic", 9) == (True, True)
+    assert axes(3, "periodic", 8) == (True, True, True)
+    assert axes(3, "periodic", 6) == (False, False, False)
+    assert axes(3, "slab", 6) == (False, False, False)

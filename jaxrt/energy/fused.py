@@ -61,6 +61,7 @@ Conventions, and where they differ from jax-md on purpose:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -104,6 +105,10 @@ class _Params:
       r_onset, r_cutoff: the reference potential's switch (radii stretch it).
       bound: the largest pair cut: ``r_cutoff``, or the largest radius.
       periodic: 3 bools; side: 3 floats (1 on free axes).
+      dim: the caller's dimension where the backends get positions
+        zero-padded to 3 (`_make_energy`): the axes past it are padding,
+        all positions equal there (one cell of the grid, `cell_runs`);
+        None: every axis is the caller's.
     """
 
     r_onset: float
@@ -111,6 +116,7 @@ class _Params:
     bound: float
     periodic: tuple
     side: tuple
+    dim: int | None = None
 
 
 class HigherOrderError(TypeError):
@@ -304,7 +310,10 @@ class _Cell(_Backend):
     as long as the longest run; pairs decided on the caller's unwrapped
     positions with `_min_image`, the arithmetic of ``backend="brute"``);
     ``"pallas"``, one GPU kernel (`jaxrt._cell_kernel.pair_sums`: a thread
-    per particle, its sums in registers, on the wrapped positions);
+    per particle, its sums in registers, on the grid's wrapped positions;
+    on the axes of `run_image_axes` each run's periodic image is added
+    once, elsewhere every candidate's difference is rounded to its
+    minimum image);
     ``"auto"``, the kernel on CUDA and the array programs elsewhere
     (chosen where the program is lowered); ``"interpret"``, the kernel in
     Pallas' interpreter (tests). They agree to rounding: the switch makes
@@ -345,7 +354,7 @@ class _Cell(_Backend):
              derivatives: bool = True, count: bool = True) -> FusedSums:
         from jaxrt import _cell_kernel
         dtype = R3.dtype
-        order, runs = cell_runs(R3, params, across=self.across)
+        order, runs, images = cell_runs(R3, params, across=self.across)
 
         def portable():
             return self._walk(R3[order], runs, sigma, epsilon,
@@ -354,10 +363,10 @@ class _Cell(_Backend):
 
         def kernel(interpret=False):
             return self._kernel_walk(
-                _wrap(R3, params)[order], kernel_runs(runs),
-                jnp.asarray(params.side, dtype), sigma, epsilon, radii, order,
-                params, interpret, derivatives, count, block=self.block,
-                warps=self.warps, tile=self.tile, unroll=self.unroll)
+                images, kernel_runs(runs), jnp.asarray(params.side, dtype),
+                sigma, epsilon, radii, order, params, interpret, derivatives,
+                count, block=self.block, warps=self.warps, tile=self.tile,
+                unroll=self.unroll)
 
         if self.kernel == "xla" or (self.kernel == "auto"
                                     and _cell_kernel.pl is None):
@@ -408,16 +417,18 @@ class _Cell(_Backend):
         return forces, e, ds, de, c.astype(dtype)
 
     @staticmethod
-    def _kernel_walk(sorted_cart, runs, side, sigma, epsilon, radii, order,
-                     params: _Params, interpret: bool,
+    def _kernel_walk(images: RunImages, runs, side, sigma, epsilon, radii,
+                     order, params: _Params, interpret: bool,
                      derivatives: bool = True, count: bool = True, **launch):
-        """`jaxrt._cell_kernel.pair_sums` with the LJ terms: per-particle
+        """`jaxrt._cell_kernel.pair_sums` with the LJ terms on the grid's
+        own wrapped positions and run images (`cell_runs`): per-particle
         sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
         ``derivatives``, the count zero unless ``count``: each sum the
         kernel skips is instructions per candidate saved). ``launch``: its
         launch options (``block``, ``warps``, ``tile``;
         benchmarks/roofline.py tunes them)."""
         from jaxrt import _cell_kernel
+        sorted_cart = images.position
         dtype = sorted_cart.dtype
         r_cutoff, r_onset = params.r_cutoff, params.r_onset
         has_radii = radii is not None
@@ -444,7 +455,7 @@ class _Cell(_Backend):
             () if not has_radii else (radii[order],),
             periodic=params.periodic, pair_terms=terms,
             n_sums=(3 if derivatives else 1) + count, interpret=interpret,
-            **launch)
+            **images.kernel_options(), **launch)
         zero = jnp.zeros_like(sums[0])
         e, ds, de = tuple(sums[:3]) if derivatives else (sums[0], zero, zero)
         return forces, e, ds, de, sums[-1] if count else zero
@@ -466,8 +477,74 @@ class Runs(NamedTuple):
     length: Array
 
 
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=("position", "first", "wrapped"),
+                   meta_fields=("axes",))
+@dataclasses.dataclass(frozen=True)
+class RunImages:
+    """What the kernel walk needs of the grid besides the runs (`cell_runs`):
+    the positions the cells were computed from, and the periodic image of
+    every run.
+
+    Attributes:
+      position: float ``(N, dim)``, sorted order: the positions wrapped
+        into ``[0, side]`` on periodic axes exactly as the grid binned them
+        (`jaxrt.cell_list._grid`'s ``mod``; a particle a hair below 0 may
+        stand at ``side`` in its top cell). A run's image is only right for
+        these: a position wrapped by another rounding could sit a box away
+        from its cell.
+      first, wrapped: int32 ``(N, R)``, sorted order: image codes of each
+        run's first and wrapped parts (`jaxrt.cell_list._run_images`).
+      axes: static ``dim`` bools: the axes on which the codes are every
+        pair's minimum image, for any positions (`run_image_axes`); the
+        walk rounds candidates' differences on the other periodic axes.
+    """
+
+    position: Array
+    first: Array
+    wrapped: Array
+    axes: tuple
+
+    def kernel_options(self) -> dict:
+        """`jaxrt._cell_kernel.pair_sums`' ``images`` and ``image_axes``."""
+        return dict(images=(self.first, self.wrapped), image_axes=self.axes)
+
+
+def _grid_query(params: _Params):
+    """The `jaxrt.cell_list` query of the fused grid (cutoff: the bound)."""
+    from jaxrt._backend import Query
+    from jax_md.partition import NeighborListFormat
+    return Query(cutoff=params.bound, periodic=tuple(params.periodic),
+                 mask_self=True, format=NeighborListFormat.Dense)
+
+
+def _flat_axes(params: _Params) -> tuple[bool, ...]:
+    """The padding axes (`_Params.dim`)."""
+    dim = len(params.side) if params.dim is None else params.dim
+    return tuple(a >= dim for a in range(len(params.side)))
+
+
+def run_image_axes(params: _Params, n: int, *, across: int = 1
+                   ) -> tuple[bool, ...]:
+    """Static: the axes on which the kernel walk over `cell_runs`' grid of
+    ``n`` particles adds each run's periodic image once instead of rounding
+    every candidate's difference (`jaxrt.cell_list._image_axes`): periodic
+    axes with enough cells that no stencil cell repeats (3 across, 10
+    along x, with ``across=1``) for any positions. Where any free axis is
+    not padding (`_Params.dim`) the grid's coarsening depends on the
+    positions: none.
+
+    Returns:
+      ``len(params.side)`` bools.
+    """
+    from jaxrt import cell_list
+    return cell_list._image_axes(n, params.side, _grid_query(params),
+                                 (cell_list._REACH[0], across),
+                                 _flat_axes(params))
+
+
 def cell_runs(R: Array, params: _Params, *, across: int = 1
-              ) -> tuple[Array, Runs]:
+              ) -> tuple[Array, Runs, RunImages]:
     """The sorted cell grid of `jaxrt.cell_list` (cells ``bound / 4`` along
     x and ``bound / across`` across), recomputed from ``R``: every pair
     closer than ``params.bound`` is in both particles' runs. ``across``:
@@ -476,32 +553,39 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
 
     Args:
       R: float ``(N, dim)``, Cartesian, unwrapped; ``params.periodic`` and
-        ``params.side`` have ``dim`` entries.
+        ``params.side`` have ``dim`` entries. Padding axes (`_Params.dim`)
+        are taken as zero.
     Returns:
-      int32 ``(N,)`` ``order`` (sorted position -> caller's index) and the
-      `Runs`, ``(N, R)``. Not differentiable (integers); pass R through
+      int32 ``(N,)`` ``order`` (sorted position -> caller's index), the
+      `Runs`, ``(N, R)``, and the `RunImages` (wrapped positions and run
+      images, for the kernel walk). Not differentiable; pass R through
       ``stop_gradient`` when it is traced for a derivative.
     """
     from jaxrt import cell_list
-    from jaxrt._backend import Geometry, Query
-    from jax_md.partition import NeighborListFormat
+    from jaxrt._backend import Geometry
     dim = R.shape[1]
+    flat = _flat_axes(params)
+    if any(flat):  # one cell there, whatever the caller padded with
+        R = jnp.where(jnp.asarray(flat), 0, R)
     geometry = Geometry(side=jnp.asarray(params.side, R.dtype),
                         scale=jnp.ones((dim,), R.dtype))
-    query = Query(cutoff=params.bound, periodic=tuple(params.periodic),
-                  mask_self=True, format=NeighborListFormat.Dense)
+    query = _grid_query(params)
     # `cell_list._sorted_system`, with a faster sort.
     reach = (cell_list._REACH[0], across)
-    _, cell, cells = cell_list._grid(geometry.grid_coordinates(R), geometry,
-                                     query, reach)
+    wrapped, cell, cells = cell_list._grid(geometry.grid_coordinates(R),
+                                           geometry, query, reach)
     key = cell_list._key(cell, cells)
     order, sorted_key = _sort_by_key(key, cell_list._table_size(R.shape[0]))
-    start1, len1, start2, len2 = cell_list._runs(sorted_key, cell[order],
-                                                 cells, query, reach)
+    cell = cell[order]
+    start1, len1, start2, len2 = cell_list._runs(sorted_key, cell, cells,
+                                                 query, reach)
+    first, second = cell_list._run_images(cell, cells, query, reach)
+    images = RunImages(wrapped[order], first, second,
+                       run_image_axes(params, R.shape[0], across=across))
     # The wrapped part continues the first in one loop: particles near the
     # x ends have long wrapped parts, so a loop (or a column) of their own
     # would cost as much as the first for every particle.
-    return order, Runs(start1, len1, start2 - len1, len1 + len2)
+    return order, Runs(start1, len1, start2 - len1, len1 + len2), images
 
 
 def kernel_runs(runs: Runs) -> tuple[Array, Array, Array, Array]:
@@ -720,7 +804,7 @@ def _static_params(displacement, box, periodic, dim: int, r_onset: float,
     side = tuple(sides) if sides is not None else (1.0,) * dim
     params = _Params(r_onset, r_cutoff, bound,
                      tuple(axes) + (False,) * (3 - dim),
-                     tuple(float(s) for s in side) + (1.0,) * (3 - dim))
+                     tuple(float(s) for s in side) + (1.0,) * (3 - dim), dim)
     check_cutoff(bound, params.side, params.periodic)
     _check_displacement(displacement, params, dim)
     return params

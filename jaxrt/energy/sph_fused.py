@@ -28,9 +28,12 @@ Backends (``backend=``):
   ``"pallas"`` (the kernel; an error off CUDA), ``"xla"`` (the arrays
   everywhere), ``"interpret"`` (the kernel in Pallas' interpreter, for
   tests). The pair terms are one definition for both, so they agree to
-  rounding (the kernel takes minimum images of wrapped positions, the
-  arrays of the caller's). `acceleration_fused` sorts once and walks
-  twice (densities, then forces); each VJP walks once more, the same way.
+  rounding (the kernel works on the grid's wrapped positions, adding each
+  run's periodic image once where the box proves it right,
+  `jaxrt.energy.fused.run_image_axes`, and rounding to minimum images
+  elsewhere; the arrays take minimum images of the caller's).
+  `acceleration_fused` sorts once and walks twice (densities, then
+  forces); each VJP walks once more, the same way.
 * ``"brute"``: all pairs in row blocks, O(N^2); the reference.
 
 Cost. A walk evaluates, per particle, one candidate of each stencil row (3
@@ -240,13 +243,14 @@ class _PairSum:
 
     def cells(self, R: Array):
         """The sorted grid of R (None for brute), shared by the walks of
-        one configuration: ``(order, runs)``, runs ``(R, N)``. With
-        ``order`` None, the data are already in the sorted order (and the
-        sums come back in it)."""
+        one configuration: ``(order, runs, images)``, runs ``(R, N)``,
+        images the kernel's (`jaxrt.energy.fused.RunImages`, sorted order).
+        With ``order`` None, the data are already in the sorted order (and
+        the sums come back in it)."""
         if self.backend == "brute":
             return None
-        order, runs = cell_runs(jax.lax.stop_gradient(R), self.grid)
-        return order, type(runs)(*(x.T for x in runs))
+        order, runs, images = cell_runs(jax.lax.stop_gradient(R), self.grid)
+        return order, type(runs)(*(x.T for x in runs)), images
 
     def _dispatch(self, cells, portable: Callable, kernel: Callable):
         """``portable()`` or ``kernel(interpret)`` as ``walk`` says (the
@@ -270,7 +274,7 @@ class _PairSum:
         """
         if cells is None:
             return self._brute(table, slot, acc)
-        order, runs = cells
+        order, runs, _ = cells
         if order is not None:
             table = table[:, order]
         mine = table[:, None, :]
@@ -321,14 +325,13 @@ class _PairSum:
         terms. Returns float ``(n_sums, N)`` sums, caller's order.
         """
         from jaxrt import _cell_kernel
-        from jaxrt.energy.fused import _wrap, kernel_runs
-        order, runs = cells
+        from jaxrt.energy.fused import kernel_runs
+        order, runs, images = cells
         dtype = data["R"].dtype
         columns = _Columns(data)
         values = columns.values(data) + [x.astype(dtype) for x in extra]
-        R = data["R"]
         if order is not None:
-            R, values = R[order], [v[order] for v in values]
+            values = [v[order] for v in values]
         keys = tuple(theta)
         scalars = jnp.stack([jnp.asarray(theta[k], dtype) for k in keys])
 
@@ -342,13 +345,15 @@ class _PairSum:
                     tuple(jnp.where(valid, t, 0) for t in out))
 
         # No tangent may reach the kernel: the custom_vjp differentiates.
-        R, values, scalars = jax.lax.stop_gradient((R, values, scalars))
+        values, scalars = jax.lax.stop_gradient((values, scalars))
         grid = self.grid
+        # The positions the grid binned (sorted, wrapped by its own
+        # rounding), which the runs' images are right for; not data's R.
         _, sums = _cell_kernel.pair_sums(
-            _wrap(R, grid), kernel_runs(type(runs)(*(x.T for x in runs))),
+            images.position, kernel_runs(type(runs)(*(x.T for x in runs))),
             jnp.asarray(grid.side, dtype), scalars, tuple(values),
             periodic=tuple(grid.periodic), pair_terms=pair_terms,
-            n_sums=n_sums, interpret=interpret)
+            n_sums=n_sums, interpret=interpret, **images.kernel_options())
         if order is not None:
             sums = jnp.zeros_like(sums).at[:, order].set(sums)
         return sums
@@ -813,10 +818,10 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
         if cells is not None:
             # Both walks in the sorted order: the densities feed the second
             # walk without a round trip through the caller's order.
-            order, runs = cells
+            order, runs, images = cells
             R, V, m = R[order], V[order], m[order]
             given = [None if x is None else x[order] for x in given]
-            cells = (None, runs)
+            cells = (None, runs, images)
         rho, pressure = given
         if rho is None:
             rho = rho_core(R, h, m, cells)
