@@ -43,8 +43,8 @@ The paper's milliseconds (RTX PRO 6000 Blackwell, RT cores; CPU-CELL on 64
 cores) are the ``paper_ms`` column; ``table2_ratios.csv`` compares ratios
 (RT-REF / ORCS-forces, RT-REF / persé, CPU-CELL / ORCS-forces, GPU-CELL /
 ORCS-forces) with the paper's for each configuration, and ours alone for
-GPU-CELL-fused against ORCS-forces and against GPU-CELL. Compare shapes and ratios, not absolute ms
-(H200 has no RT cores).
+GPU-CELL-fused against ORCS-forces and against GPU-CELL. Compare shapes
+and ratios, not absolute ms (H200 has no RT cores).
 
 Energy (``--energy``; seed 003 §4.3, Figs 11-12, `_energy`): after a
 row's timing its step is repeated for ``--energy-seconds`` (default 2 s:
