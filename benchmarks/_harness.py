@@ -568,7 +568,8 @@ def run_jobs(target: str, jobs: Iterable[dict], *, out: str | None,
         groups jobs that the budget does not split.
       out, name: `out_path`.
       columns: the printed table's columns.
-      timeout: seconds per job (a worker's start-up included).
+      timeout: seconds per job (a worker's start-up included); a job's
+        ``_timeout`` (optional) replaces it for that job.
       budget: seconds after ``t0`` after which no new job (group) starts;
         the rest are written as ``skipped``.
       hard_stop: seconds after ``t0`` at which the running job is killed.
@@ -616,9 +617,10 @@ def run_jobs(target: str, jobs: Iterable[dict], *, out: str | None,
             else:
                 if i in faults:
                     job = {**job, "_inject": faults[i]}
-                limit = max(1.0, min(timeout, hard_stop - now))
+                own = job.get("_timeout", timeout)
+                limit = max(1.0, min(own, hard_stop - now))
                 new = runner.run(job, limit)
-                if limit < timeout:
+                if limit < own:
                     for row in new:
                         if row["status"] == "timeout":
                             row["failed"] = f"killed at the hard stop ({hard_stop:g}s)"

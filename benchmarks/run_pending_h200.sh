@@ -12,7 +12,7 @@
 #   accuracy  the accuracy sweep's settings the H200 has not measured:
 #             pairs, spheres-epsilon, list-free (fused-pallas), N = 16 384
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
-# study: benchmarks/seed_rt_study.py --part K/5 (RESULTS.md).
+# study: benchmarks/seed_rt_study.py --part K/6 (RESULTS.md).
 #
 #   GIT_SHA=$(git rev-parse --short HEAD) bash benchmarks/run_pending_h200.sh PART
 #

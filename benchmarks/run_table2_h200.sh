@@ -12,12 +12,16 @@
 #       --energy (NVML energy and power trace; CSV, *_power.csv and the two
 #       figures); "energy-wall" / "energy-periodic": one boundary each, for
 #       when the budget does not reach every row of "energy".
+# Every part runs every method of table2.py (RT-REF, ORCS-forces,
+# ORCS-persé, GPU-CELL, GPU-CELL-fused, CPU-CELL) unless METHODS names some.
 # CSVs: $OUT/h200/table2_<part>_<sha>.csv (the device run's $OUT), else
 # benchmarks/results/h200/. Rows the budget did not reach are "skipped":
 # re-run them with --scenes/--methods/--boundaries (see table2.py --help).
 # Environment: BUDGET (seconds before no new row starts, default 480),
 # HARD_STOP (default 570), ROW_TIMEOUT (default 200), ENERGY_SECONDS
-# (energy window per row, default 2), PYTHON.
+# (energy window per row, default 2), METHODS (space-separated, e.g.
+# "GPU-CELL-fused ORCS-forces"; the CSV's name then names them),
+# PYTHON.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false
@@ -28,14 +32,20 @@ if [[ $PART == tests ]]; then
   exec $PY -m pytest -q -n 0 tests/test_fused.py -m "slow or not slow"
 fi
 DEST=${OUT:+$OUT/h200}; DEST=${DEST:-benchmarks/results/h200}
+# shellcheck disable=SC2206 # METHODS: words on purpose
+MARGS=(${METHODS:+--methods $METHODS})
+# The methods in the CSV's name, ASCII only (the device run returns no
+# other file names).
+MTAG=${METHODS:+_$(echo $METHODS | tr ' ' '+' | LC_ALL=C tr -cd 'A-Za-z0-9+-')}
 if [[ $PART == energy || $PART == energy-wall || $PART == energy-periodic ]]; then
   BCS="wall periodic"; [[ $PART != energy ]] && BCS=${PART#energy-}
   mkdir -p "$DEST"
   # shellcheck disable=SC2086 # BCS: one or two words on purpose
   exec $PY benchmarks/table2.py --n 50000 --cases paper-energy --energy \
-    --boundaries $BCS --energy-seconds "${ENERGY_SECONDS:-2}" \
+    --boundaries $BCS --energy-seconds "${ENERGY_SECONDS:-2}" "${MARGS[@]}" \
     --budget "${BUDGET:-480}" --hard-stop "${HARD_STOP:-570}" \
-    --timeout "${ROW_TIMEOUT:-200}" --out "$DEST/table2_${PART}_${GIT_SHA}.csv"
+    --timeout "${ROW_TIMEOUT:-200}" \
+    --out "$DEST/table2_${PART}${MTAG}_${GIT_SHA}.csv"
 fi
 RADII=("r=1" "U[1,160]" "LN[1,330]" "r=160")
 [[ $PART =~ ^[1-8]$ ]] || { echo "PART must be 1-8, tests or energy[-wall|-periodic]"; exit 2; }
@@ -43,6 +53,6 @@ N=$(( PART <= 4 ? 50000 : 1000000 ))
 R=${RADII[$(( (PART - 1) % 4 ))]}
 TAG=$(echo "${N}_${R}" | tr -d '[]=,' )
 mkdir -p "$DEST"
-$PY benchmarks/table2.py --n "$N" --radii "$R" \
+$PY benchmarks/table2.py --n "$N" --radii "$R" "${MARGS[@]}" \
   --budget "${BUDGET:-480}" --hard-stop "${HARD_STOP:-570}" \
-  --timeout "${ROW_TIMEOUT:-200}" --out "$DEST/table2_${TAG}_${GIT_SHA}.csv"
+  --timeout "${ROW_TIMEOUT:-200}" --out "$DEST/table2_${TAG}${MTAG}_${GIT_SHA}.csv"

@@ -8,7 +8,7 @@ the headline table and the plots.
 
     python benchmarks/seed_rt_study.py --plan                         # dry run
     python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-    python benchmarks/seed_rt_study.py --part 1/5 --time-budget 450 \\
+    python benchmarks/seed_rt_study.py --part 1/6 --time-budget 450 \\
         --hard-stop 520 --timeout 240 --out DIR/part1                 # GPU, per part
     python benchmarks/seed_rt_study.py --plot-only DIR/part*/seed_rt_study.csv --out DIR
 """
@@ -64,7 +64,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="run exactly these configurations, in this order")
     parser.add_argument("--target-s", type=float, default=0.5,
                         help="aim for this much timed wall time per measurement")
-    parser.add_argument("--min-repeats", type=int, default=3)
+    parser.add_argument("--min-repeats", type=int, default=3,
+                        help="timed calls per measurement at least (one from "
+                             "--large-n particles up)")
+    parser.add_argument("--large-n", type=float, default=4e6,
+                        help="from this many particles, one timed call per "
+                             "measurement (calls take seconds there)")
+    parser.add_argument("--heavy-s", type=float, default=60.0,
+                        help="jobs guessed longer run last, each in a part of "
+                             "its own (--plan marks them)")
     parser.add_argument("--max-repeats", type=int, default=10)
     parser.add_argument("--no-search", dest="search", action="store_false",
                         help="skip the search-only measurement (one compile less per job)")
@@ -76,7 +84,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--hard-stop", type=float, default=float("inf"),
                         help="seconds; kill the running job then, skip the rest")
     parser.add_argument("--timeout", type=float, default=300,
-                        help="seconds per (configuration, method) job")
+                        help="seconds per (configuration, method) job at least; "
+                             f"a job guessed longer gets {plan.TIMEOUT_FACTOR:g}x "
+                             "its guess (--plan's tmo column)")
     parser.add_argument("--startup-timeout", type=float, default=300,
                         help="seconds for a worker's imports and device start")
     parser.add_argument("--inject", nargs="+", default=None,
@@ -105,10 +115,13 @@ def jobs_of(planned: list[dict], args) -> list[dict]:
             key = f"{c['scene']}:{c['param']}:{c['p']}"
             job = {"scene": c["scene"], "param": c["param"], "p": c["p"],
                    "N": c["N"], "tier": c["tier"], "method": m,
-                   "target_s": args.target_s, "min_repeats": args.min_repeats,
+                   "target_s": args.target_s,
+                   "min_repeats": plan.min_repeats(c["N"], args),
                    "max_repeats": args.max_repeats, "search": args.search,
                    "search_limit_ms": args.search_limit_ms, "split": args.split,
-                   "_group": key}
+                   "_group": key,
+                   "_timeout": plan.timeout_s(c["scene"], c["param"], c["p"],
+                                              m, args)}
             if f"{key}:{m}" in faults:
                 job["_inject"] = faults[f"{key}:{m}"]
             jobs.append(job)

@@ -13,6 +13,11 @@ Methods (Meneses et al. §4.2; all jaxrt, all one leapfrog step
   with status ``skipped`` and the reason).
 * ``GPU-CELL``: jaxrt's ``cell`` list plus the same forces, on JAX's default
   device (on a CPU-only machine that is the CPU).
+* ``GPU-CELL-fused``: `jaxrt.energy.lennard_jones_fused` with
+  ``backend="cell"``: forces from jaxrt's cell grid with no list (on CUDA
+  one Pallas kernel, `jaxrt._cell_kernel`; elsewhere array programs), the
+  step of ORCS-forces; any radii. Not in the paper (no ``paper_ms``): the
+  list-free counterpart of GPU-CELL, against the list-free ORCS-forces.
 * ``CPU-CELL``: the same on JAX's CPU device (``--cpu-cores`` are what this
   machine has, not the paper's 64).
 
@@ -36,9 +41,10 @@ Out-of-memory rows (RT-REF's list, as in the paper's "–" cells) are
 
 The paper's milliseconds (RTX PRO 6000 Blackwell, RT cores; CPU-CELL on 64
 cores) are the ``paper_ms`` column; ``table2_ratios.csv`` compares ratios
-(RT-REF / ORCS-forces, RT-REF / persé, CPU-CELL / ORCS-forces) with the
-paper's for each configuration. Compare shapes and ratios, not absolute ms
-(H200 has no RT cores).
+(RT-REF / ORCS-forces, RT-REF / persé, CPU-CELL / ORCS-forces, GPU-CELL /
+ORCS-forces) with the paper's for each configuration, and ours alone for
+GPU-CELL-fused against ORCS-forces and against GPU-CELL. Compare shapes
+and ratios, not absolute ms (H200 has no RT cores).
 
 Energy (``--energy``; seed 003 §4.3, Figs 11-12, `_energy`): after a
 row's timing its step is repeated for ``--energy-seconds`` (default 2 s:
@@ -46,9 +52,9 @@ NVML's energy counter ticks every 20-100 ms) between two reads of the
 energy counter of the method's device: NVML's for a GPU method, RAPL's
 CPU packages for CPU-CELL (its GPU-idle energy is only ``gpu_energy_j``).
 Columns: ``energy_j``, ``mean_power_w``, ``peak_power_w``,
-``interactions_per_step`` (unordered pairs within the cut: ORCS-forces'
-count, the list's pairs for RT-REF and the cells, the fused count on the
-same positions for persé), ``interactions_per_joule`` (Eq. 10: pairs per
+``interactions_per_step`` (unordered pairs within the cut: the fused
+count of ORCS-forces and GPU-CELL-fused, the list's pairs for RT-REF and
+the cell lists, ORCS-forces' count on the same positions for persé), ``interactions_per_joule`` (Eq. 10: pairs per
 step x steps / joules), ``energy_window_s``, ``energy_steps``,
 ``energy_source`` and ``energy_reason`` (why a value is empty: "no NVML",
 "no GPU", "no RAPL"). The GPU's power samples (every
@@ -80,7 +86,8 @@ import _harness  # noqa: E402
 SCENES = ("lattice", "disordered", "cluster")
 RADII = ("r=1", "r=160", "U[1,160]", "LN[1,330]")
 BOUNDARIES = ("wall", "periodic")
-METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL", "CPU-CELL")
+METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL",
+           "GPU-CELL-fused", "CPU-CELL")
 NS = (50_000, 1_000_000)
 DYNAMICS = dict(epsilon=1.0, sigma_per_cut=1 / 2.5, onset_fraction=0.8,
                 dt=1e-4, mass=1.0, box=1000.0)
@@ -196,11 +203,11 @@ def _step_fns(job: dict, position, radii):
             return 2.0 * float(counter.sums(R).count) / R.shape[0]
         return (lambda s: step(*s)), (position, V0), "none", k_fn
 
-    if method == "ORCS-forces":
-        energy = lennard_jones_fused(displacement, box, sigma=sigma,
-                                     epsilon=d["epsilon"], r_onset=onset,
-                                     r_cutoff=2.5, radii=radii_arg,
-                                     backend=policy, periodic=periodic)
+    if method in ("ORCS-forces", "GPU-CELL-fused"):
+        energy = lennard_jones_fused(
+            displacement, box, sigma=sigma, epsilon=d["epsilon"],
+            r_onset=onset, r_cutoff=2.5, radii=radii_arg, periodic=periodic,
+            backend=policy if method == "ORCS-forces" else "cell")
 
         @jax.jit
         def step(state):
@@ -336,7 +343,8 @@ def ratios(rows: list[dict]) -> list[dict]:
     got = {(r["scene"], r["method"], r["radii"], r["boundary"], int(r["N"])):
            float(r["median_ms"]) for r in rows if r.get("status") == "ok"}
     pairs = (("RT-REF", "ORCS-forces"), ("RT-REF", "ORCS-persé"),
-             ("CPU-CELL", "ORCS-forces"), ("GPU-CELL", "ORCS-forces"))
+             ("CPU-CELL", "ORCS-forces"), ("GPU-CELL", "ORCS-forces"),
+             ("GPU-CELL-fused", "ORCS-forces"), ("GPU-CELL", "GPU-CELL-fused"))
     keys = sorted({(r["scene"], r["radii"], r["boundary"], int(r["N"]))
                    for r in rows})
     out = []

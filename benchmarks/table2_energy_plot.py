@@ -25,13 +25,14 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _harness  # noqa: E402
 
-METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL", "CPU-CELL")
+METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL",
+           "GPU-CELL-fused", "CPU-CELL")
 BOUNDARIES = ("wall", "periodic")
 CASE_ORDER = (("lattice", "r=160"), ("disordered", "r=1"),
               ("cluster", "LN[1,330]"))
 COLORS = {"RT-REF": "tab:blue", "ORCS-forces": "tab:orange",
           "ORCS-persé": "tab:green", "GPU-CELL": "tab:red",
-          "CPU-CELL": "tab:purple"}
+          "GPU-CELL-fused": "tab:brown", "CPU-CELL": "tab:purple"}
 KEY = ("method", "scene", "radii", "boundary", "N")
 
 

@@ -43,11 +43,46 @@ def test_all_sixty_configurations_and_fused_methods():
     assert ("sphere", 64, 16, "aabb-sorted") not in set(jobs(planned))
 
 
-def test_largest_first_within_a_tier():
-    planned, _ = plan.build_plan(args_of())
-    for tier in {c["tier"] for c in planned}:
-        ns = [c["N"] for c in planned if c["tier"] == tier]
+def test_largest_first_within_a_tier_heavy_jobs_last():
+    args = args_of()
+    planned, _ = plan.build_plan(args)
+    light = [c for c in planned if not c.get("heavy")]
+    heavy = [c for c in planned if c.get("heavy")]
+    assert planned == light + heavy
+    for tier in {c["tier"] for c in light}:
+        ns = [c["N"] for c in light if c["tier"] == tier]
         assert ns == sorted(ns, reverse=True)
+    guesses = [plan.guess_job_s(c["scene"], c["param"], c["p"], c["methods"][0],
+                                args) for c in heavy]
+    assert all(len(c["methods"]) == 1 for c in heavy)
+    assert guesses == sorted(guesses, reverse=True)
+    assert all(g > args.heavy_s for g in guesses)
+    # The H200's part 1: spheres-fused at N = 67M timed out at 150 s.
+    assert ("sphere", 128, 32, "spheres-fused") in set(jobs(heavy))
+
+
+def test_large_configurations_repeat_less_and_wait_longer():
+    """From --large-n up one timed call per measurement; each job's
+    timeout is at least --timeout and 3x its guess; heavy jobs get parts
+    of their own (the 67M configuration once ate a whole part)."""
+    args = args_of("--timeout", "150")
+    planned, _ = plan.build_plan(args)
+    for job in seed_rt_study.jobs_of(planned, args):
+        guess = plan.guess_job_s(job["scene"], job["param"], job["p"],
+                                 job["method"], args)
+        assert job["_timeout"] >= max(150.0, plan.TIMEOUT_FACTOR * guess)
+        assert job["min_repeats"] == (1 if job["N"] >= args.large_n else 3)
+    parts = plan.split_parts(planned, args)
+    for part in parts:
+        if any(c.get("heavy") for c in part):
+            assert len(part) == 1 and len(part[0]["methods"]) == 1
+    # The guesses know the H200's rows at 67M (k = 288): aabb-sorted-fused
+    # 1.21 s and aabb-unsorted-fused 5.24 s per call.
+    for method, seconds in (("aabb-sorted-fused", 1.21),
+                            ("aabb-unsorted-fused", 5.24)):
+        fixed, per_pair = plan._GUESS[method]
+        pairs = plan.n_of(128, 32) * plan.k_expected("sphere", 128, 32)
+        assert abs((fixed + per_pair * pairs) / 1e3 / seconds - 1) < 0.1
 
 
 @pytest.mark.parametrize("budget", [480.0, 250.0])

@@ -124,8 +124,17 @@ what the method can index (2**29 entries for the Warp lists, 2**31 for
 cell and jax-md; sphere α = 64, p >= 16 and α = 128, p >= 8), and
 squares at α = 128, p = 32 (4N triangle boxes pass Warp's 32-bit byte
 offsets). The fused methods run those configurations.
-``--plan`` prints the order with N, a rough H100/H200 time guess and the
-parts, and exits.
+Jobs guessed longer than ``--heavy-s`` (default 60 s; the guesses know
+the H200's rows at N = 67M: `seed_rt.plan._GUESS`) are taken out of their
+configuration and run after all the others, longest first, each in a part
+of its own: on the H200 the 67M configuration's spheres-fused once timed
+out after 150 s and, with its siblings, left no time for the part's other
+configurations. From ``--large-n`` particles (default 4e6) every
+measurement makes one timed call after its warm-up instead of
+``--min-repeats`` (calls take seconds there and barely vary). Each job's
+timeout is `seed_rt.plan.TIMEOUT_FACTOR` times its guess, at least
+``--timeout``. ``--plan`` prints the order with N, the timed calls, a
+rough H100/H200 time guess, the longest timeout and the parts, and exits.
 
 Parts. ``--part K`` (or ``K/M``, checked against the plan) runs the K-th
 of the consecutive parts that ``--part-budget`` seconds (default 480,
@@ -148,7 +157,7 @@ in case the whole run is killed.
 Usage:
   python benchmarks/seed_rt_study.py --plan                         # dry run
   python benchmarks/seed_rt_study.py --small --out /tmp/seedstudy   # CPU smoke
-  python benchmarks/seed_rt_study.py --part 1/5 --time-budget 450 \\
+  python benchmarks/seed_rt_study.py --part 1/6 --time-budget 450 \\
       --hard-stop 520 --timeout 240 --out DIR/part1                 # GPU, < 9 min
   python benchmarks/seed_rt_study.py --plot-only DIR/part*/seed_rt_study.csv --out DIR
   python benchmarks/seed_rt_study.py --configs uniform:32:1 sphere:128:8

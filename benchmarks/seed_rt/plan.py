@@ -81,24 +81,49 @@ def scene_cells(scene: str, param: int, p: int) -> float:
     return float(int((2 + 2 * c) / c)) ** 3
 
 
-# A rough H100 guess per call, in ms: (fixed, per neighbour pair) for the
-# compute step, fitted by eye to RESULTS.md (bvh 13.3 ms and jax-md 21 ms at
-# 10⁶ uniform k = 65; cell 28.7 ms; unsorted 3.5x sorted) and the partial
-# H100 CSV (allocate 28-46 ms for the Warp methods). spheres/squares are
-# guesses. Only for --plan and the time estimate; nothing depends on it.
+# A rough guess per call, in ms: (fixed, per neighbour pair) for the
+# compute step. List methods: fitted by eye to H100 runs (RESULTS.md: bvh
+# 13.3 ms and jax-md 21 ms at 10⁶ uniform k = 65; cell 28.7 ms; unsorted
+# 3.5x sorted; allocate 28-46 ms for the Warp methods); spheres/squares
+# are guesses. Fused: the H200's sphere α = 128, p = 32 (N = 67M, k = 288,
+# 1.9e10 pairs; results/h200/seed_rt_study/part1_65309c3): aabb-sorted
+# 1.21 s and aabb-unsorted 5.24 s per call; spheres timed out at 150 s
+# with 8 calls to make (> 19 s a call, > 1e-6 ms a pair: guessed 1.5x
+# that); squares: 0.7 of its list's rays. Only for --plan, the parts and
+# the per-job timeouts.
 _GUESS = {"aabb-sorted": (1.0, 2e-7), "aabb-unsorted": (1.0, 6e-7),
           "spheres": (1.5, 1e-6), "squares": (1.5, 4e-7),
-          "cell": (2.0, 4e-7), "jax-md": (0.15, 3e-7)}
-# Fused: the list method's rays without the row writes nor the JAX sum
-# (a guess: 0.7 of its per-pair cost).
-_GUESS.update({m: (_GUESS[base][0], 0.7 * _GUESS[base][1])
-               for m, base in FUSED.items()})
+          "cell": (2.0, 4e-7), "jax-md": (0.15, 3e-7),
+          "aabb-sorted-fused": (1.0, 6.5e-8),
+          "aabb-unsorted-fused": (1.0, 2.8e-7),
+          "spheres-fused": (1.5, 1.5e-6),
+          "squares-fused": (1.5, 2.8e-7)}
 # compiles etc. per job (partial run: ~2.4 s per job on average, with a
 # cache clear per job; on CPU the cell list compiles ~3x longer than the
-# rest); a fresh worker per configuration adds GUESS_WORKER_S
+# rest); a fresh worker per configuration adds GUESS_WORKER_S, and its
+# scene (made on the host: three jittered sets, then copied to the
+# device) GUESS_SCENE_S per particle: the H200's part 1 spent ~50 s of
+# its 257 s on neither start-up nor the 67M configuration's three jobs.
 GUESS_WORKER_S = 8.0
+GUESS_SCENE_S = 4e-7
 _GUESS_JOB_OVERHEAD_S = {"cell": 4.0, "jax-md": 2.0}
 GUESS_STARTUP_S = 60.0       # first worker: imports, Warp kernel compiles
+# A job's timeout: this many times its guess, and at least --timeout.
+TIMEOUT_FACTOR = 3.0
+
+
+def config_overhead_s(n: int) -> float:
+    """Guessed seconds a configuration costs besides its jobs: a fresh
+    worker and the scene."""
+    return GUESS_WORKER_S + GUESS_SCENE_S * n
+
+
+def min_repeats(n: int, args) -> int:
+    """Timed calls per measurement at least: ``--min-repeats``, but one
+    from ``--large-n`` particles up, where a call takes seconds and
+    repeats barely differ (H200, 67M: 1209.8-1210.0 ms over three) while
+    three of each of a job's measurements cost minutes of a part."""
+    return 1 if n >= args.large_n else args.min_repeats
 
 
 def list_entries(scene: str, param: int, p: int) -> int:
@@ -130,11 +155,27 @@ def guess_job_s(scene: str, param: int, p: int, method: str, args) -> float:
         steps.append(0.3 + 1e-7 * pairs)  # interaction_ms: the JAX sum alone
     if method in WARP_METHODS and getattr(args, "split", True):
         steps += [build, compute - build if method in FUSED else 0.85 * compute]
+    least = min_repeats(n, args)
     for t_ms in steps:
         t = t_ms / 1e3
-        reps = min(max(math.ceil(args.target_s / t), args.min_repeats), args.max_repeats)
+        reps = min(max(math.ceil(args.target_s / t), least), args.max_repeats)
         total += (1 + reps) * t
     return total
+
+
+def timeout_s(scene: str, param: int, p: int, method: str, args) -> float:
+    """A job's timeout: `TIMEOUT_FACTOR` times its guess, at least
+    ``--timeout`` (so it grows with N and k where the guess does)."""
+    return max(args.timeout,
+               TIMEOUT_FACTOR * guess_job_s(scene, param, p, method, args))
+
+
+def is_heavy(c: dict, method: str, args) -> bool:
+    """A job guessed over ``--heavy-s``: it runs after all the others, in
+    a part of its own (`build_plan`), so that it can take no other job's
+    place in a part (the guesses are roughest there, and a timeout costs
+    a part its time)."""
+    return guess_job_s(c["scene"], c["param"], c["p"], method, args) > args.heavy_s
 
 
 def universe(small: bool) -> list[tuple[str, int, int]]:
@@ -215,6 +256,16 @@ def build_plan(args) -> tuple[list[dict], list[dict]]:
             skip(c["scene"], c["param"], c["p"], c["tier"], why, [m])
         c["methods"] = [m for m in c["methods"] if m not in doomed]
     planned = [c for c in planned if c["methods"]]
+    if explicit is None:
+        # Heavy jobs last, each its own entry (so its own part), largest first.
+        heavy = [{**c, "methods": [m], "heavy": True} for c in planned
+                 for m in c["methods"] if is_heavy(c, m, args)]
+        heavy.sort(key=lambda c: -guess_job_s(c["scene"], c["param"], c["p"],
+                                              c["methods"][0], args))
+        light = [{**c, "methods": [m for m in c["methods"]
+                                   if not is_heavy(c, m, args)]}
+                 for c in planned]
+        planned = [c for c in light if c["methods"]] + heavy
     return planned, skipped
 
 
@@ -261,7 +312,14 @@ def split_parts(planned: list[dict], args) -> list[list[dict]]:
     for c in planned:
         est = {m: guess_job_s(c["scene"], c["param"], c["p"], m, args)
                for m in c["methods"]}
-        whole = GUESS_WORKER_S + sum(est.values())
+        overhead = config_overhead_s(c["N"])
+        whole = overhead + sum(est.values())
+        if c.get("heavy"):  # a part of its own (`is_heavy`)
+            close()
+            current.append(c)
+            used += whole
+            close()
+            continue
         if used + whole <= budget:
             current.append(c)
             used += whole
@@ -272,12 +330,12 @@ def split_parts(planned: list[dict], args) -> list[list[dict]]:
             used += whole
             continue
         take: list[str] = []
-        cost = GUESS_WORKER_S
+        cost = overhead
         for m in c["methods"]:
             if take and used + cost + est[m] > budget:
                 current.append({**c, "methods": take})
                 close()
-                take, cost = [], GUESS_WORKER_S
+                take, cost = [], overhead
             take.append(m)
             cost += est[m]
         current.append({**c, "methods": take})
@@ -331,27 +389,34 @@ def print_plan(planned: list[dict], skipped: list[dict], args,
     grid = len(universe(args.small))
     print(f"{grid} configurations in the seed's grid x {len(METHODS)} methods = "
           f"{grid * len(METHODS)} rows; planned: {n_configs} configurations, "
-          f"{n_jobs} jobs, in this order (est = rough H100/H200 guess incl. "
-          f"compiles; a worker start-up ~{GUESS_STARTUP_S:.0f} s more per part):")
+          f"{n_jobs} jobs, in this order (reps = timed calls per measurement "
+          f"at least; est = rough H100/H200 guess incl. compiles and the scene; "
+          f"tmo = the longest job timeout; a worker start-up "
+          f"~{GUESS_STARTUP_S:.0f} s more per part):")
     print(f"{'part':>4} {'#':>3} {'tier':>4} {'scene':7s} {'param':>9s} {'p':>3} "
-          f"{'N':>10} {'k~':>5} {'jobs':>4} {'est s':>6} {'cum s':>6}")
+          f"{'N':>10} {'k~':>5} {'jobs':>4} {'reps':>4} {'est s':>6} "
+          f"{'cum s':>6} {'tmo s':>6}")
     i = 0
     totals = []
     for k, part in enumerate(parts, first_part):
         cum = GUESS_STARTUP_S
         for c in part:
-            est = GUESS_WORKER_S + sum(guess_job_s(c["scene"], c["param"], c["p"], m, args)
-                                       for m in c["methods"])
-            mark = ""
+            est = config_overhead_s(c["N"]) + sum(
+                guess_job_s(c["scene"], c["param"], c["p"], m, args)
+                for m in c["methods"])
+            longest = max(timeout_s(c["scene"], c["param"], c["p"], m, args)
+                          for m in c["methods"])
+            mark = f"  (heavy: {c['methods'][0]})" if c.get("heavy") else ""
             if cum > args.time_budget:  # it would start after the budget
-                mark = "  (after --time-budget: would be skipped)"
+                mark += "  (after --time-budget: would be skipped)"
             cum += est
             i += 1
             pname = SCENES[c["scene"]][0]
             print(f"{k:>4} {i:>3} {c['tier']:>4} {c['scene']:7s} "
                   f"{pname + '=' + str(c['param']):>9s} {c['p']:>3} {c['N']:>10,} "
                   f"{k_expected(c['scene'], c['param'], c['p']):>5.0f} "
-                  f"{len(c['methods']):>4} {est:>6.1f} {cum:>6.0f}{mark}")
+                  f"{len(c['methods']):>4} {min_repeats(c['N'], args):>4} "
+                  f"{est:>6.1f} {cum:>6.0f} {longest:>6.0f}{mark}")
         totals.append(cum)
     print(f"methods: {' '.join(m for m in RUN_ORDER if m in args.methods)}")
     if args.part_budget:

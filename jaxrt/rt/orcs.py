@@ -327,8 +327,8 @@ def forces(search: "aabb.AabbSearch", side: wp.array, params: wp.array, *,
         forces.zero_()
         error.zero_()
         has_radii = int(radii is not None)
-        reach = radii if has_radii else wp.empty(1, dtype=search.scalar)
-        wp.launch(_forces_kernel, search.n,
+        reach = radii if has_radii else search.no_reach
+        wp.launch(aabb.overload(_forces_kernel, search.scalar), search.n,
                   inputs=head + [side, flags, has_radii, reach, params] + tail
                   + [forces, energy, d_sigma, d_epsilon, count, error])
 
@@ -358,7 +358,7 @@ def perse_step(search: "aabb.AabbSearch", side: wp.array, params: wp.array, *,
     head, flags, tail = _launch_args(search)
     with wp.ScopedDevice(search.device):
         error.zero_()
-        wp.launch(_perse_kernel, search.n,
+        wp.launch(aabb.overload(_perse_kernel, search.scalar), search.n,
                   inputs=head + [side, flags, params] + tail
                   + [velocities, positions_out, velocities_out, energy, count,
                      error])
