@@ -100,7 +100,7 @@ _CELLS_PER_PARTICLE = 4
 
 
 def _grid(cart: jax.Array, geometry: Geometry, query: Query,
-          reach: tuple[int, int] = _REACH):
+          reach: tuple[int, int] = _REACH, coarsen: bool = True):
     """Cell coordinates of each particle.
 
     Cells are as small as the stencil allows, unless that makes more than
@@ -111,6 +111,9 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
       cart: float ``(N, dim)`` Cartesian positions.
       reach: stencil reach in cells (along x, across): cells are
         ``query.cutoff / reach`` wide, or wider.
+      coarsen: static; False skips the coarsening loop (a device loop whose
+        every test is a host round trip on a GPU), for callers that proved
+        with `_static_cells` that it would not coarsen.
     Returns:
       float ``(N, dim)`` positions wrapped into ``[0, side)`` on periodic
       axes; int32 ``(N, dim)`` cell coordinates; int32 ``(dim,)`` cells per
@@ -136,9 +139,12 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
         return jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
                          jnp.floor(extent / size) + 1)
 
-    coarsen = jax.lax.while_loop(
-        lambda c: jnp.prod(cells(c)) > budget, lambda c: c * 1.25,
-        jnp.ones((), extent.dtype))
+    if coarsen:
+        coarsen = jax.lax.while_loop(
+            lambda c: jnp.prod(cells(c)) > budget, lambda c: c * 1.25,
+            jnp.ones((), extent.dtype))
+    else:  # the caller proved the loop would not run (`_static_cells`)
+        coarsen = jnp.ones((), extent.dtype)
     n = cells(coarsen)
     size = jnp.where(periodic, extent / n, min_size * coarsen)
     n = n.astype(jnp.int32)
@@ -164,7 +170,7 @@ def _stencil_rows(dim: int, across: int) -> np.ndarray:
 
 
 def _runs(sorted_key, cell, n, query: Query,
-          reach: tuple[int, int] = _REACH):
+          reach: tuple[int, int] = _REACH, table: int | None = None):
     """Runs of the sorted order that hold each particle's candidate cells.
 
     Args:
@@ -218,7 +224,7 @@ def _runs(sorted_key, cell, n, query: Query,
     else:
         lo1, hi1 = jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1)
         lo2 = hi2 = wraps = jnp.zeros_like(lo)
-    start = _cell_starts(sorted_key)
+    start = _cell_starts(sorted_key, table)
     start1, end1 = _run_ends(start, base + lo1, hi1 - lo1)
     start2, end2 = _run_ends(start, base + lo2, hi2 - lo2)
     len1 = jnp.where(valid, end1 - start1, 0)
@@ -322,6 +328,39 @@ def _image_axes(n_particles: int, side, query: Query,
                  for a in range(dim))
 
 
+def _static_cells(n_particles: int, side, query: Query,
+                  reach: tuple[int, int] = _REACH,
+                  flat: tuple[bool, ...] = ()) -> int | None:
+    """Static: a bound on `_grid`'s number of cells when it provably does
+    not coarsen, else None.
+
+    As in `_image_axes`: the cells per axis are static where every axis is
+    periodic or ``flat``; counted here in float64 with a relative slack of
+    ``2**-12`` upwards, they bound the traced float32 counts. If even
+    their product stays under the budget (with the slack), the traced
+    coarsening loop cannot run: the grid has at most that many cells, so
+    every key is below the bound.
+
+    Returns:
+      int, more than every cell key (the `_cell_starts` table), or None
+      (a free axis, or a grid that may coarsen: keep the loop and the
+      default table).
+    """
+    dim = query.dim
+    flat = tuple(flat) or (False,) * dim
+    if not all(p or f for p, f in zip(query.periodic, flat)):
+        return None
+    slack = 2.0 ** -12
+    cells = [max(math.floor(side[a] * reach[a > 0]
+                            / (query.cutoff * (1.0 + _CELL_MARGIN))
+                            * (1 + slack)), 1) if query.periodic[a] else 1
+             for a in range(dim)]
+    total = math.prod(cells)
+    if total > (_table_size(n_particles) - 1) * (1 - slack):
+        return None
+    return total + 1
+
+
 def _table_size(n: int) -> int:
     return _CELLS_PER_PARTICLE * n + 64
 
@@ -331,11 +370,14 @@ def _table_size(n: int) -> int:
 _RUN_SPAN = 2 * _REACH[0] + 2
 
 
-def _cell_starts(sorted_key):
+def _cell_starts(sorted_key, table: int | None = None):
     """int32 ``(table + 1 + _RUN_SPAN,)``: how many sorted keys are below
     each cell key (a scatter-add of N and a cumsum), padded at the end so
-    that a run's slice never leaves the table."""
-    size = _table_size(sorted_key.shape[0])
+    that a run's slice never leaves the table. ``table``: static, more
+    than the largest key (default `_table_size`, the coarsening budget's
+    bound); a smaller proven bound (`_static_cells`) makes the cumsum
+    shorter."""
+    size = table or _table_size(sorted_key.shape[0])
     count = jnp.zeros((size,), jnp.int32).at[sorted_key].add(1, mode="drop")
     total = jnp.full((_RUN_SPAN,), sorted_key.shape[0], jnp.int32)
     return jnp.concatenate([jnp.zeros((1,), jnp.int32),

@@ -557,6 +557,49 @@ def test_run_image_axes_bound_the_traced_grid(dtype):
     assert taken > 100  # the rule is not just "never"
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_static_cells_bound_the_traced_grid(dtype):
+    """Wherever `cell_list._static_cells` gives a table, the traced grid
+    (in the positions' dtype) does not coarsen and its every key is below
+    the table: boxes a hair around whole numbers of cells, N around the
+    coarsening budget; and it gives none with a free axis."""
+    from jaxrt import cell_list
+    from jaxrt._backend import Geometry
+    from jaxrt.energy import fused
+    rng = np.random.default_rng(11)
+    query = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True,) * 3,
+                                            (1.0,) * 3))
+
+    @jax.jit
+    def cells(side, R):
+        geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
+        return cell_list._grid(R, geometry, query)[2]
+
+    given = 0
+    with jax.enable_x64(dtype == "float64"):
+        for n in (12, 200, 2000, 20000):
+            R = jnp.zeros((n, 3), dtype)
+            budget = cell_list._table_size(n) - 1
+            for _ in range(30):
+                k = rng.integers(2, 60, 3) / np.array([4, 1, 1])
+                side = tuple(float(x) for x in 2.5 * (1 + 2.0 ** -10) * k
+                             * (1 + rng.uniform(-1e-6, 1e-6, 3)))
+                table = cell_list._static_cells(n, side, query)
+                got = np.asarray(cells(jnp.asarray(side, dtype), R))
+                uncoarsened = np.floor(np.array(side) * np.array([4, 1, 1])
+                                       / (2.5 * (1 + 2.0 ** -10)))
+                if table is not None:
+                    given += 1
+                    assert np.prod(got) < table, (side, n, got, table)
+                    assert np.prod(got) <= budget
+                    # no coarsening happened: the counts are the box's
+                    assert np.all(np.abs(got - uncoarsened) <= 1), (side, got)
+    assert given > 30  # the rule is not just "never"
+    free = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True, False, True),
+                                           (10.0,) * 3))
+    assert cell_list._static_cells(100, (10.0,) * 3, free) is None
+
+
 def faces_and_corners(dim, dtype):
     """Particles on the box's faces and corners and a hair below 0 (which
     the grid's ``mod`` rounds to ``side``, into the top cell), on a lattice
