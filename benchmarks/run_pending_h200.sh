@@ -2,11 +2,18 @@
 # What the H200 has not run yet of the code as it stands (each PART well
 # inside one 10-minute device call; benchmarks/RESULTS.md says which rows
 # they fill in):
-#   tests     the compiled kernels changed since their last GPU test: seed
-#             001's fused Warp kernels (tests/test_seed_fused.py), the
-#             spheres/squares list kernels that gained the fused branch, the
-#             fused cell kernel's launch options (tiles, unroll, across),
-#             the squares ulp case xfailed on the GPU only
+#   tests     the compiled code changed since its last GPU test, in four
+#             groups at once (compiling is CPU-bound): the Warp calls
+#             without side effects and with their overloads (bvh, policy,
+#             ORCS, seed 001's fused kernels), the fused cell kernel with
+#             per-run images and the static grid (test_fused.py, all),
+#             list-free SPH (its kernel cases), the list kernel
+#   step      #18's LJ step side by side (fused cell, jaxrt cell/Dense,
+#             jax-md Dense), the roofline with the fused step's halves, and
+#             the grid's stages (benchmarks/grid_stages.py)
+#   overhead  where a Table 2 step's host time goes (step_overhead.py), then
+#             Table 2 part 1 again (now with GPU-CELL-fused): does the fix
+#             of the Warp calls' fixed cost hold on the GPU?
 #   sph       list-free SPH (the cell kernel) against SPH on lists, side by
 #             side: 2D N = 10^6 and 3D N = 10^5 (#18's 2x target)
 #   accuracy  the accuracy sweep's settings the H200 has not measured:
@@ -24,7 +31,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|sph|accuracy}
+PART=${1:?usage: run_pending_h200.sh tests|step|overhead|sph|accuracy}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -38,12 +45,33 @@ tests() {  # name timeout pytest-args...
 }
 case $PART in
   tests)
-    tests seed_fused 200 tests/test_seed_fused.py
-    tests spheres_squares 150 tests/test_rt_spheres_squares.py -x
-    tests fused_launches 120 tests/test_fused.py -m "slow or not slow" \
-      -k "fine or tiles"
-    tests cutoff_ulp 60 tests/stability/test_cutoff_ulp.py \
-      -m "slow or not slow" -k squares ;;
+    tests warp 480 tests/test_bvh.py tests/test_policy.py \
+      tests/test_seed_fused.py tests/test_rt_spheres_squares.py &
+    tests cell 480 tests/test_fused.py -m "slow or not slow" &
+    tests sph 400 tests/test_sph_fused.py -m "slow or not slow" &
+    tests list_kernel 300 tests/test_cell_kernel.py tests/test_neighbors.py &
+    wait ;;
+  step)
+    timeout 200 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
+      --repeats 5 --timeout 60 --budget 170 --only fused:cell \
+      jaxrt:cell/Dense jax-md/Dense \
+      --out "$DEST/md_step_$GIT_SHA.csv" > "$DEST/logs/md_step.log" 2>&1
+    note "md_step rc=$?"
+    timeout 200 "$PY" benchmarks/roofline.py --n 1000000 --kernels auto \
+      --parts --timeout 60 --budget 170 \
+      --out "$DEST/roofline_$GIT_SHA.csv" > "$DEST/logs/roofline.log" 2>&1
+    note "roofline rc=$?"
+    timeout 120 "$PY" benchmarks/grid_stages.py --n 1000000 \
+      --out "$DEST/grid_stages_$GIT_SHA.csv" > "$DEST/logs/grid_stages.log" 2>&1
+    note "grid_stages rc=$?" ;;
+  overhead)
+    timeout 240 "$PY" benchmarks/step_overhead.py --n 64 50000 --budget 200 \
+      --hard-stop 230 --out "$DEST/step_overhead_$GIT_SHA.csv" \
+      > "$DEST/logs/step_overhead.log" 2>&1
+    note "step_overhead rc=$?"
+    OUT=$DEST BUDGET=250 HARD_STOP=290 ROW_TIMEOUT=120 timeout 300 \
+      bash benchmarks/run_table2_h200.sh 1 > "$DEST/logs/table2_1.log" 2>&1
+    note "table2 part 1 rc=$?" ;;
   sph)
     timeout 280 "$PY" benchmarks/sph_step.py --n 1000000 --repeats 5 \
       --timeout 90 --budget 240 --only list:cell/Dense \
@@ -60,5 +88,5 @@ case $PART in
       --budget 480 --knobs list-free,pairs,spheres-epsilon \
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
-  *) echo "PART must be tests, sph or accuracy"; exit 2 ;;
+  *) echo "PART must be tests, step, overhead, sph or accuracy"; exit 2 ;;
 esac
