@@ -523,15 +523,13 @@ def test_run_image_axes_decisions():
     assert image_axes(np.zeros((12, 3)), 8.0) == (True, True, True)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_run_image_axes_bound_the_traced_grid(dtype):
-    """Wherever `run_image_axes` takes an axis, `cell_list._grid` (traced,
-    in the positions' dtype) has enough cells on it: boxes a hair around
-    whole numbers of cells, and N around the coarsening budget."""
+def _traced_grid_cells():
+    """``(query, cells)``: the fused grid's query in a periodic cube (cutoff
+    2.5), and ``cells(side, R)``, `cell_list._grid`'s traced cells per axis
+    (int32 ``(3,)``) for box ``side`` and positions ``R``."""
     from jaxrt import cell_list
     from jaxrt._backend import Geometry
     from jaxrt.energy import fused
-    rng = np.random.default_rng(7)
     query = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True,) * 3,
                                             (1.0,) * 3))
 
@@ -539,6 +537,18 @@ def test_run_image_axes_bound_the_traced_grid(dtype):
     def cells(side, R):
         geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
         return cell_list._grid(R, geometry, query)[2]
+
+    return query, cells
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_run_image_axes_bound_the_traced_grid(dtype):
+    """Wherever `run_image_axes` takes an axis, `cell_list._grid` (traced,
+    in the positions' dtype) has enough cells on it: boxes a hair around
+    whole numbers of cells, and N around the coarsening budget."""
+    from jaxrt.energy import fused
+    rng = np.random.default_rng(7)
+    query, cells = _traced_grid_cells()
 
     need = np.array([10, 3, 3])
     taken = 0
@@ -564,16 +574,9 @@ def test_static_cells_bound_the_traced_grid(dtype):
     the table: boxes a hair around whole numbers of cells, N around the
     coarsening budget; and it gives none with a free axis."""
     from jaxrt import cell_list
-    from jaxrt._backend import Geometry
     from jaxrt.energy import fused
     rng = np.random.default_rng(11)
-    query = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True,) * 3,
-                                            (1.0,) * 3))
-
-    @jax.jit
-    def cells(side, R):
-        geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
-        return cell_list._grid(R, geometry, query)[2]
+    query, cells = _traced_grid_cells()
 
     given = 0
     with jax.enable_x64(dtype == "float64"):
