@@ -11,6 +11,8 @@
 #   step      #18's LJ step side by side (fused cell, jaxrt cell/Dense,
 #             jax-md Dense), the roofline with the fused step's halves, and
 #             the grid's stages (benchmarks/grid_stages.py)
+#   profile   Nsight Compute on the two cell kernels (occupancy, issue
+#             slots, stall reasons), if ncu is on the machine
 #   overhead  where a Table 2 step's host time goes (step_overhead.py), then
 #             Table 2 part 1 again (now with GPU-CELL-fused): does the fix
 #             of the Warp calls' fixed cost hold on the GPU?
@@ -31,7 +33,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|step|overhead|sph|accuracy}
+PART=${1:?usage: run_pending_h200.sh tests|step|profile|overhead|sph|accuracy}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -64,6 +66,15 @@ case $PART in
     timeout 120 "$PY" benchmarks/grid_stages.py --n 1000000 \
       --out "$DEST/grid_stages_$GIT_SHA.csv" > "$DEST/logs/grid_stages.log" 2>&1
     note "grid_stages rc=$?" ;;
+  profile)
+    NCU=$(command -v ncu || ls /usr/local/cuda*/bin/ncu 2>/dev/null | head -1)
+    [[ -n $NCU ]] || { note "profile: no ncu on this machine"; exit 0; }
+    timeout 400 "$NCU" --kernel-name regex:jaxrt_cell --launch-skip 2 \
+      --launch-count 2 --section SpeedOfLight --section Occupancy \
+      --section WarpStateStats --section SchedulerStats --section LaunchStats \
+      --section ComputeWorkloadAnalysis --section MemoryWorkloadAnalysis \
+      "$PY" benchmarks/profile_cell_kernels.py > "$DEST/logs/ncu.log" 2>&1
+    note "profile rc=$?" ;;
   overhead)
     timeout 240 "$PY" benchmarks/step_overhead.py --n 64 50000 --budget 200 \
       --hard-stop 230 --out "$DEST/step_overhead_$GIT_SHA.csv" \
@@ -88,5 +99,5 @@ case $PART in
       --budget 480 --knobs list-free,pairs,spheres-epsilon \
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
-  *) echo "PART must be tests, step, overhead, sph or accuracy"; exit 2 ;;
+  *) echo "PART must be tests, step, profile, overhead, sph or accuracy"; exit 2 ;;
 esac
