@@ -8,8 +8,8 @@ cell keys), ``grid+key static`` (the same with the cells per axis known
 when tracing), the sort as `fused._sort_by_key` does it and three others,
 ``cell_starts`` (a scatter-add and a cumsum over the 4 N + 64 table) with
 its two pieces, ``runs`` (`cell_list._runs`: starts and both parts' run
-ends), the run ends of 9 runs per particle as one slice each (today) or
-two gathers, and ``cell_runs`` whole. Stages timed apart pay their own
+ends), the run ends of 9 runs per particle as one slice each (before
+2026-12-02) or two gathers (now), and ``cell_runs`` whole. Stages timed apart pay their own
 launches and outputs, so they add up to more than the whole.
 
     GIT_SHA=$(git rev-parse --short HEAD) python benchmarks/grid_stages.py --n 1000000
@@ -104,14 +104,19 @@ def main(argv=None) -> None:
                           jnp.int32) for k in range(2)]
     extra = jnp.full((n, 9), 8, jnp.int32)
 
-    def run_ends_two(start, first):
-        size = start.shape[0] - cell_list._RUN_SPAN
-        first = jnp.clip(first, 0, size)
-        return start[first], start[first + 9]
+    def run_ends_slice(start, first):
+        # The run ends as one slice of the table per run (before 2026-12-02).
+        span_len = cell_list._RUN_SPAN
+        first = jnp.clip(first, 0, start.shape[0] - span_len)
+        span = jax.vmap(lambda f: jax.lax.dynamic_slice(start, (f,), (span_len,)))(
+            first.reshape(-1)).reshape(first.shape + (span_len,))
+        at = jnp.arange(span_len, dtype=jnp.int32)
+        return span[..., 0], jnp.sum(jnp.where(at == 9, span, 0), axis=-1)
 
-    stage("run ends x9: slices", lambda a: cell_list._run_ends(a[0], a[1], extra),
+    stage("run ends x9: slices", lambda a: run_ends_slice(*a),
           list(zip(starts, firsts)))
-    stage("run ends x9: two gathers", lambda a: run_ends_two(*a),
+    stage("run ends x9: two gathers (now)",
+          lambda a: cell_list._run_ends(a[0], a[1], extra),
           list(zip(starts, firsts)))
     stage("cell_runs", lambda R: fused.cell_runs(R, params), inputs)
     path = _harness.write_csv(rows, _harness.out_path(
