@@ -366,7 +366,7 @@ def _run_origin(mine, codes_ref, r, lanes, side, image_axes):
     out = []
     for a, x in enumerate(mine):
         if image_axes[a]:
-            s = ((code >> (IMAGE_BITS * a)) & 3) - 1
+            s = ((code >> (IMAGE_BITS * a)) & ((1 << IMAGE_BITS) - 1)) - 1
             x = x - s.astype(x.dtype) * side[a]
         out.append(x)
     return out

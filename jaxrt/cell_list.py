@@ -280,34 +280,18 @@ def _run_images(cell, n, query: Query, reach: tuple[int, int] = _REACH):
     return code, wrapped
 
 
-def _image_axes(n_particles: int, side, query: Query,
-                reach: tuple[int, int] = _REACH,
-                flat: tuple[bool, ...] = ()) -> tuple[bool, ...]:
-    """Static: the periodic axes on which `_run_images` is every pair's
-    minimum image, whatever the positions.
-
-    `_grid`'s cells per axis are static where every axis is periodic (the
-    box sets them) or ``flat`` (all positions equal there: one cell); its
-    coarsening loop is replayed here in float64 with a relative slack of
-    ``2**-12`` on every cell count, which covers the rounding of the
-    traced float32 loop. An axis is accepted where its fewest possible
-    cells exceed ``2 across`` (``2 reach + 1`` along x). A free axis that
-    is not flat can coarsen the grid without bound: nothing is accepted.
-
-    Args:
-      n_particles: N (the cell-start table's budget).
-      side: ``dim`` Python floats, the box (periodic axes).
-      flat: ``dim`` bools (or empty: none), free axes whose positions the
-        caller keeps all equal (zero padding).
-    Returns:
-      ``dim`` bools.
-    """
+def _box_cells(n_particles: int, side, query: Query, reach, flat, slack):
+    """``(cells, coarsen)``: `_grid`'s static cells per axis where the box
+    sets them, counted in float64 with a relative ``slack`` on every count
+    (``+`` bounds the traced float32 counts from above, ``-`` from below),
+    after replaying its coarsening loop (``coarsen``: its factor, 1.0 if it
+    did not run); None where a free axis is not ``flat`` (its spread
+    coarsens the grid without bound)."""
     dim = query.dim
     flat = tuple(flat) or (False,) * dim
     periodic = query.periodic
     if not all(p or f for p, f in zip(periodic, flat)):
-        return (False,) * dim
-    slack = 2.0 ** -12
+        return None
     budget = _table_size(n_particles) - 1
     min_size = [query.cutoff * (1.0 + _CELL_MARGIN) / reach[a > 0]
                 for a in range(dim)]
@@ -320,12 +304,43 @@ def _image_axes(n_particles: int, side, query: Query,
     # The traced loop stops no later than this one: its counts are at most
     # these, and its product is compared with the budget to float rounding.
     coarsen = 1.0
-    while math.prod(cells(coarsen, slack)) > budget * (1 - slack):
+    while (math.prod(cells(coarsen, _STATIC_SLACK))
+           > budget * (1 - _STATIC_SLACK)):
         coarsen *= 1.25
-    fewest = cells(coarsen, -slack)
-    need = [2 * reach[0] + 2] + [2 * reach[1] + 1] * (dim - 1)
-    return tuple(bool(periodic[a] and fewest[a] >= need[a])
-                 for a in range(dim))
+    return cells(coarsen, slack), coarsen
+
+
+# Relative slack on the static cell counts: covers the rounding of the
+# traced float32 grid.
+_STATIC_SLACK = 2.0 ** -12
+
+
+def _image_axes(n_particles: int, side, query: Query,
+                reach: tuple[int, int] = _REACH,
+                flat: tuple[bool, ...] = ()) -> tuple[bool, ...]:
+    """Static: the periodic axes on which `_run_images` is every pair's
+    minimum image, whatever the positions.
+
+    `_grid`'s cells per axis are static where every axis is periodic (the
+    box sets them) or ``flat`` (all positions equal there: one cell)
+    (`_box_cells`). An axis is accepted where its fewest possible cells
+    exceed ``2 across`` (``2 reach + 1`` along x).
+
+    Args:
+      n_particles: N (the cell-start table's budget).
+      side: ``dim`` Python floats, the box (periodic axes).
+      flat: ``dim`` bools (or empty: none), free axes whose positions the
+        caller keeps all equal (zero padding).
+    Returns:
+      ``dim`` bools.
+    """
+    counted = _box_cells(n_particles, side, query, reach, flat, -_STATIC_SLACK)
+    if counted is None:
+        return (False,) * query.dim
+    fewest = counted[0]
+    need = [2 * reach[0] + 2] + [2 * reach[1] + 1] * (query.dim - 1)
+    return tuple(bool(query.periodic[a] and fewest[a] >= need[a])
+                 for a in range(query.dim))
 
 
 def _static_cells(n_particles: int, side, query: Query,
@@ -334,31 +349,19 @@ def _static_cells(n_particles: int, side, query: Query,
     """Static: a bound on `_grid`'s number of cells when it provably does
     not coarsen, else None.
 
-    As in `_image_axes`: the cells per axis are static where every axis is
-    periodic or ``flat``; counted here in float64 with a relative slack of
-    ``2**-12`` upwards, they bound the traced float32 counts. If even
-    their product stays under the budget (with the slack), the traced
-    coarsening loop cannot run: the grid has at most that many cells, so
-    every key is below the bound.
+    The most cells `_box_cells` allows: if the coarsening loop replayed
+    there does not run, the traced one cannot either, the grid has at most
+    that many cells, and every key is below the bound.
 
     Returns:
       int, more than every cell key (the `_cell_starts` table), or None
       (a free axis, or a grid that may coarsen: keep the loop and the
       default table).
     """
-    dim = query.dim
-    flat = tuple(flat) or (False,) * dim
-    if not all(p or f for p, f in zip(query.periodic, flat)):
+    counted = _box_cells(n_particles, side, query, reach, flat, _STATIC_SLACK)
+    if counted is None or counted[1] != 1.0:
         return None
-    slack = 2.0 ** -12
-    cells = [max(math.floor(side[a] * reach[a > 0]
-                            / (query.cutoff * (1.0 + _CELL_MARGIN))
-                            * (1 + slack)), 1) if query.periodic[a] else 1
-             for a in range(dim)]
-    total = math.prod(cells)
-    if total > (_table_size(n_particles) - 1) * (1 - slack):
-        return None
-    return total + 1
+    return math.prod(counted[0]) + 1
 
 
 def _table_size(n: int) -> int:

@@ -494,7 +494,8 @@ class RunImages:
         these: a position wrapped by another rounding could sit a box away
         from its cell.
       first, wrapped: int32 ``(N, R)``, sorted order: image codes of each
-        run's first and wrapped parts (`jaxrt.cell_list._run_images`).
+        run's first and wrapped parts (`jaxrt.cell_list._run_images`);
+        None where no axis uses them.
       axes: static ``dim`` bools: the axes on which the codes are every
         pair's minimum image, for any positions (`run_image_axes`); the
         walk rounds candidates' differences on the other periodic axes.
@@ -507,7 +508,8 @@ class RunImages:
 
     def kernel_options(self) -> dict:
         """`jaxrt._cell_kernel.pair_sums`' ``images`` and ``image_axes``."""
-        return dict(images=(self.first, self.wrapped), image_axes=self.axes)
+        return dict(images=None if self.first is None
+                    else (self.first, self.wrapped), image_axes=self.axes)
 
 
 def _grid_query(params: _Params):
@@ -586,9 +588,12 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
     cell = cell[order]
     start1, len1, start2, len2 = cell_list._runs(sorted_key, cell, cells,
                                                  query, reach, table)
-    first, second = cell_list._run_images(cell, cells, query, reach)
-    images = RunImages(wrapped[order], first, second,
-                       run_image_axes(params, R.shape[0], across=across))
+    axes = run_image_axes(params, R.shape[0], across=across)
+    # The codes only where some axis uses them (the kernel reads nothing else).
+    first = second = None
+    if any(axes):
+        first, second = cell_list._run_images(cell, cells, query, reach)
+    images = RunImages(wrapped[order], first, second, axes)
     # The wrapped part continues the first in one loop: particles near the
     # x ends have long wrapped parts, so a loop (or a column) of their own
     # would cost as much as the first for every particle.
