@@ -41,6 +41,7 @@ roofline columns then say what the row would cost at the measured limits:
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 
@@ -169,18 +170,22 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     cell = backend or fused._Cell()
     interpret = jax.default_backend() not in ("gpu", "cuda")  # CPU smoke
     n = R.shape[0]
-    if job["row"] == "grid":
-        t = _harness.time_calls(jax.jit(lambda R: fused.cell_runs(
-            R, params, across=cell.across)), inputs, **timing)
-        # positions in; keys, order, 2 x runs x (start, length, image) and
-        # the sorted wrapped positions out
-        return {"N": n, "kernel": job["kernel"], "candidates": round(candidates, 1),
-                "bytes_min": 4 * 3 + 4 * 2 + 4 * 6 * runs + 4 * 3,
-                **t.columns()}
-
     def walk(R):
         order, grid, images = fused.cell_runs(R, params, across=cell.across)
+        if cell.runs == "kernel":  # the kernel reads the grid, not the runs
+            return order, dataclasses.replace(images, first=None,
+                                              wrapped=None), None
         return order, images, fused.kernel_runs(grid)
+
+    if job["row"] == "grid":  # what the walk reads of it, no more
+        t = _harness.time_calls(jax.jit(walk), inputs, **timing)
+        # positions in; keys, order, 2 x runs x (start, length, image) and
+        # the sorted wrapped positions out
+        return {"N": n, "kernel": job["kernel"] + (
+                    f" {job['launch']}" if job.get("launch") else ""),
+                "candidates": round(candidates, 1),
+                "bytes_min": 4 * 3 + 4 * 2 + 4 * 6 * runs + 4 * 3,
+                **t.columns()}
 
     walks = [jax.jit(walk)(x) for x in inputs]
     one = jnp.ones((), R.dtype)
@@ -189,8 +194,9 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     def kernel(order, images, grid):
         return cell._kernel_walk(
             images, grid, jnp.asarray(params.side, R.dtype), one, one,
-            None, order, params, interpret, False, False, block=cell.block,
-            warps=cell.warps, tile=cell.tile, unroll=cell.unroll)
+            None, order, params, interpret, False, False,
+            run_source=cell.runs, block=cell.block, warps=cell.warps,
+            tile=cell.tile, unroll=cell.unroll)
 
     t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)
     return {"N": n, "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch") else ""),
@@ -235,9 +241,11 @@ def plan(args) -> list[dict]:
         for kernel in args.kernels:
             jobs.append({"row": row, "N": args.n, "kernel": kernel,
                          "repeats": args.repeats, "warmup": args.warmup})
-    if args.parts:
+    if args.parts:  # the default launch's halves, then each launch's
         jobs += [{"row": r, "N": args.n, "kernel": "pallas",
-                  "repeats": args.repeats, "warmup": args.warmup}
+                  "repeats": args.repeats, "warmup": args.warmup,
+                  **({"launch": launch} if launch else {})}
+                 for launch in [""] + list(args.launches)
                  for r in ("grid", "walk")]
     for launch in args.launches:
         jobs.append({"row": "fused", "N": args.n, "kernel": "pallas",
@@ -255,6 +263,8 @@ def main(argv=None) -> None:
                         help="extra fused rows with other launches of the "
                         "kernel, BLOCKxWARPS[xTILE][uUNROLL][aACROSS] (e.g. "
                         "64x2, 32x1u2a2, 16x1x16: with a tile, the cluster "
+                        "layout; a final s: the runs stored beforehand, not "
+                        "found by the kernel, as Cell(runs=\"stored\"); "
                         "layout; the default is 32x1, no tile); CUDA only")
     parser.add_argument("--parts", action="store_true",
                         help="also the fused forces' two halves, the grid "

@@ -69,7 +69,7 @@ case $PART in
   profile)
     NCU=$(command -v ncu || ls /usr/local/cuda*/bin/ncu 2>/dev/null | head -1)
     [[ -n $NCU ]] || { note "profile: no ncu on this machine"; exit 0; }
-    timeout 400 "$NCU" --kernel-name regex:jaxrt_cell --launch-skip 2 \
+    timeout ${NCU_LIMIT:-400} "$NCU" --clock-control none --kernel-name regex:jaxrt_cell --launch-skip 2 \
       --launch-count 2 --section SpeedOfLight --section Occupancy \
       --section WarpStateStats --section SchedulerStats --section LaunchStats \
       --section ComputeWorkloadAnalysis --section MemoryWorkloadAnalysis \

@@ -23,6 +23,7 @@ candidates at the same time.
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,25 @@ except (ImportError, AttributeError):  # an older JAX: the portable path
 
 # Bits per axis of the run image codes (`jaxrt.cell_list._run_images`).
 IMAGE_BITS = 2
+
+
+class CellGrid(NamedTuple):
+    """The sorted cell grid, for a kernel that finds each particle's runs
+    itself (`pair_sums`' ``grid``).
+
+    Attributes:
+      starts: int32 ``(T + 1 + 2 reach[0] + 2,)``: how many sorted particles
+        lie in cells with smaller keys, padded at the end
+        (`jaxrt.cell_list._cell_starts`).
+      cell: int32 ``(N, dim)``: the sorted particles' cell coordinates.
+      cells: int32 ``(dim,)``: cells per axis (keys: x fastest).
+      reach: static ``(along x, across)``: the stencil's reach in cells.
+    """
+
+    starts: jax.Array
+    cell: jax.Array
+    cells: jax.Array
+    reach: tuple[int, int]
 
 # Particles per program (one per thread) and warps per program: one warp
 # per program was the fastest of 32-256 particles and 1-8 warps on the GPU
@@ -65,7 +85,7 @@ def _padding(n: int, block: int):
     return padded, pad
 
 
-def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
+def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
                    side, *, periodic: tuple[bool, ...], mask_self: bool,
                    row_width: int, shell: int, interpret: bool = False):
     """Walk every particle's runs; append sure hits to its row, shell hits
@@ -75,8 +95,8 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
       sorted_cart: float ``(N, dim)`` wrapped Cartesian positions, sorted
         by cell.
       order: int32 ``(N,)``: sorted position -> caller's index.
-      sorted_runs: ``(start1, len1, start2, len2)``, int32 ``(N, R)`` in
-        sorted order (`jaxrt.cell_list._runs`).
+      grid: the sorted grid (`CellGrid`): each thread finds its particle's
+        runs in the cell-start table (`_run_reader`).
       inner_sq, outer_sq: float scalars: squared distances below which a
         pair is sure, and below which it is in the shell.
       side: float ``(dim,)`` box sides (used on periodic axes only).
@@ -100,13 +120,11 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
 
     # One array per axis: the kernel gathers scalars by index.
     coords = [pad(sorted_cart[:, a]) for a in range(dim)]
-    # Runs of all rows as (2R, padded): first runs, then wrapped runs.
-    start1, len1, start2, len2 = sorted_runs
-    starts = pad(jnp.concatenate([start1, start2], axis=1)).T
-    lengths = pad(jnp.concatenate([len1, len2], axis=1)).T
-    if not any(periodic):  # no wrapped runs to walk
-        starts, lengths = starts[:start1.shape[1]], lengths[:start1.shape[1]]
-    starts = jnp.clip(starts, 0, n)  # lengths bound the walk; keep in range
+    rows = (2 * grid.reach[1] + 1) ** (dim - 1)
+    n_runs = rows * (2 if periodic[0] else 1)
+    run_inputs = [grid.starts.astype(jnp.int32),
+                  *[pad(grid.cell[:, a].astype(jnp.int32))
+                    for a in range(dim)], grid.cells.astype(jnp.int32)]
     params = jnp.zeros((8,), dtype)
     params = params.at[0].set(inner_sq).at[1].set(outer_sq)
     params = params.at[2:2 + dim].set(side.astype(dtype))
@@ -115,7 +133,7 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
     shell = max(shell, 1)
     kernel = functools.partial(_walk, n=n, dim=dim, periodic=periodic,
                                mask_self=mask_self, row_width=row_width,
-                               shell=shell, runs=starts.shape[0])
+                               shell=shell, runs=n_runs, reach=grid.reach)
     outputs = (
         jax.ShapeDtypeStruct((n * row_width,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.int32),
@@ -124,29 +142,30 @@ def candidate_rows(sorted_cart, order, sorted_runs, inner_sq, outer_sq,
     )
     rows, count, shell_rows, shell_count = pl.pallas_call(
         kernel, out_shape=outputs, grid=(padded // _BLOCK,),
-        input_output_aliases={len(coords) + 4: 0},
+        input_output_aliases={len(coords) + 2 + len(run_inputs): 0},
         compiler_params=_COMPILER_PARAMS(num_warps=_WARPS),
         interpret=interpret, name="jaxrt_cell_walk",
-    )(params, *coords, pad(order), starts, lengths,
+    )(params, *coords, pad(order), *run_inputs,
       jnp.full((n * row_width,), n, jnp.int32))
     return (rows.reshape(n, row_width), count,
             shell_rows.reshape(n, shell), shell_count)
 
 
 def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
-          runs):
+          runs, reach):
     """One program: ``_BLOCK`` consecutive sorted particles, one per thread.
 
     Refs: float ``(8,)`` params (inner_sq, outer_sq, then ``dim`` box
     sides from slot 2 and their inverses from slot 5); ``dim`` float
-    ``(padded,)`` sorted coordinates; int32
-    ``(padded,)`` order; int32 ``(runs, padded)`` run starts and lengths;
-    the row fill (aliased to the rows); then the four outputs of
-    `candidate_rows`, flat.
+    ``(padded,)`` sorted coordinates; int32 ``(padded,)`` order; the grid
+    (`_run_reader`: cell-start table, ``dim`` int32 ``(padded,)`` cell
+    coordinates, int32 ``(dim,)`` cells per axis); the row fill (aliased
+    to the rows); then the four outputs of `candidate_rows`, flat.
     """
     coord_refs = refs[:dim]
-    order_ref, starts_ref, lengths_ref, _ = refs[dim:dim + 4]
-    rows_ref, count_ref, shell_ref, shell_count_ref = refs[dim + 4:]
+    order_ref = refs[dim]
+    run_refs = refs[dim + 1:dim + 1 + _n_run_refs(dim, (), reach)]
+    rows_ref, count_ref, shell_ref, shell_count_ref = refs[-4:]
     first = pl.program_id(0) * _BLOCK
     block = pl.ds(first, _BLOCK)
     # sorted index (spare threads of the last block: the last particle)
@@ -158,11 +177,16 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
     inverse_side = [params_ref[5 + a] for a in range(dim)]
     zero = jnp.zeros((_BLOCK,), jnp.int32)
 
+    # Spare threads walk the last particle's runs (``me`` is clamped): they
+    # write what it writes.
+    run_at = _run_reader(run_refs, block, me, n, mine, side, dim=dim,
+                         periodic=periodic, image_axes=(False,) * dim,
+                         reach=reach)
+
     # One loop over runs, not one per run: a fifth of the interpreter's
     # compile time, and the same speed on the GPU.
     def walk_run(r, counts):
-        start = starts_ref[r, block]
-        length = lengths_ref[r, block]
+        start, length, _ = run_at(r)
 
         def step(s, counts):
             count, shell_count = counts
@@ -210,6 +234,7 @@ def _power_of_two(value: int) -> bool:
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
               images=None, image_axes: tuple[bool, ...] | None = None,
+              grid: CellGrid | None = None,
               block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
               unroll: int = 1, interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
@@ -270,6 +295,11 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         the ``image_axes`` a candidate beyond the grid's cutoff may be
         seen through another image than its nearest, never closer: the
         terms must vanish beyond the cutoff, as the walk's do anyway.)
+      grid: None, or the sorted grid itself (`CellGrid`): then each thread
+        finds its particle's runs and their images from the cell-start
+        table (two loads per run) instead of reading ``sorted_runs`` and
+        ``images`` (which may be None): the grid needs no pass over every
+        particle's runs in memory.
       block, warps: particles per program and warps per program.
       tile: 0, or the candidates per tile of the cluster layout (a power
         of two, as ``block``).
@@ -294,7 +324,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
             x and not p for x, p in zip(image_axes, periodic)):
         raise ValueError(f"pair_sums: image_axes={image_axes} must be {dim} "
                          f"bools, true only on periodic axes ({periodic}).")
-    if any(image_axes) and images is None:
+    if any(image_axes) and images is None and grid is None:
         raise ValueError("pair_sums: image_axes needs the runs' images "
                          "(images=(first, wrapped)).")
     padded, pad = _padding(n, block)
@@ -305,27 +335,37 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     pad_j = _padding(n + tile, block)[1]
 
     coords = [pad_j(sorted_cart[:, a]) for a in range(dim)]
-    start1, len1, start2, len2 = sorted_runs
-    starts = jnp.concatenate([start1, start2], axis=1)
-    lengths = jnp.concatenate([len1, len2], axis=1)
-    if not any(periodic):
-        starts, lengths = start1, len1
-    # The spare threads of the last block walk nothing.
-    lengths = jnp.pad(lengths, [(0, extra), (0, 0)]).T
-    starts = jnp.clip(pad(starts), 0, n).T
-    codes = []
-    if any(image_axes):  # the runs' images, laid out as their starts
-        codes = jnp.concatenate(images, axis=1)[:, :starts.shape[0]]
-        codes = [pad(codes).T]
+    if grid is not None:
+        rows = (2 * grid.reach[1] + 1) ** (dim - 1)
+        n_runs = rows * (2 if periodic[0] else 1)
+        # Spare lanes repeat the last particle's cell; `live` empties them.
+        run_inputs = [grid.starts.astype(jnp.int32),
+                      *[pad(grid.cell[:, a].astype(jnp.int32))
+                        for a in range(dim)],
+                      grid.cells.astype(jnp.int32)]
+    else:
+        start1, len1, start2, len2 = sorted_runs
+        starts = jnp.concatenate([start1, start2], axis=1)
+        lengths = jnp.concatenate([len1, len2], axis=1)
+        if not any(periodic):
+            starts, lengths = start1, len1
+        # The spare threads of the last block walk nothing.
+        lengths = jnp.pad(lengths, [(0, extra), (0, 0)]).T
+        starts = jnp.clip(pad(starts), 0, n).T
+        n_runs = starts.shape[0]
+        run_inputs = [starts, lengths]
+        if any(image_axes):  # the runs' images, laid out as their starts
+            codes = jnp.concatenate(images, axis=1)[:, :n_runs]
+            run_inputs.append(pad(codes).T)
     geometry = jnp.concatenate([side.astype(dtype),
                                 (1.0 / side).astype(dtype)])
     scalars = jnp.asarray(scalars, dtype).reshape(-1)
     extras = [pad_j(jnp.asarray(p, dtype)) for p in per_particle]
     kernel = functools.partial(
         _tile_walk if tile else _sum_walk, n=n, dim=dim, periodic=periodic,
-        image_axes=image_axes, block=block, runs=starts.shape[0],
+        image_axes=image_axes, block=block, runs=n_runs,
         n_extras=len(extras), n_sums=n_sums, n_scalars=scalars.shape[0],
-        pair_terms=pair_terms,
+        pair_terms=pair_terms, reach=None if grid is None else grid.reach,
         **({"tile": tile} if tile else {"unroll": unroll}))
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
@@ -333,58 +373,152 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         kernel, out_shape=outputs, grid=(padded // block,),
         compiler_params=_COMPILER_PARAMS(num_warps=warps),
         interpret=interpret, name="jaxrt_cell_pair_sums",
-    )(geometry, scalars, *coords, starts, lengths, *codes, *extras)
+    )(geometry, scalars, *coords, *run_inputs, *extras)
     vector = jnp.stack([s[:n] for s in sums[:dim]], axis=1)
     scalar = jnp.stack([s[:n] for s in sums[dim:]]) if n_sums else (
         jnp.zeros((0, n), dtype))
     return vector, scalar
 
 
-def _sum_refs(refs, dim: int, n_extras: int, images: bool):
-    """`pair_sums`' refs after the geometry and scalars: (coordinates, run
-    starts, run lengths, run image codes or None, per-particle values,
-    outputs)."""
-    coords, (starts, lengths), refs = (refs[:dim], refs[dim:dim + 2],
-                                       refs[dim + 2:])
-    codes = None
-    if images:
-        codes, refs = refs[0], refs[1:]
-    return coords, starts, lengths, codes, refs[:n_extras], refs[n_extras:]
+def _sum_refs(refs, dim: int, n_extras: int, n_run_refs: int):
+    """`pair_sums`' refs after the geometry and scalars: (coordinates, the
+    refs the runs are read from, per-particle values, outputs)."""
+    coords, runs, refs = (refs[:dim], refs[dim:dim + n_run_refs],
+                          refs[dim + n_run_refs:])
+    return coords, runs, refs[:n_extras], refs[n_extras:]
 
 
-def _run_origin(mine, codes_ref, r, lanes, side, image_axes):
-    """The lanes' own positions as run ``r`` sees them: minus the run's
-    image ``s_a side_a`` on the ``image_axes`` (``x_i - (x_j + s side) =
-    (x_i - s side) - x_j``), once per run instead of a rounding per
-    candidate. ``mine``: ``dim`` float arrays, the lanes on their leading
-    axis (``(block,)`` or ``(block, 1)``)."""
-    if codes_ref is None:
-        return list(mine)
-    code = codes_ref[r, lanes]
-    if mine[0].ndim == 2:
-        code = code[:, None]
-    out = []
-    for a, x in enumerate(mine):
-        if image_axes[a]:
-            s = ((code >> (IMAGE_BITS * a)) & ((1 << IMAGE_BITS) - 1)) - 1
-            x = x - s.astype(x.dtype) * side[a]
-        out.append(x)
-    return out
+def _n_run_refs(dim: int, image_axes, reach) -> int:
+    """How many refs `_run_reader` takes: the grid's (cell-start table,
+    ``dim`` cell coordinates, cells per axis), or the stored runs' (starts,
+    lengths, and image codes where any axis uses them)."""
+    if reach is not None:
+        return dim + 2
+    return 2 + any(image_axes)
+
+
+def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
+                image_axes, reach):
+    """``run_at(r) -> (start, length, origin)`` for the lanes of a program:
+    int32 ``(block,)`` the sorted position where run ``r`` begins and its
+    length, and the lanes' own positions as the run sees them (``mine``
+    minus the run's periodic image, ``dim`` arrays shaped as ``mine``).
+
+    Stored runs (``reach`` None) are read from the ``(runs, padded)``
+    tables. With the grid (``reach``: the stencil's reach in cells, along
+    x and across), each lane computes its runs as `jaxrt.cell_list._runs`
+    and `_run_images` do, in their order (the first parts of the ``R``
+    stencil rows, then, on a periodic x, their wrapped parts), and two
+    loads from the cell-start table give a run's ends as
+    `jaxrt.cell_list._run_ends` does: the same runs and images, so the
+    same sums. ``me``: the lanes' sorted indices (``>= n`` is a spare
+    lane, which walks nothing).
+    """
+    def moved(shift):  # mine - s side on the axes that use the images
+        out = []
+        for a, x in enumerate(mine):
+            if image_axes[a]:
+                s = shift[a].reshape(x.shape).astype(x.dtype)
+                x = x - s * side[a]
+            out.append(x)
+        return out
+
+    if reach is None:
+        starts_ref, lengths_ref = run_refs[:2]
+        codes_ref = run_refs[2] if len(run_refs) > 2 else None
+
+        def run_at(r):
+            shift = [None] * dim
+            if codes_ref is not None:
+                code = codes_ref[r, lanes]
+                shift = [((code >> (IMAGE_BITS * a))
+                          & ((1 << IMAGE_BITS) - 1)) - 1 for a in range(dim)]
+            return starts_ref[r, lanes], lengths_ref[r, lanes], moved(shift)
+        return run_at
+
+    table_ref, cell_refs, cells_ref = (run_refs[0], run_refs[1:1 + dim],
+                                       run_refs[1 + dim])
+    along, across = reach
+    width = 2 * across + 1
+    rows = width ** (dim - 1)
+    span = 2 * along + 2  # `jaxrt.cell_list._RUN_SPAN`
+    size = table_ref.shape[0] - span
+    cell = [ref[lanes] for ref in cell_refs]
+    cells = [cells_ref[a] for a in range(dim)]
+    live = me < n
+
+    def run_at(r):
+        # Non-negative int32 throughout: lax's rem and div (jnp's % and //
+        # fix signs with ops that Triton's lowering mistypes under x64).
+        r = jnp.asarray(r, jnp.int32)
+        row = jax.lax.rem(r, jnp.int32(rows)) if periodic[0] else r
+        valid = live
+        shift = [None] * dim
+        base = jnp.zeros_like(cell[0])
+        stride = cells[0]
+        for a in range(1, dim):
+            # `_stencil_rows`' order: the last axis fastest.
+            k = jax.lax.rem(
+                jax.lax.div(row, jnp.int32(width ** (dim - 1 - a))),
+                jnp.int32(width))
+            c = cell[a] + k - across
+            if periodic[a]:
+                # One wrap; a box of fewer than 2 across + 1 cells names a
+                # cell more than once, and only the first offset to name
+                # it counts (offset k repeats an earlier one iff a
+                # multiple of the cells fits in k).
+                s = (c >= cells[a]).astype(jnp.int32) - (c < 0).astype(
+                    jnp.int32)
+                c = c - s * cells[a]
+                shift[a] = s
+                valid = valid & (k < cells[a])
+            else:
+                valid = valid & (c >= 0) & (c < cells[a])
+            base = base + c * stride
+            stride = stride * cells[a]
+        lo, hi = cell[0] - along, cell[0] + along
+        first_lo = jnp.maximum(lo, 0)
+        first_hi = jnp.minimum(hi, cells[0] - 1)
+        if periodic[0]:
+            # The stencil pokes out of one end of the row: its cells wrap
+            # to a second run at the other end, seen through the image
+            # one box below (from the top end) or above. A row of at most
+            # 2 along + 1 cells is one run, whole.
+            whole = cells[0] <= 2 * along + 1
+            first_lo = jnp.where(whole, 0, first_lo)
+            first_hi = jnp.where(whole, cells[0] - 1, first_hi)
+            wrapped = r >= rows
+            below = lo < 0
+            valid = valid & (~wrapped | (~whole & (below | (hi >= cells[0]))))
+            lo = jnp.where(wrapped, jnp.where(below, cells[0] + lo, 0),
+                           first_lo)
+            hi = jnp.where(wrapped, jnp.where(below, cells[0] - 1,
+                                              hi - cells[0]), first_hi)
+            shift[0] = jnp.where(wrapped, jnp.where(below, -1, 1), 0)
+        else:
+            lo, hi = first_lo, first_hi
+        begin = jnp.clip(base + lo, 0, size)
+        start = plgpu.load(table_ref.at[begin])
+        end = plgpu.load(table_ref.at[begin + jnp.clip(hi - lo + 1, 0,
+                                                       span - 1)])
+        return start, jnp.where(valid, end - start, 0), moved(shift)
+    return run_at
 
 
 def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
               block, runs, n_extras, n_sums, n_scalars, pair_terms,
-              unroll=1):
+              reach=None, unroll=1):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
 
     Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
     scalars; ``dim`` float ``(padded,)`` coordinates; int32 ``(runs,
     padded)`` run starts and lengths; where any ``image_axes``, int32
-    ``(runs, padded)`` run image codes; ``n_extras`` float ``(padded,)``
+    ``(runs, padded)`` run image codes (or, with ``reach``, the grid:
+    `_run_reader`); ``n_extras`` float ``(padded,)``
     per-particle values; then ``dim + n_sums`` float ``(padded,)`` outputs.
     """
-    coord_refs, starts_ref, lengths_ref, codes_ref, extra_refs, out_refs = (
-        _sum_refs(refs, dim, n_extras, any(image_axes)))
+    coord_refs, run_refs, extra_refs, out_refs = _sum_refs(
+        refs, dim, n_extras, _n_run_refs(dim, image_axes, reach))
     # Per-candidate minimum images only where the runs' images are not used.
     rounded = [p and not x for p, x in zip(periodic, image_axes)]
     first = pl.program_id(0) * block
@@ -399,10 +533,12 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
     dtype = mine[0].dtype
     zero = jnp.zeros((block,), dtype)
 
+    run_at = _run_reader(run_refs, lanes, me, n, mine, side, dim=dim,
+                         periodic=periodic, image_axes=image_axes,
+                         reach=reach)
+
     def walk_run(r, acc):
-        start = starts_ref[r, lanes]
-        length = lengths_ref[r, lanes]
-        origin = _run_origin(mine, codes_ref, r, lanes, side, image_axes)
+        start, length, origin = run_at(r)
 
         def one(s, acc):
             inside = s < length
@@ -437,7 +573,7 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
 
 def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic,
                image_axes, block, runs, n_extras, n_sums, n_scalars,
-               pair_terms, tile):
+               pair_terms, tile, reach=None):
     """One program of `pair_sums`' cluster layout: ``block`` consecutive
     sorted particles against tiles of ``tile`` consecutive candidates.
 
@@ -446,8 +582,8 @@ def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic,
     only the candidates of its own run, so its own image serves the whole
     tile.
     """
-    coord_refs, starts_ref, lengths_ref, codes_ref, extra_refs, out_refs = (
-        _sum_refs(refs, dim, n_extras, any(image_axes)))
+    coord_refs, run_refs, extra_refs, out_refs = _sum_refs(
+        refs, dim, n_extras, _n_run_refs(dim, image_axes, reach))
     rounded = [p and not x for p, x in zip(periodic, image_axes)]
     first = pl.program_id(0) * block
     lanes = pl.ds(first, block)
@@ -462,15 +598,18 @@ def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic,
     offsets = jnp.arange(tile, dtype=jnp.int32)[None, :]
     big = jnp.int32(2 ** 30)
 
+    run_at = _run_reader(run_refs, lanes, me[:, 0], n, mine, side, dim=dim,
+                         periodic=periodic, image_axes=image_axes,
+                         reach=reach)
+
     def walk_run(r, acc):
-        start = starts_ref[r, lanes]
-        end = start + lengths_ref[r, lanes]
+        start, length, origin = run_at(r)
+        end = start + length
         empty = end <= start
         start_flat = jnp.where(empty, big, start)
         end_flat = jnp.where(empty, 0, end)
         lo, hi = jnp.min(start_flat), jnp.max(end_flat)
         start, end = start[:, None], end[:, None]
-        origin = _run_origin(mine, codes_ref, r, lanes, side, image_axes)
 
         def visit(base, acc):
             j = base + offsets

@@ -170,13 +170,16 @@ def _stencil_rows(dim: int, across: int) -> np.ndarray:
 
 
 def _runs(sorted_key, cell, n, query: Query,
-          reach: tuple[int, int] = _REACH, table: int | None = None):
+          reach: tuple[int, int] = _REACH, table: int | None = None,
+          cell_starts=None):
     """Runs of the sorted order that hold each particle's candidate cells.
 
     Args:
       sorted_key: int32 ``(N,)`` ascending cell keys.
       cell: int32 ``(N, dim)`` cell coordinates of the particles.
       n: int32 ``(dim,)`` cells per axis.
+      cell_starts: `_cell_starts` of ``sorted_key`` and ``table`` where the
+        caller has it.
     Returns:
       ``(start1, len1, start2, len2)``, each int32 ``(N, R)``, one column per
       stencil row: the run of its cells and, when x is periodic, the run of
@@ -224,7 +227,8 @@ def _runs(sorted_key, cell, n, query: Query,
     else:
         lo1, hi1 = jnp.maximum(lo, 0), jnp.minimum(hi, nx - 1)
         lo2 = hi2 = wraps = jnp.zeros_like(lo)
-    start = _cell_starts(sorted_key, table)
+    start = (_cell_starts(sorted_key, table) if cell_starts is None
+             else cell_starts)
     start1, end1 = _run_ends(start, base + lo1, hi1 - lo1)
     start2, end2 = _run_ends(start, base + lo2, hi2 - lo2)
     len1 = jnp.where(valid, end1 - start1, 0)
@@ -399,20 +403,27 @@ def _run_ends(start, first, extra):
     return start[first], start[first + jnp.clip(extra + 1, 0, _RUN_SPAN - 1)]
 
 
-@functools.partial(jax.jit, static_argnames=("query", "sorted_runs"))
-def _sorted_system(position, geometry: Geometry, query: Query,
-                   sorted_runs: bool = False):
+@functools.partial(jax.jit, static_argnames=("query",))
+def _sorted_system(position, geometry: Geometry, query: Query):
     """Sort particles by cell.
 
     Args:
       position: float ``(N, dim)`` in the caller's coordinates.
-      sorted_runs: static: give the runs in sorted order, not the caller's.
     Returns:
       int32 ``order`` ``(N,)`` (sorted position -> caller's index); float
       ``(N, dim)`` Cartesian positions wrapped into the box, in the caller's
       order; and each particle's runs ``(start1, len1, start2, len2)``
-      (`_runs`), int32 ``(N, R)`` in the caller's order (or sorted order).
+      (`_runs`), int32 ``(N, R)`` in the caller's order.
     """
+    order, cart, sorted_key, cell, n = _sorted_grid(position, geometry, query)
+    return order, cart, _runs(sorted_key, cell, n, query)
+
+
+def _sorted_grid(position, geometry: Geometry, query: Query):
+    """`_grid`'s cells and the order that sorts them: int32 ``order``
+    ``(N,)``, float ``(N, dim)`` wrapped Cartesian positions, int32 ``(N,)``
+    sorted keys, int32 ``(N, dim)`` cell coordinates (the caller's order),
+    int32 ``(dim,)`` cells per axis."""
     cart, cell, n = _grid(geometry.grid_coordinates(position), geometry,
                           query)
     key = _key(cell, n)
@@ -420,9 +431,7 @@ def _sorted_system(position, geometry: Geometry, query: Query,
     sorted_key, order = jax.lax.sort(
         (key, jnp.arange(key.shape[0], dtype=jnp.int32)), num_keys=1,
         is_stable=False)
-    if sorted_runs:
-        cell = cell[order]
-    return order, cart, _runs(sorted_key, cell, n, query)
+    return order, cart, sorted_key, cell, n
 
 
 def _even_bits(x):
@@ -746,11 +755,14 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
       ``(N,)``, int32 ``(2,)`` shell sizes, bool scalar overflow.
     """
     n = position.shape[0]
-    order, cart, runs = _sorted_system(position, geometry, query,
-                                       sorted_runs=True)
+    order, cart, sorted_key, cell, cells = _sorted_grid(position, geometry,
+                                                        query)
+    # The kernel finds each particle's runs in the cell-start table.
+    grid = _cell_kernel.CellGrid(_cell_starts(sorted_key), cell[order],
+                                 cells, _REACH)
     inner_sq, outer_sq = _thresholds(cart, geometry, query, position)
     rows, count, shells, shell_count = _cell_kernel.candidate_rows(
-        cart[order], order, runs, inner_sq, outer_sq, geometry.side,
+        cart[order], order, grid, inner_sq, outer_sq, geometry.side,
         periodic=query.periodic, mask_self=query.mask_self,
         row_width=row_width, shell=shell, interpret=interpret)
     width = rows.shape[1]

@@ -679,3 +679,69 @@ def test_run_images_dense_fluid(x64, backend):
     R = jnp.asarray(R)
     assert image_axes(R, side) == (True, True, True)
     assert_periodic_matches_brute(R, side, backend)
+
+
+# ---------------------------------------------------------------------------
+# Runs found by the kernel (issue #18): each thread reads its runs' ends in
+# the cell-start table instead of a per-particle table of runs written
+# beforehand. The same candidates in the same order with the same
+# arithmetic, so the sums must agree bitwise, not to a tolerance.
+
+
+RUN_CASES = {
+    # name: (positions in [0, 1) scaled by the box, box, periodic axes)
+    # aliased across (2 cells across < 3) and a whole x row (9 cells <= 9)
+    "cube of 2.004 cutoffs": (np.random.default_rng(1).uniform(0, 1, (150, 3)),
+                              (5.01,) * 3, None),
+    # one aliased axis, one with runs through the images, a long x
+    "mixed box": (np.random.default_rng(2).uniform(0, 1, (301, 3)),
+                  (30.0, 5.1, 7.0), None),
+    "slab": (np.random.default_rng(3).uniform(0, 1, (200, 3)), (9.0,) * 3,
+             (True, True, False)),
+    "free": (np.random.default_rng(4).uniform(0, 1, (199, 3)), (9.0,) * 3,
+             (False,) * 3),
+    "2d": (np.random.default_rng(5).uniform(0, 1, (170, 2)), (11.0, 7.0),
+           None),
+}
+
+
+@pytest.mark.parametrize("case, layout", [
+    ("cube of 2.004 cutoffs", "thread"), ("mixed box", "tiles"),
+    pytest.param("mixed box", "thread", marks=SLOW),
+    pytest.param("slab", "thread", marks=SLOW),
+    pytest.param("free", "tiles", marks=SLOW),
+    pytest.param("2d", "thread", marks=SLOW),
+    pytest.param("cube of 2.004 cutoffs", "tiles", marks=SLOW)])
+def test_runs_found_by_the_kernel_equal_the_stored_runs(x64, case, layout):
+    """Energy, forces and pair count of ``Cell(runs="kernel")`` equal
+    ``Cell(runs="stored")``'s bitwise, in boxes that alias stencil cells,
+    make the x row one run, mix periodic and free axes, and in 2D, with N
+    not a multiple of the program's particles (spare lanes); and both
+    count brute force's pairs."""
+    unit, box, periodic = RUN_CASES[case]
+    box = np.asarray(box)
+    R = jnp.asarray(unit * box)
+    if periodic is None or any(periodic):
+        displacement = (space.periodic(jnp.asarray(box))[0] if periodic is None
+                        else slab_displacement(float(box[0])))
+    else:
+        displacement = space.free()[0]
+    launch = {"thread": {}, "tiles": {"block": 16, "tile": 16}}[layout]
+    got = {}
+    for runs in ("kernel", "stored"):
+        fused = lennard_jones_fused(
+            displacement, jnp.asarray(box), periodic=periodic,
+            backend=_Cell(kernel=KERNEL.kernel, runs=runs, **launch))
+        sums = fused.sums(R)
+        got[runs] = (np.asarray(sums.energy), np.asarray(sums.forces),
+                     int(sums.count))
+    for a, b in zip(got["kernel"], got["stored"]):
+        assert np.array_equal(a, b), case
+    brute = lennard_jones_fused(displacement, jnp.asarray(box),
+                                periodic=periodic, backend="brute")
+    assert got["kernel"][2] == int(brute.sums(R).count)
+
+
+def test_cell_runs_option_is_checked():
+    with pytest.raises(ValueError, match="runs='table'.*'kernel' or 'stored'"):
+        _Cell(runs="table")

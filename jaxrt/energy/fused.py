@@ -328,11 +328,16 @@ class _Cell(_Backend):
     # particle). benchmarks/roofline.py measures the choices.
     # ``unroll`` candidates per step of the thread walk (independent loads
     # in flight), and ``across`` cells per cutoff across x (`cell_runs`).
+    # ``runs``: "kernel", the kernel finds each particle's runs from the
+    # cell-start table; "stored", it reads the runs computed for every
+    # particle beforehand (a pass over N x 2R ints through memory).
+    # The same runs and sums either way; "stored" is kept for comparison.
     block: int = 32
     warps: int = 1
     tile: int = 0
     unroll: int = 1
     across: int = 1
+    runs: str = "kernel"
 
     def __post_init__(self):
         from jaxrt import _cell_kernel
@@ -343,6 +348,9 @@ class _Cell(_Backend):
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): this JAX "
                              "has no Pallas Triton backend; use "
                              "Cell(kernel='xla').")
+        if self.runs not in ("kernel", "stored"):
+            raise ValueError(f"Cell(runs={self.runs!r}): choose 'kernel' or "
+                             "'stored'.")
         if self.kernel == "pallas" and jax.default_backend() not in ("gpu",
                                                                      "cuda"):
             raise ValueError(
@@ -365,8 +373,8 @@ class _Cell(_Backend):
             return self._kernel_walk(
                 images, kernel_runs(runs), jnp.asarray(params.side, dtype),
                 sigma, epsilon, radii, order, params, interpret, derivatives,
-                count, block=self.block, warps=self.warps, tile=self.tile,
-                unroll=self.unroll)
+                count, run_source=self.runs, block=self.block, warps=self.warps,
+                tile=self.tile, unroll=self.unroll)
 
         if self.kernel == "xla" or (self.kernel == "auto"
                                     and _cell_kernel.pl is None):
@@ -419,7 +427,8 @@ class _Cell(_Backend):
     @staticmethod
     def _kernel_walk(images: RunImages, runs, side, sigma, epsilon, radii,
                      order, params: _Params, interpret: bool,
-                     derivatives: bool = True, count: bool = True, **launch):
+                     derivatives: bool = True, count: bool = True,
+                     run_source: str = "kernel", **launch):
         """`jaxrt._cell_kernel.pair_sums` with the LJ terms on the grid's
         own wrapped positions and run images (`cell_runs`): per-particle
         sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
@@ -455,7 +464,7 @@ class _Cell(_Backend):
             () if not has_radii else (radii[order],),
             periodic=params.periodic, pair_terms=terms,
             n_sums=(3 if derivatives else 1) + count, interpret=interpret,
-            **images.kernel_options(), **launch)
+            **images.kernel_options(run_source), **launch)
         zero = jnp.zeros_like(sums[0])
         e, ds, de = tuple(sums[:3]) if derivatives else (sums[0], zero, zero)
         return forces, e, ds, de, sums[-1] if count else zero
@@ -478,8 +487,9 @@ class Runs(NamedTuple):
 
 
 @functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=("position", "first", "wrapped"),
-                   meta_fields=("axes",))
+                   data_fields=("position", "first", "wrapped", "cell_starts",
+                                "cell", "cells"),
+                   meta_fields=("axes", "reach"))
 @dataclasses.dataclass(frozen=True)
 class RunImages:
     """What the kernel walk needs of the grid besides the runs (`cell_runs`):
@@ -499,15 +509,31 @@ class RunImages:
       axes: static ``dim`` bools: the axes on which the codes are every
         pair's minimum image, for any positions (`run_image_axes`); the
         walk rounds candidates' differences on the other periodic axes.
+      cell_starts, cell, cells: the grid itself (`jaxrt._cell_kernel.
+        CellGrid`: cell-start table, sorted cell coordinates, cells per
+        axis), from which the kernel can find every run and its image.
+      reach: static ``(along x, across)``, the stencil's reach in cells.
     """
 
     position: Array
     first: Array
     wrapped: Array
     axes: tuple
+    cell_starts: Array | None = None
+    cell: Array | None = None
+    cells: Array | None = None
+    reach: tuple = ()
 
-    def kernel_options(self) -> dict:
-        """`jaxrt._cell_kernel.pair_sums`' ``images`` and ``image_axes``."""
+    def kernel_options(self, runs: str = "kernel") -> dict:
+        """`jaxrt._cell_kernel.pair_sums`' ``images``, ``image_axes`` and
+        ``grid``: with ``runs="kernel"``, the grid (the kernel finds the
+        runs), else the stored runs' images."""
+        from jaxrt import _cell_kernel
+        if runs == "kernel" and self.cell_starts is not None:
+            return dict(images=None, image_axes=self.axes,
+                        grid=_cell_kernel.CellGrid(
+                            self.cell_starts, self.cell, self.cells,
+                            self.reach))
         return dict(images=None if self.first is None
                     else (self.first, self.wrapped), image_axes=self.axes)
 
@@ -586,14 +612,18 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
     order, sorted_key = _sort_by_key(
         key, table or cell_list._table_size(R.shape[0]))
     cell = cell[order]
-    start1, len1, start2, len2 = cell_list._runs(sorted_key, cell, cells,
-                                                 query, reach, table)
+    cell_starts = cell_list._cell_starts(sorted_key, table)
+    start1, len1, start2, len2 = cell_list._runs(
+        sorted_key, cell, cells, query, reach, table, cell_starts=cell_starts)
     axes = run_image_axes(params, R.shape[0], across=across)
     # The codes only where some axis uses them (the kernel reads nothing else).
     first = second = None
     if any(axes):
         first, second = cell_list._run_images(cell, cells, query, reach)
-    images = RunImages(wrapped[order], first, second, axes)
+    # Under jit, whichever of the runs and the grid the walk does not read
+    # is never computed.
+    images = RunImages(wrapped[order], first, second, axes, cell_starts,
+                       cell, cells, reach)
     # The wrapped part continues the first in one loop: particles near the
     # x ends have long wrapped parts, so a loop (or a column) of their own
     # would cost as much as the first for every particle.
