@@ -8,6 +8,9 @@
 #             ORCS, seed 001's fused kernels), the fused cell kernel with
 #             per-run images and the static grid (test_fused.py, all),
 #             list-free SPH (its kernel cases), the list kernel
+#   runs      #18's kernels that find their runs in the cell-start table:
+#             their compiled tests (fused LJ, list kernel, SPH), then the
+#             LJ step and the roofline beside the stored runs (32x1s)
 #   step      #18's LJ step side by side (fused cell, jaxrt cell/Dense,
 #             jax-md Dense), the roofline with the fused step's halves, and
 #             the grid's stages (benchmarks/grid_stages.py)
@@ -33,7 +36,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|step|profile|overhead|sph|accuracy}
+PART=${1:?usage: run_pending_h200.sh tests|runs|step|profile|overhead|sph|accuracy}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -53,6 +56,21 @@ case $PART in
     tests sph 400 tests/test_sph_fused.py -m "slow or not slow" &
     tests list_kernel 300 tests/test_cell_kernel.py tests/test_neighbors.py &
     wait ;;
+  runs)  # #18: the kernels that find their runs in the cell-start table
+    tests fused 250 tests/test_fused.py &
+    tests fused_runs 250 tests/test_fused.py -m slow -k "runs_found" &
+    tests list_kernel 250 tests/test_neighbors.py -k cell &
+    tests sph 250 tests/test_sph_fused.py -m "slow or not slow" &
+    wait
+    timeout 110 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
+      --repeats 5 --timeout 50 --budget 100 --only fused:cell \
+      "fused:cell[32x1s]" jaxrt:cell/Dense jax-md/Dense \
+      --out "$DEST/md_step_$GIT_SHA.csv" > "$DEST/logs/md_step.log" 2>&1
+    note "md_step rc=$?"
+    timeout 170 "$PY" benchmarks/roofline.py --n 1000000 --kernels auto \
+      --parts --launches 32x1s 64x2 32x1u2 --timeout 40 --budget 160 \
+      --out "$DEST/roofline_$GIT_SHA.csv" > "$DEST/logs/roofline.log" 2>&1
+    note "roofline rc=$?" ;;
   step)
     timeout 200 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
       --repeats 5 --timeout 60 --budget 170 --only fused:cell \
@@ -99,5 +117,5 @@ case $PART in
       --budget 480 --knobs list-free,pairs,spheres-epsilon \
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
-  *) echo "PART must be tests, step, profile, overhead, sph or accuracy"; exit 2 ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph or accuracy"; exit 2 ;;
 esac
