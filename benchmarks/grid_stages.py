@@ -9,7 +9,10 @@ when tracing), the sort as `fused._sort_by_key` does it and three others,
 ``cell_starts`` (a scatter-add and a cumsum over the 4 N + 64 table) with
 its two pieces, ``runs`` (`cell_list._runs`: starts and both parts' run
 ends), the run ends of 9 runs per particle as one slice each (before
-2026-12-02) or two gathers (now), and ``cell_runs`` whole. Stages timed apart pay their own
+2026-12-02) or two gathers, ``cell_runs`` whole, and only what the kernel
+reads of it now that it finds its runs in the cell-start table (order,
+positions, table, cells); the table as long as the cells, and built by
+binary searches (`jnp.searchsorted`) instead of a scatter and a cumsum. Stages timed apart pay their own
 launches and outputs, so they add up to more than the whole.
 
     GIT_SHA=$(git rev-parse --short HEAD) python benchmarks/grid_stages.py --n 1000000
@@ -93,6 +96,16 @@ def main(argv=None) -> None:
           [jnp.ones((table,), jnp.int32)] * 2)
     stage("cell_starts: scatter-add", lambda k: jnp.zeros(
         (table,), jnp.int32).at[k].add(1, mode="drop"), [s[1] for s in srt])
+    # The table as long as the cells (the fused grid's static table), and
+    # the same table by binary searches instead of a scatter and a scan.
+    static = int(np.prod(cells)) + 1
+    stage("cell_starts static table", lambda k: cell_list._cell_starts(
+        k, static), [s[1] for s in srt])
+    for method in ("scan_unrolled", "sort"):
+        stage(f"cell_starts static: searchsorted {method}",
+              lambda k, m=method: jnp.searchsorted(
+                  k, jnp.arange(static + 1, dtype=jnp.int32), side="left",
+                  method=m).astype(jnp.int32), [s[1] for s in srt])
 
     def runs(a):
         (order, sorted_key), (cell, n_cells, _) = a
@@ -119,6 +132,13 @@ def main(argv=None) -> None:
           lambda a: cell_list._run_ends(a[0], a[1], extra),
           list(zip(starts, firsts)))
     stage("cell_runs", lambda R: fused.cell_runs(R, params), inputs)
+
+    def kernel_grid(R):  # what the kernel that finds its runs reads
+        order, _, images = fused.cell_runs(R, params)
+        return (order, images.position, images.cell_starts, images.cell,
+                images.cells)
+
+    stage("cell_runs: the kernel's grid", kernel_grid, inputs)
     path = _harness.write_csv(rows, _harness.out_path(
         args.out, "grid_stages.csv", device.get("device_slug", "unknown")))
     print(f"cells per axis {cells.tolist()}; wrote {path}")

@@ -57,28 +57,29 @@ FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
 # program, then optionally the cluster layout's tile (no tile: a thread per
-# particle), uN the thread walk's unroll, aN cells per cutoff across x, and
-# a final s for runs stored beforehand (Cell(runs="stored")) instead of
-# found by the kernel in the cell-start table.
-LAUNCH = r"(\d+)x(\d+)(?:x(\d+))?(?:u(\d+))?(?:a(\d+))?(s)?"
+# particle), uN the thread walk's unroll, aN cells per cutoff across x, s
+# for runs stored beforehand (Cell(runs="stored")) instead of found by the
+# kernel in the cell-start table, and n for each pair met once, the
+# partner's force added by an atomic (Cell(newton=True)).
+LAUNCH = r"(\d+)x(\d+)(?:x(\d+))?(?:u(\d+))?(?:a(\d+))?(s)?(n)?"
 _LAUNCH = re.compile(r"cell\[" + LAUNCH + r"\]")
 
 
 def launched(label: str):
     """The fused cell backend of
-    ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS][s]]`` or of the bare launch
+    ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS][s][n]]`` or of the bare launch
     (the kernel, compiled: CUDA only)."""
     from jaxrt.energy.fused import _Cell
     match = _LAUNCH.fullmatch(label) or re.fullmatch(LAUNCH, label)
     if match is None:
         raise ValueError(f"launch {label!r}: write BLOCKxWARPS[xTILE]"
-                         "[uUNROLL][aACROSS][s], e.g. 32x1u2a2, 16x1x16 or "
-                         "32x1s")
-    *numbers, stored = match.groups()
+                         "[uUNROLL][aACROSS][s][n], e.g. 32x1u2a2, 16x1x16, "
+                         "32x1s or 32x1n")
+    *numbers, stored, newton = match.groups()
     block, warps, tile, unroll, across = (int(v) if v else 0 for v in numbers)
     return _Cell(kernel="pallas", block=block, warps=warps, tile=tile,
                  unroll=unroll or 1, across=across or 1,
-                 runs="stored" if stored else "kernel")
+                 runs="stored" if stored else "kernel", newton=bool(newton))
 
 
 def labels(system: str, backends=DEFAULT_BACKENDS) -> list[str]:

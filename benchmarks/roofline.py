@@ -195,8 +195,8 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
         return cell._kernel_walk(
             images, grid, jnp.asarray(params.side, R.dtype), one, one,
             None, order, params, interpret, False, False,
-            run_source=cell.runs, block=cell.block, warps=cell.warps,
-            tile=cell.tile, unroll=cell.unroll)
+            run_source=cell.runs, newton=cell.newton, block=cell.block,
+            warps=cell.warps, tile=cell.tile, unroll=cell.unroll)
 
     t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)
     return {"N": n, "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch") else ""),
@@ -263,9 +263,10 @@ def main(argv=None) -> None:
                         help="extra fused rows with other launches of the "
                         "kernel, BLOCKxWARPS[xTILE][uUNROLL][aACROSS] (e.g. "
                         "64x2, 32x1u2a2, 16x1x16: with a tile, the cluster "
-                        "layout; a final s: the runs stored beforehand, not "
-                        "found by the kernel, as Cell(runs=\"stored\"); "
-                        "layout; the default is 32x1, no tile); CUDA only")
+                        "layout; s: the runs stored beforehand, not "
+                        "found by the kernel, as Cell(runs=\"stored\"); n: "
+                        "each pair met once, Cell(newton=True); the default "
+                        "is 32x1, no tile); CUDA only")
     parser.add_argument("--parts", action="store_true",
                         help="also the fused forces' two halves, the grid "
                         "and the kernel's walk (rows grid, walk); CUDA only")

@@ -2,15 +2,14 @@
 # What the H200 has not run yet of the code as it stands (each PART well
 # inside one 10-minute device call; benchmarks/RESULTS.md says which rows
 # they fill in):
-#   tests     the compiled code changed since its last GPU test, in four
-#             groups at once (compiling is CPU-bound): the Warp calls
-#             without side effects and with their overloads (bvh, policy,
-#             ORCS, seed 001's fused kernels), the fused cell kernel with
-#             per-run images and the static grid (test_fused.py, all),
-#             list-free SPH (its kernel cases), the list kernel
-#   runs      #18's kernels that find their runs in the cell-start table:
-#             their compiled tests (fused LJ, list kernel, SPH), then the
-#             LJ step and the roofline beside the stored runs (32x1s)
+#   tests     the compiled tests of the cell kernels and the Warp calls,
+#             group after group, each with pytest-xdist workers (compiling
+#             is CPU-bound): test_fused.py (all), the list kernel, list-free
+#             SPH, then bvh, policy, seed 001's fused kernels and the
+#             spheres / squares
+#   runs      #18's kernels: test_fused.py compiled, then the LJ step and
+#             the roofline of the runs found in the cell-start table, with
+#             newton (n), finer cells across (a2), and stored runs (s)
 #   step      #18's LJ step side by side (fused cell, jaxrt cell/Dense,
 #             jax-md Dense), the roofline with the fused step's halves, and
 #             the grid's stages (benchmarks/grid_stages.py)
@@ -43,32 +42,30 @@ mkdir -p "$DEST/logs"
 START=$SECONDS
 note() { echo "$1 [$(( SECONDS - START )) s]" | tee -a "$DEST/logs/summary.txt"; }
 tests() {  # name timeout pytest-args...
+  # Workers in parallel on the one GPU: compiling is CPU-bound (16 cores),
+  # and test_fused.py took 85 s with -n 6 against over 250 s with -n 0.
   local name=$1 limit=$2; shift 2
-  timeout "$limit" "$PY" -m pytest -q -n 0 -p no:cacheprovider "$@" \
-    > "$DEST/logs/$name.log" 2>&1
+  timeout "$limit" "$PY" -m pytest -q -n "${WORKERS:-6}" -p no:cacheprovider \
+    "$@" > "$DEST/logs/$name.log" 2>&1
   note "$name rc=$? $(tail -1 "$DEST/logs/$name.log")"
 }
 case $PART in
   tests)
-    tests warp 480 tests/test_bvh.py tests/test_policy.py \
-      tests/test_seed_fused.py tests/test_rt_spheres_squares.py &
-    tests cell 480 tests/test_fused.py -m "slow or not slow" &
-    tests sph 400 tests/test_sph_fused.py -m "slow or not slow" &
-    tests list_kernel 300 tests/test_cell_kernel.py tests/test_neighbors.py &
-    wait ;;
-  runs)  # #18: the kernels that find their runs in the cell-start table
-    tests fused 250 tests/test_fused.py &
-    tests fused_runs 250 tests/test_fused.py -m slow -k "runs_found" &
-    tests list_kernel 250 tests/test_neighbors.py -k cell &
-    tests sph 250 tests/test_sph_fused.py -m "slow or not slow" &
-    wait
-    timeout 110 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
-      --repeats 5 --timeout 50 --budget 100 --only fused:cell \
+    tests cell 240 tests/test_fused.py -m "slow or not slow"
+    tests list_kernel 200 tests/test_cell_kernel.py tests/test_neighbors.py
+    tests sph 150 tests/test_sph_fused.py -m "slow or not slow"
+    tests warp 200 tests/test_bvh.py tests/test_policy.py \
+      tests/test_seed_fused.py tests/test_rt_spheres_squares.py ;;
+  runs)  # #18: runs found in the cell-start table, newton, finer cells
+    tests fused 200 tests/test_fused.py -m "slow or not slow"
+    timeout 150 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
+      --repeats 5 --timeout 40 --budget 140 --only fused:cell \
+      "fused:cell[32x1n]" "fused:cell[32x1a2]" "fused:cell[32x1a2n]" \
       "fused:cell[32x1s]" jaxrt:cell/Dense jax-md/Dense \
       --out "$DEST/md_step_$GIT_SHA.csv" > "$DEST/logs/md_step.log" 2>&1
     note "md_step rc=$?"
-    timeout 170 "$PY" benchmarks/roofline.py --n 1000000 --kernels auto \
-      --parts --launches 32x1s 64x2 32x1u2 --timeout 40 --budget 160 \
+    timeout 200 "$PY" benchmarks/roofline.py --n 1000000 --kernels auto \
+      --parts --launches 32x1n 32x1a2n 32x1s --timeout 40 --budget 190 \
       --out "$DEST/roofline_$GIT_SHA.csv" > "$DEST/logs/roofline.log" 2>&1
     note "roofline rc=$?" ;;
   step)

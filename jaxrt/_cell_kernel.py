@@ -120,8 +120,7 @@ def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
 
     # One array per axis: the kernel gathers scalars by index.
     coords = [pad(sorted_cart[:, a]) for a in range(dim)]
-    rows = (2 * grid.reach[1] + 1) ** (dim - 1)
-    n_runs = rows * (2 if periodic[0] else 1)
+    n_runs = (2 * grid.reach[1] + 1) ** (dim - 1) * (2 if periodic[0] else 1)
     run_inputs = [grid.starts.astype(jnp.int32),
                   *[pad(grid.cell[:, a].astype(jnp.int32))
                     for a in range(dim)], grid.cells.astype(jnp.int32)]
@@ -234,7 +233,7 @@ def _power_of_two(value: int) -> bool:
 def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               periodic: tuple[bool, ...], pair_terms, n_sums: int,
               images=None, image_axes: tuple[bool, ...] | None = None,
-              grid: CellGrid | None = None,
+              grid: CellGrid | None = None, newton: bool = False,
               block: int = _BLOCK, warps: int = _WARPS, tile: int = 0,
               unroll: int = 1, interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
@@ -300,6 +299,20 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         table (two loads per run) instead of reading ``sorted_runs`` and
         ``images`` (which may be None): the grid needs no pass over every
         particle's runs in memory.
+      newton: meet every pair once, not from both particles (Newton's
+        third law, LAMMPS' ``newton on``): a thread walks only the upper
+        half of its stencil (the rows after the centre row in
+        `jaxrt.cell_list._stencil_rows`' order, and in the centre row the
+        sorted particles after its own), adds ``g (x_i - x_j)`` to its own
+        vector sum and ``-g (x_i - x_j)`` to the partner's with an atomic
+        add, and keeps the scalar terms of the pairs it meets: the scalar
+        sums' total is then the pairs' total once (not twice), and their
+        per-particle split is not the symmetric one. ``pair_terms`` must be
+        symmetric in the two particles. Needs the thread walk (``tile=0``)
+        and no repeated stencil cell across: every periodic axis but x
+        among the ``image_axes`` (which proves at least ``2 across + 1``
+        cells there). The vector sums' rounding then depends on the order
+        of the atomics (not bitwise reproducible on a GPU).
       block, warps: particles per program and warps per program.
       tile: 0, or the candidates per tile of the cluster layout (a power
         of two, as ``block``).
@@ -327,6 +340,16 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     if any(image_axes) and images is None and grid is None:
         raise ValueError("pair_sums: image_axes needs the runs' images "
                          "(images=(first, wrapped)).")
+    if newton and tile:
+        raise ValueError(f"pair_sums: newton=True needs the thread walk "
+                         f"(tile=0, not {tile}).")
+    if newton and not all(x or not p for x, p in zip(image_axes[1:],
+                                                     periodic[1:])):
+        raise ValueError(
+            f"pair_sums: newton=True needs every periodic axis but x among "
+            f"image_axes ({image_axes}, periodic {periodic}): elsewhere a "
+            "stencil cell across may repeat, and a pair seen only through a "
+            "lower row would be lost.")
     padded, pad = _padding(n, block)
     extra = padded - n
     # Candidates' arrays: a tile from any run's start stays in them (a
@@ -345,6 +368,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
                       grid.cells.astype(jnp.int32)]
     else:
         start1, len1, start2, len2 = sorted_runs
+        rows = start1.shape[1]
         starts = jnp.concatenate([start1, start2], axis=1)
         lengths = jnp.concatenate([len1, len2], axis=1)
         if not any(periodic):
@@ -366,14 +390,21 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         image_axes=image_axes, block=block, runs=n_runs,
         n_extras=len(extras), n_sums=n_sums, n_scalars=scalars.shape[0],
         pair_terms=pair_terms, reach=None if grid is None else grid.reach,
-        **({"tile": tile} if tile else {"unroll": unroll}))
+        **({"tile": tile} if tile else {"unroll": unroll, "newton": newton,
+                                        "rows": rows,
+                                        "interpret": interpret}))
     outputs = ([jax.ShapeDtypeStruct((padded,), dtype)] * dim
                + [jax.ShapeDtypeStruct((padded,), dtype)] * n_sums)
+    # With newton, the vector sums gather atomic adds from other programs:
+    # they start as zeros aliased to those outputs.
+    inputs = [geometry, scalars, *coords, *run_inputs, *extras]
+    zeros = [jnp.zeros((padded,), dtype)] * (dim if newton else 0)
     sums = pl.pallas_call(
         kernel, out_shape=outputs, grid=(padded // block,),
+        input_output_aliases={len(inputs) + a: a for a in range(len(zeros))},
         compiler_params=_COMPILER_PARAMS(num_warps=warps),
         interpret=interpret, name="jaxrt_cell_pair_sums",
-    )(geometry, scalars, *coords, *run_inputs, *extras)
+    )(*inputs, *zeros)
     vector = jnp.stack([s[:n] for s in sums[:dim]], axis=1)
     scalar = jnp.stack([s[:n] for s in sums[dim:]]) if n_sums else (
         jnp.zeros((0, n), dtype))
@@ -505,9 +536,20 @@ def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
     return run_at
 
 
+def _scatter_add(ref, index, value, mask, interpret: bool):
+    """``ref[index] += value`` where ``mask``, lanes colliding on an index
+    summed: an atomic add on the GPU. Pallas' interpreter has no masked
+    atomic and drops all but one of colliding lanes, so it gets a scatter-add
+    of the whole array instead (its programs run one after another)."""
+    if interpret:
+        ref[...] = ref[...].at[index].add(jnp.where(mask, value, 0))
+    else:
+        plgpu.atomic_add(ref, index, value, mask=mask)
+
+
 def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
               block, runs, n_extras, n_sums, n_scalars, pair_terms,
-              reach=None, unroll=1):
+              reach=None, unroll=1, newton=False, rows=1, interpret=False):
     """One program of `pair_sums`: ``block`` consecutive sorted particles.
 
     Refs: float ``(2 dim,)`` sides then inverse sides; float ``(S,)``
@@ -515,10 +557,14 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
     padded)`` run starts and lengths; where any ``image_axes``, int32
     ``(runs, padded)`` run image codes (or, with ``reach``, the grid:
     `_run_reader`); ``n_extras`` float ``(padded,)``
-    per-particle values; then ``dim + n_sums`` float ``(padded,)`` outputs.
+    per-particle values; with ``newton``, ``dim`` float ``(padded,)`` zeros
+    (aliased to the vector outputs); then ``dim + n_sums`` float
+    ``(padded,)`` outputs. ``rows``: stencil rows (runs ``r`` and ``r +
+    rows`` are one row's first and wrapped parts).
     """
     coord_refs, run_refs, extra_refs, out_refs = _sum_refs(
         refs, dim, n_extras, _n_run_refs(dim, image_axes, reach))
+    out_refs = out_refs[dim:] if newton else out_refs  # past the zeros
     # Per-candidate minimum images only where the runs' images are not used.
     rounded = [p and not x for p, x in zip(periodic, image_axes)]
     first = pl.program_id(0) * block
@@ -539,6 +585,14 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
 
     def walk_run(r, acc):
         start, length, origin = run_at(r)
+        if newton:  # the upper half of the stencil (`pair_sums`)
+            row = jax.lax.rem(jnp.asarray(r, jnp.int32), jnp.int32(rows))
+            centre = rows // 2
+            begin = jnp.where(row == centre, jnp.maximum(start, me + 1),
+                              start)
+            length = jnp.where(row < centre, 0,
+                               jnp.maximum(start + length - begin, 0))
+            start = begin
 
         def one(s, acc):
             inside = s < length
@@ -555,6 +609,9 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
             theirs = tuple(plgpu.load(ref.at[j]) for ref in extra_refs)
             g, terms = pair_terms(jnp.where(valid, d2, 0), valid, scalars,
                                   mine_extra, theirs, tuple(d))
+            if newton:
+                for ref, da in zip(out_refs, d):
+                    _scatter_add(ref, j, -g * da, valid, interpret)
             vector = tuple(v + g * da for v, da in zip(acc[:dim], d))
             return vector + tuple(t + u for t, u in zip(acc[dim:], terms))
 
@@ -567,8 +624,11 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
         return jax.lax.fori_loop(0, steps, step, acc)
 
     acc = jax.lax.fori_loop(0, runs, walk_run, (zero,) * (dim + n_sums))
-    for ref, value in zip(out_refs, acc):
-        ref[lanes] = value
+    for a, (ref, value) in enumerate(zip(out_refs, acc)):
+        if newton and a < dim:  # other programs add to these too
+            _scatter_add(ref, me, value, me < n, interpret)
+        else:
+            ref[lanes] = value
 
 
 def _tile_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic,

@@ -338,6 +338,12 @@ class _Cell(_Backend):
     unroll: int = 1
     across: int = 1
     runs: str = "kernel"
+    # ``newton``: the thread walk meets each pair once (the upper half of
+    # the stencil) and adds the partner's force with an atomic, where no
+    # stencil cell across repeats (`run_image_axes`); elsewhere, and in the
+    # array walk, every pair is met from both sides as without it. The
+    # same sums to rounding (the atomics' order varies).
+    newton: bool = False
 
     def __post_init__(self):
         from jaxrt import _cell_kernel
@@ -348,6 +354,9 @@ class _Cell(_Backend):
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): this JAX "
                              "has no Pallas Triton backend; use "
                              "Cell(kernel='xla').")
+        if self.newton and self.tile:
+            raise ValueError(f"Cell(newton=True, tile={self.tile}): newton "
+                             "needs the thread walk (tile=0).")
         if self.runs not in ("kernel", "stored"):
             raise ValueError(f"Cell(runs={self.runs!r}): choose 'kernel' or "
                              "'stored'.")
@@ -373,7 +382,8 @@ class _Cell(_Backend):
             return self._kernel_walk(
                 images, kernel_runs(runs), jnp.asarray(params.side, dtype),
                 sigma, epsilon, radii, order, params, interpret, derivatives,
-                count, run_source=self.runs, block=self.block, warps=self.warps,
+                count, run_source=self.runs, newton=self.newton,
+                block=self.block, warps=self.warps,
                 tile=self.tile, unroll=self.unroll)
 
         if self.kernel == "xla" or (self.kernel == "auto"
@@ -428,7 +438,8 @@ class _Cell(_Backend):
     def _kernel_walk(images: RunImages, runs, side, sigma, epsilon, radii,
                      order, params: _Params, interpret: bool,
                      derivatives: bool = True, count: bool = True,
-                     run_source: str = "kernel", **launch):
+                     run_source: str = "kernel", newton: bool = False,
+                     **launch):
         """`jaxrt._cell_kernel.pair_sums` with the LJ terms on the grid's
         own wrapped positions and run images (`cell_runs`): per-particle
         sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
@@ -459,12 +470,17 @@ class _Cell(_Backend):
         # No tangent may reach the kernel: the custom_vjp differentiates.
         sorted_cart, side, sigma, epsilon = jax.lax.stop_gradient(
             (sorted_cart, side, sigma, epsilon))
+        # Newton's third law where no stencil cell across repeats.
+        newton = newton and all(a or not p for a, p in zip(
+            images.axes[1:], params.periodic[1:]))
         forces, sums = _cell_kernel.pair_sums(
             sorted_cart, runs, side, jnp.stack([sigma, epsilon]).astype(dtype),
             () if not has_radii else (radii[order],),
             periodic=params.periodic, pair_terms=terms,
             n_sums=(3 if derivatives else 1) + count, interpret=interpret,
-            **images.kernel_options(run_source), **launch)
+            newton=newton, **images.kernel_options(run_source), **launch)
+        if newton:  # each pair's terms once: as the both-sided sums, twice
+            sums = 2 * sums
         zero = jnp.zeros_like(sums[0])
         e, ds, de = tuple(sums[:3]) if derivatives else (sums[0], zero, zero)
         return forces, e, ds, de, sums[-1] if count else zero
