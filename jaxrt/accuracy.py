@@ -173,7 +173,8 @@ class LJFused(LJFields):
         """The search, for the CSV's ``backend`` column."""
         b = self.backend
         if not isinstance(b, str):
-            b = f"{b.name}[{getattr(b, 'kernel', '?')}]"
+            newton = "+newton" if getattr(b, "newton", False) else ""
+            b = f"{b.name}[{getattr(b, 'kernel', '?')}{newton}]"
         return f"fused {b} (no list)"
 
     def validate(self, scene, where: str) -> None:
@@ -524,6 +525,14 @@ def _fused_kernel(kernel: str):
     return apply
 
 
+def _fused_newton(s):
+    """The fused walk meeting each pair once (`Cell(newton=True)` of the
+    fused energy's own backend; "auto": the kernel where it runs, which is
+    where this value runs)."""
+    from jaxrt.energy.fused import _Cell
+    return _list_free(_Cell(kernel="auto", newton=True))(s)
+
+
 def _same(s):
     return s
 
@@ -643,13 +652,18 @@ KNOBS: tuple[Knob, ...] = (
                        Value("fused-xla", _fused_kernel("xla"),
                              available=_fused_cell("xla")),
                        Value("fused-pallas", _fused_kernel("pallas"),
+                             available=_fused_cell("pallas")),
+                       Value("fused-pallas-newton", _fused_newton,
                              available=_fused_cell("pallas"))),
-         quick=("list", "fused", "fused-xla", "fused-pallas"),
+         quick=("list", "fused", "fused-xla", "fused-pallas",
+                "fused-pallas-newton"),
          scenes=("lj",), available=_has_fused,
          what="neighbour list against the fused list-free LJ energy "
               "(`fused`: its cell search as the backend \"cell\" picks it; "
               "on a CUDA GPU also `jaxrt.backends.Cell(kernel=\"xla\")` and "
-              "\"pallas\": its array-program walk and its kernel)",
+              "\"pallas\": its array-program walk and its kernel; "
+              "`fused-pallas-newton`: the kernel meeting each pair once, "
+              "the partner's force added by an atomic)",
          judge="force_rms_rel"),
     Knob("radii", (Value("one grid", _with_radius_classes(1)),
                    Value("radius classes", _with_radius_classes(None)),

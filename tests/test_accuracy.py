@@ -175,7 +175,8 @@ def test_knobs_by_dimension_and_availability():
     labels = {v.label for v in free.selected(quick=True, dim=3)}
     assert {"list", "fused"} <= labels
     if not pallas:  # a CPU: no Cell kernel values, and no crash probing
-        assert not labels & {"fused-xla", "fused-pallas"}
+        assert not labels & {"fused-xla", "fused-pallas",
+                              "fused-pallas-newton"}
     from jaxrt.backends import Cell
     assert isinstance(accuracy._fused_takes(Cell(kernel="xla")), bool)
 
@@ -271,6 +272,10 @@ def test_list_free_fused_values_apply(x64):
         sc = _knob_value("list-free", f"fused-{k}").apply(base)
         assert sc.effects[0].backend == Cell(kernel=k)
         assert accuracy._describe(sc)["backend"] == f"fused cell[{k}] (no list)"
+    newton = _knob_value("list-free", "fused-pallas-newton").apply(base)
+    assert newton.effects[0].backend.newton
+    assert (accuracy._describe(newton)["backend"]
+            == "fused cell[auto+newton] (no list)")
     _tiny_step(fused, steps=1)
 
 
