@@ -107,17 +107,44 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
     ``_CELLS_PER_PARTICLE · N`` cells (sparse clouds, huge boxes): then all
     are coarsened together until the cell-start table fits.
 
+    A free axis is gridded over the particles' span, a periodic one over
+    the box side, except where the grid would coarsen and the particles
+    leave an empty slab across a periodic axis (`_gaps`): that axis is
+    *compacted*, gridded as a free axis over the occupied stretch, which
+    a small cloud in a huge box needs to keep its cells small.
+
+    A compacted axis: positions are shifted so that the slab straddles the
+    box's faces, ``x' = x - cut`` wrapped into ``[0, side)`` (``cut`` in
+    the slab's middle); cells of the free-axis size span ``[min x', max
+    x']``, followed by ``2 reach + 1`` empty cells (``reach`` of that
+    axis). No pair within the cutoff crosses the slab, so every such pair's
+    minimum image along the axis is its plain difference in ``x'``, which
+    the cells and stencil find as on a free axis. `_runs` and every copy of
+    it (`_run_images`, `jaxrt._cell_kernel._run_reader`,
+    `jaxrt.radius_classes._stencil`) still wrap the axis as periodic, but
+    a stencil of reach ``r`` from an occupied cell wraps only into the last
+    ``r`` cells, which are empty: its wrapped runs are empty, and every
+    nonempty run has image 0 along the axis (the plain difference), which
+    is what the positions ``x'`` need. With those ``2 reach + 1`` empty
+    cells the axis has at least ``2 reach + 2`` cells, so no stencil cell
+    repeats (`_runs` drops no offset) and a periodic x row is never one
+    whole run: the static rules of `_image_axes` hold on it too. The grid
+    is compacted only where that coarsens it no more than the box-wide
+    grid would (so the other axes keep at least the cells `_image_axes`
+    counted) and the table still fits.
+
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
       reach: stencil reach in cells (along x, across): cells are
         ``query.cutoff / reach`` wide, or wider.
       coarsen: static; False skips the coarsening loop (a device loop whose
-        every test is a host round trip on a GPU), for callers that proved
-        with `_static_cells` that it would not coarsen.
+        every test is a host round trip on a GPU) and the search for empty
+        slabs, for callers that proved with `_static_cells` that it would
+        not coarsen.
     Returns:
       float ``(N, dim)`` positions wrapped into ``[0, side)`` on periodic
-      axes; int32 ``(N, dim)`` cell coordinates; int32 ``(dim,)`` cells per
-      axis.
+      axes (shifted on compacted axes); int32 ``(N, dim)`` cell
+      coordinates; int32 ``(dim,)`` cells per axis.
     """
     dim = query.dim
     budget = _table_size(cart.shape[0]) - 1
@@ -133,23 +160,140 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
                        jnp.max(wrapped, axis=0) - origin)
     min_size = query.cutoff * (1.0 + _CELL_MARGIN) / np.array(
         [reach[a > 0] for a in range(dim)])
+    padding = np.array([2 * reach[a > 0] + 1 for a in range(dim)])
 
-    def cells(coarsen):  # float (dim,): cells per axis
+    def cells(coarsen, compact, extent):  # float (dim,): cells per axis
         size = min_size * coarsen
-        return jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
-                         jnp.floor(extent / size) + 1)
+        return jnp.where(periodic & ~compact,
+                         jnp.maximum(jnp.floor(extent / size), 1),
+                         jnp.floor(extent / size) + 1
+                         + jnp.where(compact, padding, 0))
 
+    compact = np.zeros(dim, bool)
     if coarsen:
         coarsen = jax.lax.while_loop(
-            lambda c: jnp.prod(cells(c)) > budget, lambda c: c * 1.25,
-            jnp.ones((), extent.dtype))
+            lambda c: jnp.prod(cells(c, compact, extent)) > budget,
+            lambda c: c * 1.25, jnp.ones((), extent.dtype))
+        if any(query.periodic):
+            def compacted():
+                return _compacted(wrapped, geometry.side, origin, extent,
+                                  coarsen, query, budget, cells)
+
+            def kept():
+                return (jnp.zeros((dim,), bool),
+                        jnp.zeros((dim,), wrapped.dtype), origin, extent,
+                        coarsen)
+
+            # The common case (a box the particles fill) never coarsens,
+            # and pays one scalar test for the search.
+            compact, cut, origin, extent, coarsen = jax.lax.cond(
+                coarsen > 1, compacted, kept)
+            wrapped = jnp.where(compact, _shifted(wrapped, cut, geometry.side),
+                                wrapped)
     else:  # the caller proved the loop would not run (`_static_cells`)
         coarsen = jnp.ones((), extent.dtype)
-    n = cells(coarsen)
-    size = jnp.where(periodic, extent / n, min_size * coarsen)
+    n = cells(coarsen, compact, extent)
+    size = jnp.where(periodic & ~compact, extent / n, min_size * coarsen)
+    occupied = n - jnp.where(compact, padding, 0)
     n = n.astype(jnp.int32)
     coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
-    return wrapped, jnp.clip(coord, 0, n - 1), n
+    return wrapped, jnp.clip(coord, 0, occupied.astype(jnp.int32) - 1), n
+
+
+# Bins per periodic axis of the occupancy histogram that finds empty slabs
+# (`_gaps`): a slab must span the cutoff plus one bin to be taken.
+_GAP_BINS = 4096
+# A slab must be this much (relatively) wider than the cutoff: far more than
+# the cheap distance's tolerance and the cells' margin.
+_GAP_MARGIN = 2.0 ** -4
+
+
+def _gaps(wrapped, side, query: Query):
+    """The widest empty slab across each periodic axis, from a histogram of
+    `_GAP_BINS` bins per axis, read circularly.
+
+    Bins are half-open and a position may round into a neighbouring bin,
+    so a run of ``L`` empty bins is only trusted to be ``L - 1`` bins wide:
+    a slab is taken where that is at least ``cutoff (1 + _GAP_MARGIN)``.
+    Then no two particles on either side of it are within the cutoff along
+    the axis, the other way round the box included.
+
+    Args:
+      wrapped: float ``(N, dim)`` positions in ``[0, side]`` on periodic
+        axes.
+      side: float ``(dim,)`` box sides.
+    Returns:
+      bool ``(dim,)``: a periodic axis with an empty slab wide enough;
+      float ``(dim,)`` (``wrapped``'s dtype) the middle of its widest run
+      of empty bins, in ``[0, side)`` (0 on free axes).
+    """
+    dim = wrapped.shape[1]
+    axes = np.flatnonzero(query.periodic)
+    bins = _GAP_BINS
+    dtype = wrapped.dtype
+    width = side.astype(dtype)[axes] / bins
+    b = jnp.clip(jnp.floor(wrapped[:, axes] / width).astype(jnp.int32), 0,
+                 bins - 1)
+    b = b + bins * jnp.arange(len(axes), dtype=jnp.int32)
+    occupied = jnp.zeros((len(axes) * bins,), bool).at[b.reshape(-1)].set(
+        True).reshape(len(axes), bins)
+    # Twice round the box: a run through the box's faces is one run.
+    twice = jnp.concatenate([occupied, occupied], axis=1)
+    index = jnp.arange(2 * bins, dtype=jnp.int32)
+    last = jax.lax.cummax(jnp.where(twice, index, -1), axis=1)
+    empty = index - last  # empty bins ending at each index, inclusive
+    end = jnp.argmax(empty, axis=1).astype(jnp.int32)
+    length = jnp.minimum(jnp.max(empty, axis=1), bins).astype(dtype)
+    found = (length - 1) * width >= query.cutoff * (1.0 + _GAP_MARGIN)
+    middle = ((end + 1).astype(dtype) - length / 2) * width
+    middle = jnp.mod(middle, side.astype(dtype)[axes])
+    return (jnp.zeros((dim,), bool).at[axes].set(found),
+            jnp.zeros((dim,), dtype).at[axes].set(middle))
+
+
+def _shifted(wrapped, cut, side):
+    """``wrapped - cut`` wrapped into ``[0, side)``, per axis: the empty
+    slab around ``cut`` moved to the box's faces. (Float ``(N, dim)``;
+    one select, no float ``mod``, which is a libm call per element on
+    CPUs.)"""
+    side = side.astype(wrapped.dtype)
+    return wrapped - cut + jnp.where(wrapped < cut, side, 0)
+
+
+def _compacted(wrapped, side, origin, extent, coarsen, query: Query,
+               budget, cells):
+    """`_grid`'s compacted axes, for a grid that the box-wide cells would
+    coarsen by ``coarsen``.
+
+    Args:
+      cells: `_grid`'s ``cells(coarsen, compact, extent)``.
+    Returns:
+      ``(compact, cut, origin, extent, coarsen)``: bool ``(dim,)`` the
+      compacted axes; float ``(dim,)`` (``wrapped``'s dtype) the middles of
+      their empty slabs (`_shifted`), 0 elsewhere; and the grid's origin,
+      extent and coarsening factor with them, as given where no axis is
+      compacted.
+    """
+    found, cut = _gaps(wrapped, side, query)
+    shifted = jnp.where(found, _shifted(wrapped, cut, side), wrapped)
+    low = jnp.min(shifted, axis=0)
+    span = jnp.where(found, jnp.max(shifted, axis=0) - low, extent)
+    # An axis is compacted where, at the box-wide grid's factor, that gives
+    # it no more cells than the box does (a slab of a few cutoffs gains
+    # less than the empty cells cost). Then at that factor the compacted
+    # grid fits the table too, so the loop below stops at or before it.
+    compact = found & (cells(coarsen, found, span)
+                       <= cells(coarsen, np.zeros(len(query.periodic), bool),
+                                extent))
+    span = jnp.where(compact, span, extent)
+    # The box-wide loop's factors (powers of 1.25, compared exactly).
+    factor = jax.lax.while_loop(
+        lambda c: (jnp.any(compact) & (c < coarsen)
+                   & (jnp.prod(cells(c, compact, span)) > budget)),
+        lambda c: c * 1.25, jnp.ones((), coarsen.dtype))
+    return (compact, jnp.where(compact, cut, 0).astype(cut.dtype),
+            jnp.where(compact, low, origin), span,
+            jnp.where(jnp.any(compact), factor, coarsen))
 
 
 def _key(coord, n):
