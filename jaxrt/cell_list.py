@@ -48,7 +48,8 @@ Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
 ``N × 27 × cell capacity`` candidate array. The grid is recomputed on every
 call from the box (periodic axes) or the particles' bounding box (free
-axes), so a changing box or a wandering cloud never invalidates it; ``W``
+axes; and periodic ones across which a sparse cloud leaves an empty slab,
+`_grid`), so a changing box or a wandering cloud never invalidates it; ``W``
 and the two shell buffers are the only static sizes, and exceeding any
 sets the overflow flag.
 """
@@ -128,10 +129,13 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
     is what the positions ``x'`` need. With those ``2 reach + 1`` empty
     cells the axis has at least ``2 reach + 2`` cells, so no stencil cell
     repeats (`_runs` drops no offset) and a periodic x row is never one
-    whole run: the static rules of `_image_axes` hold on it too. The grid
-    is compacted only where that coarsens it no more than the box-wide
-    grid would (so the other axes keep at least the cells `_image_axes`
-    counted) and the table still fits.
+    whole run: the static rules of `_image_axes` hold on it too. An axis
+    is compacted only where that gives it no more cells than the box would
+    at the box-wide grid's coarsening: then the compacted grid fits the
+    table at that coarsening, is coarsened no more than the box-wide grid,
+    and the other periodic axes keep at least the cells `_image_axes`
+    counted. The search runs only where the box-wide grid would coarsen
+    (one scalar test otherwise, and the grid is bitwise the same).
 
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
@@ -400,7 +404,10 @@ def _run_images(cell, n, query: Query, reach: tuple[int, int] = _REACH):
     that aliases (``n <= 2 across``, where `_runs` drops repeated offsets)
     nor along a periodic x with ``n <= 2 reach + 1`` (the whole row is
     one run): `_image_axes` says statically where they are exact. Beyond
-    the cutoff a run's image is never closer than the nearest.
+    the cutoff a run's image is never closer than the nearest. On an axis
+    `_grid` compacted, every nonempty run is ``s = 0`` (its wrapped cells
+    are the empty ones past the span), the plain difference of the
+    shifted positions, which is every pair's minimum image there.
 
     Args:
       cell: int32 ``(N, dim)`` cell coordinates (the order of `_runs`').
@@ -474,6 +481,13 @@ def _image_axes(n_particles: int, side, query: Query,
     (`_box_cells`). An axis is accepted where its fewest possible cells
     exceed ``2 across`` (``2 reach + 1`` along x).
 
+    Axes that `_grid` compacts (a cloud leaving an empty slab, where the
+    box-wide grid would coarsen) have cells set by the cloud, not the box,
+    but at least ``2 reach + 2`` of them, and every nonempty run's image is
+    0 on them (`_grid`, `_run_images`): still exact. The other axes keep
+    the box's cells, coarsened no more than the box-wide grid (`_grid`
+    compacts only where that holds), so no fewer than counted here.
+
     Args:
       n_particles: N (the cell-start table's budget).
       side: ``dim`` Python floats, the box (periodic axes).
@@ -499,7 +513,8 @@ def _static_cells(n_particles: int, side, query: Query,
 
     The most cells `_box_cells` allows: if the coarsening loop replayed
     there does not run, the traced one cannot either, the grid has at most
-    that many cells, and every key is below the bound.
+    that many cells, and every key is below the bound. (Such a grid never
+    searches for empty slabs to compact: `_grid`'s ``coarsen=False``.)
 
     Returns:
       int, more than every cell key (the `_cell_starts` table), or None
