@@ -155,16 +155,19 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
     periodic = np.array(query.periodic)
-    # Free axes stay as they are (no wrap arithmetic where there is no box).
-    wrapped = jnp.stack([jnp.mod(cart[:, a], geometry.side[a].astype(
-        cart.dtype)) if query.periodic[a] else cart[:, a]
-        for a in range(dim)], axis=1)
-    origin = jnp.where(periodic, 0.0, jnp.min(wrapped, axis=0))
-    extent = jnp.where(periodic, geometry.side,
-                       jnp.max(wrapped, axis=0) - origin)
+    side = geometry.side
+
+    def wrap():  # free axes stay as they are (no wrap arithmetic)
+        return jnp.stack([jnp.mod(cart[:, a], side[a].astype(cart.dtype))
+                          if query.periodic[a] else cart[:, a]
+                          for a in range(dim)], axis=1)
+
+    origin = jnp.where(periodic, 0.0, jnp.min(cart, axis=0))
+    extent = jnp.where(periodic, side, jnp.max(cart, axis=0) - origin)
     min_size = query.cutoff * (1.0 + _CELL_MARGIN) / np.array(
         [reach[a > 0] for a in range(dim)])
     padding = np.array([2 * reach[a > 0] + 1 for a in range(dim)])
+    kept = np.zeros(dim, bool)
 
     def cells(coarsen, compact, extent):  # float (dim,): cells per axis
         size = min_size * coarsen
@@ -173,35 +176,34 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
                          jnp.floor(extent / size) + 1
                          + jnp.where(compact, padding, 0))
 
-    compact = np.zeros(dim, bool)
-    if coarsen:
-        coarsen = jax.lax.while_loop(
-            lambda c: jnp.prod(cells(c, compact, extent)) > budget,
-            lambda c: c * 1.25, jnp.ones((), extent.dtype))
-        if any(query.periodic):
-            def compacted():
-                return _compacted(wrapped, geometry.side, origin, extent,
-                                  coarsen, query, budget, cells)
+    def binned(wrapped, compact, origin, extent, coarsen):
+        n = cells(coarsen, compact, extent)
+        size = jnp.where(periodic & ~compact, extent / n, min_size * coarsen)
+        occupied = (n - jnp.where(compact, padding, 0)).astype(jnp.int32)
+        coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
+        return wrapped, jnp.clip(coord, 0, occupied - 1), n.astype(jnp.int32)
 
-            def kept():
-                return (jnp.zeros((dim,), bool),
-                        jnp.zeros((dim,), wrapped.dtype), origin, extent,
-                        coarsen)
+    if not coarsen:  # the caller proved the loop would not run (`_static_cells`)
+        return binned(wrap(), kept, origin, extent,
+                      jnp.ones((), extent.dtype))
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.prod(cells(c, kept, extent)) > budget,
+        lambda c: c * 1.25, jnp.ones((), extent.dtype))
+    if not any(query.periodic):
+        return binned(wrap(), kept, origin, extent, coarsen)
 
-            # The common case (a box the particles fill) never coarsens,
-            # and pays one scalar test for the search.
-            compact, cut, origin, extent, coarsen = jax.lax.cond(
-                coarsen > 1, compacted, kept)
-            wrapped = jnp.where(compact, _shifted(wrapped, cut, geometry.side),
-                                wrapped)
-    else:  # the caller proved the loop would not run (`_static_cells`)
-        coarsen = jnp.ones((), extent.dtype)
-    n = cells(coarsen, compact, extent)
-    size = jnp.where(periodic & ~compact, extent / n, min_size * coarsen)
-    occupied = n - jnp.where(compact, padding, 0)
-    n = n.astype(jnp.int32)
-    coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
-    return wrapped, jnp.clip(coord, 0, occupied.astype(jnp.int32) - 1), n
+    def compacted():
+        wrapped = wrap()
+        compact, cut, low, span, factor = _compacted(
+            wrapped, side, origin, extent, coarsen, query, budget, cells)
+        wrapped = jnp.where(compact, _shifted(wrapped, cut, side), wrapped)
+        return binned(wrapped, compact, low, span, factor)
+
+    # The common case (a box the particles fill) never coarsens: one scalar
+    # test, then the grid as it was, bitwise.
+    return jax.lax.cond(
+        coarsen > 1, compacted,
+        lambda: binned(wrap(), kept, origin, extent, coarsen))
 
 
 # Bins per periodic axis of the occupancy histogram that finds empty slabs
