@@ -183,7 +183,7 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
         coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
         return wrapped, jnp.clip(coord, 0, occupied - 1), n.astype(jnp.int32)
 
-    if not coarsen:  # the caller proved the loop would not run (`_static_cells`)
+    if not coarsen:  # the caller proved that it would not (`_static_cells`)
         return binned(wrap(), kept, origin, extent,
                       jnp.ones((), extent.dtype))
     coarsen = jax.lax.while_loop(

@@ -185,8 +185,8 @@ def chain(gap, cutoff=1.0, spacing=0.75, links=40, rows=3):
 
 # gap / cutoff: a hair below (the ends are a pair), exactly, a hair above,
 # and wide enough to be taken.
-GAPS = {"hair below": 1 - 2.0 ** -40, "exact": 1.0, "hair above": 1 + 2.0 ** -40,
-        "taken": 4.0}
+GAPS = {"hair below": 1 - 2.0 ** -40, "exact": 1.0,
+        "hair above": 1 + 2.0 ** -40, "taken": 4.0}
 
 
 @pytest.mark.parametrize("gap, kernel", [
