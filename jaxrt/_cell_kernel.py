@@ -442,8 +442,9 @@ def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
     stencil rows, then, on a periodic x, their wrapped parts), and two
     loads from the cell-start table give a run's ends as
     `jaxrt.cell_list._run_ends` does: the same runs and images, so the
-    same sums. ``me``: the lanes' sorted indices (``>= n`` is a spare
-    lane, which walks nothing).
+    same sums. (Axes that `jaxrt.cell_list._grid` compacted need nothing
+    of their own: their wrapped cells are empty.) ``me``: the lanes'
+    sorted indices (``>= n`` is a spare lane, which walks nothing).
     """
     def moved(shift):  # mine - s side on the axes that use the images
         out = []

@@ -48,7 +48,8 @@ Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
 ``N × 27 × cell capacity`` candidate array. The grid is recomputed on every
 call from the box (periodic axes) or the particles' bounding box (free
-axes), so a changing box or a wandering cloud never invalidates it; ``W``
+axes; and periodic ones across which a sparse cloud leaves an empty slab,
+`_grid`), so a changing box or a wandering cloud never invalidates it; ``W``
 and the two shell buffers are the only static sizes, and exceeding any
 sets the overflow flag.
 """
@@ -107,49 +108,198 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
     ``_CELLS_PER_PARTICLE · N`` cells (sparse clouds, huge boxes): then all
     are coarsened together until the cell-start table fits.
 
+    A free axis is gridded over the particles' span, a periodic one over
+    the box side, except where the grid would coarsen and the particles
+    leave an empty slab across a periodic axis (`_gaps`): that axis is
+    *compacted*, gridded as a free axis over the occupied stretch, which
+    a small cloud in a huge box needs to keep its cells small.
+
+    A compacted axis: positions are shifted so that the slab straddles the
+    box's faces, ``x' = x - cut`` wrapped into ``[0, side)`` (``cut`` in
+    the slab's middle); cells of the free-axis size span ``[min x', max
+    x']``, followed by ``2 reach + 1`` empty cells (``reach`` of that
+    axis). No pair within the cutoff crosses the slab, so every such pair's
+    minimum image along the axis is its plain difference in ``x'``, which
+    the cells and stencil find as on a free axis. `_runs` and every copy of
+    it (`_run_images`, `jaxrt._cell_kernel._run_reader`,
+    `jaxrt.radius_classes._stencil`) still wrap the axis as periodic, but
+    a stencil of reach ``r`` from an occupied cell wraps only into the last
+    ``r`` cells, which are empty: its wrapped runs are empty, and every
+    nonempty run has image 0 along the axis (the plain difference), which
+    is what the positions ``x'`` need. With those ``2 reach + 1`` empty
+    cells the axis has at least ``2 reach + 2`` cells, so no stencil cell
+    repeats (`_runs` drops no offset) and a periodic x row is never one
+    whole run: the static rules of `_image_axes` hold on it too. An axis
+    is compacted only where that gives it no more cells than the box would
+    at the box-wide grid's coarsening: then the compacted grid fits the
+    table at that coarsening, is coarsened no more than the box-wide grid,
+    and the other periodic axes keep at least the cells `_image_axes`
+    counted. The search runs only where the box-wide grid would coarsen
+    (one scalar test otherwise, and the grid is bitwise the same).
+
     Args:
       cart: float ``(N, dim)`` Cartesian positions.
       reach: stencil reach in cells (along x, across): cells are
         ``query.cutoff / reach`` wide, or wider.
       coarsen: static; False skips the coarsening loop (a device loop whose
-        every test is a host round trip on a GPU), for callers that proved
-        with `_static_cells` that it would not coarsen.
+        every test is a host round trip on a GPU) and the search for empty
+        slabs, for callers that proved with `_static_cells` that it would
+        not coarsen.
     Returns:
       float ``(N, dim)`` positions wrapped into ``[0, side)`` on periodic
-      axes; int32 ``(N, dim)`` cell coordinates; int32 ``(dim,)`` cells per
-      axis.
+      axes (shifted on compacted axes); int32 ``(N, dim)`` cell
+      coordinates; int32 ``(dim,)`` cells per axis.
     """
     dim = query.dim
     budget = _table_size(cart.shape[0]) - 1
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
     periodic = np.array(query.periodic)
-    # Free axes stay as they are (no wrap arithmetic where there is no box).
-    wrapped = jnp.stack([jnp.mod(cart[:, a], geometry.side[a].astype(
-        cart.dtype)) if query.periodic[a] else cart[:, a]
-        for a in range(dim)], axis=1)
-    origin = jnp.where(periodic, 0.0, jnp.min(wrapped, axis=0))
-    extent = jnp.where(periodic, geometry.side,
-                       jnp.max(wrapped, axis=0) - origin)
+    side = geometry.side
+
+    def wrap():  # free axes stay as they are (no wrap arithmetic)
+        return jnp.stack([jnp.mod(cart[:, a], side[a].astype(cart.dtype))
+                          if query.periodic[a] else cart[:, a]
+                          for a in range(dim)], axis=1)
+
+    origin = jnp.where(periodic, 0.0, jnp.min(cart, axis=0))
+    extent = jnp.where(periodic, side, jnp.max(cart, axis=0) - origin)
     min_size = query.cutoff * (1.0 + _CELL_MARGIN) / np.array(
         [reach[a > 0] for a in range(dim)])
+    padding = np.array([2 * reach[a > 0] + 1 for a in range(dim)])
+    kept = np.zeros(dim, bool)
 
-    def cells(coarsen):  # float (dim,): cells per axis
+    def cells(coarsen, compact, extent):  # float (dim,): cells per axis
         size = min_size * coarsen
-        return jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
-                         jnp.floor(extent / size) + 1)
+        return jnp.where(periodic & ~compact,
+                         jnp.maximum(jnp.floor(extent / size), 1),
+                         jnp.floor(extent / size) + 1
+                         + jnp.where(compact, padding, 0))
 
-    if coarsen:
-        coarsen = jax.lax.while_loop(
-            lambda c: jnp.prod(cells(c)) > budget, lambda c: c * 1.25,
-            jnp.ones((), extent.dtype))
-    else:  # the caller proved the loop would not run (`_static_cells`)
-        coarsen = jnp.ones((), extent.dtype)
-    n = cells(coarsen)
-    size = jnp.where(periodic, extent / n, min_size * coarsen)
-    n = n.astype(jnp.int32)
-    coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
-    return wrapped, jnp.clip(coord, 0, n - 1), n
+    def binned(wrapped, compact, origin, extent, coarsen):
+        n = cells(coarsen, compact, extent)
+        size = jnp.where(periodic & ~compact, extent / n, min_size * coarsen)
+        occupied = (n - jnp.where(compact, padding, 0)).astype(jnp.int32)
+        coord = jnp.floor((wrapped - origin) / size).astype(jnp.int32)
+        return wrapped, jnp.clip(coord, 0, occupied - 1), n.astype(jnp.int32)
+
+    if not coarsen:  # the caller proved that it would not (`_static_cells`)
+        return binned(wrap(), kept, origin, extent,
+                      jnp.ones((), extent.dtype))
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.prod(cells(c, kept, extent)) > budget,
+        lambda c: c * 1.25, jnp.ones((), extent.dtype))
+    if not any(query.periodic):
+        return binned(wrap(), kept, origin, extent, coarsen)
+
+    def compacted():
+        wrapped = wrap()
+        compact, cut, low, span, factor = _compacted(
+            wrapped, side, origin, extent, coarsen, query, budget, cells)
+        wrapped = jnp.where(compact, _shifted(wrapped, cut, side), wrapped)
+        return binned(wrapped, compact, low, span, factor)
+
+    # The common case (a box the particles fill) never coarsens: one scalar
+    # test, then the grid as it was, bitwise.
+    return jax.lax.cond(
+        coarsen > 1, compacted,
+        lambda: binned(wrap(), kept, origin, extent, coarsen))
+
+
+# Bins per periodic axis of the occupancy histogram that finds empty slabs
+# (`_gaps`): a slab must span the cutoff plus one bin to be taken.
+_GAP_BINS = 4096
+# A slab must be this much (relatively) wider than the cutoff: far more than
+# the cheap distance's tolerance and the cells' margin.
+_GAP_MARGIN = 2.0 ** -4
+
+
+def _gaps(wrapped, side, query: Query):
+    """The widest empty slab across each periodic axis, from a histogram of
+    `_GAP_BINS` bins per axis, read circularly.
+
+    Bins are half-open and a position may round into a neighbouring bin,
+    so a run of ``L`` empty bins is only trusted to be ``L - 1`` bins wide:
+    a slab is taken where that is at least ``cutoff (1 + _GAP_MARGIN)``.
+    Then no two particles on either side of it are within the cutoff along
+    the axis, the other way round the box included.
+
+    Args:
+      wrapped: float ``(N, dim)`` positions in ``[0, side]`` on periodic
+        axes.
+      side: float ``(dim,)`` box sides.
+    Returns:
+      bool ``(dim,)``: a periodic axis with an empty slab wide enough;
+      float ``(dim,)`` (``wrapped``'s dtype) the middle of its widest run
+      of empty bins, in ``[0, side)`` (0 on free axes).
+    """
+    dim = wrapped.shape[1]
+    axes = np.flatnonzero(query.periodic)
+    bins = _GAP_BINS
+    dtype = wrapped.dtype
+    width = side.astype(dtype)[axes] / bins
+    b = jnp.clip(jnp.floor(wrapped[:, axes] / width).astype(jnp.int32), 0,
+                 bins - 1)
+    b = b + bins * jnp.arange(len(axes), dtype=jnp.int32)
+    occupied = jnp.zeros((len(axes) * bins,), bool).at[b.reshape(-1)].set(
+        True).reshape(len(axes), bins)
+    # Twice round the box: a run through the box's faces is one run.
+    twice = jnp.concatenate([occupied, occupied], axis=1)
+    index = jnp.arange(2 * bins, dtype=jnp.int32)
+    last = jax.lax.cummax(jnp.where(twice, index, -1), axis=1)
+    empty = index - last  # empty bins ending at each index, inclusive
+    end = jnp.argmax(empty, axis=1).astype(jnp.int32)
+    length = jnp.minimum(jnp.max(empty, axis=1), bins).astype(dtype)
+    found = (length - 1) * width >= query.cutoff * (1.0 + _GAP_MARGIN)
+    middle = ((end + 1).astype(dtype) - length / 2) * width
+    middle = jnp.mod(middle, side.astype(dtype)[axes])
+    return (jnp.zeros((dim,), bool).at[axes].set(found),
+            jnp.zeros((dim,), dtype).at[axes].set(middle))
+
+
+def _shifted(wrapped, cut, side):
+    """``wrapped - cut`` wrapped into ``[0, side)``, per axis: the empty
+    slab around ``cut`` moved to the box's faces. (Float ``(N, dim)``;
+    one select, no float ``mod``, which is a libm call per element on
+    CPUs.)"""
+    side = side.astype(wrapped.dtype)
+    return wrapped - cut + jnp.where(wrapped < cut, side, 0)
+
+
+def _compacted(wrapped, side, origin, extent, coarsen, query: Query,
+               budget, cells):
+    """`_grid`'s compacted axes, for a grid that the box-wide cells would
+    coarsen by ``coarsen``.
+
+    Args:
+      cells: `_grid`'s ``cells(coarsen, compact, extent)``.
+    Returns:
+      ``(compact, cut, origin, extent, coarsen)``: bool ``(dim,)`` the
+      compacted axes; float ``(dim,)`` (``wrapped``'s dtype) the middles of
+      their empty slabs (`_shifted`), 0 elsewhere; and the grid's origin,
+      extent and coarsening factor with them, as given where no axis is
+      compacted.
+    """
+    found, cut = _gaps(wrapped, side, query)
+    shifted = jnp.where(found, _shifted(wrapped, cut, side), wrapped)
+    low = jnp.min(shifted, axis=0)
+    span = jnp.where(found, jnp.max(shifted, axis=0) - low, extent)
+    # An axis is compacted where, at the box-wide grid's factor, that gives
+    # it no more cells than the box does (a slab of a few cutoffs gains
+    # less than the empty cells cost). Then at that factor the compacted
+    # grid fits the table too, so the loop below stops at or before it.
+    compact = found & (cells(coarsen, found, span)
+                       <= cells(coarsen, np.zeros(len(query.periodic), bool),
+                                extent))
+    span = jnp.where(compact, span, extent)
+    # The box-wide loop's factors (powers of 1.25, compared exactly).
+    factor = jax.lax.while_loop(
+        lambda c: (jnp.any(compact) & (c < coarsen)
+                   & (jnp.prod(cells(c, compact, span)) > budget)),
+        lambda c: c * 1.25, jnp.ones((), coarsen.dtype))
+    return (compact, jnp.where(compact, cut, 0).astype(cut.dtype),
+            jnp.where(compact, low, origin), span,
+            jnp.where(jnp.any(compact), factor, coarsen))
 
 
 def _key(coord, n):
@@ -256,7 +406,10 @@ def _run_images(cell, n, query: Query, reach: tuple[int, int] = _REACH):
     that aliases (``n <= 2 across``, where `_runs` drops repeated offsets)
     nor along a periodic x with ``n <= 2 reach + 1`` (the whole row is
     one run): `_image_axes` says statically where they are exact. Beyond
-    the cutoff a run's image is never closer than the nearest.
+    the cutoff a run's image is never closer than the nearest. On an axis
+    `_grid` compacted, every nonempty run is ``s = 0`` (its wrapped cells
+    are the empty ones past the span), the plain difference of the
+    shifted positions, which is every pair's minimum image there.
 
     Args:
       cell: int32 ``(N, dim)`` cell coordinates (the order of `_runs`').
@@ -330,6 +483,13 @@ def _image_axes(n_particles: int, side, query: Query,
     (`_box_cells`). An axis is accepted where its fewest possible cells
     exceed ``2 across`` (``2 reach + 1`` along x).
 
+    Axes that `_grid` compacts (a cloud leaving an empty slab, where the
+    box-wide grid would coarsen) have cells set by the cloud, not the box,
+    but at least ``2 reach + 2`` of them, and every nonempty run's image is
+    0 on them (`_grid`, `_run_images`): still exact. The other axes keep
+    the box's cells, coarsened no more than the box-wide grid (`_grid`
+    compacts only where that holds), so no fewer than counted here.
+
     Args:
       n_particles: N (the cell-start table's budget).
       side: ``dim`` Python floats, the box (periodic axes).
@@ -355,7 +515,8 @@ def _static_cells(n_particles: int, side, query: Query,
 
     The most cells `_box_cells` allows: if the coarsening loop replayed
     there does not run, the traced one cannot either, the grid has at most
-    that many cells, and every key is below the bound.
+    that many cells, and every key is below the bound. (Such a grid never
+    searches for empty slabs to compact: `_grid`'s ``coarsen=False``.)
 
     Returns:
       int, more than every cell key (the `_cell_starts` table), or None

@@ -703,6 +703,10 @@ RUN_CASES = {
              (False,) * 3),
     "2d": (np.random.default_rng(5).uniform(0, 1, (170, 2)), (11.0, 7.0),
            None),
+    # a cloud through the faces of a box that would coarsen its grid:
+    # every axis compacted (`cell_list._grid`)
+    "cluster": ((np.array([0.999, 0.5, 0.002]) + 0.01 * np.random.default_rng(
+        6).standard_normal((200, 3))) % 1.0, (300.0,) * 3, None),
 }
 
 
@@ -713,7 +717,9 @@ RUN_CASES = {
     pytest.param("slab", "thread", marks=SLOW),
     pytest.param("free", "tiles", marks=SLOW),
     pytest.param("2d", "thread", marks=SLOW),
-    pytest.param("cube of 2.004 cutoffs", "tiles", marks=SLOW)])
+    pytest.param("cube of 2.004 cutoffs", "tiles", marks=SLOW),
+    pytest.param("cluster", "thread", marks=SLOW),
+    pytest.param("cluster", "tiles", marks=SLOW)])
 def test_runs_found_by_the_kernel_equal_the_stored_runs(x64, case, layout):
     """Energy, forces and pair count of ``Cell(runs="kernel")`` equal
     ``Cell(runs="stored")``'s bitwise, in boxes that alias stencil cells,
