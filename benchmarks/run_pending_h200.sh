@@ -4,12 +4,14 @@
 # they fill in):
 #   tests     the compiled tests of the cell kernels and the Warp calls,
 #             group after group, each with pytest-xdist workers (compiling
-#             is CPU-bound): test_fused.py (all), the list kernel, list-free
-#             SPH, then bvh, policy, seed 001's fused kernels and the
-#             spheres / squares
-#   runs      #18's kernels: test_fused.py compiled, then the LJ step and
-#             the roofline of the runs found in the cell-start table, with
-#             newton (n), finer cells across (a2), and stored runs (s)
+#             is CPU-bound): test_fused.py (all), the list kernel and the
+#             periodic axes compacted across empty slabs, list-free SPH,
+#             then bvh, policy, seed 001's fused kernels and the spheres /
+#             squares
+#   runs      #18's kernels: test_fused.py and test_periodic_gaps.py
+#             compiled, then the LJ step and the roofline of the runs found
+#             in the cell-start table, with newton (n), finer cells across
+#             (a2), and stored runs (s)
 #   step      #18's LJ step side by side (fused cell, jaxrt cell/Dense,
 #             jax-md Dense), the roofline with the fused step's halves, and
 #             the grid's stages (benchmarks/grid_stages.py)
@@ -52,12 +54,14 @@ tests() {  # name timeout pytest-args...
 case $PART in
   tests)
     tests cell 240 tests/test_fused.py -m "slow or not slow"
-    tests list_kernel 200 tests/test_cell_kernel.py tests/test_neighbors.py
+    tests list_kernel 200 tests/test_cell_kernel.py tests/test_neighbors.py \
+      tests/test_periodic_gaps.py -m "slow or not slow"
     tests sph 150 tests/test_sph_fused.py -m "slow or not slow"
     tests warp 200 tests/test_bvh.py tests/test_policy.py \
       tests/test_seed_fused.py tests/test_rt_spheres_squares.py ;;
   runs)  # #18: runs found in the cell-start table, newton, finer cells
-    tests fused 200 tests/test_fused.py -m "slow or not slow"
+    tests fused 200 tests/test_fused.py tests/test_periodic_gaps.py \
+      -m "slow or not slow"
     timeout 150 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
       --repeats 5 --timeout 40 --budget 140 --only fused:cell \
       "fused:cell[32x1n]" "fused:cell[32x1a2]" "fused:cell[32x1a2n]" \
