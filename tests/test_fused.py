@@ -806,29 +806,32 @@ NEWTON = _Cell(kernel=KERNEL.kernel, newton=True)
 @pytest.mark.parametrize("case", [
     "fluid", pytest.param("faces", marks=SLOW),
     pytest.param("aliased box", marks=SLOW),
-    pytest.param("radii", marks=SLOW)])
+    pytest.param("radii", marks=SLOW), pytest.param("walls", marks=SLOW)])
 def test_newton_matches_brute_force(x64, case):
     """``Cell(newton=True)`` against float64 brute force: pair counts
     exactly, energy and forces to E_RTOL / F_RTOL, where the half stencil
     runs (a fluid with every axis on the runs' images, particles on the
-    faces and corners, per-particle radii) and where it cannot (a box of 2
-    cells across, which repeats stencil cells: the full walk)."""
+    faces and corners, per-particle radii, free axes) and where it cannot
+    (a box of 2 cells across, which repeats stencil cells: the full
+    walk)."""
     radii = None
     if case == "faces":
         R, side = faces_and_corners(3, jnp.float64)
     elif case == "aliased box":
         R, side = fluid(n_side=4, density=0.5)
-    else:
+    else:  # fluid, radii, walls
         R, side = fluid(n_side=7)
         R = jnp.asarray(R)
         if case == "radii":
             radii = jnp.asarray(np.random.default_rng(6).uniform(
                 0.8, 1.2, len(R)))
-    displacement, _ = space.periodic(side)
+    displacement, box = space.periodic(side)[0], side
+    if case == "walls":  # free axes: no wrap, nothing repeats
+        displacement, box = space.free()[0], None
     R = jnp.asarray(R)
     kw = {} if radii is None else {"radii": radii}
-    fused = lennard_jones_fused(displacement, side, backend=NEWTON, **kw)
-    brute = lennard_jones_fused(displacement, side, backend="brute", **kw)
+    fused = lennard_jones_fused(displacement, box, backend=NEWTON, **kw)
+    brute = lennard_jones_fused(displacement, box, backend="brute", **kw)
     assert int(fused.sums(R).count) == int(brute.sums(R).count)
     close(fused(R), brute(R), E_RTOL)
     close(jax.grad(fused)(R), jax.grad(brute)(R), F_RTOL)
