@@ -24,6 +24,7 @@ from jaxrt.energy import lennard_jones_fused
 from jaxrt.energy.fused import _Cell
 from oracle import (assert_layout, brute_pairs, brute_pairs_radii,
                     expected_pairs, list_pairs)
+from test_fused import fluid as fused_fluid
 
 # The default run keeps one case per property; the rest run with -m slow.
 SLOW = pytest.mark.slow
@@ -274,15 +275,10 @@ def test_gap_on_one_axis_only():
     list_matches_brute(R, side, 1.5, periodic, "xla")
 
 
-def fluid(n_side=8, dim=3, density=0.8, seed=0, jitter=0.15):
-    """A jittered lattice in ``[0, side)``: (R float32 (N, dim), side)."""
-    side = (n_side ** dim / density) ** (1 / dim)
-    a = side / n_side
-    g = np.stack(np.meshgrid(*[np.arange(n_side)] * dim, indexing="ij"),
-                 -1).reshape(-1, dim) * a
-    rng = np.random.default_rng(seed)
-    return jnp.asarray((g + rng.uniform(-jitter, jitter, g.shape) * a) % side,
-                       jnp.float32), side
+def fluid(n_side=8, dim=3):
+    """`test_fused.fluid` in float32: (R float32 (N, dim), side)."""
+    R, side = fused_fluid(n_side=n_side, dim=dim)
+    return jnp.asarray(R, jnp.float32), side
 
 
 @pytest.mark.parametrize("dim", [2, 3])
