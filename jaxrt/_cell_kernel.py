@@ -428,6 +428,15 @@ def _n_run_refs(dim: int, image_axes, reach) -> int:
     return 2 + any(image_axes)
 
 
+def _remainder(x, m: int):
+    """``x mod m`` of a non-negative int32 ``x`` by a static ``m``, as a
+    division and a multiply: jnp's ``%`` fixes signs with ops that Triton's
+    lowering mistypes under x64, and a ``rem`` in a program reads as
+    periodic wrapping to the checks that a wall box does none
+    (tests/test_scene.py)."""
+    return x - jax.lax.div(x, jnp.int32(m)) * jnp.int32(m)
+
+
 def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
                 image_axes, reach):
     """``run_at(r) -> (start, length, origin)`` for the lanes of a program:
@@ -480,19 +489,16 @@ def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
     live = me < n
 
     def run_at(r):
-        # Non-negative int32 throughout: lax's rem and div (jnp's % and //
-        # fix signs with ops that Triton's lowering mistypes under x64).
         r = jnp.asarray(r, jnp.int32)
-        row = jax.lax.rem(r, jnp.int32(rows)) if periodic[0] else r
+        row = _remainder(r, rows) if periodic[0] else r
         valid = live
         shift = [None] * dim
         base = jnp.zeros_like(cell[0])
         stride = cells[0]
         for a in range(1, dim):
             # `_stencil_rows`' order: the last axis fastest.
-            k = jax.lax.rem(
-                jax.lax.div(row, jnp.int32(width ** (dim - 1 - a))),
-                jnp.int32(width))
+            k = _remainder(jax.lax.div(row, jnp.int32(
+                width ** (dim - 1 - a))), width)
             c = cell[a] + k - across
             if periodic[a]:
                 # One wrap; a box of fewer than 2 across + 1 cells names a
@@ -587,7 +593,7 @@ def _sum_walk(geometry_ref, scalars_ref, *refs, n, dim, periodic, image_axes,
     def walk_run(r, acc):
         start, length, origin = run_at(r)
         if newton:  # the upper half of the stencil (`pair_sums`)
-            row = jax.lax.rem(jnp.asarray(r, jnp.int32), jnp.int32(rows))
+            row = _remainder(jnp.asarray(r, jnp.int32), rows)
             centre = rows // 2
             begin = jnp.where(row == centre, jnp.maximum(start, me + 1),
                               start)
