@@ -71,6 +71,16 @@ def fits(n: int, row_width: int, shell: int) -> bool:
             and n * max(row_width, shell, 1) < 2 ** 31 - 1)
 
 
+def _grid_inputs(grid: CellGrid, pad) -> list:
+    """The kernel inputs `_run_reader` reads of ``grid``: the cell-start
+    table, one int32 ``(padded,)`` array of cell coordinates per axis
+    (``pad``: `_padding`'s), the cells per axis."""
+    return [grid.starts.astype(jnp.int32),
+            *[pad(grid.cell[:, a].astype(jnp.int32))
+              for a in range(grid.cell.shape[1])],
+            grid.cells.astype(jnp.int32)]
+
+
 def _padding(n: int, block: int):
     """``(padded, pad)``: N rounded up to whole blocks, and a function that
     pads axis 0 to it. The last block's spare threads repeat the last
@@ -121,9 +131,7 @@ def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
     # One array per axis: the kernel gathers scalars by index.
     coords = [pad(sorted_cart[:, a]) for a in range(dim)]
     n_runs = (2 * grid.reach[1] + 1) ** (dim - 1) * (2 if periodic[0] else 1)
-    run_inputs = [grid.starts.astype(jnp.int32),
-                  *[pad(grid.cell[:, a].astype(jnp.int32))
-                    for a in range(dim)], grid.cells.astype(jnp.int32)]
+    run_inputs = _grid_inputs(grid, pad)
     params = jnp.zeros((8,), dtype)
     params = params.at[0].set(inner_sq).at[1].set(outer_sq)
     params = params.at[2:2 + dim].set(side.astype(dtype))
@@ -238,9 +246,9 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
               unroll: int = 1, interpret: bool = False):
     """Each sorted particle's sums over all its candidates, in one kernel.
 
-    Every pair is met from both of its particles (no atomics, no list); the
-    particle's sums stay in registers while its runs are walked, and are
-    stored once. Two layouts of the walk (``tile``):
+    Every pair is met from both of its particles (no atomics, no list;
+    ``newton`` meets it once); the particle's sums stay in registers while
+    its runs are walked, and are stored once. Two layouts of the walk (``tile``):
 
     - ``tile=0``, a thread per particle: each thread walks its own runs,
       one candidate per step (loads of single values, shared by the
@@ -362,10 +370,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         rows = (2 * grid.reach[1] + 1) ** (dim - 1)
         n_runs = rows * (2 if periodic[0] else 1)
         # Spare lanes repeat the last particle's cell; `live` empties them.
-        run_inputs = [grid.starts.astype(jnp.int32),
-                      *[pad(grid.cell[:, a].astype(jnp.int32))
-                        for a in range(dim)],
-                      grid.cells.astype(jnp.int32)]
+        run_inputs = _grid_inputs(grid, pad)
     else:
         start1, len1, start2, len2 = sorted_runs
         rows = start1.shape[1]
