@@ -29,7 +29,8 @@ one is read and tested) and ``pairs`` per particle within the cutoff. The
 roofline columns then say what the row would cost at the measured limits:
 
 * ``bytes_min``: compulsory traffic per particle (positions and order in,
-  the runs in, forces and sums or the row out) / ``copy``'s bandwidth;
+  the grid's cell coordinates, or the stored runs, in; forces and sums or
+  the row out) / ``copy``'s bandwidth;
 * ``bytes_l2``: every candidate's coordinates fetched from memory or L2
   (4 bytes x dim each) / the same bandwidth: the cost when nothing is
   staged in shared memory or registers;
@@ -140,8 +141,11 @@ def run_row(job: dict) -> dict:
         t = _harness.time_calls(jax.jit(lambda R: nbrs.update(R).idx), inputs,
                                 **timing)
         pairs = float(jnp.sum(nbrs.idx < n)) / n
-        # order, 3 coordinates, 2 x runs x (start, length) in; the row out
-        bytes_min = 4 * (1 + 3 + 4 * runs) + 4 * nbrs.idx.shape[1]
+        # order, 3 coordinates, the grid (the kernel finds its runs) or
+        # the runs' starts and lengths (the portable path) in; the row out
+        source = "stored" if job["kernel"] == "xla" else "kernel"
+        bytes_min = 4 * (1 + 3) + _run_bytes(source, runs, 2) + 4 * (
+            nbrs.idx.shape[1])
         flops = FLOP_PER_CANDIDATE_LIST * candidates
     else:
         energy_fn = lennard_jones_fused(
@@ -150,15 +154,27 @@ def run_row(job: dict) -> dict:
         forces = jax.jit(jax.grad(energy_fn))
         t = _harness.time_calls(forces, inputs, **timing)
         pairs = 2 * float(energy_fn.sums(R).count) / n
-        # order, 3 coordinates, the runs and their images in; 3 forces, the
-        # energy and the pair count out (grad skips the sigma / epsilon sums)
-        bytes_min = 4 * (1 + 3 + 6 * runs) + 4 * 5
+        # order, 3 coordinates, the grid or the runs and their images in; 3
+        # forces, the energy and the pair count out (grad skips the sigma /
+        # epsilon sums)
+        bytes_min = 4 * (1 + 3) + _run_bytes(
+            getattr(backend, "runs", "kernel"), runs, 3) + 4 * 5
         flops = FLOP_PER_CANDIDATE * candidates
     return {"N": n, "k": round(pairs, 2),
             "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch")
                                        else ""),
             "candidates": round(candidates, 1), "bytes_min": bytes_min,
             "bytes_l2": 12 * candidates, "flops": flops, **t.columns()}
+
+
+def _run_bytes(source: str, runs: int, per_run: int) -> int:
+    """Compulsory bytes per particle of what a kernel reads to find its
+    candidates: ``"stored"``, ``runs`` runs of ``per_run`` int32 each
+    (start, length and, for the fused walk, the image code); ``"kernel"``,
+    the particle's 3 cell coordinates (the cell-start table it also reads
+    is about a cell per particle, and its two loads per run mostly hit
+    the cache)."""
+    return 4 * per_run * runs if source == "stored" else 4 * 3
 
 
 def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
@@ -179,12 +195,13 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
 
     if job["row"] == "grid":  # what the walk reads of it, no more
         t = _harness.time_calls(jax.jit(walk), inputs, **timing)
-        # positions in; keys, order, 2 x runs x (start, length, image) and
-        # the sorted wrapped positions out
+        # positions in; keys, order, the grid or the runs with their
+        # images, and the sorted wrapped positions out
         return {"N": n, "kernel": job["kernel"] + (
                     f" {job['launch']}" if job.get("launch") else ""),
                 "candidates": round(candidates, 1),
-                "bytes_min": 4 * 3 + 4 * 2 + 4 * 6 * runs + 4 * 3,
+                "bytes_min": (4 * 3 + 4 * 2 + _run_bytes(cell.runs, runs, 3)
+                              + 4 * 3),
                 **t.columns()}
 
     walks = [jax.jit(walk)(x) for x in inputs]
@@ -201,7 +218,8 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     t = _harness.time_calls(lambda w: kernel(*w), walks, **timing)
     return {"N": n, "kernel": job["kernel"] + (f" {job['launch']}" if job.get("launch") else ""),
             "candidates": round(candidates, 1),
-            "bytes_min": 4 * (3 + 6 * runs) + 4 * 5, "bytes_l2": 12 * candidates,
+            "bytes_min": 4 * 3 + _run_bytes(cell.runs, runs, 3) + 4 * 5,
+            "bytes_l2": 12 * candidates,
             "flops": FLOP_PER_CANDIDATE * candidates, **t.columns()}
 
 
