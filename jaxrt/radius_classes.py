@@ -36,6 +36,7 @@ import dataclasses
 import functools
 import itertools
 import math
+import os
 
 import jax
 import jax.numpy as jnp
@@ -222,26 +223,96 @@ def _rows(j, own, reverse, *, width: int, reverse_capacity: int):
     return rows, count, total > reverse_capacity
 
 
+# int32 flat indices over the candidates (`_rows`' cumsum, the reshapes)
+# address at most this many.
+MAX_CANDIDATES = 2 ** 31 - 1
+# What the update holds per candidate at the least: its index (int32) and
+# two flags (`_candidates`' outputs), besides any temporaries.
+_CANDIDATE_BYTES = 6
+
+
+def _memory_bytes(position) -> int | None:
+    """The memory of the device ``position`` lives on (its allocator's limit
+    where JAX reports one, else the host's RAM), or None if unknown."""
+    devices = getattr(position, "devices", None)
+    device = next(iter(devices())) if callable(devices) else jax.devices()[0]
+    try:
+        stats = device.memory_stats() or {}
+    except Exception:  # some platforms do not implement it
+        stats = {}
+    if stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_candidates(n: int, windows: tuple[int, ...], query: Query,
+                      memory: int | None) -> None:
+    """Refuse, before building them, candidate arrays that int32 cannot
+    index or that cannot fit in memory (never a wrapped index, never the
+    process killed for memory)."""
+    per_particle = 3 ** query.dim * sum(windows)
+    total = n * per_particle
+    needed = total * _CANDIDATE_BYTES
+    if total <= MAX_CANDIDATES and (memory is None or needed <= memory):
+        return
+    why = (f"more than int32 indices address ({MAX_CANDIDATES:,})"
+           if total > MAX_CANDIDATES else
+           f"at least {needed / 2 ** 30:,.1f} GiB, more than the device's "
+           f"{memory / 2 ** 30:,.1f} GiB")
+    raise ValueError(
+        f"radii=: the cell list's radius classes would test {total:,} "
+        f"candidate pairs (N = {n:,} x {per_particle:,}: the fullest cells "
+        f"of the classes hold {list(windows)} particles), {why}. The radii "
+        "put most of the system within one particle's reach (a dense "
+        "cluster with large radii), so any list is of order N**2. Use the "
+        "list-free jaxrt.energy.lennard_jones_fused(..., radii=..., "
+        "backend='cell'), which never stores a pair, or fewer particles or "
+        "smaller radii.")
+
+
+@jax.jit
+def _sizes(j, own, reverse):
+    """Counts of `_candidates`' output, on the device (the candidates never
+    travel to the host): int32 ``(N,)`` row lengths, and int32 scalars the
+    OrderedSparse edges and the reversed entries."""
+    n = j.shape[0]
+    i = jnp.arange(n, dtype=jnp.int32)[:, None]
+    count = jnp.sum(own, axis=1, dtype=jnp.int32) + jnp.zeros(
+        (n,), jnp.int32).at[jnp.where(reverse, j, n)].add(1, mode="drop")
+    ordered = (jnp.sum(own & (j < i), dtype=jnp.int32)
+               + jnp.sum(reverse & (i < j), dtype=jnp.int32))
+    return count, ordered, jnp.sum(reverse, dtype=jnp.int32)
+
+
 def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
             classes: int | None) -> dict[str, int]:
     """Exact sizes (see `jaxrt.cell_list.Cell.measure`): ``row``, ``edges``,
-    ``classes``, ``window<c>`` per class and ``reverse``. Eager."""
+    ``classes``, ``window<c>`` per class and ``reverse``. Eager.
+
+    Raises:
+      ValueError: the candidates cannot be indexed or held
+        (`_check_candidates`).
+    """
     reach = np.asarray(geometry.reach, np.float64)
     k = classes_for(reach, query.cutoff) if classes is None else classes
     windows = tuple(max(int(f), 1) for f in np.asarray(
         _fullest(position, geometry, query=query, classes=k)))
+    _check_candidates(position.shape[0], windows, query,
+                      _memory_bytes(position))
     j, own, reverse, _ = _candidates(position, geometry, metric_sq,
                                      query=query, windows=windows)
-    j, own, reverse = (np.asarray(x) for x in (j, own, reverse))
-    n = j.shape[0]
-    i = np.arange(n)[:, None]
-    count = own.sum(1) + np.bincount(j[reverse], minlength=n)
+    count, ordered, reversed_ = _sizes(j, own, reverse)
+    del j, own, reverse
+    count = np.asarray(count)
     if query.format.name == "OrderedSparse":
-        edges = int((own & (j < i)).sum() + (reverse & (i < j)).sum())
+        edges = int(ordered)
     else:
-        edges = int(count.sum())
+        edges = int(count.sum(dtype=np.int64))
     sizes = {"row": int(count.max(initial=0)), "edges": edges,
-             "classes": k, "reverse": int(reverse.sum())}
+             "classes": k, "reverse": int(reversed_)}
     sizes.update({f"window{c}": w for c, w in enumerate(windows)})
     return sizes
 

@@ -273,6 +273,35 @@ def test_bad_radii_are_refused_at_allocate():
         fn.update(position, nbrs)
 
 
+def test_candidates_past_memory_or_int32_are_refused_at_allocate(monkeypatch):
+    """A cluster whose radii reach most of the system makes every list of
+    order N**2: the cell list refuses at allocate, naming radii= and the
+    list-free energy, before it builds candidates that would wrap int32
+    indices or exhaust memory (at n = 50 000 in seed 003's cluster with
+    U[1, 160] radii the process was killed for memory instead)."""
+    rng = np.random.default_rng(3)
+    n = 64
+    position = jnp.asarray(rng.normal(0.0, 0.5, (n, 3)) + 5.0)
+    radii = np.full(n, 0.1)
+    radii[:4] = 3.0  # four particles reach all the others
+    displacement, _ = space.free()
+    fn = jaxrt.neighbor_list(displacement, 10.0, 3.0, 0.0, radii=radii,
+                             backend="cell", format=partition.Sparse)
+    # Today's sizes pass; the same sizes against a smaller device fail,
+    # as do more candidates than int32 indexes.
+    nbrs = fn.allocate(position)
+    check(nbrs, radii, 10.0, False, partition.Sparse)
+    monkeypatch.setattr(radius_classes, "_memory_bytes", lambda _: 1024)
+    with pytest.raises(ValueError, match=r"radii=.*GiB.*lennard_jones_fused"):
+        fn.allocate(position)
+    monkeypatch.setattr(radius_classes, "_memory_bytes", lambda _: None)
+    monkeypatch.setattr(radius_classes, "MAX_CANDIDATES", n * 27)
+    with pytest.raises(ValueError, match=r"radii=.*int32 indices"):
+        fn.allocate(position)
+    monkeypatch.setattr(radius_classes, "MAX_CANDIDATES", 2 ** 31 - 1)
+    assert fn.allocate(position).idx.shape == nbrs.idx.shape
+
+
 # ---------------------------------------------------------------------------
 # Lennard-Jones with radii.
 
