@@ -192,23 +192,59 @@ def _candidates(position, geometry: Geometry, metric_sq: MetricSq, *,
             jnp.concatenate(reverses, axis=1), jnp.stack(fullest))
 
 
-def _rows(j, own, reverse, *, width: int, reverse_capacity: int):
+def _packed(j, mask, width: int):
+    """Left-pack ``j`` where ``mask``, a row at a time, by the cell list's
+    bit selection (`jaxrt.cell_list._select`): the output is written, not
+    scattered from every candidate (a scatter over N x M candidates was
+    most of the update on CPUs).
+
+    Args:
+      j: int32 ``(N, M)``; mask: bool ``(N, M)``; width: static columns.
+    Returns:
+      int32 ``(N, width)`` padded with N, int32 ``(N,)`` exact counts.
+    """
+    n, m = j.shape
+    words = -(-m // 32)
+    # About as many groups as words per group: the selection compares
+    # each output against every group's last prefix, then within one group.
+    group = max(1, math.isqrt(words))
+    words = group * -(-words // group)
+    mask = jnp.pad(mask, ((0, 0), (0, 32 * words - m)))
+    bits = mask.reshape(n, words, 32).astype(jnp.uint32) << jnp.arange(
+        32, dtype=jnp.uint32)
+    packed = jnp.sum(bits, axis=2, dtype=jnp.uint32)  # distinct bits: an or
+    payload = jnp.broadcast_to(
+        jnp.arange(words, dtype=jnp.int32)[None, :, None], (n, words, 1))
+    bit, got, valid, count = _cells._select(packed, width, payload, group)
+    column = jnp.clip(32 * got[..., 0] + bit, 0, m - 1)
+    picked = jnp.take_along_axis(j, column, axis=1)
+    return jnp.where(valid, picked, n), count
+
+
+def _rows(j, own, reverse, *, width: int, reverse_row: int,
+          reverse_capacity: int):
     """Dense rows from `_candidates`' output.
 
+    Args:
+      reverse_row: static, the most reversed entries one particle finds.
+      reverse_capacity: static, the most reversed entries in all.
     Returns:
       int32 ``(N, width)`` rows padded with N, int32 ``(N,)`` counts (exact
-      unless the reverse buffer overflowed), bool scalar reverse overflow.
+      unless a reverse buffer overflowed), bool scalar reverse overflow.
     """
     n = j.shape[0]
-    rows, count = _backend.pack_rows(j, own, width)
-    flat = reverse.reshape(-1)
-    total = jnp.sum(flat, dtype=jnp.int32)
-    slot = jnp.where(flat, jnp.cumsum(flat, dtype=jnp.int32) - 1,
+    rows, count = _packed(j, own, width)
+    # Each particle's larger partners, then all of them in one buffer.
+    larger, per_row = _packed(j, reverse, reverse_row)
+    flat = larger.reshape(-1)
+    real = flat < n
+    total = jnp.sum(per_row, dtype=jnp.int32)
+    slot = jnp.where(real, jnp.cumsum(real, dtype=jnp.int32) - 1,
                      reverse_capacity)
     senders = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None],
-                               j.shape).reshape(-1)
+                               larger.shape).reshape(-1)
     row = jnp.full((reverse_capacity,), n, jnp.int32).at[slot].set(
-        j.reshape(-1), mode="drop")
+        flat, mode="drop")
     value = jnp.full((reverse_capacity,), n, jnp.int32).at[slot].set(
         senders, mode="drop")
     row, value = jax.lax.sort((row, value), num_keys=1)
@@ -220,7 +256,8 @@ def _rows(j, own, reverse, *, width: int, reverse_capacity: int):
     rows = rows.at[row, place].set(value, mode="drop")
     count = count + jnp.zeros((n,), jnp.int32).at[row].add(
         real.astype(jnp.int32), mode="drop")
-    return rows, count, total > reverse_capacity
+    overflow = (total > reverse_capacity) | jnp.any(per_row > reverse_row)
+    return rows, count, overflow
 
 
 # int32 flat indices over the candidates (`_rows`' cumsum, the reshapes)
@@ -277,20 +314,23 @@ def _check_candidates(n: int, windows: tuple[int, ...], query: Query,
 def _sizes(j, own, reverse):
     """Counts of `_candidates`' output, on the device (the candidates never
     travel to the host): int32 ``(N,)`` row lengths, and int32 scalars the
-    OrderedSparse edges and the reversed entries."""
+    OrderedSparse edges, the reversed entries, and the most of them in
+    one row."""
     n = j.shape[0]
     i = jnp.arange(n, dtype=jnp.int32)[:, None]
     count = jnp.sum(own, axis=1, dtype=jnp.int32) + jnp.zeros(
         (n,), jnp.int32).at[jnp.where(reverse, j, n)].add(1, mode="drop")
     ordered = (jnp.sum(own & (j < i), dtype=jnp.int32)
                + jnp.sum(reverse & (i < j), dtype=jnp.int32))
-    return count, ordered, jnp.sum(reverse, dtype=jnp.int32)
+    per_row = jnp.sum(reverse, axis=1, dtype=jnp.int32)
+    return count, ordered, jnp.sum(per_row), jnp.max(per_row, initial=0)
 
 
 def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
             classes: int | None) -> dict[str, int]:
     """Exact sizes (see `jaxrt.cell_list.Cell.measure`): ``row``, ``edges``,
-    ``classes``, ``window<c>`` per class and ``reverse``. Eager.
+    ``classes``, ``window<c>`` per class, ``reverse`` and ``reverse_row``.
+    Eager.
 
     Raises:
       ValueError: the candidates cannot be indexed or held
@@ -304,7 +344,7 @@ def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
                       _memory_bytes(position))
     j, own, reverse, _ = _candidates(position, geometry, metric_sq,
                                      query=query, windows=windows)
-    count, ordered, reversed_ = _sizes(j, own, reverse)
+    count, ordered, reversed_, reverse_row = _sizes(j, own, reverse)
     del j, own, reverse
     count = np.asarray(count)
     if query.format.name == "OrderedSparse":
@@ -312,7 +352,8 @@ def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
     else:
         edges = int(count.sum(dtype=np.int64))
     sizes = {"row": int(count.max(initial=0)), "edges": edges,
-             "classes": k, "reverse": int(reversed_)}
+             "classes": k, "reverse": int(reversed_),
+             "reverse_row": int(reverse_row)}
     sizes.update({f"window{c}": w for c, w in enumerate(windows)})
     return sizes
 
@@ -326,6 +367,7 @@ def search(position, geometry: Geometry, query: Query, capacity: Capacity,
                                            query=query, windows=windows)
     rows, count, reverse_overflow = _rows(
         j, own, reverse, width=max(capacity["row"], 1),
+        reverse_row=max(capacity["reverse_row"], 1),
         reverse_capacity=max(capacity["reverse"], 1))
     result = _backend.format_dense_rows(rows, count, query, capacity)
     overflow = reverse_overflow | jnp.any(fullest > jnp.asarray(windows))

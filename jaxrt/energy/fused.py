@@ -342,7 +342,9 @@ class _Cell(_Backend):
     # the stencil) and adds the partner's force with an atomic, where no
     # stencil cell across repeats (`run_image_axes`); elsewhere, and in the
     # array walk, every pair is met from both sides as without it. The
-    # same sums to rounding (the atomics' order varies).
+    # same sums to rounding (the atomics' order varies). Off by default:
+    # on the H200 the atomics cost more than the evaluations they save
+    # (benchmarks/RESULTS.md, #18).
     newton: bool = False
 
     def __post_init__(self):
