@@ -221,11 +221,15 @@ def _packed(j, mask, width: int):
     return jnp.where(valid, picked, n), count
 
 
-def _rows(j, own, reverse, *, width: int, reverse_row: int,
+def _rows(j, own, reverse, *, width: int, own_row: int, reverse_row: int,
           reverse_capacity: int):
     """Dense rows from `_candidates`' output.
 
     Args:
+      width: static columns of the rows.
+      own_row: static, the most neighbours one particle finds itself (the
+        selection's cost grows with it: a large particle's row is mostly
+        reversed entries, written by the buffer below).
       reverse_row: static, the most reversed entries one particle finds.
       reverse_capacity: static, the most reversed entries in all.
     Returns:
@@ -233,7 +237,10 @@ def _rows(j, own, reverse, *, width: int, reverse_row: int,
       unless a reverse buffer overflowed), bool scalar reverse overflow.
     """
     n = j.shape[0]
-    rows, count = _packed(j, own, width)
+    rows, count = _packed(j, own, min(own_row, width))
+    rows = jnp.pad(rows, ((0, 0), (0, width - rows.shape[1])),
+                   constant_values=n)
+    own_overflow = jnp.any(count > own_row)
     # Each particle's larger partners, then all of them in one buffer.
     larger, per_row = _packed(j, reverse, reverse_row)
     flat = larger.reshape(-1)
@@ -256,7 +263,8 @@ def _rows(j, own, reverse, *, width: int, reverse_row: int,
     rows = rows.at[row, place].set(value, mode="drop")
     count = count + jnp.zeros((n,), jnp.int32).at[row].add(
         real.astype(jnp.int32), mode="drop")
-    overflow = (total > reverse_capacity) | jnp.any(per_row > reverse_row)
+    overflow = ((total > reverse_capacity) | jnp.any(per_row > reverse_row)
+                | own_overflow)
     return rows, count, overflow
 
 
@@ -314,8 +322,8 @@ def _check_candidates(n: int, windows: tuple[int, ...], query: Query,
 def _sizes(j, own, reverse):
     """Counts of `_candidates`' output, on the device (the candidates never
     travel to the host): int32 ``(N,)`` row lengths, and int32 scalars the
-    OrderedSparse edges, the reversed entries, and the most of them in
-    one row."""
+    OrderedSparse edges, the reversed entries, the most of them in one
+    row, and the most neighbours one particle finds itself."""
     n = j.shape[0]
     i = jnp.arange(n, dtype=jnp.int32)[:, None]
     count = jnp.sum(own, axis=1, dtype=jnp.int32) + jnp.zeros(
@@ -323,13 +331,15 @@ def _sizes(j, own, reverse):
     ordered = (jnp.sum(own & (j < i), dtype=jnp.int32)
                + jnp.sum(reverse & (i < j), dtype=jnp.int32))
     per_row = jnp.sum(reverse, axis=1, dtype=jnp.int32)
-    return count, ordered, jnp.sum(per_row), jnp.max(per_row, initial=0)
+    return (count, ordered, jnp.sum(per_row), jnp.max(per_row, initial=0),
+            jnp.max(jnp.sum(own, axis=1, dtype=jnp.int32), initial=0))
 
 
 def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
             classes: int | None) -> dict[str, int]:
     """Exact sizes (see `jaxrt.cell_list.Cell.measure`): ``row``, ``edges``,
-    ``classes``, ``window<c>`` per class, ``reverse`` and ``reverse_row``.
+    ``classes``, ``window<c>`` per class, ``reverse``, ``reverse_row`` and
+    ``own_row``.
     Eager.
 
     Raises:
@@ -344,7 +354,7 @@ def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
                       _memory_bytes(position))
     j, own, reverse, _ = _candidates(position, geometry, metric_sq,
                                      query=query, windows=windows)
-    count, ordered, reversed_, reverse_row = _sizes(j, own, reverse)
+    count, ordered, reversed_, reverse_row, own_row = _sizes(j, own, reverse)
     del j, own, reverse
     count = np.asarray(count)
     if query.format.name == "OrderedSparse":
@@ -353,7 +363,7 @@ def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
         edges = int(count.sum(dtype=np.int64))
     sizes = {"row": int(count.max(initial=0)), "edges": edges,
              "classes": k, "reverse": int(reversed_),
-             "reverse_row": int(reverse_row)}
+             "reverse_row": int(reverse_row), "own_row": int(own_row)}
     sizes.update({f"window{c}": w for c, w in enumerate(windows)})
     return sizes
 
@@ -367,6 +377,7 @@ def search(position, geometry: Geometry, query: Query, capacity: Capacity,
                                            query=query, windows=windows)
     rows, count, reverse_overflow = _rows(
         j, own, reverse, width=max(capacity["row"], 1),
+        own_row=max(capacity["own_row"], 1),
         reverse_row=max(capacity["reverse_row"], 1),
         reverse_capacity=max(capacity["reverse"], 1))
     result = _backend.format_dense_rows(rows, count, query, capacity)

@@ -302,6 +302,30 @@ def test_candidates_past_memory_or_int32_are_refused_at_allocate(monkeypatch):
     assert fn.allocate(position).idx.shape == nbrs.idx.shape
 
 
+def test_rows_pack_exactly_and_flag_every_short_buffer():
+    """`radius_classes._rows` against a float64-free reference: particle 0
+    is large (class 0) and found by 1..3, which also find each other; rows
+    are the exact sets, and each buffer one entry short sets the flag."""
+    n = 4
+    #      candidates of each particle (N = 4 pads)
+    j = jnp.array([[1, 4, 4, 4, 4, 4],
+                   [0, 2, 3, 4, 4, 4],
+                   [0, 1, 3, 4, 4, 4],
+                   [0, 1, 2, 4, 4, 4]], jnp.int32)
+    own = j < n
+    own = own.at[0, 0].set(False)  # 0 finds nobody smaller itself
+    reverse = jnp.zeros_like(own).at[1:, 0].set(True)  # 1..3 write into 0
+    want = [{1, 2, 3}, {0, 2, 3}, {0, 1, 3}, {0, 1, 2}]
+    sizes = dict(width=3, own_row=3, reverse_row=1, reverse_capacity=3)
+    rows, count, overflow = radius_classes._rows(j, own, reverse, **sizes)
+    assert not bool(overflow)
+    assert [set(np.asarray(r)[np.asarray(r) < n].tolist()) for r in rows] == want
+    np.testing.assert_array_equal(count, [3, 3, 3, 3])
+    for name in ("own_row", "reverse_row", "reverse_capacity"):
+        short = dict(sizes, **{name: sizes[name] - 1})
+        assert bool(radius_classes._rows(j, own, reverse, **short)[2]), name
+
+
 # ---------------------------------------------------------------------------
 # Lennard-Jones with radii.
 
