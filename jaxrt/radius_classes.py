@@ -234,7 +234,8 @@ def _rows(j, own, reverse, *, width: int, own_row: int, reverse_row: int,
       reverse_capacity: static, the most reversed entries in all.
     Returns:
       int32 ``(N, width)`` rows padded with N, int32 ``(N,)`` counts (exact
-      unless a reverse buffer overflowed), bool scalar reverse overflow.
+      unless a buffer overflowed), bool scalar: ``own_row``,
+      ``reverse_row`` or ``reverse_capacity`` was too small.
     """
     n = j.shape[0]
     rows, count = _packed(j, own, min(own_row, width))
