@@ -17,7 +17,9 @@
 # CSVs: $OUT/h200/table2_<part>_<sha>.csv (the device run's $OUT), else
 # benchmarks/results/h200/. Rows the budget did not reach are "skipped":
 # re-run them with --scenes/--methods/--boundaries (see table2.py --help).
-# Environment: BUDGET (seconds before no new row starts, default 480),
+# Environment: SCENES / BOUNDARIES (space-separated subsets, e.g.
+# BOUNDARIES=periodic to finish a part whose wall rows ran; the CSV's name
+# then names them), BUDGET (seconds before no new row starts, default 480),
 # HARD_STOP (default 570), ROW_TIMEOUT (default 200), ENERGY_SECONDS
 # (energy window per row, default 2), METHODS (space-separated, e.g.
 # "GPU-CELL-fused ORCS-forces"; the CSV's name then names them),
@@ -34,9 +36,12 @@ fi
 DEST=${OUT:+$OUT/h200}; DEST=${DEST:-benchmarks/results/h200}
 # shellcheck disable=SC2206 # METHODS: words on purpose
 MARGS=(${METHODS:+--methods $METHODS})
+# shellcheck disable=SC2206 # SCENES, BOUNDARIES: words on purpose
+SARGS=(${SCENES:+--scenes $SCENES} ${BOUNDARIES:+--boundaries $BOUNDARIES})
 # The methods in the CSV's name, ASCII only (the device run returns no
 # other file names).
-MTAG=${METHODS:+_$(echo $METHODS | tr ' ' '+' | LC_ALL=C tr -cd 'A-Za-z0-9+-')}
+MTAG=$(echo "${METHODS:+_$METHODS}${SCENES:+_$SCENES}${BOUNDARIES:+_$BOUNDARIES}" \
+  | tr ' ' '+' | LC_ALL=C tr -cd 'A-Za-z0-9+_-')
 if [[ $PART == energy || $PART == energy-wall || $PART == energy-periodic ]]; then
   BCS="wall periodic"; [[ $PART != energy ]] && BCS=${PART#energy-}
   mkdir -p "$DEST"
@@ -53,6 +58,6 @@ N=$(( PART <= 4 ? 50000 : 1000000 ))
 R=${RADII[$(( (PART - 1) % 4 ))]}
 TAG=$(echo "${N}_${R}" | tr -d '[]=,' )
 mkdir -p "$DEST"
-$PY benchmarks/table2.py --n "$N" --radii "$R" "${MARGS[@]}" \
+$PY benchmarks/table2.py --n "$N" --radii "$R" "${MARGS[@]}" "${SARGS[@]}" \
   --budget "${BUDGET:-480}" --hard-stop "${HARD_STOP:-570}" \
   --timeout "${ROW_TIMEOUT:-200}" --out "$DEST/table2_${TAG}${MTAG}_${GIT_SHA}.csv"
