@@ -327,21 +327,21 @@ def _sizes(j, own, reverse):
     row, and the most neighbours one particle finds itself."""
     n = j.shape[0]
     i = jnp.arange(n, dtype=jnp.int32)[:, None]
-    count = jnp.sum(own, axis=1, dtype=jnp.int32) + jnp.zeros(
-        (n,), jnp.int32).at[jnp.where(reverse, j, n)].add(1, mode="drop")
+    own_count = jnp.sum(own, axis=1, dtype=jnp.int32)
+    count = own_count + jnp.zeros((n,), jnp.int32).at[
+        jnp.where(reverse, j, n)].add(1, mode="drop")
     ordered = (jnp.sum(own & (j < i), dtype=jnp.int32)
                + jnp.sum(reverse & (i < j), dtype=jnp.int32))
     per_row = jnp.sum(reverse, axis=1, dtype=jnp.int32)
     return (count, ordered, jnp.sum(per_row), jnp.max(per_row, initial=0),
-            jnp.max(jnp.sum(own, axis=1, dtype=jnp.int32), initial=0))
+            jnp.max(own_count, initial=0))
 
 
 def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
             classes: int | None) -> dict[str, int]:
     """Exact sizes (see `jaxrt.cell_list.Cell.measure`): ``row``, ``edges``,
     ``classes``, ``window<c>`` per class, ``reverse``, ``reverse_row`` and
-    ``own_row``.
-    Eager.
+    ``own_row``. Eager.
 
     Raises:
       ValueError: the candidates cannot be indexed or held
@@ -376,11 +376,11 @@ def search(position, geometry: Geometry, query: Query, capacity: Capacity,
     windows = tuple(capacity[f"window{c}"] for c in range(k))
     j, own, reverse, fullest = _candidates(position, geometry, metric_sq,
                                            query=query, windows=windows)
-    rows, count, reverse_overflow = _rows(
+    rows, count, buffer_overflow = _rows(
         j, own, reverse, width=max(capacity["row"], 1),
         own_row=max(capacity["own_row"], 1),
         reverse_row=max(capacity["reverse_row"], 1),
         reverse_capacity=max(capacity["reverse"], 1))
     result = _backend.format_dense_rows(rows, count, query, capacity)
-    overflow = reverse_overflow | jnp.any(fullest > jnp.asarray(windows))
+    overflow = buffer_overflow | jnp.any(fullest > jnp.asarray(windows))
     return result._replace(overflow=result.overflow | overflow)

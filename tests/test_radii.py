@@ -303,7 +303,7 @@ def test_candidates_past_memory_or_int32_are_refused_at_allocate(monkeypatch):
 
 
 def test_rows_pack_exactly_and_flag_every_short_buffer():
-    """`radius_classes._rows` against a float64-free reference: particle 0
+    """`radius_classes._rows` against rows written by hand: particle 0
     is large (class 0) and found by 1..3, which also find each other; rows
     are the exact sets, and each buffer one entry short sets the flag."""
     n = 4
