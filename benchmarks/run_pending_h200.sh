@@ -22,6 +22,10 @@
 #             of the Warp calls' fixed cost hold on the GPU?
 #   sph       list-free SPH (the cell kernel) against SPH on lists, side by
 #             side: 2D N = 10^6 and 3D N = 10^5 (#18's 2x target)
+#   radii     the radius classes (refusal at allocate, packed rows) on the
+#             GPU: tests/test_radii.py (slow included), the radius tests
+#             of the other files, then test_fused.py whole with a per-test
+#             JUnit report (the runs part's 200 s did not reach its tail)
 #   accuracy  the accuracy sweep's settings the H200 has not measured:
 #             pairs, spheres-epsilon, list-free (fused-pallas), N = 16 384
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
@@ -37,7 +41,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|runs|step|profile|overhead|sph|accuracy}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -48,7 +52,7 @@ tests() {  # name timeout pytest-args...
   # and test_fused.py took 85 s with -n 6 against over 250 s with -n 0.
   local name=$1 limit=$2; shift 2
   timeout "$limit" "$PY" -m pytest -q -n "${WORKERS:-6}" -p no:cacheprovider \
-    "$@" > "$DEST/logs/$name.log" 2>&1
+    -rfE --junitxml="$DEST/logs/$name.xml" "$@" > "$DEST/logs/$name.log" 2>&1
   note "$name rc=$? $(tail -1 "$DEST/logs/$name.log")"
 }
 case $PART in
@@ -59,6 +63,12 @@ case $PART in
     tests sph 150 tests/test_sph_fused.py -m "slow or not slow"
     tests warp 200 tests/test_bvh.py tests/test_policy.py \
       tests/test_seed_fused.py tests/test_rt_spheres_squares.py ;;
+  radii)
+    tests radii 170 tests/test_radii.py -m "slow or not slow"
+    tests radius_elsewhere 90 tests/test_periodic_gaps.py tests/test_accuracy.py \
+      tests/test_fused.py tests/test_neighbors.py -m "slow or not slow" \
+      -k "radi or radius"
+    tests fused 180 tests/test_fused.py -m "slow or not slow" ;;
   runs)  # #18: runs found in the cell-start table, newton, finer cells
     tests fused 200 tests/test_fused.py tests/test_periodic_gaps.py \
       -m "slow or not slow"
