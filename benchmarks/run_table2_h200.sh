@@ -41,7 +41,7 @@ SARGS=(${SCENES:+--scenes $SCENES} ${BOUNDARIES:+--boundaries $BOUNDARIES})
 # The methods in the CSV's name, ASCII only (the device run returns no
 # other file names).
 MTAG=$(echo "${METHODS:+_$METHODS}${SCENES:+_$SCENES}${BOUNDARIES:+_$BOUNDARIES}" \
-  | tr ' ' '+' | LC_ALL=C tr -cd 'A-Za-z0-9+_-')
+  | tr ' ' '-' | LC_ALL=C tr -cd 'A-Za-z0-9_-')
 if [[ $PART == energy || $PART == energy-wall || $PART == energy-periodic ]]; then
   BCS="wall periodic"; [[ $PART != energy ]] && BCS=${PART#energy-}
   mkdir -p "$DEST"
