@@ -214,6 +214,19 @@ class Backend(Protocol):
         """Neighbour list of ``position`` (float ``(N, dim)``). jit-able."""
 
 
+def list_too_large(backend_name: str, entries: int, what: str, n: int,
+                   limit: int) -> ValueError:
+    """The error for a list of ``entries`` int32 entries (``what``: which
+    buffer) past ``limit``, the most a backend can index."""
+    return ValueError(
+        f"the neighbour list needs {entries:,} int32 entries ({what}, N = "
+        f"{n:,}), more than backend={backend_name!r} can address "
+        f"({limit:,}). Use fewer particles or a smaller r_cutoff + "
+        "dr_threshold, OrderedSparse (half the edges of Sparse), or, for "
+        "the ray-traced backends, backend='cell'. Energies need no list: "
+        "jaxrt.energy.lennard_jones_fused(..., backend='cell').")
+
+
 # ---------------------------------------------------------------------------
 # Layout helpers shared by backends that build Dense rows first.
 

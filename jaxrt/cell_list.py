@@ -1087,6 +1087,16 @@ class Cell:
             shell = max(shell, 2 * fullest)
             shell_rows = max(shell_rows, _shell_rows(has, n))
         count = np.asarray(count)
+        # Every layout is built from rows N x row wide: refuse now what the
+        # front would refuse after sizing (a cluster where each particle
+        # sees all others needs N^2), before the rows pass below allocates
+        # them (seed 003's cluster at n = 50 000 was killed for host memory
+        # there, and ran past 100 s on the GPU).
+        limit = getattr(self, "max_list_entries", 2 ** 31 - 1)
+        if n * int(count.max(initial=0)) > limit:
+            raise _backend.list_too_large(
+                self.name, n * int(count.max(initial=0)),
+                "rows before conversion", n, limit)
         # A lattice at allocate may have no pair near the cutoff, and a
         # liquid a few per hundred particles: expect the liquid's share,
         # from the pairs found (they grow as r**dim, so a shell of width

@@ -859,12 +859,7 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
         entries["rows before conversion"] = n * capacity["row"]
     name, largest = max(entries.items(), key=lambda kv: kv[1])
     if largest > limit:
-        raise ValueError(
-            f"the neighbour list needs {largest:,} int32 entries ({name}, N = "
-            f"{n:,}), more than backend={backend.name!r} can address "
-            f"({limit:,}). Use fewer particles or a smaller r_cutoff + "
-            "dr_threshold, OrderedSparse (half the edges of Sparse), or, for "
-            "the ray-traced backends, backend='cell'.")
+        raise _backend.list_too_large(backend.name, largest, name, n, limit)
 
 
 def _auto_backend(*, has_radii: bool = False) -> str:
