@@ -105,7 +105,9 @@ def test_a_backend_of_ones_own_plugs_in_as_a_value(fmt, periodic):
         jaxrt.neighbor_list(disp, 6.0, 1.3, backend=object())
 
 
-@hypothesis.settings(max_examples=6, deadline=None)
+# Each example allocates three lists of a new size (~10 s of compiling on
+# CI's cores): two here, 400 in the slow run below.
+@hypothesis.settings(max_examples=2, deadline=None)
 @hypothesis.given(**HYPOTHESIS_SCENES)
 def test_hypothesis_scenes(n, side, cutoff, periodic, dim, seed, mask_self):
     check_scene(n, side, cutoff, periodic, dim, seed, mask_self)
@@ -603,3 +605,49 @@ def test_lists_beyond_what_the_backend_can_index_are_refused():
                        "address.*fewer particles"):
         limited(entries - 1).allocate(R)
     assert limited(entries).allocate(R).idx.shape == small.idx.shape
+
+
+@pytest.mark.parametrize("fmt", [partition.Dense, partition.OrderedSparse])
+def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
+        monkeypatch, fmt):
+    # Seed 003's cluster: every particle within the cutoff of every other,
+    # so every layout's rows are N wide. The cell list must refuse after its
+    # count pass, before the pass that writes N x row entries (at n = 50 000
+    # that pass was killed for host memory, or ran past 100 s on the GPU).
+    import dataclasses
+    from typing import ClassVar
+
+    from jaxrt import backends
+    n = 300
+    R = jnp.asarray(np.random.default_rng(1).uniform(-0.3, 0.3, (n, 3)),
+                    jnp.float32)
+    disp, _ = space.free()
+
+    def limited(limit):
+        @dataclasses.dataclass(frozen=True)
+        class Limited(backends.Cell):
+            max_list_entries: ClassVar[int] = limit
+        return Limited()
+
+    widths = []
+    candidates = backends.Cell._candidates
+
+    def spy(self, *args, **options):
+        widths.append(options.get("row_width"))
+        return candidates(self, *args, **options)
+
+    monkeypatch.setattr(backends.Cell, "_candidates", spy)
+    with pytest.raises(ValueError, match=r"needs 89,700 int32 entries \(rows "
+                       r"before conversion.*lennard_jones_fused"):
+        jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * (n - 1) - 1),
+                            format=fmt).allocate(R)
+    assert widths and max(widths) <= 1  # only the count pass ran
+    # Room for N x N (the rows' capacity is capped at N) and the same list
+    # is built, every pair in it.
+    nbrs = jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * n),
+                               format=fmt).allocate(R)
+    idx = np.asarray(nbrs.idx)
+    if fmt is partition.Dense:
+        assert int(np.sum(idx < n)) == n * (n - 1)
+    else:
+        assert int(np.sum(idx[0] < n)) == n * (n - 1) // 2
