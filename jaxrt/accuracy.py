@@ -64,7 +64,11 @@ Definitions (the CSV's columns):
   brute force, minimum image on periodic axes) that the list in use lacks (or, for `LJPairs`, the pairs
   `jaxrt.pairs` finds at those positions), summed over the checks
   (``pairs_checked``: the brute-force pairs over the same checks; ``k``:
-  mean neighbours within the cutoff per particle).
+  mean neighbours within the cutoff per particle); ``missed_depth_ulps``:
+  the deepest missed pair's distance inside its cut, in ulps of the
+  distances' scale (`missed_depth_ulps`): up to `ROUNDING_ULPS` a search in
+  float32 decides by rounding, as jax-md's metric does; deeper, the list is
+  wrong.
 * ``rdf_l2`` / ``rdf_linf``: ``sqrt(sum (g - g_ref)^2 dr)`` and
   ``max |g - g_ref|`` of the radial distribution functions over the run's
   chunk-end frames, on the fixed grid ``dr`` up to ``r_max`` (periodic
@@ -836,6 +840,44 @@ def pairs_missed(list_codes, reference_codes) -> int:
                             np.asarray(list_codes)).size)
 
 
+# A search deciding in the positions' dtype computes each distance from
+# rounded inputs (positions plus periodic shifts), rounding each difference
+# and product once more: within 16 ulps of that scale, the bound
+# tests/test_pairs.py holds jaxrt.pairs' float32 distances to. A pair that
+# close to its cut may fall either side, as jax-md's metric decides;
+# a deeper miss is a wrong list.
+ROUNDING_ULPS = 16.0
+
+
+def missed_depth_ulps(list_codes, reference_codes, position, cutoff: float,
+                      side, periodic, dtype, *, radii=None) -> float:
+    """How deep inside its cut the deepest missed pair lies, in ulps (of
+    ``dtype``) of the distances' scale: the largest coordinate plus the
+    largest periodic side (or the largest cut, if larger); 0.0 when none
+    is missed.
+
+    A search deciding in float32, as jax-md's metric decides, may drop a
+    pair whose float64 distance is within rounding of the cut: up to
+    `ROUNDING_ULPS` that is; a deeper miss is a wrong list. Args: codes as
+    `pairs_missed`; ``position`` float ``(n, dim)`` (compared in float64);
+    ``radii`` as `brute_pairs`.
+    """
+    miss = np.setdiff1d(np.asarray(reference_codes), np.asarray(list_codes))
+    if miss.size == 0:
+        return 0.0
+    r = np.asarray(position, np.float64)
+    n = len(r)
+    i, j = miss // n, miss % n
+    d = np.sqrt(np.sum(_min_image(r[i] - r[j], side, periodic) ** 2, -1))
+    cut = np.broadcast_to(_pair_cut(cutoff, _radii64(radii, n), i, j),
+                          d.shape)
+    per = np.asarray(periodic, bool)
+    scale = max(float(np.max(cut)), float(np.max(np.abs(r))) + float(
+        np.max(np.where(per, np.asarray(side, np.float64), 0.0),
+               initial=0.0)))
+    return float(np.max(cut - d) / (np.finfo(dtype).eps * scale))
+
+
 def rdf_grid(r_max: float, dr: float) -> np.ndarray:
     """Bin edges ``0, dr, ..., r_max`` of `rdf`."""
     return np.arange(0.0, r_max + 0.5 * dr, dr)
@@ -1120,6 +1162,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
     periodic = scene.box.periodic
     frames, energies, times = [], [], []
     missed = checked = overflows = 0
+    depth = 0.0
     done = 0
     while done < plan.steps:
         k = min(plan.chunk, plan.steps - done)
@@ -1152,6 +1195,10 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
                                periodic, radii=None if own else radii)
             got = own[1](pos) if own else _pair_codes(nbrs, n)
             missed += pairs_missed(got, want)
+            depth = max(depth, missed_depth_ulps(
+                got, want, pos, own[0] if own else scene.cutoff, side,
+                periodic, state.position.dtype,
+                radii=None if own else radii))
             checked += len(want)
     if nbrs is not None:
         from jaxrt.errors import check
@@ -1169,7 +1216,8 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         row.update(drift_per_particle_1e4=d.slope, drift_se=d.se,
                    max_abs_dE_per_particle=d.max_dev)
     if nbrs is not None or own is not None:
-        row.update(pairs_missed=missed, pairs_checked=checked,
+        row.update(pairs_missed=missed, missed_depth_ulps=depth,
+                   pairs_checked=checked,
                    k=2.0 * checked / len(frames) / n)
     tri = _triangulation_rebuilds(nbrs)
     if tri is not None:
@@ -1215,6 +1263,17 @@ def finish_row(m: Measured, ref: Measured, scene, plan: Plan,
         row["position_rms"] = position_rms(m.final, ref.final,
                                            scene.box.size, scene.box.periodic)
     return row
+
+
+def _depth(row) -> str:
+    """How deep the missed pairs lay, for the summary ('' when unknown)."""
+    depth = _num(row, "missed_depth_ulps")
+    if not np.isfinite(depth):
+        return ""
+    why = (": rounding of the distance in the positions' dtype, as "
+           "jax-md's metric decides" if depth <= ROUNDING_ULPS else
+           ": deeper than rounding, a wrong list")
+    return f"; the deepest {_fmt(depth)} ulps inside the cut{why}"
 
 
 def _every(frames: list, most: int) -> list:
@@ -1289,8 +1348,8 @@ ERRORS = (("force_rms_rel", "force RMS error (rel., vs float64 same "
 COLUMNS = ("scene", "knob", "value", "status", "failed", "time_per_step_ms",
            "time_min_ms", "time_max_ms", "repeats", "time_per_tau_ms",
            "force_rms_rel", "force_rms_rel_full", "drift_per_particle_1e4",
-           "drift_se", "max_abs_dE_per_particle", "pairs_missed", "pairs_checked",
-           "rdf_l2", "rdf_linf", "position_rms", "rebuilds",
+           "drift_se", "max_abs_dE_per_particle", "pairs_missed",
+           "missed_depth_ulps", "pairs_checked", "rdf_l2", "rdf_linf", "position_rms", "rebuilds",
            "triangulation_rebuilds", "overflows",
            "steps", "N", "k", "dtype", "backend", "format", "skin",
            "capacity_multiplier", "dt",
@@ -1527,7 +1586,8 @@ def summary_lines(rows: list[dict], meta: dict) -> list[str]:
         if lossy:
             L.append("- Settings whose list missed pairs: " + ", ".join(
                 f"{_setting(r)} ({_fmt(_num(r, 'pairs_missed'))} of "
-                f"{_fmt(_num(r, 'pairs_checked'))})" for r in lossy) + ".")
+                f"{_fmt(_num(r, 'pairs_checked'))}{_depth(r)})"
+                for r in lossy) + ".")
         else:
             L.append("- No setting's list missed a pair (checked against a "
                      "float64 brute force after every chunk, with radii at "

@@ -73,6 +73,35 @@ def test_pairs_missed_on_a_deliberately_short_cutoff():
     assert accuracy.pairs_missed(_pair_codes(nbrs, 64), full) == 64 * 12 // 2
 
 
+def test_missed_depth_tells_rounding_from_a_wrong_list():
+    # The deliberately short cutoff misses the d = sqrt(2) shell, 0.086
+    # inside a cut of 1.5: far deeper than float32 rounding at this scale.
+    r = simple_cubic(4)
+    side, periodic = np.full(3, 4.0), (True,) * 3
+    full = accuracy.brute_pairs(r, 1.5, side, periodic)
+    short = accuracy.brute_pairs(r, 1.1, side, periodic)
+    ulp = np.finfo(np.float32).eps * (np.max(np.abs(r)) + 4.0)  # |x| + side
+    depth = accuracy.missed_depth_ulps(short, full, r, 1.5, side, periodic,
+                                       np.float32)
+    assert depth == pytest.approx((1.5 - np.sqrt(2.0)) / ulp)
+    assert depth > accuracy.ROUNDING_ULPS
+    assert accuracy.missed_depth_ulps(full, full, r, 1.5, side, periodic,
+                                      np.float32) == 0.0
+    # A pair 3 ulps inside the cut, missed: rounding; in float64 ulps the
+    # same miss is ~5e8 ulps deep, a wrong list.
+    eps32 = float(np.finfo(np.float32).eps)
+    pair = np.array([[0.0, 0.0, 0.0], [1.5 - 3 * 1.5 * eps32, 0.0, 0.0]])
+    free = (False,) * 3
+    assert accuracy.missed_depth_ulps([], [1], pair, 1.5, side, free,
+                                      np.float32) == pytest.approx(3.0)
+    assert accuracy.missed_depth_ulps([], [1], pair, 1.5, side, free,
+                                      np.float64) > 1e8
+    row = {"pairs_missed": 1, "pairs_checked": 10, "missed_depth_ulps": 3.0}
+    assert "rounding" in accuracy._depth(row)
+    assert "wrong list" in accuracy._depth({**row, "missed_depth_ulps": 40})
+    assert accuracy._depth({"pairs_missed": 1}) == ""
+
+
 def test_exact_pairs_by_kdtree_equal_the_brute_force():
     rng = np.random.default_rng(0)
     r = rng.random((4200, 3)) * 12.0
