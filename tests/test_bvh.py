@@ -200,7 +200,7 @@ HYPOTHESIS_SCENES = dict(
 )
 
 
-@hypothesis.settings(max_examples=10, deadline=None)
+@hypothesis.settings(max_examples=4, deadline=None)
 @hypothesis.given(**HYPOTHESIS_SCENES)
 def test_hypothesis_scenes(n, side, cutoff, periodic, dim, seed, mask_self):
     check_scene(n, side, cutoff, periodic, dim, seed, mask_self)

@@ -42,13 +42,23 @@ def _energy(d):
                                             per_particle=True)
 
 
+def _library_cases(*cases):
+    out = _run([str(HERE / "domains_cases.py"), *cases])
+    for case in cases:
+        assert f"CASE {case} ok" in out, out
+
+
 def test_library_cases():
     """Energies, forces and jax.grad equal the single device's (float64);
-    the README's jitted user step; migration across every face; emptied
-    domains; a chunk redone after an overflow; overflow flagged."""
-    out = _run([str(HERE / "domains_cases.py")])
-    for case in ("forces", "migration", "empty_domain", "redo", "overflow"):
-        assert f"CASE {case} ok" in out, out
+    the README's jitted user step; overflow flagged."""
+    _library_cases("forces", "overflow")
+
+
+@pytest.mark.slow
+def test_library_cases_migration_emptied_domains_and_redone_chunks():
+    """Migration across every face; emptied domains; a chunk redone after
+    an overflow."""
+    _library_cases("migration", "empty_domain", "redo")
 
 
 def test_halo_wider_than_a_domain_is_refused():
