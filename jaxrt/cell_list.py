@@ -1093,10 +1093,10 @@ class Cell:
         # them (seed 003's cluster at n = 50 000 was killed for host memory
         # there, and ran past 100 s on the GPU).
         limit = getattr(self, "max_list_entries", 2 ** 31 - 1)
-        if n * int(count.max(initial=0)) > limit:
-            raise _backend.list_too_large(
-                self.name, n * int(count.max(initial=0)),
-                "rows before conversion", n, limit)
+        entries = n * int(count.max(initial=0))
+        if entries > limit:
+            raise _backend.list_too_large(self.name, entries,
+                                          "rows before conversion", n, limit)
         # A lattice at allocate may have no pair near the cutoff, and a
         # liquid a few per hundred particles: expect the liquid's share,
         # from the pairs found (they grow as r**dim, so a shell of width
