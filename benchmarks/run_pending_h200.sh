@@ -29,6 +29,9 @@
 #   accuracy  the accuracy sweep's knobs last added to the H200 runs
 #             (pairs, spheres-epsilon, list-free), N = 16 384; all ran at
 #             e898c00, pairs owes a re-run that records missed_depth_ulps
+#   owed      what session 16 left unrun: the cell list's refusal before
+#             its rows (18cf8ac), the pairs knob with missed_depth_ulps,
+#             then Table 2 part 4's periodic disordered and cluster rows
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
 # study: benchmarks/seed_rt_study.py --part K/6 (RESULTS.md).
 #
@@ -42,7 +45,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -130,5 +133,17 @@ case $PART in
       --budget 480 --knobs list-free,pairs,spheres-epsilon \
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
-  *) echo "PART must be tests, runs, step, profile, overhead, sph or accuracy"; exit 2 ;;
+  owed)
+    tests refusal 120 tests/test_neighbors.py -k rows_past_the_limit
+    timeout 200 "$PY" -m jaxrt accuracy --quick --n 16384 --steps 2000 \
+      --budget 170 --knobs pairs \
+      --out "$DEST/accuracy_lj_pairs_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
+    note "accuracy pairs rc=$?"
+    LEFT=$(( 560 - (SECONDS - START) ))
+    OUT=$DEST SCENES="disordered cluster" BOUNDARIES=periodic \
+      BUDGET=$(( LEFT - 100 )) HARD_STOP=$(( LEFT - 20 )) ROW_TIMEOUT=100 \
+      timeout "$LEFT" bash benchmarks/run_table2_h200.sh 4 \
+      > "$DEST/logs/table2_4.log" 2>&1
+    note "table2 part 4 periodic rc=$?" ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy or owed"; exit 2 ;;
 esac
