@@ -45,9 +45,10 @@ MTAG=$(echo "${METHODS:+_$METHODS}${SCENES:+_$SCENES}${BOUNDARIES:+_$BOUNDARIES}
 if [[ $PART == energy || $PART == energy-wall || $PART == energy-periodic ]]; then
   BCS="wall periodic"; [[ $PART != energy ]] && BCS=${PART#energy-}
   mkdir -p "$DEST"
-  # shellcheck disable=SC2086 # BCS: one or two words on purpose
+  # shellcheck disable=SC2086 # BCS, SCENES: words on purpose
   exec $PY benchmarks/table2.py --n 50000 --cases paper-energy --energy \
     --boundaries $BCS --energy-seconds "${ENERGY_SECONDS:-2}" "${MARGS[@]}" \
+    ${SCENES:+--scenes $SCENES} \
     --budget "${BUDGET:-480}" --hard-stop "${HARD_STOP:-570}" \
     --timeout "${ROW_TIMEOUT:-200}" \
     --out "$DEST/table2_${PART}${MTAG}_${GIT_SHA}.csv"

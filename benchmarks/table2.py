@@ -435,7 +435,10 @@ def main(argv=None) -> None:
             args.radii = ("r=1", "LN[1,330]")
     if args.energy_seconds is None:
         args.energy_seconds = 0.2 if args.quick else 2.0
-    cases = (CASES[args.cases] if args.cases in CASES else
+    # --scenes narrows a named case set too (e.g. the energy figures'
+    # cluster row alone, when a budget ended before it).
+    cases = ([c for c in CASES[args.cases] if c[0] in args.scenes]
+             if args.cases in CASES else
              [(scene, radii) for radii in args.radii for scene in args.scenes])
     jobs = []
     # Small configurations first, so a budget keeps the most rows.

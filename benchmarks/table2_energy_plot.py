@@ -7,7 +7,8 @@ and boundary.
                                                           # check the drawing
 
 Writes ``<stem>_efficiency.png`` (Fig 12: a bar per method, the window's
-joules on top; "n/a" with no energy, e.g. CPU-CELL without RAPL) and
+joules on top; "n/a" with no energy, e.g. CPU-CELL without RAPL; a failed,
+out-of-memory or skipped row's slot says so) and
 ``<stem>_power.png`` (Fig 11: watts against seconds into the energy window;
 CPU-CELL's line is the GPU idling, dashed) beside the CSV. Rows: wall,
 periodic; columns: the cases present, in the paper's order.
@@ -85,6 +86,22 @@ def _title(scene: str, radii: str, boundary: str, rows: list[dict]) -> str:
         f" (N={'/'.join(map(str, ns))})" if ns else "")
 
 
+def _measured(row: dict) -> bool:
+    return row.get("status") == "ok" and _number(
+        row.get("energy_window_s")) is not None
+
+
+def _no_bar(row: dict, value: float | None) -> str:
+    """The label of a method's empty slot: why the row has no bar."""
+    if not _measured(row):
+        status = str(row.get("status") or "failed")
+        reason = str(row.get("failed") or "")
+        if "budget" in reason:
+            return "not run\n(budget)"
+        return {"oom": "OOM", "skipped": "skipped"}.get(status, status)
+    return "n/a" if value is None else "0"
+
+
 def plot_efficiency(rows: list[dict], path: Path) -> Path:
     """Fig 12: interactions per joule, a bar per method; log scale where
     the panel spans more than 30x."""
@@ -96,15 +113,18 @@ def plot_efficiency(rows: list[dict], path: Path) -> Path:
                    and r["radii"] == radii and r["boundary"] == boundary}
             methods = [m for m in METHODS if m in got]
             values = [_number(got[m].get("interactions_per_joule"))
-                      for m in methods]
+                      if _measured(got[m]) else None for m in methods]
             real = [v for v in values if v]
             if real and max(real) / min(real) > 30:
                 ax.set_yscale("log")
+            if not methods or not any(_measured(got[m]) for m in methods):
+                ax.text(0.5, 0.5, "no row measured", ha="center",
+                        va="center", transform=ax.transAxes, fontsize=8)
             for x, (m, v) in enumerate(zip(methods, values)):
-                if not v:  # no energy (n/a), or no pairs at all (0)
-                    ax.text(x, 0.02, "n/a" if v is None else "0",
-                            ha="center", va="bottom",
-                            transform=ax.get_xaxis_transform(), fontsize=8)
+                if not v:  # why there is no bar: the row's status, n/a, 0
+                    ax.text(x, 0.02, _no_bar(got[m], v), ha="center",
+                            va="bottom", transform=ax.get_xaxis_transform(),
+                            fontsize=7)
                     continue
                 ax.bar(x, v, color=COLORS.get(m, "gray"))
                 j = _number(got[m].get("energy_j"))
@@ -138,7 +158,7 @@ def plot_power(rows: list[dict], traces: dict, path: Path) -> Path:
             drew = False
             for r in rows:
                 if (r["scene"], r["radii"], r["boundary"]) != (
-                        scene, radii, boundary):
+                        scene, radii, boundary) or not _measured(r):
                     continue
                 trace = traces.get(_key(r), [])
                 if not trace:
@@ -166,12 +186,12 @@ def plot_power(rows: list[dict], traces: dict, path: Path) -> Path:
 def plot_run(csv_path: str | Path, power: str | Path | None = None
              ) -> tuple[Path, Path]:
     """Both figures beside a run's CSV (power: default ``<stem>_power.csv``).
-    Rows without an energy window (no ``--energy``, failed) are left out."""
+    A row without an energy window (failed, out of memory, skipped) keeps
+    its method's slot in Fig 12, labelled with its status."""
     csv_path = Path(csv_path)
     power = Path(power) if power else csv_path.with_name(
         csv_path.stem + "_power.csv")
-    rows = [r for r in _harness.read_csv(csv_path)
-            if r.get("status") == "ok" and _number(r.get("energy_window_s"))]
+    rows = _harness.read_csv(csv_path)
     eff = plot_efficiency(rows, csv_path.with_name(csv_path.stem
                                                    + "_efficiency.png"))
     pw = plot_power(rows, read_power(power),
