@@ -32,6 +32,13 @@
 #   owed      what session 16 left unrun: the cell list's refusal before
 #             its rows (18cf8ac), the pairs knob with missed_depth_ulps,
 #             then Table 2 part 4's periodic disordered and cluster rows
+#             (ran at ce9013a)
+#   formats   where a list step's time goes per layout (list_forces.py:
+#             update, Dense-to-Sparse conversion, forces, the edge
+#             reductions four ways) at #18's N = 10^6, k = 52 and at seed
+#             003's r = 160 density (N = 50 000, k = 700), then Table 2's
+#             r = 160 lattice list rows with Dense lists (#17's question:
+#             which part of their 330-600 ms is the layout's)
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
 # study: benchmarks/seed_rt_study.py --part K/6 (RESULTS.md).
 #
@@ -45,7 +52,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -145,5 +152,16 @@ case $PART in
       timeout "$LEFT" bash benchmarks/run_table2_h200.sh 4 \
       > "$DEST/logs/table2_4.log" 2>&1
     note "table2 part 4 periodic rc=$?" ;;
-  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy or owed"; exit 2 ;;
+  formats)
+    timeout 200 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
+      --out "$DEST/list_forces_1e6_k52_$GIT_SHA.csv" > "$DEST/logs/lf_1e6.log" 2>&1
+    note "list_forces 1e6 rc=$?"
+    timeout 150 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
+      --out "$DEST/list_forces_5e4_k700_$GIT_SHA.csv" > "$DEST/logs/lf_5e4.log" 2>&1
+    note "list_forces 5e4 rc=$?"
+    OUT=$DEST SCENES=lattice BOUNDARIES=wall METHODS="RT-REF GPU-CELL" \
+      LIST_FORMAT=Dense BUDGET=150 HARD_STOP=190 ROW_TIMEOUT=90 timeout 200 \
+      bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
+    note "table2 r=160 Dense rc=$?" ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed or formats"; exit 2 ;;
 esac

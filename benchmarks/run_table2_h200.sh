@@ -23,6 +23,8 @@
 # HARD_STOP (default 570), ROW_TIMEOUT (default 200), ENERGY_SECONDS
 # (energy window per row, default 2), METHODS (space-separated, e.g.
 # "GPU-CELL-fused ORCS-forces"; the CSV's name then names them),
+# LIST_FORMAT (Dense, Sparse or OrderedSparse: the list methods' layout,
+# default Dense at r = 1, else OrderedSparse; the CSV's name then names it),
 # PYTHON.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -35,12 +37,12 @@ if [[ $PART == tests ]]; then
 fi
 DEST=${OUT:+$OUT/h200}; DEST=${DEST:-benchmarks/results/h200}
 # shellcheck disable=SC2206 # METHODS: words on purpose
-MARGS=(${METHODS:+--methods $METHODS})
+MARGS=(${METHODS:+--methods $METHODS} ${LIST_FORMAT:+--list-format $LIST_FORMAT})
 # shellcheck disable=SC2206 # SCENES, BOUNDARIES: words on purpose
 SARGS=(${SCENES:+--scenes $SCENES} ${BOUNDARIES:+--boundaries $BOUNDARIES})
 # The methods in the CSV's name, ASCII only (the device run returns no
 # other file names).
-MTAG=$(echo "${METHODS:+_$METHODS}${SCENES:+_$SCENES}${BOUNDARIES:+_$BOUNDARIES}" \
+MTAG=$(echo "${METHODS:+_$METHODS}${SCENES:+_$SCENES}${BOUNDARIES:+_$BOUNDARIES}${LIST_FORMAT:+_$LIST_FORMAT}" \
   | tr ' ' '-' | LC_ALL=C tr -cd 'A-Za-z0-9_-')
 if [[ $PART == energy || $PART == energy-wall || $PART == energy-periodic ]]; then
   BCS="wall periodic"; [[ $PART != energy ]] && BCS=${PART#energy-}

@@ -1,0 +1,185 @@
+"""Where a list step's time goes, per layout: the list update, the Dense to
+Sparse conversion, and the forces, each jitted and timed alone (#17's open
+question: at k ≈ 700 seed 003's list rows cost 330-600 ms per step on the
+H200, and which part is the layout's is not known; #18's target: Sparse and
+OrderedSparse rebuilds within 1.2x of Dense).
+
+System: uniform random positions in a periodic cube at density 0.8,
+float32, the cutoff chosen for ``--k`` neighbours per particle on average
+(k = 0.8 · 4/3 π rc³), the `cell` backend, no skin (every update searches).
+LJ with σ = rc / 2.5 and jaxrt's smooth cutoff
+(`jaxrt.energy.lennard_jones_pair_neighbor_list`).
+
+Rows (``stage``):
+
+* ``update <layout>``: `neighbor_list(...).update` of a list of that layout;
+* ``convert Sparse`` / ``convert OrderedSparse``: `_backend.dense_to_sparse`
+  alone, on the Dense rows the update builds first;
+* ``forces <layout>``: ``jax.grad`` of the energy on that list (Dense:
+  each row summed in place, no scatter; Sparse layouts: reverse mode
+  through jax-md's pair map, a scatter-add over every edge);
+* ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
+  per-particle forces on the OrderedSparse list's edges, four ways: two
+  scatter-adds as reverse mode does (``scatter``), the sender side with
+  ``indices_are_sorted=True`` (``scatter sorted senders``), a segmented
+  scan over the sorted senders plus a scatter for the receivers
+  (``segmented scan``), and the Dense rows' sum for comparison (``rows``:
+  what the Dense layout needs instead, both directions present).
+
+    GIT_SHA=$(git rev-parse --short HEAD) python benchmarks/list_forces.py --n 1000000 --k 52
+    python benchmarks/list_forces.py --n 50000 --k 700     # seed 003's r = 160 density
+    python benchmarks/list_forces.py --n 4000 --k 60 --repeats 3  # CPU smoke
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _harness  # noqa: E402
+
+LAYOUTS = ("Dense", "Sparse", "OrderedSparse")
+
+
+def _segmented_sum(values, segment):
+    """Per-segment sums of float ``(E, 3)`` ``values`` whose int32 ``(E,)``
+    ``segment`` ids are sorted: an inclusive segmented scan (no sums
+    across segments, so no cancellation), then each segment's last entry."""
+    import jax
+    import jax.numpy as jnp
+    starts = jnp.concatenate([jnp.ones((1,), bool), segment[1:] != segment[:-1]])
+
+    def op(a, b):
+        (av, af), (bv, bf) = a, b
+        return jnp.where(bf[..., None], bv, av + bv), af | bf
+
+    scanned, _ = jax.lax.associative_scan(op, (values, starts))
+    last = jnp.concatenate([segment[1:] != segment[:-1], jnp.ones((1,), bool)])
+    return scanned, last
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], epilog=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--k", type=float, default=52.0,
+                        help="mean neighbours per particle (sets the cutoff)")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--stages", nargs="+", default=None,
+                        help="only the stages whose name starts with one "
+                        "of these words (update, convert, forces, reduce)")
+    parser.add_argument("--out", default=None, help="CSV path or folder")
+    args = parser.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax_md import partition, space
+
+    import jaxrt
+    from jaxrt import _backend
+    from jaxrt.energy import lennard_jones_pair_neighbor_list
+
+    n, density = args.n, 0.8
+    side = (n / density) ** (1 / 3)
+    cutoff = (3 * args.k / (4 * math.pi * density)) ** (1 / 3)
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0, side, (n, 3))
+    # Two position sets, so that repeated calls do not replay one input.
+    inputs = [jnp.asarray(base, jnp.float32),
+              jnp.asarray(np.mod(base + rng.uniform(-0.01, 0.01, base.shape),
+                                 side), jnp.float32)]
+    displacement, _ = space.periodic(side)
+    energy = lennard_jones_pair_neighbor_list(
+        displacement, sigma=cutoff / 2.5, epsilon=1.0,
+        r_onset=0.8 * cutoff, r_cutoff=cutoff)
+    device = _harness.device_provenance()
+    rows = []
+
+    def wanted(name):
+        return args.stages is None or any(name.startswith(s)
+                                          for s in args.stages)
+
+    def stage(name, fn, xs, **extra):
+        if not wanted(name):
+            return
+        t = _harness.time_calls(jax.jit(fn), xs, repeats=args.repeats,
+                                warmup=args.warmup)
+        rows.append({"stage": name, "N": n, "k": args.k,
+                     "cutoff": round(cutoff, 5), **extra, **t.columns(),
+                     "dtype": "float32", **device,
+                     **_harness.host_provenance(),
+                     "git_sha": _harness.git_sha()})
+        print(f"{name:34s} {t.median_ms:10.3f} ms", flush=True)
+
+    lists = {}
+    for layout in LAYOUTS:
+        fmt = getattr(partition, layout)
+        nfn = jaxrt.neighbor_list(displacement, side, cutoff, 0.0,
+                                  format=fmt, backend="cell")
+        nbrs = nfn.allocate(inputs[0])
+        lists[layout] = nbrs
+        edges = int(np.sum(np.asarray(nbrs.idx)[0] < n)) if layout != "Dense" \
+            else int(np.sum(np.asarray(nbrs.idx) < n))
+        stage(f"update {layout}", lambda R, nb=nbrs, f=nfn: f.update(R, nb),
+              inputs, entries=edges, capacity=int(np.prod(nbrs.idx.shape)))
+        stage(f"forces {layout}", lambda R, nb=nbrs: jax.grad(energy)(R, nb),
+              inputs, entries=edges)
+
+    dense = lists["Dense"].idx
+    for ordered in (False, True):
+        layout = "OrderedSparse" if ordered else "Sparse"
+        cap = lists[layout].idx.shape[1]
+        stage(f"convert {layout}",
+              lambda d, c=cap, o=ordered: _backend.dense_to_sparse(d, c, o),
+              [dense, dense], capacity=cap)
+
+    # The reductions alone, on per-edge vectors of the OrderedSparse list
+    # (receivers j = idx[0], senders i = idx[1], the senders ascending as
+    # jaxrt's conversion writes them).
+    idx = lists["OrderedSparse"].idx
+    receivers, senders = idx[0], idx[1]
+    e = idx.shape[1]
+    force = [jnp.asarray(rng.normal(size=(e, 3)), jnp.float32)
+             for _ in range(2)]
+
+    def scatter(f):
+        return (jax.ops.segment_sum(f, senders, n)
+                - jax.ops.segment_sum(f, receivers, n))
+
+    def scatter_sorted(f):
+        return (jax.ops.segment_sum(f, senders, n, indices_are_sorted=True)
+                - jax.ops.segment_sum(f, receivers, n))
+
+    def segmented(f):
+        scanned, last = _segmented_sum(f, senders)
+        own = jnp.zeros((n, 3), f.dtype).at[jnp.where(last, senders, n)].set(
+            scanned, mode="drop", unique_indices=True)
+        return own - jax.ops.segment_sum(f, receivers, n)
+
+    stage("reduce scatter", scatter, force, entries=e)
+    stage("reduce scatter sorted senders", scatter_sorted, force, entries=e)
+    stage("reduce segmented scan", segmented, force, entries=e)
+    width = dense.shape[1]
+    per_slot = [jnp.asarray(rng.normal(size=(n, width, 3)), jnp.float32)
+                for _ in range(2)]
+    stage("reduce rows (Dense)", lambda f: jnp.sum(f, axis=1), per_slot,
+          entries=int(np.sum(np.asarray(dense) < n)))
+    if wanted("reduce"):
+        a = np.asarray(jax.jit(scatter)(force[0]))
+        b = np.asarray(jax.jit(segmented)(force[0]))
+        print(f"segmented scan vs scatter: max |diff| {np.abs(a - b).max():.3g}"
+              f" (max |F| {np.abs(a).max():.3g})")
+
+    path = _harness.write_csv(rows, _harness.out_path(
+        args.out, f"list_forces_{n}_k{int(args.k)}.csv",
+        device.get("device_slug", "unknown")))
+    print(f"cutoff {cutoff:.4f}; wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
