@@ -448,7 +448,8 @@ class _Worker:
 class Runner:
     """Runs jobs in `serve` workers: a fresh one per job, or (with
     ``reuse_worker``) one kept for the following jobs of the same
-    ``_group`` as long as they succeed. Every failure ends its worker.
+    ``_worker`` key (default: their ``_group``) as long as they succeed.
+    Every failure ends its worker.
 
     Attributes:
       device: the provenance of the device the last worker saw (`READY`).
@@ -505,9 +506,9 @@ class Runner:
     def run(self, job: dict, timeout: float) -> list[dict]:
         """The job's rows, each with ``status`` (and ``failed``)."""
         base = {k: v for k, v in job.items() if not k.startswith("_")}
-        group = job.get("_group")
+        group = job.get("_worker", job.get("_group"))
         if self._worker is not None and group != self._group:
-            self._end()  # a worker serves one group of jobs
+            self._end()  # a worker serves one key's jobs
         self._group = group
         w = self._worker
         if w is None or w.proc.poll() is not None:
@@ -573,7 +574,10 @@ def run_jobs(target: str, jobs: Iterable[dict], *, out: str | None,
         and returning a row (dict) or a list of rows.
       jobs: the plan, in order. A job's keys not starting with ``_`` are
         also the columns of its failed rows; a job's ``_group`` (optional)
-        groups jobs that the budget does not split.
+        groups jobs that the budget does not split; its ``_worker``
+        (optional, default its ``_group``) names the jobs that share a
+        worker with ``reuse_worker`` (several groups may share one: a
+        worker's start-up is paid once).
       out, name: `out_path`.
       columns: the printed table's columns.
       timeout: seconds per job (a worker's start-up included); a job's
@@ -582,7 +586,7 @@ def run_jobs(target: str, jobs: Iterable[dict], *, out: str | None,
         the rest are written as ``skipped``.
       hard_stop: seconds after ``t0`` at which the running job is killed.
       reuse_worker: keep a worker for the following jobs of the same
-        ``_group`` while they succeed.
+        ``_worker`` key (else ``_group``) while they succeed.
       startup_timeout: seconds for a worker's imports and device start.
       inject: ``KIND@I``, testing aid: job number I (1-based) crashes,
         hangs, raises an error or a fake out-of-memory (KIND in crash,

@@ -40,7 +40,7 @@
 #             r = 160 lattice list rows with Dense lists (#17's question:
 #             which part of their 330-600 ms is the layout's)
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
-# study: benchmarks/seed_rt_study.py --part K/6 (RESULTS.md).
+# study: benchmarks/seed_rt_study.py --part K/5 (RESULTS.md).
 #
 #   GIT_SHA=$(git rev-parse --short HEAD) bash benchmarks/run_pending_h200.sh PART
 #

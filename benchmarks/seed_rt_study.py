@@ -104,7 +104,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def jobs_of(planned: list[dict], args) -> list[dict]:
     """One job per (configuration, method); a configuration is a group
-    (one worker, never split by the budget)."""
+    (never split by the budget); the configurations below ``--large-n``
+    share a worker, each larger one has its own."""
     faults = {}
     for spec in args.inject or ():
         kind, _, target = spec.partition("@")
@@ -120,6 +121,11 @@ def jobs_of(planned: list[dict], args) -> list[dict]:
                    "max_repeats": args.max_repeats, "search": args.search,
                    "search_limit_ms": args.search_limit_ms, "split": args.split,
                    "_group": key,
+                   # Configurations below --large-n share one worker (its
+                   # imports, Warp's start and the device context paid
+                   # once); each large one gets a fresh worker, so that
+                   # it starts with the device's memory free.
+                   "_worker": "shared" if c["N"] < args.large_n else key,
                    "_timeout": plan.timeout_s(c["scene"], c["param"], c["p"],
                                               m, args)}
             if f"{key}:{m}" in faults:

@@ -94,8 +94,9 @@ def test_parts_cover_the_plan_once_in_order_under_budget(budget):
     assert [j for part in parts for j in jobs(part)] == jobs(planned)
     for part in parts:
         total = plan.GUESS_STARTUP_S + sum(
-            plan.GUESS_WORKER_S + sum(plan.guess_job_s(c["scene"], c["param"], c["p"], m, args)
-                                      for m in c["methods"]) for c in part)
+            plan.config_overhead_s(c["N"], args.large_n)
+            + sum(plan.guess_job_s(c["scene"], c["param"], c["p"], m, args)
+                  for m in c["methods"]) for c in part)
         one_job = len(jobs(part)) == 1
         assert total <= budget or one_job
     # --part K selects part K; the rest become skipped rows.

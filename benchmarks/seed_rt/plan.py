@@ -100,11 +100,15 @@ _GUESS = {"aabb-sorted": (1.0, 2e-7), "aabb-unsorted": (1.0, 6e-7),
           "squares-fused": (1.5, 2.8e-7)}
 # compiles etc. per job (partial run: ~2.4 s per job on average, with a
 # cache clear per job; on CPU the cell list compiles ~3x longer than the
-# rest); a fresh worker per configuration adds GUESS_WORKER_S, and its
-# scene (made on the host: three jittered sets, then copied to the
+# rest); a fresh worker per configuration adds GUESS_WORKER_S (from
+# --large-n particles up; below, the configurations share one worker and
+# pay GUESS_SHARED_S each: on the 2-core CPU, --small took 289 s with a
+# worker per configuration and 186 s with one shared, the same rows), and
+# its scene (made on the host: three jittered sets, then copied to the
 # device) GUESS_SCENE_S per particle: the H200's part 1 spent ~50 s of
 # its 257 s on neither start-up nor the 67M configuration's three jobs.
 GUESS_WORKER_S = 8.0
+GUESS_SHARED_S = 1.0
 GUESS_SCENE_S = 4e-7
 _GUESS_JOB_OVERHEAD_S = {"cell": 4.0, "jax-md": 2.0}
 GUESS_STARTUP_S = 60.0       # first worker: imports, Warp kernel compiles
@@ -112,10 +116,12 @@ GUESS_STARTUP_S = 60.0       # first worker: imports, Warp kernel compiles
 TIMEOUT_FACTOR = 3.0
 
 
-def config_overhead_s(n: int) -> float:
+def config_overhead_s(n: int, large_n: float) -> float:
     """Guessed seconds a configuration costs besides its jobs: a fresh
-    worker and the scene."""
-    return GUESS_WORKER_S + GUESS_SCENE_S * n
+    worker from ``large_n`` particles up (below, its share of a shared
+    one), and the scene."""
+    worker = GUESS_WORKER_S if n >= large_n else GUESS_SHARED_S
+    return worker + GUESS_SCENE_S * n
 
 
 def min_repeats(n: int, args) -> int:
@@ -312,7 +318,7 @@ def split_parts(planned: list[dict], args) -> list[list[dict]]:
     for c in planned:
         est = {m: guess_job_s(c["scene"], c["param"], c["p"], m, args)
                for m in c["methods"]}
-        overhead = config_overhead_s(c["N"])
+        overhead = config_overhead_s(c["N"], args.large_n)
         whole = overhead + sum(est.values())
         if c.get("heavy"):  # a part of its own (`is_heavy`)
             close()
@@ -401,7 +407,7 @@ def print_plan(planned: list[dict], skipped: list[dict], args,
     for k, part in enumerate(parts, first_part):
         cum = GUESS_STARTUP_S
         for c in part:
-            est = config_overhead_s(c["N"]) + sum(
+            est = config_overhead_s(c["N"], args.large_n) + sum(
                 guess_job_s(c["scene"], c["param"], c["p"], m, args)
                 for m in c["methods"])
             longest = max(timeout_s(c["scene"], c["param"], c["p"], m, args)
