@@ -408,8 +408,8 @@ def main(argv=None) -> None:
     parser.add_argument("--max-repeats", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fresh-workers", action="store_true",
-                        help="one worker process per row (default: one per "
-                        "configuration, fresh after a failure)")
+                        help="one worker process per row (default: one for "
+                        "the run, fresh after a failure)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: n = 2000; disordered and cluster; "
                         "r = 1 and LN; >= 5 repeats, 0.5 s per row; "
@@ -469,15 +469,18 @@ def main(argv=None) -> None:
                             "target_s": args.target_s,
                             "max_repeats": args.max_repeats,
                             "dynamics": DYNAMICS,
-                            "_group": f"{n}/{radii}/{boundary}/{scene}"})
+                            "_group": f"{n}/{radii}/{boundary}/{scene}",
+                            # One worker for the run (its start-up paid
+                            # once); a failed row still ends it.
+                            "_worker": "run"})
                         if args.energy:
                             jobs[-1].update(
                                 energy_seconds=args.energy_seconds,
                                 energy_interval_s=args.energy_interval)
     columns = COLUMNS + (ENERGY_COLUMNS if args.energy else [])
     traces = TraceWriter(args, columns)
-    # One worker per configuration (its methods share the scene; a failed
-    # row gets a fresh worker for the next).
+    # One worker for all rows (a failed row gets a fresh worker for the
+    # next); --fresh-workers: one per row.
     rows, path = _harness.run_jobs("table2:run_row", jobs, columns=columns,
                                    reuse_worker=not args.fresh_workers,
                                    on_row=traces, **_harness.run_options(args))
