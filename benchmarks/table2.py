@@ -409,7 +409,8 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--fresh-workers", action="store_true",
                         help="one worker process per row (default: one for "
-                        "the run, fresh after a failure)")
+                        "the rows below n = 10^6, one per configuration "
+                        "above; fresh after a failure)")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: n = 2000; disordered and cluster; "
                         "r = 1 and LN; >= 5 repeats, 0.5 s per row; "
@@ -470,17 +471,20 @@ def main(argv=None) -> None:
                             "max_repeats": args.max_repeats,
                             "dynamics": DYNAMICS,
                             "_group": f"{n}/{radii}/{boundary}/{scene}",
-                            # One worker for the run (its start-up paid
-                            # once); a failed row still ends it.
-                            "_worker": "run"})
+                            # Below 10^6 one worker for all such rows
+                            # (its start-up paid once); from 10^6 one per
+                            # configuration, so that each starts with the
+                            # device's memory free. A failure ends it.
+                            "_worker": ("run" if n < 1_000_000 else
+                                        f"{n}/{radii}/{boundary}/{scene}")})
                         if args.energy:
                             jobs[-1].update(
                                 energy_seconds=args.energy_seconds,
                                 energy_interval_s=args.energy_interval)
     columns = COLUMNS + (ENERGY_COLUMNS if args.energy else [])
     traces = TraceWriter(args, columns)
-    # One worker for all rows (a failed row gets a fresh worker for the
-    # next); --fresh-workers: one per row.
+    # Shared workers (``_worker`` above; a failed row gets a fresh one for
+    # the next); --fresh-workers: one per row.
     rows, path = _harness.run_jobs("table2:run_row", jobs, columns=columns,
                                    reuse_worker=not args.fresh_workers,
                                    on_row=traces, **_harness.run_options(args))
