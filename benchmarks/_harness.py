@@ -469,7 +469,7 @@ class Runner:
         self.device: dict = {}
         self.start_failures = 0
         self._worker: _Worker | None = None
-        self._group = None
+        self._key = None
         self.env = dict(os.environ)
         self.env.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
         # Workers share compiled programs on disk: a row in a fresh worker
@@ -506,10 +506,10 @@ class Runner:
     def run(self, job: dict, timeout: float) -> list[dict]:
         """The job's rows, each with ``status`` (and ``failed``)."""
         base = {k: v for k, v in job.items() if not k.startswith("_")}
-        group = job.get("_worker", job.get("_group"))
-        if self._worker is not None and group != self._group:
+        key = job.get("_worker", job.get("_group"))
+        if self._worker is not None and key != self._key:
             self._end()  # a worker serves one key's jobs
-        self._group = group
+        self._key = key
         w = self._worker
         if w is None or w.proc.poll() is not None:
             if w is not None:
