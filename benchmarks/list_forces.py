@@ -18,6 +18,8 @@ Rows (``stage``):
 * ``forces <layout>``: ``jax.grad`` of the energy on that list (Dense:
   each row summed in place, no scatter; Sparse layouts: reverse mode
   through jax-md's pair map, a scatter-add over every edge);
+  ``forces <layout> jax-md``: the same with jax-md's own
+  ``energy.lennard_jones_neighbor_list`` (what a jax-md user's step runs);
 * ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
   per-particle forces on the OrderedSparse list's edges, four ways: two
   scatter-adds as reverse mode does (``scatter``), the sender side with
@@ -78,6 +80,7 @@ def main(argv=None) -> None:
     import jax
     import jax.numpy as jnp
     import numpy as np
+    from jax_md import energy as jax_md_energy
     from jax_md import partition, space
 
     import jaxrt
@@ -129,6 +132,13 @@ def main(argv=None) -> None:
               inputs, entries=edges, capacity=int(np.prod(nbrs.idx.shape)))
         stage(f"forces {layout}", lambda R, nb=nbrs: jax.grad(energy)(R, nb),
               inputs, entries=edges)
+        # jax-md's cutoffs are in units of its sigma: the same potential.
+        _, theirs = jax_md_energy.lennard_jones_neighbor_list(
+            displacement, side, sigma=cutoff / 2.5, epsilon=1.0,
+            r_onset=2.0, r_cutoff=2.5, format=fmt)
+        stage(f"forces {layout} jax-md",
+              lambda R, nb=nbrs, e=theirs: jax.grad(e)(R, nb), inputs,
+              entries=edges)
 
     dense = lists["Dense"].idx
     for ordered in (False, True):
