@@ -153,14 +153,15 @@ case $PART in
       > "$DEST/logs/table2_4.log" 2>&1
     note "table2 part 4 periodic rc=$?" ;;
   formats)
-    timeout 200 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
+    # 190 + 140 + 180 s: the part stays inside one 10-minute call.
+    timeout 190 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
       --out "$DEST/list_forces_1e6_k52_$GIT_SHA.csv" > "$DEST/logs/lf_1e6.log" 2>&1
     note "list_forces 1e6 rc=$?"
-    timeout 150 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
+    timeout 140 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
       --out "$DEST/list_forces_5e4_k700_$GIT_SHA.csv" > "$DEST/logs/lf_5e4.log" 2>&1
     note "list_forces 5e4 rc=$?"
     OUT=$DEST SCENES=lattice BOUNDARIES=wall METHODS="RT-REF GPU-CELL" \
-      LIST_FORMAT=Dense BUDGET=150 HARD_STOP=190 ROW_TIMEOUT=90 timeout 200 \
+      LIST_FORMAT=Dense BUDGET=130 HARD_STOP=170 ROW_TIMEOUT=90 timeout 180 \
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
   *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed or formats"; exit 2 ;;
