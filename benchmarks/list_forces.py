@@ -101,6 +101,8 @@ def main(argv=None) -> None:
         displacement, sigma=cutoff / 2.5, epsilon=1.0,
         r_onset=0.8 * cutoff, r_cutoff=cutoff)
     device = _harness.device_provenance()
+    path = _harness.out_path(args.out, f"list_forces_{n}_k{int(args.k)}.csv",
+                             device.get("device_slug", "unknown"))
     rows = []
 
     def wanted(name):
@@ -118,6 +120,7 @@ def main(argv=None) -> None:
                      **_harness.host_provenance(),
                      "git_sha": _harness.git_sha()})
         print(f"{name:34s} {t.median_ms:10.3f} ms", flush=True)
+        _harness.write_csv(rows, path)  # a run cut short keeps its rows
 
     lists = {}
     for layout in LAYOUTS:
@@ -151,43 +154,43 @@ def main(argv=None) -> None:
     # The reductions alone, on per-edge vectors of the OrderedSparse list
     # (receivers j = idx[0], senders i = idx[1], the senders ascending as
     # jaxrt's conversion writes them).
-    idx = lists["OrderedSparse"].idx
-    receivers, senders = idx[0], idx[1]
-    e = idx.shape[1]
-    force = [jnp.asarray(rng.normal(size=(e, 3)), jnp.float32)
-             for _ in range(2)]
+    if wanted("reduce"):  # random edge vectors: host time, memory
+        idx = lists["OrderedSparse"].idx
+        receivers, senders = idx[0], idx[1]
+        e = idx.shape[1]
+        force = [jnp.asarray(rng.normal(size=(e, 3)), jnp.float32)
+                 for _ in range(2)]
 
-    def scatter(f):
-        return (jax.ops.segment_sum(f, senders, n)
-                - jax.ops.segment_sum(f, receivers, n))
+        def scatter(f):
+            return (jax.ops.segment_sum(f, senders, n)
+                    - jax.ops.segment_sum(f, receivers, n))
 
-    def scatter_sorted(f):
-        return (jax.ops.segment_sum(f, senders, n, indices_are_sorted=True)
-                - jax.ops.segment_sum(f, receivers, n))
+        def scatter_sorted(f):
+            return (jax.ops.segment_sum(f, senders, n, indices_are_sorted=True)
+                    - jax.ops.segment_sum(f, receivers, n))
 
-    def segmented(f):
-        scanned, last = _segmented_sum(f, senders)
-        own = jnp.zeros((n, 3), f.dtype).at[jnp.where(last, senders, n)].set(
-            scanned, mode="drop", unique_indices=True)
-        return own - jax.ops.segment_sum(f, receivers, n)
+        def segmented(f):
+            scanned, last = _segmented_sum(f, senders)
+            # Every index distinct (the others out of range, dropped), as
+            # unique_indices promises.
+            at = jnp.where(last, senders, n + 1 + jnp.arange(e, dtype=jnp.int32))
+            own = jnp.zeros((n, 3), f.dtype).at[at].set(
+                scanned, mode="drop", unique_indices=True)
+            return own - jax.ops.segment_sum(f, receivers, n)
 
-    stage("reduce scatter", scatter, force, entries=e)
-    stage("reduce scatter sorted senders", scatter_sorted, force, entries=e)
-    stage("reduce segmented scan", segmented, force, entries=e)
-    width = dense.shape[1]
-    per_slot = [jnp.asarray(rng.normal(size=(n, width, 3)), jnp.float32)
-                for _ in range(2)]
-    stage("reduce rows (Dense)", lambda f: jnp.sum(f, axis=1), per_slot,
-          entries=int(np.sum(np.asarray(dense) < n)))
-    if wanted("reduce"):
+        stage("reduce scatter", scatter, force, entries=e)
+        stage("reduce scatter sorted senders", scatter_sorted, force, entries=e)
+        stage("reduce segmented scan", segmented, force, entries=e)
+        width = dense.shape[1]
+        per_slot = [jnp.asarray(rng.normal(size=(n, width, 3)), jnp.float32)
+                    for _ in range(2)]
+        stage("reduce rows (Dense)", lambda f: jnp.sum(f, axis=1), per_slot,
+              entries=int(np.sum(np.asarray(dense) < n)))
         a = np.asarray(jax.jit(scatter)(force[0]))
         b = np.asarray(jax.jit(segmented)(force[0]))
         print(f"segmented scan vs scatter: max |diff| {np.abs(a - b).max():.3g}"
               f" (max |F| {np.abs(a).max():.3g})")
 
-    path = _harness.write_csv(rows, _harness.out_path(
-        args.out, f"list_forces_{n}_k{int(args.k)}.csv",
-        device.get("device_slug", "unknown")))
     print(f"cutoff {cutoff:.4f}; wrote {path}")
 
 
