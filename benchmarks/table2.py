@@ -459,6 +459,7 @@ def main(argv=None) -> None:
         for radii in dict.fromkeys(r for _, r in cases):
             for boundary in args.boundaries:
                 for scene in (s for s, r in cases if r == radii):
+                    group = f"{n}/{radii}/{boundary}/{scene}"
                     for method in args.methods:
                         jobs.append({
                             "method": method, "scene": scene, "radii": radii,
@@ -470,13 +471,12 @@ def main(argv=None) -> None:
                             "target_s": args.target_s,
                             "max_repeats": args.max_repeats,
                             "dynamics": DYNAMICS,
-                            "_group": f"{n}/{radii}/{boundary}/{scene}",
+                            "_group": group,
                             # Below 10^6 one worker for all such rows
                             # (its start-up paid once); from 10^6 one per
                             # configuration, so that each starts with the
                             # device's memory free. A failure ends it.
-                            "_worker": ("run" if n < 1_000_000 else
-                                        f"{n}/{radii}/{boundary}/{scene}")})
+                            "_worker": "run" if n < 1_000_000 else group})
                         if args.energy:
                             jobs[-1].update(
                                 energy_seconds=args.energy_seconds,

@@ -214,6 +214,16 @@ class Backend(Protocol):
         """Neighbour list of ``position`` (float ``(N, dim)``). jit-able."""
 
 
+# int32 indices address at most this many entries (`Backend`'s
+# ``max_list_entries`` default).
+MAX_LIST_ENTRIES = 2 ** 31 - 1
+
+
+def max_list_entries(backend) -> int:
+    """The largest int32 buffer ``backend`` can index."""
+    return getattr(backend, "max_list_entries", MAX_LIST_ENTRIES)
+
+
 def list_too_large(backend_name: str, entries: int, what: str, n: int,
                    limit: int) -> ValueError:
     """The error for a list of ``entries`` int32 entries (``what``: which

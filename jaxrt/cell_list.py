@@ -1092,7 +1092,7 @@ class Cell:
         # sees all others needs N^2), before the rows pass below allocates
         # them (seed 003's cluster at n = 50 000 was killed for host memory
         # there, and ran past 100 s on the GPU).
-        limit = getattr(self, "max_list_entries", 2 ** 31 - 1)
+        limit = _backend.max_list_entries(self)
         entries = n * int(count.max(initial=0))
         if entries > limit:
             raise _backend.list_too_large(self.name, entries,

@@ -850,7 +850,7 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
     """Refuse lists larger than the backend can index (never a crash or a
     silently wrapped index): int32 indices address at most 2**31 - 1
     entries, and Warp kernels compute byte offsets in 32-bit ints."""
-    limit = getattr(backend, "max_list_entries", 2 ** 31 - 1)
+    limit = _backend.max_list_entries(backend)
     entries = {"idx": n * capacity.neighbors if query.format is Dense
                else 2 * capacity.neighbors}
     rows_first = query.format is Dense or not getattr(
