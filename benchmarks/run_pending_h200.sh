@@ -39,6 +39,12 @@
 #             003's r = 160 density (N = 50 000, k = 700), then Table 2's
 #             r = 160 lattice list rows with Dense lists (#17's question:
 #             which part of their 330-600 ms is the layout's)
+#   seed-rest seed 001's study: 16 of the 17 configurations that parts
+#             1-4 at 497bb8b did not reach (sphere alpha = 128, p = 4 only
+#             for cell and jax-md), smallest first; merge them with
+#             --plot-only (RESULTS.md)
+#   seed-big  the same study's largest rows: sphere alpha = 128, p = 16
+#             (fused methods only) and part 5 (spheres-fused at N = 67M)
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
 # study: benchmarks/seed_rt_study.py --part K/5 (RESULTS.md).
 #
@@ -52,7 +58,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|seed-rest|seed-big}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -164,5 +170,37 @@ case $PART in
       LIST_FORMAT=Dense BUDGET=130 HARD_STOP=170 ROW_TIMEOUT=90 timeout 180 \
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
-  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed or formats"; exit 2 ;;
+  seed-rest)
+    # Guessed 364 s (parts 1-3 ran within 3 % of their guesses): 15
+    # configurations of up to 1M particles with all ten methods (the small
+    # ones share a worker), then the two list methods that the last call
+    # did not reach at sphere alpha = 128, p = 4.
+    timeout 400 "$PY" benchmarks/seed_rt_study.py --time-budget 340 \
+      --hard-stop 380 --timeout 120 --configs uniform:2:4 uniform:4:2 \
+      uniform:4:4 uniform:2:16 uniform:8:4 uniform:2:32 uniform:16:1 \
+      uniform:4:32 sphere:8:2 sphere:8:4 uniform:16:4 sphere:16:4 \
+      uniform:32:4 sphere:32:4 sphere:64:4 \
+      --out "$DEST/seed_rt_rest_$GIT_SHA" > "$DEST/logs/seed_rest.log" 2>&1
+    note "seed rest rc=$?"
+    LEFT=$(( 560 - (SECONDS - START) ))
+    timeout "$LEFT" "$PY" benchmarks/seed_rt_study.py \
+      --time-budget $(( LEFT - 60 )) --hard-stop $(( LEFT - 15 )) --timeout 90 \
+      --configs sphere:128:4 --methods cell jax-md \
+      --out "$DEST/seed_rt_sa128p4_$GIT_SHA" > "$DEST/logs/seed_sa128p4.log" 2>&1
+    note "seed sa128p4 rc=$?" ;;
+  seed-big)
+    # The fused methods at sphere alpha = 128: p = 16 (N = 33M, the list
+    # methods refused), then part 5 (spheres-fused at N = 67M, past its
+    # 150 s timeout at 65309c3; at p = 8 it refused near-coincident
+    # particles, which it may do here too).
+    timeout 200 "$PY" benchmarks/seed_rt_study.py --time-budget 150 \
+      --hard-stop 190 --timeout 150 --configs sphere:128:16 \
+      --out "$DEST/seed_rt_sa128p16_$GIT_SHA" > "$DEST/logs/seed_sa128p16.log" 2>&1
+    note "seed sa128p16 rc=$?"
+    LEFT=$(( 570 - (SECONDS - START) ))
+    timeout "$LEFT" "$PY" benchmarks/seed_rt_study.py --part 5/5 \
+      --time-budget 60 --hard-stop $(( LEFT - 10 )) --timeout $(( LEFT - 20 )) \
+      --out "$DEST/seed_rt_part5_$GIT_SHA" > "$DEST/logs/seed_part5.log" 2>&1
+    note "seed part 5 rc=$?" ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed, formats, seed-rest or seed-big"; exit 2 ;;
 esac

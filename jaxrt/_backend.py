@@ -186,6 +186,10 @@ class Backend(Protocol):
       without Dense rows first, so the front does not bound ``N x row``;
     * ``supports_radii`` (default False): it honours `Geometry.reach`;
       the front refuses ``radii=`` otherwise;
+    * ``build_at_exact_capacity`` (default False): ``allocate`` builds the
+      list at exactly its capacity, not at sizes rounded up for a compiled
+      program that data of other sizes reuse (`compile_size`): for a
+      backend whose state lives with the compiled call (the kept BVH);
     * ``fixed_sizes`` (default ``()``): names of internal sizes from
       ``measure`` that are counts of things, not buffers, so the front
       takes them as measured (no ``capacity_multiplier``, no cap at N);
@@ -222,6 +226,22 @@ MAX_LIST_ENTRIES = 2 ** 31 - 1
 def max_list_entries(backend) -> int:
     """The largest int32 buffer ``backend`` can index."""
     return getattr(backend, "max_list_entries", MAX_LIST_ENTRIES)
+
+
+def compile_size(size: int) -> int:
+    """``size`` rounded up to the next of 1, 2, 3, 4, 6, 8, 12, 16, 24, ...
+    (two sizes an octave, at most 1.5x).
+
+    Sizes that become static shapes of a compiled program at ``allocate``:
+    data of one N measured a little differently then reuse the program
+    instead of compiling another (each compile of the cell search costs
+    about 2 s on a 2-core CPU, most of an ``allocate``)."""
+    size = int(size)
+    if size <= 4:
+        return size
+    power = 1 << (size - 1).bit_length()  # the power of two >= size
+    three_quarters = 3 * power // 4
+    return three_quarters if three_quarters >= size else power
 
 
 def list_too_large(backend_name: str, entries: int, what: str, n: int,

@@ -1069,7 +1069,9 @@ class Cell:
                                           metric_sq, self.radius_classes)
         _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
-        window = max(int(np.max(len1 + len2, initial=0)), 1)
+        # Whole words, as the search uses them: positions whose longest
+        # runs differ a little reuse one compiled count.
+        window = _slots(max(int(np.max(len1 + len2, initial=0)), 1))
         # Counting runs on the engine the search will use (the portable
         # path at N = 1e6 would compile and run XLA's largest program).
         platform = _platform_of(position)
@@ -1108,7 +1110,7 @@ class Cell:
                  "shell": max(2 * fullest, _MIN_SHELL),
                  "shell_rows": _shell_rows(max(has, liquid), n)}
         if query.format.name == "OrderedSparse":
-            width = max(sizes["row"], 1)
+            width = min(_backend.compile_size(max(sizes["row"], 1)), n)
             engine = self._engine(n, width, shell, query, platform)
             rows, _, _, _ = self._candidates(
                 engine, position, geometry, metric_sq, window=window,

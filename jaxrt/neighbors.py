@@ -617,6 +617,28 @@ class _Lists:
                                          "exact_for_any_metric", False)
         self.setups: dict[int, _Setup] = {}
         self.build = _make_build(self.searcher, settings.custom_mask_function)
+        # Per (N, dtype, query): the capacities allocate's build has been
+        # compiled for, newest last.
+        self.compiled: dict[tuple, list[Capacity]] = {}
+
+    def compiled_capacity(self, n: int, dtype, query: Query,
+                          capacity: Capacity, sizes: dict[str, int]
+                          ) -> Capacity:
+        """The capacity ``allocate`` builds with: one it compiled before
+        that holds ``capacity`` (`_reused_capacity`), else
+        `_compiled_capacity`'s rounded one (remembered), or ``capacity``
+        itself where the build must be exact."""
+        rounded = _compiled_capacity(self.searcher, n, capacity, query, sizes)
+        if rounded is capacity:
+            return capacity
+        built = self.compiled.setdefault((n, np.dtype(dtype).name, query), [])
+        fixed = getattr(self.searcher, "fixed_sizes", ())
+        reused = _reused_capacity(built, capacity, fixed)
+        if reused is not None:
+            return reused
+        built.append(rounded)
+        del built[:-_COMPILED_KEPT]
+        return rounded
 
     def setup(self, dim: int, kwargs: dict) -> _Setup:
         if dim not in self.setups:
@@ -677,8 +699,13 @@ class _Lists:
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
+        compiled = self.compiled_capacity(n, position.dtype, query, capacity,
+                                          sizes)
         idx, overflow, code, state = self.build(
-            position, geometry, metric, state, query=query, capacity=capacity)
+            position, geometry, metric, state, query=query, capacity=compiled)
+        if compiled is not capacity:
+            idx, overflow = _trimmed(idx, overflow, width=capacity.neighbors,
+                                     n=n)
         fields = (idx, position,
                   PartitionError(code | _bits(overflow, _OVERFLOW)),
                   capacity, capacity.neighbors, self.settings.format,
@@ -846,20 +873,114 @@ def _shorter_metric_error(position, metric, g, grid, i, j, dev, box
         "only be searched by backend='brute'.")
 
 
-def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
-    """Refuse lists larger than the backend can index (never a crash or a
-    silently wrapped index): int32 indices address at most 2**31 - 1
-    entries, and Warp kernels compute byte offsets in 32-bit ints."""
-    limit = _backend.max_list_entries(backend)
+def _largest_buffer(backend, n: int, capacity: Capacity, query: Query
+                    ) -> tuple[str, int]:
+    """The name and int32 entries of the largest list buffer a build with
+    ``capacity`` writes."""
     entries = {"idx": n * capacity.neighbors if query.format is Dense
                else 2 * capacity.neighbors}
     rows_first = query.format is Dense or not getattr(
         backend, "sparse_without_rows", False)
     if "row" in dict(capacity.internal) and rows_first:
         entries["rows before conversion"] = n * capacity["row"]
-    name, largest = max(entries.items(), key=lambda kv: kv[1])
+    return max(entries.items(), key=lambda kv: kv[1])
+
+
+def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
+    """Refuse lists larger than the backend can index (never a crash or a
+    silently wrapped index): int32 indices address at most 2**31 - 1
+    entries, and Warp kernels compute byte offsets in 32-bit ints."""
+    limit = _backend.max_list_entries(backend)
+    name, largest = _largest_buffer(backend, n, capacity, query)
     if largest > limit:
         raise _backend.list_too_large(backend.name, largest, name, n, limit)
+
+
+def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
+                       sizes: dict[str, int]) -> Capacity:
+    """The sizes ``allocate``'s build is compiled for: ``capacity``'s, each
+    an eighth larger rounded up by `_backend.compile_size` (at most 1.7x;
+    those within N staying within N; counts in ``fixed_sizes`` as they
+    are), so that data of one N whose exact sizes differ a little reuse
+    one compiled build (`_reused_capacity`); ``allocate`` then trims the
+    list to ``capacity`` (`_trimmed`), which gives the list built with
+    ``capacity`` itself since every buffer holds what ``sizes`` (measured)
+    says it must.
+
+    ``capacity`` itself where a buffer does not (``capacity_multiplier``
+    below 1: that build truncates, and flags, as jax-md's does), for a
+    stateful backend (its state may be shaped by the sizes) or one that
+    asks for it (``build_at_exact_capacity``), or where the rounded list
+    would pass what the backend can index."""
+    fixed = getattr(backend, "fixed_sizes", ())
+    needed = {k: v for k, v in sizes.items()
+              if k not in ("row", "edges", "row_before_mask")}
+    needed["row"] = sizes.get("row_before_mask", sizes["row"])
+    occupancy = sizes["row"] if query.format is Dense else sizes["edges"]
+    short = capacity.neighbors < occupancy or any(
+        capacity[k] < v for k, v in needed.items()
+        if k not in fixed and k in dict(capacity.internal))
+    if (short or _backend.is_stateful(backend)
+            or getattr(backend, "build_at_exact_capacity", False)):
+        return capacity
+
+    def up(size):  # an eighth more first: the next structure's may be larger
+        return _backend.compile_size(size + size // 8)
+
+    def rounded(name, size):
+        if name in fixed:
+            return size
+        return min(up(size), n) if size <= n else up(size)
+
+    neighbors = rounded("neighbors", capacity.neighbors) if (
+        query.format is Dense) else up(capacity.neighbors)
+    internal = tuple((k, rounded(k, v)) for k, v in capacity.internal)
+    wider = dataclasses.replace(capacity, neighbors=neighbors,
+                                internal=internal)
+    _, largest = _largest_buffer(backend, n, wider, query)
+    # The cell kernel's int32 offsets also span N x its shell buffer.
+    largest = max(largest, n * dict(internal).get("shell", 0))
+    return wider if largest <= _backend.max_list_entries(backend) else capacity
+
+
+# Compiled capacities remembered per (N, dtype, query), newest kept.
+_COMPILED_KEPT = 8
+
+
+def _reused_capacity(built: Sequence[Capacity], capacity: Capacity,
+                     fixed: Sequence[str] = ()) -> Capacity | None:
+    """The newest of ``built`` that holds ``capacity``: the same options and
+    buffer names, fixed counts equal, and every size at least
+    ``capacity``'s and at most twice it (a compiled build is reused, but
+    never one much larger than the list needs); None if none does.
+
+    Rounding alone (`_compiled_capacity`) puts sizes just either side of a
+    rounding step into two programs; this reuses the first for the
+    second."""
+    def options(c):
+        return dataclasses.replace(c, neighbors=0, internal=tuple(
+            (k, v if k in fixed else 0) for k, v in c.internal))
+
+    def holds(have: int, need: int) -> bool:
+        return need <= have <= 2 * max(need, 4)
+
+    for c in reversed(built):
+        if options(c) != options(capacity):
+            continue
+        need = dict(capacity.internal)
+        if holds(c.neighbors, capacity.neighbors) and all(
+                holds(v, need[k]) for k, v in c.internal if k not in fixed):
+            return c
+    return None
+
+
+@functools.partial(jax.jit, static_argnames=("width", "n"))
+def _trimmed(idx, overflow, *, width: int, n: int):
+    """``idx`` (int32 ``(N, M)`` Dense or ``(2, M)`` Sparse, padded with
+    ``n``, valid entries first) cut to ``width`` along its last axis, and
+    ``overflow`` set if a valid entry was cut: the list built with
+    ``width`` itself."""
+    return idx[..., :width], overflow | jnp.any(idx[..., width:] < n)
 
 
 def _auto_backend(*, has_radii: bool = False) -> str:

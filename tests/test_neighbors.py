@@ -370,6 +370,93 @@ def test_overflow_is_flagged_sticky_and_fixed_by_reallocation(fmt):
         fmt, brute_pairs(crowded, 1.2, side, True))
 
 
+@pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.parametrize("multiplier", [1.25, 0.5])
+def test_allocate_trims_its_wider_build_to_exactly_the_sized_list(
+        fmt, multiplier):
+    # allocate builds with sizes rounded up (so that it can reuse compiled
+    # programs), then cuts the list to its capacity: the list, its shape and
+    # its overflow flag must be those of a build at exactly that capacity,
+    # which update (compiled for the list's own capacity) is. With
+    # capacity_multiplier 0.5 the rows do not fit: flagged, and (the
+    # truncated rows of a Sparse list depending on the rows' width) built
+    # at exactly that capacity.
+    side = 6.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.2, format=fmt, backend="cell",
+                              capacity_multiplier=multiplier)
+    R = jax.random.uniform(jax.random.PRNGKey(21), (300, 3)) * side
+    nbrs = fns.allocate(R)
+    pairs = brute_pairs(R, 1.2, side, True)
+    occupancy = {partition.Dense: max(np.bincount([i for i, _ in pairs])),
+                 partition.Sparse: len(pairs),
+                 partition.OrderedSparse: len(pairs) // 2}[fmt]
+    # jax-md's rule (at 0.5 jax-md's own list is no reference: its cell
+    # list overflows too and counts fewer).
+    assert nbrs.idx.shape[-1] == int(occupancy * multiplier)
+    rebuilt = jax.jit(fns.update)(R + 0.0, nbrs.set(  # force a rebuild
+        reference_position=R + side / 4))
+    np.testing.assert_array_equal(np.asarray(nbrs.idx),
+                                  np.asarray(rebuilt.idx))
+    assert bool(nbrs.did_buffer_overflow) == (multiplier < 1)
+    assert bool(rebuilt.did_buffer_overflow) == (multiplier < 1)
+    if multiplier >= 1:
+        assert list_pairs(nbrs) == expected_pairs(
+            fmt, brute_pairs(R, 1.2, side, True))
+
+
+def test_allocate_on_new_positions_reuses_the_compiled_build():
+    # A training set of structures with one N: each allocate measures its
+    # own exact sizes, which differ a little; the build they compile must
+    # not (a compile of the cell search is most of an allocate on a CPU).
+    side, n = 9.0, 700
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+    lists = fns.allocate.__self__
+    widths = []
+    for seed in range(6):
+        R = jax.random.uniform(jax.random.PRNGKey(seed), (n, 3)) * side
+        nbrs = fns.allocate(R)
+        widths.append(nbrs.idx.shape[1])
+        assert list_pairs(nbrs) == expected_pairs(
+            partition.Dense, brute_pairs(R, 1.5, side, True))
+        # Every compile is one remembered capacity, none is made besides.
+        (remembered,) = lists.compiled.values()
+        assert lists.build._cache_size() == len(remembered)
+    assert len(set(widths)) > 1  # the case this is about
+    assert lists.build._cache_size() < len(set(widths))
+
+
+def test_a_compiled_capacity_is_reused_only_where_it_holds_the_list():
+    from jaxrt.backends import Capacity
+    from jaxrt.neighbors import _reused_capacity
+
+    def cap(row, shell_rows, classes=3, **options):
+        return Capacity(row, (("classes", classes), ("row", row),
+                              ("shell_rows", shell_rows)), **options)
+
+    built = [cap(64, 512), cap(96, 512)]
+    # Just past a rounding step (65 > 64): the larger one, not a new one.
+    assert _reused_capacity(built, cap(65, 385), ["classes"]) == built[1]
+    assert _reused_capacity(built, cap(60, 300), ["classes"]) == built[1]
+    # Too small somewhere, or more than twice what the list needs.
+    assert _reused_capacity(built, cap(97, 385), ["classes"]) is None
+    assert _reused_capacity(built, cap(40, 200), ["classes"]) is None
+    # Other options, or another count of a fixed size: never.
+    assert _reused_capacity(built, cap(64, 512, radii=True),
+                            ["classes"]) is None
+    assert _reused_capacity(built, cap(64, 512, classes=2),
+                            ["classes"]) is None
+
+
+@pytest.mark.parametrize("size", range(0, 200))
+def test_compile_sizes_cover_and_stay_within_half_again(size):
+    from jaxrt import _backend
+    up = _backend.compile_size(size)
+    assert size <= up <= max(size, 1.5 * size)
+    assert _backend.compile_size(up) == up  # a fixed point: one program
+
+
 @pytest.mark.parametrize("words", [1, 27, 64, 65, 300])
 def test_cell_list_prefix_sums_are_exact(words):
     # Both ways (matrix product up to 64 words, scan beyond) against numpy,

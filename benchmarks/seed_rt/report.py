@@ -60,7 +60,20 @@ def short_reason(row) -> str:
         if f.startswith("skipped: N > --max-n"):
             return "N>max"
         return "skip"
+    if status == "error":
+        f = str(row.get("failed") or "")
+        for pattern, label in _ERROR_LABELS:
+            if pattern in f:
+                return label
     return _LABELS.get(status, "fail")
+
+
+# Errors that are a method's documented refusal, not a fault: jaxrt's
+# refusal of a list it cannot index, jax-md failing to size one past
+# int32, and the spheres method's refusal of near-coincident particles.
+_ERROR_LABELS = (("more than backend=", "refused"),
+                 ("out of bounds for int32", "int32"),
+                 ("ParticlesTooCloseError", "too close"))
 
 
 def add_speedups(rows: list[dict]) -> None:
@@ -130,7 +143,11 @@ def headline_markdown(rows: list[dict]) -> str:
                          f" | {best['method'] if best else '–'} | {ratio('jax-md')} | "
                          f"{ratio('cell')} |")
     lines.append("\nOOM = out of memory; skip = cut by the time budget; "
-                 "timeout / crash / fail: see the CSV's `failed` column.")
+                 "refused = the list passes what jaxrt can index (2^29 "
+                 "entries for Warp, 2^31 otherwise); int32 = jax-md's list "
+                 "passes int32; too close = spheres' refusal of "
+                 "near-coincident particles; timeout / crash / fail: see the "
+                 "CSV's `failed` column.")
     return "\n".join(lines)
 
 
@@ -208,7 +225,8 @@ def plot(rows: list[dict], folder: Path) -> list[Path]:
         fig.suptitle(f"Seed 001 §5 {scene} ({dev}); number on bar = total speed-up "
                      "over jax-md; light = init (allocate), dark = compute "
                      "(update + forces)\nOOM = out of memory, skip = cut by the time "
-                     "budget, timeout / crash / fail = see CSV", fontsize=8)
+                     "budget; refused / int32 / too close / timeout / crash / "
+                     "fail: see the CSV", fontsize=8)
         path = folder / fname
         fig.savefig(path, dpi=130)
         plt.close(fig)

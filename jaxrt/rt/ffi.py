@@ -560,6 +560,9 @@ class BvhSearch:
     supports_radii = True
     # Sparse layouts are counted, scanned and filled: no Dense rows first.
     sparse_without_rows = True
+    # Each traced call site owns its tree (`TreeOwner`): allocate's build
+    # must be the program that later builds and refits, at its sizes.
+    build_at_exact_capacity = True
 
     def __init__(self, options: Bvh, owner: TreeOwner):
         self.options = options
