@@ -1069,9 +1069,11 @@ class Cell:
                                           metric_sq, self.radius_classes)
         _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
-        # Whole words, as the search uses them: positions whose longest
-        # runs differ a little reuse one compiled count.
-        window = _slots(max(int(np.max(len1 + len2, initial=0)), 1))
+        window = max(int(np.max(len1 + len2, initial=0)), 1)
+        # The counts run on whole words, as the search does: positions
+        # whose longest runs differ a little reuse one compiled count (the
+        # list's own window stays the run's length, sized from it).
+        words = _slots(window)
         # Counting runs on the engine the search will use (the portable
         # path at N = 1e6 would compile and run XLA's largest program).
         platform = _platform_of(position)
@@ -1080,7 +1082,7 @@ class Cell:
         while True:  # enough room to count every shell pair exactly
             engine = self._engine(n, 1, shell, query, platform)
             _, count, (has, fullest), _ = self._candidates(
-                engine, position, geometry, metric_sq, window=window,
+                engine, position, geometry, metric_sq, window=words,
                 shell=shell, shell_rows=shell_rows, query=query,
                 row_width=0 if engine == "portable" else 1)
             has, fullest = int(has), int(fullest)
@@ -1113,7 +1115,7 @@ class Cell:
             width = min(_backend.compile_size(max(sizes["row"], 1)), n)
             engine = self._engine(n, width, shell, query, platform)
             rows, _, _, _ = self._candidates(
-                engine, position, geometry, metric_sq, window=window,
+                engine, position, geometry, metric_sq, window=words,
                 shell=shell, shell_rows=shell_rows, row_width=width,
                 query=query)
             rows = np.asarray(rows)
