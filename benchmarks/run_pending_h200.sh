@@ -39,6 +39,10 @@
 #             003's r = 160 density (N = 50 000, k = 700), then Table 2's
 #             r = 160 lattice list rows with Dense lists (#17's question:
 #             which part of their 330-600 ms is the layout's)
+#   alloc     allocate's reuse of its compiled build (0ad79c5) on the GPU:
+#             the list kernel's tests and tests/test_neighbors.py, then
+#             benchmarks/neighbors.py at N = 10^6 with its reallocate_ms
+#             column (cell, bvh, jax-md; the sphere too)
 #   seed-rest seed 001's study: 16 of the 17 configurations that parts
 #             1-4 at 497bb8b did not reach (sphere alpha = 128, p = 4 only
 #             for cell and jax-md), smallest first; merge them with
@@ -58,7 +62,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|seed-rest|seed-big}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|alloc|seed-rest|seed-big}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -170,6 +174,13 @@ case $PART in
       LIST_FORMAT=Dense BUDGET=130 HARD_STOP=170 ROW_TIMEOUT=90 timeout 180 \
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
+  alloc)
+    tests list_kernel 220 tests/test_cell_kernel.py tests/test_neighbors.py \
+      -m "slow or not slow"
+    timeout 300 "$PY" benchmarks/neighbors.py --sizes 1000000 \
+      --sphere-n 1000000 --backends cell bvh --repeats 10 --timeout 140 \
+      --out "$DEST/neighbors_alloc_1e6_$GIT_SHA.csv" > "$DEST/logs/alloc.log" 2>&1
+    note "neighbors 1e6 rc=$?" ;;
   seed-rest)
     # Guessed 364 s (parts 1-3 ran within 3 % of their guesses): 15
     # configurations of up to 1M particles with all ten methods (the small
@@ -202,5 +213,5 @@ case $PART in
       --time-budget 60 --hard-stop $(( LEFT - 10 )) --timeout $(( LEFT - 20 )) \
       --out "$DEST/seed_rt_part5_$GIT_SHA" > "$DEST/logs/seed_part5.log" 2>&1
     note "seed part 5 rc=$?" ;;
-  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed, formats, seed-rest or seed-big"; exit 2 ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed, formats, alloc, seed-rest or seed-big"; exit 2 ;;
 esac
