@@ -42,7 +42,7 @@
 #   alloc     allocate's reuse of its compiled build (0ad79c5) on the GPU:
 #             the list kernel's tests and tests/test_neighbors.py, then
 #             benchmarks/neighbors.py at N = 10^6 with its reallocate_ms
-#             column (cell, bvh, jax-md; the sphere too)
+#             column (uniform: cell, bvh, jax-md)
 #   seed-rest seed 001's study: 16 of the 17 configurations that parts
 #             1-4 at 497bb8b did not reach (sphere alpha = 128, p = 4 only
 #             for cell and jax-md), smallest first; merge them with
@@ -175,10 +175,13 @@ case $PART in
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
   alloc)
-    tests list_kernel 220 tests/test_cell_kernel.py tests/test_neighbors.py \
-      -m "slow or not slow"
-    timeout 300 "$PY" benchmarks/neighbors.py --sizes 1000000 \
-      --sphere-n 1000000 --backends cell bvh --repeats 10 --timeout 140 \
+    # ~260 s: the kernel's tests and allocate's (bucketed sizes run the
+    # kernel at widths the list itself never has), then the rows.
+    tests cell_kernel 90 tests/test_cell_kernel.py -m "slow or not slow"
+    tests allocate 100 tests/test_neighbors.py \
+      -k "trims or reuse or overflow or rows_past or against"
+    timeout 150 "$PY" benchmarks/neighbors.py --sizes 1000000 --scenes uniform \
+      --backends cell bvh --repeats 10 --timeout 100 \
       --out "$DEST/neighbors_alloc_1e6_$GIT_SHA.csv" > "$DEST/logs/alloc.log" 2>&1
     note "neighbors 1e6 rc=$?" ;;
   seed-rest)
