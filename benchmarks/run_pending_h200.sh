@@ -175,11 +175,10 @@ case $PART in
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
   alloc)
-    # ~260 s: the kernel's tests and allocate's (bucketed sizes run the
+    # ~360 s: the kernel's tests and allocate's (bucketed sizes run the
     # kernel at widths the list itself never has), then the rows.
     tests cell_kernel 90 tests/test_cell_kernel.py -m "slow or not slow"
-    tests allocate 100 tests/test_neighbors.py \
-      -k "trims or reuse or overflow or rows_past or against"
+    tests neighbors 150 tests/test_neighbors.py
     timeout 150 "$PY" benchmarks/neighbors.py --sizes 1000000 --scenes uniform \
       --backends cell bvh --repeats 10 --timeout 100 \
       --out "$DEST/neighbors_alloc_1e6_$GIT_SHA.csv" > "$DEST/logs/alloc.log" 2>&1
