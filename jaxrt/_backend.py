@@ -234,8 +234,8 @@ def compile_size(size: int) -> int:
 
     Sizes that become static shapes of a compiled program at ``allocate``:
     data of one N measured a little differently then reuse the program
-    instead of compiling another (each compile of the cell search costs
-    about 2 s on a 2-core CPU, most of an ``allocate``)."""
+    instead of compiling another (a compile is most of an ``allocate`` on
+    a CPU: benchmarks/RESULTS.md)."""
     size = int(size)
     if size <= 4:
         return size

@@ -911,7 +911,7 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     below 1: that build truncates, and flags, as jax-md's does), for a
     stateful backend (its state may be shaped by the sizes) or one that
     asks for it (``build_at_exact_capacity``), or where the rounded list
-    would pass what the backend can index."""
+    would pass `_ROUNDED_LIST_ENTRIES` or what the backend can index."""
     fixed = getattr(backend, "fixed_sizes", ())
     needed = {k: v for k, v in sizes.items()
               if k not in ("row", "edges", "row_before_mask")}
@@ -940,7 +940,15 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     _, largest = _largest_buffer(backend, n, wider, query)
     # The cell kernel's int32 offsets also span N x its shell buffer.
     largest = max(largest, n * dict(internal).get("shell", 0))
-    return wider if largest <= _backend.max_list_entries(backend) else capacity
+    limit = min(_ROUNDED_LIST_ENTRIES, _backend.max_list_entries(backend))
+    return wider if largest <= limit else capacity
+
+
+# The largest list (int32 entries, 256 MiB) built wider and trimmed at
+# allocate: the wide list and its trimmed copy live together for a moment,
+# which for lists of gigabytes could run out of memory where the exact
+# build fits; larger lists build at their exact sizes (a compile per size).
+_ROUNDED_LIST_ENTRIES = 2 ** 26
 
 
 # Compiled capacities remembered per (N, dtype, query), newest kept.

@@ -427,6 +427,24 @@ def test_allocate_on_new_positions_reuses_the_compiled_build():
     assert lists.build._cache_size() < len(set(widths))
 
 
+def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
+    # Past the cap the wide list and its trimmed copy would need twice the
+    # memory: allocate must build exactly, one program per list size.
+    from jaxrt import neighbors
+    monkeypatch.setattr(neighbors, "_ROUNDED_LIST_ENTRIES", 1000)
+    side = 9.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+    lists = fns.allocate.__self__
+    capacities = set()
+    for seed in range(3):
+        R = jax.random.uniform(jax.random.PRNGKey(seed), (700, 3)) * side
+        capacities.add(fns.allocate(R).cell_list_capacity)
+    assert lists.compiled == {}
+    assert len(capacities) > 1  # the case this is about
+    assert lists.build._cache_size() == len(capacities)
+
+
 def test_a_compiled_capacity_is_reused_only_where_it_holds_the_list():
     from jaxrt.backends import Capacity
     from jaxrt.neighbors import _reused_capacity
