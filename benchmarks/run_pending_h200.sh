@@ -42,7 +42,8 @@
 #   alloc     allocate's reuse of its compiled build (0ad79c5) on the GPU:
 #             the list kernel's tests and tests/test_neighbors.py, then
 #             benchmarks/neighbors.py at N = 10^6 with its reallocate_ms
-#             column (uniform: cell, bvh, jax-md)
+#             column (uniform: cell, bvh, jax-md), then allocate's stages
+#             at 2.1e6 sphere points (benchmarks/allocate_parts.py)
 #   seed-rest seed 001's study: 16 of the 17 configurations that parts
 #             1-4 at 497bb8b did not reach (sphere alpha = 128, p = 4 only
 #             for cell and jax-md), smallest first; merge them with
@@ -175,14 +176,21 @@ case $PART in
       bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
     note "table2 r=160 Dense rc=$?" ;;
   alloc)
-    # ~360 s: the kernel's tests and allocate's (bucketed sizes run the
+    # ~480 s: the kernel's tests and allocate's (bucketed sizes run the
     # kernel at widths the list itself never has), then the rows.
     tests cell_kernel 90 tests/test_cell_kernel.py -m "slow or not slow"
     tests neighbors 150 tests/test_neighbors.py
     timeout 150 "$PY" benchmarks/neighbors.py --sizes 1000000 --scenes uniform \
       --backends cell bvh --repeats 10 --timeout 100 \
       --out "$DEST/neighbors_alloc_1e6_$GIT_SHA.csv" > "$DEST/logs/alloc.log" 2>&1
-    note "neighbors 1e6 rc=$?" ;;
+    note "neighbors 1e6 rc=$?"
+    # Seed 001's init at 2.1e6 sphere points (AABB sorted 1.38 s at
+    # 497bb8b with k = 9, against a 2.2 ms BVH build): which stage of
+    # allocate is it? (neighbors.py's sphere, k ~ 30, at that N.)
+    timeout 120 "$PY" benchmarks/allocate_parts.py --sizes 2097152 \
+      --scenes sphere --backends cell bvh squares --timeout 100 \
+      --out "$DEST/allocate_parts_2e6_$GIT_SHA.csv" > "$DEST/logs/parts.log" 2>&1
+    note "allocate parts rc=$?" ;;
   seed-rest)
     # Guessed 364 s (parts 1-3 ran within 3 % of their guesses): 15
     # configurations of up to 1M particles with all ten methods (the small
