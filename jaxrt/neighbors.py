@@ -972,10 +972,10 @@ def _reused_capacity(built: Sequence[Capacity], capacity: Capacity,
     def holds(have: int, need: int) -> bool:
         return need <= have <= 2 * max(need, 4)
 
+    need = dict(capacity.internal)
     for c in reversed(built):
         if options(c) != options(capacity):
             continue
-        need = dict(capacity.internal)
         if holds(c.neighbors, capacity.neighbors) and all(
                 holds(v, need[k]) for k, v in c.internal if k not in fixed):
             return c

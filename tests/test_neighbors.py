@@ -401,8 +401,7 @@ def test_allocate_trims_its_wider_build_to_exactly_the_sized_list(
     assert bool(nbrs.did_buffer_overflow) == (multiplier < 1)
     assert bool(rebuilt.did_buffer_overflow) == (multiplier < 1)
     if multiplier >= 1:
-        assert list_pairs(nbrs) == expected_pairs(
-            fmt, brute_pairs(R, 1.2, side, True))
+        assert list_pairs(nbrs) == expected_pairs(fmt, pairs)
 
 
 def test_allocate_on_new_positions_reuses_the_compiled_build():
