@@ -59,6 +59,9 @@ MAX_SLACK = 2.0 ** -7
 # them near one another) and random ones (most far apart).
 _ADJACENT_SAMPLES = 4096
 _RANDOM_SAMPLES = 2048
+# From this many particles `sample_pairs` sorts on an accelerator where the
+# positions live (smaller sorts cost less on the host than a compile).
+_DEVICE_SORT_MIN = 1 << 16
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -264,22 +267,49 @@ def extremes_disagree(position, metric_sq, g, h, space: Space,
 def sample_pairs(position, space: Space) -> tuple[np.ndarray, np.ndarray]:
     """Eager: int ``(M,)`` twice, pairs to test the model on: the extremes
     of each axis, neighbours in the order along each axis, random pairs."""
-    q = np.asarray(space.to_grid(jnp.asarray(position)), np.float64)
+    q = space.to_grid(jnp.asarray(position))
     n, dim = q.shape
-    # The pairs `extremes_disagree` checks under jit (first occurrences).
-    first, second = [np.argmin(q, axis=0)], [np.argmax(q, axis=0)]
-    per_axis = _ADJACENT_SAMPLES // dim
-    for a in range(dim):
-        order = np.argsort(q[:, a], kind="stable")
-        take = np.linspace(0, n - 2, min(per_axis, max(n - 1, 0))).astype(int)
-        first.append(order[take])
-        second.append(order[np.minimum(take + 1, n - 1)])
+    take = np.linspace(0, n - 2, min(_ADJACENT_SAMPLES // dim,
+                                     max(n - 1, 0))).astype(int)
+    if n >= _DEVICE_SORT_MIN and _on_accelerator(q):
+        lowest, highest, before, after = _axis_samples_on_device(q, take)
+    else:
+        lowest, highest, before, after = _axis_samples_on_host(q, take)
     rng = np.random.default_rng(0)
-    first.append(rng.integers(0, n, _RANDOM_SAMPLES))
-    second.append(rng.integers(0, n, _RANDOM_SAMPLES))
-    i, j = np.concatenate(first), np.concatenate(second)
+    # The extremes are the pairs `extremes_disagree` checks under jit
+    # (first occurrences).
+    i = np.concatenate([lowest, *before, rng.integers(0, n, _RANDOM_SAMPLES)])
+    j = np.concatenate([highest, *after, rng.integers(0, n, _RANDOM_SAMPLES)])
     keep = i != j
     return i[keep], j[keep]
+
+
+def _on_accelerator(x) -> bool:
+    return any(d.platform != "cpu" for d in x.devices())
+
+
+def _axis_samples_on_host(q, take):
+    """Per axis of ``q`` (float ``(N, dim)``): the first argmin and argmax,
+    and the particles at ranks ``take`` and ``take + 1`` (int ``(M,)``) of
+    its order, sorted by NumPy (quicksort: ties in either order)."""
+    columns = np.ascontiguousarray(np.asarray(q).T)
+    orders = [np.argsort(c) for c in columns]
+    return ([int(np.argmin(c)) for c in columns],
+            [int(np.argmax(c)) for c in columns],
+            [o[take] for o in orders], [o[take + 1] for o in orders])
+
+
+def _axis_samples_on_device(q, take):
+    """`_axis_samples_on_host`, sorted where ``q`` lives (ties in index
+    order): at millions of particles the host's sorts were most of an
+    `allocate` on the H200's machine (RESULTS.md); only the samples come
+    back."""
+    order = jnp.argsort(q, axis=0, stable=True)
+    dim = q.shape[1]
+    picked = np.asarray(order[np.concatenate([take, take + 1])])
+    return (np.asarray(jnp.argmin(q, axis=0)), np.asarray(jnp.argmax(q, axis=0)),
+            [picked[:len(take), a] for a in range(dim)],
+            [picked[len(take):, a] for a in range(dim)])
 
 
 def sample_deviation(position, metric_sq, g, h, space: Space):

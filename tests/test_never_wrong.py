@@ -123,6 +123,45 @@ def test_metric_shorter_than_the_grid_allows_is_refused():
     assert list_pairs(nbrs) == list_pairs(jax_md_brute(saturating, 8.0, 1.0, R))
 
 
+
+
+@pytest.mark.parametrize("where", ["host", "device"])
+@pytest.mark.parametrize("scene", ["random", "lattice with ties"])
+def test_allocate_samples_neighbours_along_each_axis(where, scene, monkeypatch):
+    """The model check's samples: the first extremes of each axis and the
+    particles at evenly spaced ranks of its order with their successors,
+    whether the host sorts or the device does (on GPUs from 2^16
+    particles); forced here to either on the CPU."""
+    from jaxrt import _space
+    if scene == "random":  # distinct coordinates on each axis
+        rng = np.random.default_rng(3)
+        q = np.stack([rng.permutation(3000) for _ in range(3)], 1) * 0.003
+    else:  # every coordinate shared by 100 particles or more
+        q = np.stack(np.meshgrid(*[np.arange(9.0)] * 3), -1).reshape(-1, 3)
+        q = np.concatenate([q, q[::-1]])
+    q = q.astype(np.float32)
+    take = np.linspace(0, len(q) - 2, 500).astype(int)
+    sample = {"host": _space._axis_samples_on_host,
+              "device": _space._axis_samples_on_device}[where]
+    lowest, highest, before, after = sample(jnp.asarray(q), take)
+    np.testing.assert_array_equal(lowest, np.argmin(q, axis=0))
+    np.testing.assert_array_equal(highest, np.argmax(q, axis=0))
+    for a in range(3):
+        ranked = np.sort(q[:, a])
+        np.testing.assert_array_equal(q[before[a], a], ranked[take])
+        np.testing.assert_array_equal(q[after[a], a], ranked[take + 1])
+        assert np.all(before[a] != after[a])
+    if scene == "random":  # no ties: both sorts give the same particles
+        other = {"host": _space._axis_samples_on_device,
+                 "device": _space._axis_samples_on_host}[where]
+        for mine, theirs in zip(sample(jnp.asarray(q), take),
+                                other(jnp.asarray(q), take)):
+            np.testing.assert_array_equal(np.asarray(mine), np.asarray(theirs))
+
+    # And allocate's refusal of a too short metric holds on either path.
+    monkeypatch.setattr(_space, "_DEVICE_SORT_MIN", 0)
+    monkeypatch.setattr(_space, "_on_accelerator", lambda x: where == "device")
+    test_metric_shorter_than_the_grid_allows_is_refused()
 @pytest.mark.skipif("bvh" not in jaxrt.available_backends(),
                     reason="needs Warp")
 def test_ray_traced_backends_refuse_metrics_they_cannot_honour():
