@@ -187,16 +187,26 @@ def main(argv=None) -> None:
     print(f"elapsed {time.monotonic() - t0:.0f} s")
 
 
+# Reasons a part skipped a row that say nothing of the row itself.
+_NOT_RUN_HERE = ("not selected", "not in --part", "time budget")
+
+
 def merge_rows(tables: list[list[dict]]) -> list[dict]:
     """One row per (scene, param, p, method): the measured (or failed) row
-    of whichever part ran it, else a skipped one; in the first table's
-    order, then the rest."""
+    of whichever part ran it, else one skipped for a reason of its own
+    (a list past what jaxrt indexes), else one that a part did not select
+    or reach; in the first table's order, then the rest."""
+    def rank(r: dict) -> int:
+        if r.get("status") != "skipped":
+            return 2
+        why = r.get("failed") or ""
+        return 0 if any(s in why for s in _NOT_RUN_HERE) else 1
+
     best: dict = {}
     for rows in tables:
         for r in rows:
             key = (r["scene"], str(r["param"]), str(r["p"]), r["method"])
-            if key not in best or (best[key].get("status") == "skipped"
-                                   and r.get("status") != "skipped"):
+            if key not in best or rank(r) > rank(best[key]):
                 best[key] = r
     rows = list(best.values())
     order = {(s, a, p): i for i, (s, a, p) in enumerate(plan.universe(False))}

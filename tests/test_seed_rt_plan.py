@@ -116,3 +116,19 @@ def test_merge_prefers_measured_rows():
          {"scene": "uniform", "param": 4, "p": 1, "method": "jax-md", "status": "skipped"}]
     merged = seed_rt_study.merge_rows([a, b])
     assert [r["status"] for r in merged] == ["ok", "ok"]
+
+
+def test_merge_prefers_a_reason_of_the_row_to_not_selected():
+    """A list refused for its size in one part beats "not selected" in
+    another (the report then says "refused", not "–"), and neither beats
+    a measured row."""
+    row = {"scene": "sphere", "param": 128, "p": 16, "status": "skipped"}
+    first = [{**row, "method": m, "failed": "skipped: not selected (--configs)"}
+             for m in ("cell", "jax-md")]
+    second = [{**row, "method": "cell", "failed": "skipped: Dense list >= "
+               "N*ceil(1.25k) entries, above 2**31 (jaxrt refuses it)"},
+              {**row, "method": "jax-md", "failed": "skipped: time budget 9s reached"}]
+    third = [{**row, "method": "jax-md", "status": "ok", "failed": ""}]
+    merged = seed_rt_study.merge_rows([first, second, third])
+    assert [r["failed"][:22] for r in merged] == ["skipped: Dense list >=", ""]
+    assert merged[1]["status"] == "ok"
