@@ -49,7 +49,14 @@
 #             for cell and jax-md), smallest first; merge them with
 #             --plot-only (RESULTS.md)
 #   seed-big  the same study's largest rows: sphere alpha = 128, p = 16
-#             (fused methods only) and part 5 (spheres-fused at N = 67M)
+#             (fused methods only; ran at 9db10e6) and part 5
+#             (spheres-fused at N = 67M)
+#   model     allocate's model check sorting on the GPU (session 19): its
+#             test and test_neighbors.py, then allocate's stages at 2.1e6
+#             sphere points again (the check took 1.15-1.21 s at 9db10e6)
+#   table2-6p Table 2 part 6's periodic rows (U[1,160], n = 10^6; the
+#             walled ones ran at 9db10e6), the cluster's Warp rows left
+#             out (they timed out at 120 s with walls)
 # Table 2 and its energy figures: benchmarks/run_table2_h200.sh; seed 001's
 # study: benchmarks/seed_rt_study.py --part K/5 (RESULTS.md).
 #
@@ -63,7 +70,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|alloc|seed-rest|seed-big}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|alloc|seed-rest|seed-big|model|table2-6p}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -223,5 +230,22 @@ case $PART in
       --time-budget 60 --hard-stop $(( LEFT - 10 )) --timeout $(( LEFT - 20 )) \
       --out "$DEST/seed_rt_part5_$GIT_SHA" > "$DEST/logs/seed_part5.log" 2>&1
     note "seed part 5 rc=$?" ;;
-  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed, formats, alloc, seed-rest or seed-big"; exit 2 ;;
+  model)
+    tests model 150 tests/test_never_wrong.py tests/test_neighbors.py
+    timeout 150 "$PY" benchmarks/allocate_parts.py --sizes 2097152 \
+      --scenes sphere --backends cell bvh squares --timeout 130 \
+      --out "$DEST/allocate_parts_2e6_$GIT_SHA.csv" > "$DEST/logs/parts.log" 2>&1
+    note "allocate parts rc=$?" ;;
+  table2-6p)
+    OUT=$DEST SCENES="lattice disordered" BOUNDARIES=periodic BUDGET=300 \
+      HARD_STOP=380 ROW_TIMEOUT=120 timeout 390 bash benchmarks/run_table2_h200.sh 6 \
+      > "$DEST/logs/table2_6_periodic.log" 2>&1
+    note "table2 part 6 periodic rc=$?"
+    LEFT=$(( 560 - (SECONDS - START) ))
+    OUT=$DEST SCENES=cluster BOUNDARIES=periodic \
+      METHODS="GPU-CELL GPU-CELL-fused CPU-CELL" BUDGET=$(( LEFT - 60 )) \
+      HARD_STOP=$(( LEFT - 10 )) ROW_TIMEOUT=100 timeout "$LEFT" \
+      bash benchmarks/run_table2_h200.sh 6 > "$DEST/logs/table2_6_cluster.log" 2>&1
+    note "table2 part 6 periodic cluster rc=$?" ;;
+  *) echo "PART must be tests, runs, step, profile, overhead, sph, radii, accuracy, owed, formats, alloc, seed-rest, seed-big, model or table2-6p"; exit 2 ;;
 esac
