@@ -51,9 +51,12 @@
 #   seed-big  the same study's largest rows: sphere alpha = 128, p = 16
 #             (fused methods only; ran at 9db10e6) and part 5
 #             (spheres-fused at N = 67M)
-#   model     allocate's model check sorting on the GPU (session 19): its
-#             test and test_neighbors.py, then allocate's stages at 2.1e6
-#             sphere points again (the check took 1.15-1.21 s at 9db10e6)
+#   model     allocate's model check sorting on the GPU and lists past 2^26
+#             entries rounded where the GPU has room (session 19): their
+#             tests and test_neighbors.py, then allocate's stages at 2.1e6
+#             sphere points (the check took 1.15-1.21 s at 9db10e6, cell's
+#             build a 0.8 s compile per structure) and reallocate_ms at
+#             10^6 uniform (cell 1 968 ms, jax-md 1 299 at 9db10e6)
 #   table2-6p Table 2 part 6's periodic rows (U[1,160], n = 10^6; the
 #             walled ones ran at 9db10e6), the cluster's Warp rows left
 #             out (they timed out at 120 s with walls)
@@ -235,7 +238,11 @@ case $PART in
     timeout 150 "$PY" benchmarks/allocate_parts.py --sizes 2097152 \
       --scenes sphere --backends cell bvh squares --timeout 130 \
       --out "$DEST/allocate_parts_2e6_$GIT_SHA.csv" > "$DEST/logs/parts.log" 2>&1
-    note "allocate parts rc=$?" ;;
+    note "allocate parts rc=$?"
+    timeout 150 "$PY" benchmarks/neighbors.py --sizes 1000000 --scenes uniform \
+      --backends cell --repeats 5 --timeout 130 \
+      --out "$DEST/neighbors_alloc_1e6_$GIT_SHA.csv" > "$DEST/logs/alloc.log" 2>&1
+    note "neighbors 1e6 rc=$?" ;;
   table2-6p)
     OUT=$DEST SCENES="lattice disordered" BOUNDARIES=periodic BUDGET=300 \
       HARD_STOP=380 ROW_TIMEOUT=120 timeout 390 bash benchmarks/run_table2_h200.sh 6 \

@@ -622,13 +622,15 @@ class _Lists:
         self.compiled: dict[tuple, list[Capacity]] = {}
 
     def compiled_capacity(self, n: int, dtype, query: Query,
-                          capacity: Capacity, sizes: dict[str, int]
-                          ) -> Capacity:
+                          capacity: Capacity, sizes: dict[str, int],
+                          limit: int | None = None) -> Capacity:
         """The capacity ``allocate`` builds with: one it compiled before
         that holds ``capacity`` (`_reused_capacity`), else
-        `_compiled_capacity`'s rounded one (remembered), or ``capacity``
-        itself where the build must be exact."""
-        rounded = _compiled_capacity(self.searcher, n, capacity, query, sizes)
+        `_compiled_capacity`'s rounded one (remembered; lists up to
+        ``limit`` int32 entries, `_ROUNDED_LIST_ENTRIES` if None), or
+        ``capacity`` itself where the build must be exact."""
+        rounded = _compiled_capacity(self.searcher, n, capacity, query, sizes,
+                                     limit)
         if rounded is capacity:
             return capacity
         built = self.compiled.setdefault((n, np.dtype(dtype).name, query), [])
@@ -700,7 +702,7 @@ class _Lists:
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
         compiled = self.compiled_capacity(n, position.dtype, query, capacity,
-                                          sizes)
+                                          sizes, _rounded_list_limit(position))
         idx, overflow, code, state = self.build(
             position, geometry, metric, state, query=query, capacity=compiled)
         if compiled is not capacity:
@@ -897,7 +899,8 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
 
 
 def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
-                       sizes: dict[str, int]) -> Capacity:
+                       sizes: dict[str, int], limit: int | None = None
+                       ) -> Capacity:
     """The sizes ``allocate``'s build is compiled for: ``capacity``'s, each
     an eighth larger rounded up by `_backend.compile_size` (at most 1.7x;
     those within N staying within N; counts in ``fixed_sizes`` as they
@@ -911,7 +914,8 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     below 1: that build truncates, and flags, as jax-md's does), for a
     stateful backend (its state may be shaped by the sizes) or one that
     asks for it (``build_at_exact_capacity``), or where the rounded list
-    would pass `_ROUNDED_LIST_ENTRIES` or what the backend can index."""
+    would pass ``limit`` int32 entries (`_ROUNDED_LIST_ENTRIES` if None)
+    or what the backend can index."""
     fixed = getattr(backend, "fixed_sizes", ())
     needed = {k: v for k, v in sizes.items()
               if k not in ("row", "edges", "row_before_mask")}
@@ -940,15 +944,44 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     _, largest = _largest_buffer(backend, n, wider, query)
     # The cell kernel's int32 offsets also span N x its shell buffer.
     largest = max(largest, n * dict(internal).get("shell", 0))
-    limit = min(_ROUNDED_LIST_ENTRIES, _backend.max_list_entries(backend))
+    limit = min(_ROUNDED_LIST_ENTRIES if limit is None else limit,
+                _backend.max_list_entries(backend))
     return wider if largest <= limit else capacity
 
 
 # The largest list (int32 entries, 256 MiB) built wider and trimmed at
-# allocate: the wide list and its trimmed copy live together for a moment,
-# which for lists of gigabytes could run out of memory where the exact
-# build fits; larger lists build at their exact sizes (a compile per size).
+# allocate where the device does not report its free memory: the wide list
+# and its trimmed copy live together for a moment, which for lists of
+# gigabytes could run out of memory where the exact build fits; larger
+# lists build at their exact sizes (a compile per size).
 _ROUNDED_LIST_ENTRIES = 2 ** 26
+# Where it does (GPUs), the wide list may take up to this share of the
+# free memory: with its trimmed copy (no larger) at most twice that.
+_ROUNDED_SHARE_OF_FREE_MEMORY = 1 / 8
+
+
+def _rounded_list_limit(position) -> int:
+    """int32 entries up to which ``allocate`` builds a list wider and trims
+    it: `_ROUNDED_LIST_ENTRIES`, or more on a device that reports its free
+    memory (`_ROUNDED_SHARE_OF_FREE_MEMORY` of it), so that a GPU with
+    room to spare reuses compiled builds for lists of millions of
+    particles instead of compiling one per exact size."""
+    stats = _memory_stats(position)
+    if not stats or "bytes_limit" not in stats:
+        return _ROUNDED_LIST_ENTRIES
+    free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+    share = int(free * _ROUNDED_SHARE_OF_FREE_MEMORY) // 4
+    return max(_ROUNDED_LIST_ENTRIES, share)
+
+
+def _memory_stats(position) -> dict | None:
+    """The memory statistics of ``position``'s device (None on CPUs, and
+    for arrays on several devices, where no one device's figure holds)."""
+    devices = getattr(position, "devices", None)
+    devices = devices() if devices is not None else {jax.devices()[0]}
+    if len(devices) != 1:
+        return None
+    return next(iter(devices)).memory_stats()
 
 
 # Compiled capacities remembered per (N, dtype, query), newest kept.

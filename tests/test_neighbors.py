@@ -444,6 +444,32 @@ def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
     assert lists.build._cache_size() == len(capacities)
 
 
+@pytest.mark.parametrize("free_bytes", [None, 10_000, 10 ** 9])
+def test_large_lists_round_where_the_device_has_room(monkeypatch, free_bytes):
+    """Past the cap, a device that reports its free memory (GPUs) still
+    rounds and reuses builds while the wide list fits an eighth of it; one
+    that reports none (CPUs) or too little builds exactly. The trimmed
+    list is the exact build's either way."""
+    from jaxrt import neighbors
+    monkeypatch.setattr(neighbors, "_ROUNDED_LIST_ENTRIES", 1000)
+    stats = None if free_bytes is None else {"bytes_limit": free_bytes + 5,
+                                             "bytes_in_use": 5}
+    monkeypatch.setattr(neighbors, "_memory_stats", lambda position: stats)
+    side = 9.0
+    disp, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+    exact = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
+    has_room = free_bytes is not None and free_bytes // 8 // 4 > 1000
+    R = jax.random.uniform(jax.random.PRNGKey(4), (700, 3)) * side
+    nbrs = fns.allocate(R)
+    lists = fns.allocate.__self__
+    assert bool(lists.compiled) == has_room
+    monkeypatch.setattr(neighbors, "_memory_stats", lambda position: None)
+    reference = exact.allocate(R)
+    assert nbrs.idx.shape == reference.idx.shape
+    np.testing.assert_array_equal(np.asarray(nbrs.idx), np.asarray(reference.idx))
+
+
 def test_a_compiled_capacity_is_reused_only_where_it_holds_the_list():
     from jaxrt.backends import Capacity
     from jaxrt.neighbors import _reused_capacity
