@@ -623,12 +623,12 @@ class _Lists:
 
     def compiled_capacity(self, n: int, dtype, query: Query,
                           capacity: Capacity, sizes: dict[str, int],
-                          limit: int | None = None) -> Capacity:
+                          limit: int) -> Capacity:
         """The capacity ``allocate`` builds with: one it compiled before
         that holds ``capacity`` (`_reused_capacity`), else
         `_compiled_capacity`'s rounded one (remembered; lists up to
-        ``limit`` int32 entries, `_ROUNDED_LIST_ENTRIES` if None), or
-        ``capacity`` itself where the build must be exact."""
+        ``limit`` int32 entries, `_rounded_list_limit`), or ``capacity``
+        itself where the build must be exact."""
         rounded = _compiled_capacity(self.searcher, n, capacity, query, sizes,
                                      limit)
         if rounded is capacity:
@@ -899,8 +899,7 @@ def _check_list_size(backend, n: int, capacity: Capacity, query: Query) -> None:
 
 
 def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
-                       sizes: dict[str, int], limit: int | None = None
-                       ) -> Capacity:
+                       sizes: dict[str, int], limit: int) -> Capacity:
     """The sizes ``allocate``'s build is compiled for: ``capacity``'s, each
     an eighth larger rounded up by `_backend.compile_size` (at most 1.7x;
     those within N staying within N; counts in ``fixed_sizes`` as they
@@ -914,8 +913,7 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     below 1: that build truncates, and flags, as jax-md's does), for a
     stateful backend (its state may be shaped by the sizes) or one that
     asks for it (``build_at_exact_capacity``), or where the rounded list
-    would pass ``limit`` int32 entries (`_ROUNDED_LIST_ENTRIES` if None)
-    or what the backend can index."""
+    would pass ``limit`` int32 entries or what the backend can index."""
     fixed = getattr(backend, "fixed_sizes", ())
     needed = {k: v for k, v in sizes.items()
               if k not in ("row", "edges", "row_before_mask")}
@@ -944,9 +942,8 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     _, largest = _largest_buffer(backend, n, wider, query)
     # The cell kernel's int32 offsets also span N x its shell buffer.
     largest = max(largest, n * dict(internal).get("shell", 0))
-    limit = min(_ROUNDED_LIST_ENTRIES if limit is None else limit,
-                _backend.max_list_entries(backend))
-    return wider if largest <= limit else capacity
+    return wider if largest <= min(limit, _backend.max_list_entries(
+        backend)) else capacity
 
 
 # The largest list (int32 entries, 256 MiB) built wider and trimmed at
