@@ -691,6 +691,29 @@ def _slots(window: int) -> int:
     return 32 * max(-(-window // 32), 1)
 
 
+def _check_candidate_words(backend_name: str, n: int, stencil_rows: int,
+                           window: int, limit: int):
+    """Refuse a portable search whose candidate bits (`_candidate_words`:
+    N x stencil rows x window slots, in 32-slot words) int32 cannot index.
+
+    Its flat word index would overflow (seed 003's r = 160 lattice at
+    n = 10^6 on the CPU: 2.6e9 words, an OverflowError deep in XLA), so the
+    count pass refuses before it runs, as the rows' check does after it.
+    """
+    words = n * stencil_rows * (_slots(window) // 32)
+    if words > limit:
+        raise ValueError(
+            f"the cell list's portable search (off CUDA GPUs, or "
+            f"Cell(kernel='xla')) would test {words * 32:,} candidate slots "
+            f"in {words:,} 32-slot words (N = {n:,} x {stencil_rows} stencil "
+            f"rows x {_slots(window):,} slots: the longest row holds {window:,}"
+            f" particles), more than backend={backend_name!r} indexes "
+            f"({limit:,} words). Use the GPU kernel (backend='cell' on a CUDA"
+            " device), fewer particles or a smaller r_cutoff + dr_threshold. "
+            "Energies need no list: "
+            "jaxrt.energy.lennard_jones_fused(..., backend='cell').")
+
+
 def _tolerance(cart, geometry: Geometry, query: Query, position):
     """Bound on |cheap distance - caller's distance| (float scalar).
 
@@ -1079,8 +1102,12 @@ class Cell:
         platform = _platform_of(position)
         # A first guess that fits liquids (a few in a hundred have a shell).
         shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
+        limit = _backend.max_list_entries(self)
         while True:  # enough room to count every shell pair exactly
             engine = self._engine(n, 1, shell, query, platform)
+            if engine == "portable":
+                _check_candidate_words(self.name, n, len1.shape[1], window,
+                                       limit)
             _, count, (has, fullest), _ = self._candidates(
                 engine, position, geometry, metric_sq, window=words,
                 shell=shell, shell_rows=shell_rows, query=query,
@@ -1096,7 +1123,6 @@ class Cell:
         # sees all others needs N^2), before the rows pass below allocates
         # them (seed 003's cluster at n = 50 000 was killed for host memory
         # there, and ran past 100 s on the GPU).
-        limit = _backend.max_list_entries(self)
         entries = n * int(count.max(initial=0))
         if entries > limit:
             raise _backend.list_too_large(self.name, entries,

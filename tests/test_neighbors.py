@@ -784,3 +784,39 @@ def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
         assert int(np.sum(idx < n)) == n * (n - 1)
     else:
         assert int(np.sum(idx[0] < n)) == n * (n - 1) // 2
+
+
+def test_portable_candidates_past_int32_are_refused_before_counting():
+    # Seed 003's r = 160 lattice at n = 10^6 on the CPU: the portable
+    # search's candidate bits (N x 9 stencil rows x the longest row's slots)
+    # passed 2^31 words and XLA raised an OverflowError on a flat index.
+    # Here 300 particles share one cell: each of the 9 rows' window is the
+    # cell's 300 particles, 320 slots or 10 words, so 27 000 words in all.
+    import dataclasses
+    from typing import ClassVar
+
+    from jaxrt import backends
+    n = 300
+    R = jnp.asarray(np.random.default_rng(1).uniform(-0.3, 0.3, (n, 3)),
+                    jnp.float32)
+    disp, _ = space.free()
+
+    def limited(limit):
+        @dataclasses.dataclass(frozen=True)
+        class Limited(backends.Cell):
+            max_list_entries: ClassVar[int] = limit
+        return Limited(kernel="xla")
+
+    with pytest.raises(ValueError, match=r"portable search .* 27,000 32-slot "
+                       r"words \(N = 300 x 9 stencil rows x 320 slots.*"
+                       r"GPU kernel.*lennard_jones_fused"):
+        jaxrt.neighbor_list(disp, None, 1.5,
+                            backend=limited(26_999)).allocate(R)
+    # At exactly the limit the candidates pass; the rows (300 x 299
+    # entries) are the next refusal, and room for them builds the list.
+    with pytest.raises(ValueError, match=r"needs 89,700 int32 entries"):
+        jaxrt.neighbor_list(disp, None, 1.5,
+                            backend=limited(27_000)).allocate(R)
+    nbrs = jaxrt.neighbor_list(disp, None, 1.5,
+                               backend=limited(n * n)).allocate(R)
+    assert int(np.sum(np.asarray(nbrs.idx) < n)) == n * (n - 1)
