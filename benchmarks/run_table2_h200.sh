@@ -26,7 +26,7 @@
 # REPEATS / WARMUP (timed and untimed steps per row; parts 5-8 default to
 # 1 and 1, the others to table2.py's 5 and 2),
 # LIST_FORMAT (Dense, Sparse or OrderedSparse: the list methods' layout,
-# default Dense at r = 1, else OrderedSparse; the CSV's name then names it),
+# default Dense; the CSV's name then names it),
 # PYTHON.
 set -uo pipefail
 cd "$(dirname "$0")/.."

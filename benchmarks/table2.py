@@ -22,9 +22,12 @@ Methods (Meneses et al. §4.2; all jaxrt, all one leapfrog step
   machine has, not the paper's 64).
 
 The BVH methods use the ``gradient`` policy (``--policy``), as the paper's.
-The lists (RT-REF, GPU-CELL, CPU-CELL) are Dense at r = 1 and
-OrderedSparse otherwise; ``--list-format`` sets one layout for all (the
-CSV's ``format`` column says which ran).
+The lists (RT-REF, GPU-CELL, CPU-CELL) are Dense (``--list-format`` sets
+another layout; the CSV's ``format`` column says which ran). Until b88f2a3
+they were OrderedSparse at r > 1, and at k = 700 (r = 160, n = 50 000) the
+forces on those lists took 333 ms on the H200 against 1.65 ms on Dense
+(benchmarks/list_forces.py; jax-md's own energy the same): the list rows
+then measured the layout, not the search.
 Scenes and radii (`jaxrt.seed_distributions`, §4.1): Lattice, Disordered,
 Cluster in a box of 1000³ with walls (free axes; nothing leaves the box in
 these steps) or periodic; r = 1, r = 160, U[1, 160], LN(1, 2) clipped to
@@ -227,12 +230,7 @@ def _step_fns(job: dict, position, radii):
         return step, (position, V0), "none", k_fn
 
     backend = {"RT-REF": policy, "GPU-CELL": "cell", "CPU-CELL": "cell"}[method]
-    # "auto" (the layout parts 1-5 ran with): Dense at r = 1, where rows
-    # are short, else OrderedSparse (half the edges; Dense rows are as wide
-    # as the fullest neighbourhood, which radii make wide).
-    layout = job.get("list_format", "auto")
-    fmt = ((partition.Dense if cut <= 1.0 else partition.OrderedSparse)
-           if layout == "auto" else getattr(partition, layout))
+    fmt = getattr(partition, job.get("list_format", "Dense"))
     nfn = jaxrt.neighbor_list(displacement, side, cut, 0.0, format=fmt,
                               backend=backend, periodic=periodic,
                               radii=None if equal else radii)
@@ -395,10 +393,10 @@ def main(argv=None) -> None:
                         choices=METHODS)
     parser.add_argument("--policy", default="gradient",
                         help="BVH policy of the RT methods (jaxrt.rt.policy)")
-    parser.add_argument("--list-format", default="auto",
-                        choices=("auto", "Dense", "Sparse", "OrderedSparse"),
+    parser.add_argument("--list-format", default="Dense",
+                        choices=("Dense", "Sparse", "OrderedSparse"),
                         help="layout of RT-REF's, GPU-CELL's and CPU-CELL's "
-                        "lists (auto: Dense at r = 1, else OrderedSparse)")
+                        "lists")
     parser.add_argument("--snapshots", type=int, default=3)
     parser.add_argument("--jitter", type=float, default=0.01,
                         help="snapshot jitter, in smallest radii")
