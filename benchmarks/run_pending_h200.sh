@@ -34,11 +34,12 @@
 #             then Table 2 part 4's periodic disordered and cluster rows
 #             (ran at ce9013a)
 #   formats   where a list step's time goes per layout (list_forces.py:
-#             update, Dense-to-Sparse conversion, forces, the edge
-#             reductions four ways) at #18's N = 10^6, k = 52 and at seed
-#             003's r = 160 density (N = 50 000, k = 700), then Table 2's
-#             r = 160 lattice list rows with Dense lists (#17's question:
-#             which part of their 330-600 ms is the layout's)
+#             update, Dense-to-Sparse conversion, the energy alone, the
+#             forces by reverse mode and with the scatter written out, the
+#             edge reductions four ways) at #18's N = 10^6, k = 52 and at
+#             seed 003's r = 160 density (N = 50 000, k = 700): why the
+#             edge layouts' forces took 68 / 1 025 ms at b88f2a3 while one
+#             scatter of their edges took 1.7 ms
 #   alloc     allocate's reuse of its compiled build (0ad79c5) on the GPU:
 #             the list kernel's tests and tests/test_neighbors.py, then
 #             benchmarks/neighbors.py at N = 10^6 with its reallocate_ms
@@ -174,17 +175,14 @@ case $PART in
       > "$DEST/logs/table2_4.log" 2>&1
     note "table2 part 4 periodic rc=$?" ;;
   formats)
-    # 190 + 140 + 180 s: the part stays inside one 10-minute call.
-    timeout 190 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
+    # 250 + 250 s: the part stays inside one 10-minute call.
+    timeout 250 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
       --out "$DEST/list_forces_1e6_k52_$GIT_SHA.csv" > "$DEST/logs/lf_1e6.log" 2>&1
     note "list_forces 1e6 rc=$?"
-    timeout 140 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
+    timeout 250 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
+      --stages energy forces reduce \
       --out "$DEST/list_forces_5e4_k700_$GIT_SHA.csv" > "$DEST/logs/lf_5e4.log" 2>&1
-    note "list_forces 5e4 rc=$?"
-    OUT=$DEST SCENES=lattice BOUNDARIES=wall METHODS="RT-REF GPU-CELL" \
-      LIST_FORMAT=Dense BUDGET=130 HARD_STOP=170 ROW_TIMEOUT=90 timeout 180 \
-      bash benchmarks/run_table2_h200.sh 4 > "$DEST/logs/table2_dense.log" 2>&1
-    note "table2 r=160 Dense rc=$?" ;;
+    note "list_forces 5e4 rc=$?" ;;
   alloc)
     # ~480 s: the kernel's tests and allocate's (bucketed sizes run the
     # kernel at widths the list itself never has), then the rows.
