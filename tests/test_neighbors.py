@@ -740,6 +740,25 @@ def test_lists_beyond_what_the_backend_can_index_are_refused():
     assert limited(entries).allocate(R).idx.shape == small.idx.shape
 
 
+def _cell_limited_to(limit, **options):
+    """A `Cell` backend that indexes at most ``limit`` int32 entries."""
+    import dataclasses
+    from typing import ClassVar
+
+    from jaxrt import backends
+
+    @dataclasses.dataclass(frozen=True)
+    class Limited(backends.Cell):
+        max_list_entries: ClassVar[int] = limit
+    return Limited(**options)
+
+
+def _cluster_within_the_cutoff(n=300):
+    """float32 ``(n, 3)`` points in a cube 0.6 wide: all pairs within 1.5."""
+    return jnp.asarray(np.random.default_rng(1).uniform(-0.3, 0.3, (n, 3)),
+                       jnp.float32)
+
+
 @pytest.mark.parametrize("fmt", [partition.Dense, partition.OrderedSparse])
 def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
         monkeypatch, fmt):
@@ -747,20 +766,11 @@ def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
     # so every layout's rows are N wide. The cell list must refuse after its
     # count pass, before the pass that writes N x row entries (at n = 50 000
     # that pass was killed for host memory, or ran past 100 s on the GPU).
-    import dataclasses
-    from typing import ClassVar
-
     from jaxrt import backends
     n = 300
-    R = jnp.asarray(np.random.default_rng(1).uniform(-0.3, 0.3, (n, 3)),
-                    jnp.float32)
+    R = _cluster_within_the_cutoff(n)
     disp, _ = space.free()
-
-    def limited(limit):
-        @dataclasses.dataclass(frozen=True)
-        class Limited(backends.Cell):
-            max_list_entries: ClassVar[int] = limit
-        return Limited()
+    limited = _cell_limited_to
 
     widths = []
     candidates = backends.Cell._candidates
@@ -792,20 +802,12 @@ def test_portable_candidates_past_int32_are_refused_before_counting():
     # passed 2^31 words and XLA raised an OverflowError on a flat index.
     # Here 300 particles share one cell: each of the 9 rows' window is the
     # cell's 300 particles, 320 slots or 10 words, so 27 000 words in all.
-    import dataclasses
-    from typing import ClassVar
-
-    from jaxrt import backends
     n = 300
-    R = jnp.asarray(np.random.default_rng(1).uniform(-0.3, 0.3, (n, 3)),
-                    jnp.float32)
+    R = _cluster_within_the_cutoff(n)
     disp, _ = space.free()
 
     def limited(limit):
-        @dataclasses.dataclass(frozen=True)
-        class Limited(backends.Cell):
-            max_list_entries: ClassVar[int] = limit
-        return Limited(kernel="xla")
+        return _cell_limited_to(limit, kernel="xla")
 
     with pytest.raises(ValueError, match=r"portable search .* 27,000 32-slot "
                        r"words \(N = 300 x 9 stencil rows x 320 slots.*"
