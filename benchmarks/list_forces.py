@@ -24,7 +24,9 @@ Rows (``stage``):
   or its transpose slow?); ``forces <layout> edges``, edge layouts only:
   the per-edge gradients of both ends taken on the gathered positions,
   then two `segment_sum`s (padding dropped by range): reverse mode with
-  its scatter written out, to compare with ``reduce scatter``. At b88f2a3
+  its scatter written out, to compare with ``reduce scatter``, and
+  ``... edges barrier``, the per-edge gradients written to memory before
+  the scatters (no producer fused into them). At b88f2a3
   on the H200 the edge layouts' forces took 68 ms (10^6, k = 52) and
   1 025 ms (k = 700) while one scatter of all edges took 1.7 ms;
 * ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
@@ -70,10 +72,13 @@ def _segmented_sum(values, segment):
     return scanned, last
 
 
-def _edge_forces(pair, displacement, R, idx, ordered: bool):
+def _edge_forces(pair, displacement, R, idx, ordered: bool,
+                 barrier: bool = False):
     """dE/dR on an edge list (int32 ``(2, E)``, padding ``N``): the two
     ends' per-edge gradients, then one `segment_sum` per end. Sparse holds
-    both directions of each pair (each edge's energy counts half)."""
+    both directions of each pair (each edge's energy counts half). With
+    ``barrier`` the per-edge gradients are written to memory first (XLA
+    cannot fuse their computation into the scatters)."""
     import jax
     import jax.numpy as jnp
     from jax_md import space
@@ -87,6 +92,8 @@ def _edge_forces(pair, displacement, R, idx, ordered: bool):
         return jnp.sum(e) * (1.0 if ordered else 0.5)
 
     ga, gb = jax.grad(total, argnums=(0, 1))(R[i], R[j])
+    if barrier:
+        ga, gb = jax.lax.optimization_barrier((ga, gb))
     return (jax.ops.segment_sum(ga, i, n) + jax.ops.segment_sum(gb, j, n))
 
 
@@ -173,6 +180,10 @@ def main(argv=None) -> None:
             edge_fn = jax.jit(lambda R, nb=nbrs, o=layout == "OrderedSparse":
                               _edge_forces(pair, displacement, R, nb.idx, o))
             stage(f"forces {layout} edges", edge_fn, inputs, entries=edges)
+            stage(f"forces {layout} edges barrier",
+                  lambda R, nb=nbrs, o=layout == "OrderedSparse":
+                  _edge_forces(pair, displacement, R, nb.idx, o, True),
+                  inputs, entries=edges)
             if wanted(f"forces {layout} edges"):
                 a = np.asarray(edge_fn(inputs[0]))
                 b = np.asarray(jax.jit(jax.grad(energy))(inputs[0], nbrs))
