@@ -161,10 +161,10 @@ def _scene(scene: str, radii: str, n: int, seed: int):
 
 def _list_too_large(exc: BaseException) -> bool:
     """A list refused at allocate for its size (the paper's "–" cells):
-    more int32 entries than the backend indexes, or the cell list's
-    radius-class candidates past int32 indices or the device's memory."""
-    return isinstance(exc, ValueError) and (
-        "int32 entries" in str(exc) or "candidate pairs" in str(exc))
+    more int32 entries than the backend indexes, or the candidate buffers
+    that would build it past int32 indices or the device's memory."""
+    import jaxrt
+    return isinstance(exc, jaxrt.ListTooLargeError)
 
 
 def _step_fns(job: dict, position, radii):

@@ -13,7 +13,8 @@ Public API:
 """
 from jaxrt import backends
 from jaxrt.backends import available as available_backends
-from jaxrt.errors import ErrorCode, NeighborListError, check
+from jaxrt.errors import (ErrorCode, ListTooLargeError, NeighborListError,
+                          check)
 from jaxrt.ase_bridge import neighbor_list as ase_neighbor_list
 from jaxrt.ase_bridge import pairs_from_ase, pairs_to_ase
 from jaxrt.neighbors import Dense, OrderedSparse, Sparse, neighbor_list
@@ -23,8 +24,8 @@ from jaxrt.sim import Scene
 __version__ = "0.1.0"
 
 __all__ = [
-    "Dense", "ErrorCode", "NeighborListError", "OrderedSparse", "PairSizes",
-    "Pairs", "PairsError", "Scene", "Sparse", "ase_neighbor_list",
-    "available_backends", "backends", "check", "neighbor_list", "pairs",
+    "Dense", "ErrorCode", "ListTooLargeError", "NeighborListError",
+    "OrderedSparse", "PairSizes", "Pairs", "PairsError", "Scene", "Sparse",
+    "ase_neighbor_list", "available_backends", "backends", "check", "neighbor_list", "pairs",
     "pairs_from_ase", "pairs_sizes", "pairs_to_ase",
 ]

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 from jax_md.partition import NeighborListFormat
 
 from jaxrt import _space
+from jaxrt.errors import ListTooLargeError
 
 Array = jax.Array
 
@@ -245,10 +246,10 @@ def compile_size(size: int) -> int:
 
 
 def list_too_large(backend_name: str, entries: int, what: str, n: int,
-                   limit: int) -> ValueError:
+                   limit: int) -> ListTooLargeError:
     """The error for a list of ``entries`` int32 entries (``what``: which
     buffer) past ``limit``, the most a backend can index."""
-    return ValueError(
+    return ListTooLargeError(
         f"the neighbour list needs {entries:,} int32 entries ({what}, N = "
         f"{n:,}), more than backend={backend_name!r} can address "
         f"({limit:,}). Use fewer particles or a smaller r_cutoff + "

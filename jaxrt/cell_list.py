@@ -67,6 +67,7 @@ import numpy as np
 
 from jaxrt import _backend, _cell_kernel, radius_classes
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query
+from jaxrt.errors import ListTooLargeError
 
 # Cells are made this much wider than their minimum so that a particle
 # binned one cell off by rounding still has all its neighbours in the stencil.
@@ -702,7 +703,7 @@ def _check_candidate_words(backend_name: str, n: int, stencil_rows: int,
     """
     words = n * stencil_rows * (_slots(window) // 32)
     if words > limit:
-        raise ValueError(
+        raise ListTooLargeError(
             f"the cell list's portable search (off CUDA GPUs, or "
             f"Cell(kernel='xla')) would test {words * 32:,} candidate slots "
             f"in {words:,} 32-slot words (N = {n:,} x {stencil_rows} stencil "

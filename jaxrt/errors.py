@@ -74,6 +74,15 @@ class NeighborListError(RuntimeError):
     """Raised by `check` for a list whose error bits are set."""
 
 
+class ListTooLargeError(ValueError):
+    """Raised by ``allocate`` for a list (or the candidate buffers that
+    build it) past what the backend can index or the device can hold,
+    before anything that large is built. The message names the sizes and
+    the ways out; energies need no list
+    (`jaxrt.energy.lennard_jones_fused`), so a caller may catch this and
+    switch to it."""
+
+
 def check(neighbors: NeighborList) -> None:
     """Raise `NeighborListError` if ``neighbors`` carries any error bit.
 

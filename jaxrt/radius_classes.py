@@ -45,6 +45,7 @@ import numpy as np
 from jaxrt import _backend
 from jaxrt import cell_list as _cells
 from jaxrt._backend import Capacity, Geometry, MetricSq, Query
+from jaxrt.errors import ListTooLargeError
 
 # More classes than this would only split the tiny radii further (each
 # class costs a sort and a stencil pass over N particles).
@@ -308,7 +309,7 @@ def _check_candidates(n: int, windows: tuple[int, ...], query: Query,
            if total > MAX_CANDIDATES else
            f"at least {needed / 2 ** 30:,.1f} GiB, more than the device's "
            f"{memory / 2 ** 30:,.1f} GiB")
-    raise ValueError(
+    raise ListTooLargeError(
         f"radii=: the cell list's radius classes would test {total:,} "
         f"candidate pairs (N = {n:,} x {per_particle:,}: the fullest cells "
         f"of the classes hold {list(windows)} particles), {why}. The radii "

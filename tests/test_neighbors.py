@@ -718,10 +718,6 @@ def test_lists_beyond_what_the_backend_can_index_are_refused():
     # A Warp kernel computes byte offsets in 32-bit ints, so its outputs
     # must stay below 2**29 int32 entries: a larger list must be refused at
     # allocate with the fix, never written through a wrapped offset.
-    import dataclasses
-    from typing import ClassVar
-
-    from jaxrt import backends
     R = jnp.asarray(np.random.default_rng(0).uniform(0, 6, (200, 3)),
                     jnp.float32)
     disp, _ = space.periodic(6.0)
@@ -729,12 +725,11 @@ def test_lists_beyond_what_the_backend_can_index_are_refused():
     entries = int(np.prod(small.idx.shape))
 
     def limited(limit):
-        @dataclasses.dataclass(frozen=True)
-        class Limited(backends.Cell):
-            max_list_entries: ClassVar[int] = limit
-        return jaxrt.neighbor_list(disp, 6.0, 1.5, backend=Limited())
+        return jaxrt.neighbor_list(disp, 6.0, 1.5,
+                                   backend=_cell_limited_to(limit))
 
-    with pytest.raises(ValueError, match="more than backend='cell' can "
+    with pytest.raises(jaxrt.ListTooLargeError,
+                       match="more than backend='cell' can "
                        "address.*fewer particles"):
         limited(entries - 1).allocate(R)
     assert limited(entries).allocate(R).idx.shape == small.idx.shape
@@ -780,7 +775,7 @@ def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
         return candidates(self, *args, **options)
 
     monkeypatch.setattr(backends.Cell, "_candidates", spy)
-    with pytest.raises(ValueError, match=r"needs 89,700 int32 entries \(rows "
+    with pytest.raises(jaxrt.ListTooLargeError, match=r"needs 89,700 int32 entries \(rows "
                        r"before conversion.*lennard_jones_fused"):
         jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * (n - 1) - 1),
                             format=fmt).allocate(R)
@@ -809,14 +804,14 @@ def test_portable_candidates_past_int32_are_refused_before_counting():
     def limited(limit):
         return _cell_limited_to(limit, kernel="xla")
 
-    with pytest.raises(ValueError, match=r"portable search .* 27,000 32-slot "
+    with pytest.raises(jaxrt.ListTooLargeError, match=r"portable search .* 27,000 32-slot "
                        r"words \(N = 300 x 9 stencil rows x 320 slots.*"
                        r"GPU kernel.*lennard_jones_fused"):
         jaxrt.neighbor_list(disp, None, 1.5,
                             backend=limited(26_999)).allocate(R)
     # At exactly the limit the candidates pass; the rows (300 x 299
     # entries) are the next refusal, and room for them builds the list.
-    with pytest.raises(ValueError, match=r"needs 89,700 int32 entries"):
+    with pytest.raises(jaxrt.ListTooLargeError, match=r"needs 89,700 int32 entries"):
         jaxrt.neighbor_list(disp, None, 1.5,
                             backend=limited(27_000)).allocate(R)
     nbrs = jaxrt.neighbor_list(disp, None, 1.5,

@@ -292,11 +292,13 @@ def test_candidates_past_memory_or_int32_are_refused_at_allocate(monkeypatch):
     nbrs = fn.allocate(position)
     check(nbrs, radii, 10.0, False, partition.Sparse)
     monkeypatch.setattr(radius_classes, "_memory_bytes", lambda _: 1024)
-    with pytest.raises(ValueError, match=r"radii=.*GiB.*lennard_jones_fused"):
+    with pytest.raises(jaxrt.ListTooLargeError,
+                       match=r"radii=.*GiB.*lennard_jones_fused"):
         fn.allocate(position)
     monkeypatch.setattr(radius_classes, "_memory_bytes", lambda _: None)
     monkeypatch.setattr(radius_classes, "MAX_CANDIDATES", n * 27)
-    with pytest.raises(ValueError, match=r"radii=.*int32 indices"):
+    with pytest.raises(jaxrt.ListTooLargeError,
+                       match=r"radii=.*int32 indices"):
         fn.allocate(position)
     monkeypatch.setattr(radius_classes, "MAX_CANDIDATES", 2 ** 31 - 1)
     assert fn.allocate(position).idx.shape == nbrs.idx.shape
