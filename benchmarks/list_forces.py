@@ -53,6 +53,10 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _harness  # noqa: E402
 
 LAYOUTS = ("Dense", "Sparse", "OrderedSparse")
+# LLVM's NVPTX backend lowers an f32 atomic add to a compare-and-swap loop
+# unless the function flushes denormals (global atom.add.f32 flushes them);
+# this hidden option makes it emit the native instruction anyway.
+FTZ_ATOMICS = "-nvptx-allow-ftz-atomics"
 
 
 def _segmented_sum(values, segment):
@@ -109,8 +113,20 @@ def main(argv=None) -> None:
     parser.add_argument("--stages", nargs="+", default=None,
                         help="only the stages whose name starts with one "
                         "of these words (update, convert, forces, reduce)")
+    parser.add_argument("--xla-ftz-atomics", action="store_true",
+                        help="let XLA:GPU's LLVM emit native float atomic "
+                        "adds (--xla_backend_extra_options="
+                        f"{FTZ_ATOMICS}): from jaxlib 0.10.2 it emits a "
+                        "compare-and-swap loop for f32 scatter-adds, slow "
+                        "under contention (jax-ml/jax#38806). CUDA only: "
+                        "an XLA without the NVPTX backend (CPU-only "
+                        "jaxlib) exits on the unknown option")
     parser.add_argument("--out", default=None, help="CSV path or folder")
     args = parser.parse_args(argv)
+    if args.xla_ftz_atomics:  # before jax reads XLA_FLAGS
+        flags = os.environ.get("XLA_FLAGS", "")
+        os.environ["XLA_FLAGS"] = (
+            f"{flags} --xla_backend_extra_options={FTZ_ATOMICS}".strip())
 
     import jax
     import jax.numpy as jnp
@@ -140,7 +156,9 @@ def main(argv=None) -> None:
                              sigma=cutoff / 2.5, epsilon=1.0,
                              r_onset=0.8 * cutoff, r_cutoff=cutoff)
     device = _harness.device_provenance()
-    path = _harness.out_path(args.out, f"list_forces_{n}_k{int(args.k)}.csv",
+    tag = "_ftz_atomics" if args.xla_ftz_atomics else ""
+    path = _harness.out_path(args.out,
+                             f"list_forces_{n}_k{int(args.k)}{tag}.csv",
                              device.get("device_slug", "unknown"))
     rows = []
 
@@ -154,7 +172,9 @@ def main(argv=None) -> None:
         t = _harness.time_calls(jax.jit(fn), xs, repeats=args.repeats,
                                 warmup=args.warmup)
         rows.append({"stage": name, "N": n, "k": args.k,
-                     "cutoff": round(cutoff, 5), **extra, **t.columns(),
+                     "cutoff": round(cutoff, 5),
+                     "ftz_atomics": args.xla_ftz_atomics, **extra,
+                     **t.columns(),
                      "dtype": "float32", **device,
                      **_harness.host_provenance(),
                      "git_sha": _harness.git_sha()})
