@@ -213,3 +213,24 @@ def test_ctypes_nvml_calls(monkeypatch):
     # In a meter: no counter, so the trace's integral at 300 W.
     gpu = _region(nvml=nv, gpu_index=0).gpu
     assert gpu.source == "nvml-power-integral:0" and gpu.peak_watts == 300.0
+
+
+@pytest.mark.filterwarnings("ignore:Explicitly requested dtype float64")
+def test_table2_row_refused_at_allocate_is_reported_not_raised(monkeypatch):
+    # The paper's "-" cells: a list past what the backend indexes is a row
+    # with status "oom" and jaxrt's reason (any of jaxrt.ListTooLargeError's
+    # refusals), not an error. Here CPU-CELL's cell list may index 1 000
+    # entries, far fewer than its buffers need for 300 particles.
+    import table2
+    from jaxrt import cell_list
+    monkeypatch.setattr(cell_list.Cell, "max_list_entries", 1000,
+                        raising=False)
+    job = {"method": "CPU-CELL", "scene": "lattice", "radii": "r=160",
+           "boundary": "wall", "N": 300, "seed": 0, "policy": "gradient",
+           "snapshots": 1, "jitter": 0.01, "repeats": 1, "warmup": 1,
+           "target_s": None, "max_repeats": None,
+           "dynamics": table2.DYNAMICS}
+    row = table2.run_row(job)
+    assert row["status"] == "oom", row
+    assert row["failed"].startswith("ListTooLargeError: ")
+    assert "more than backend='cell'" in row["failed"]
