@@ -26,6 +26,6 @@ __version__ = "0.1.0"
 __all__ = [
     "Dense", "ErrorCode", "ListTooLargeError", "NeighborListError",
     "OrderedSparse", "PairSizes", "Pairs", "PairsError", "Scene", "Sparse",
-    "ase_neighbor_list", "available_backends", "backends", "check", "neighbor_list", "pairs",
-    "pairs_from_ase", "pairs_sizes", "pairs_to_ase",
+    "ase_neighbor_list", "available_backends", "backends", "check",
+    "neighbor_list", "pairs", "pairs_from_ase", "pairs_sizes", "pairs_to_ase",
 ]
