@@ -707,9 +707,9 @@ def _check_candidate_words(backend_name: str, n: int, stencil_rows: int,
             f"the cell list's portable search (off CUDA GPUs, or "
             f"Cell(kernel='xla')) would test {words * 32:,} candidate slots "
             f"in {words:,} 32-slot words (N = {n:,} x {stencil_rows} stencil "
-            f"rows x {_slots(window):,} slots: the longest row holds {window:,}"
-            f" particles), more than backend={backend_name!r} indexes "
-            f"({limit:,} words). Use the GPU kernel (backend='cell' on a CUDA"
+            f"rows x {_slots(window):,} slots: the longest row holds "
+            f"{window:,} particles), more than backend={backend_name!r} "
+            f"indexes ({limit:,} words). Use the GPU kernel (backend='cell' on a CUDA"
             " device), fewer particles or a smaller r_cutoff + dr_threshold. "
             "Energies need no list: "
             "jaxrt.energy.lennard_jones_fused(..., backend='cell').")
