@@ -197,15 +197,16 @@ def main(argv=None) -> None:
         stage(f"energy {layout}", lambda R, nb=nbrs: energy(R, nb), inputs,
               entries=edges)
         if layout != "Dense":
-            edge_fn = jax.jit(lambda R, nb=nbrs, o=layout == "OrderedSparse":
-                              _edge_forces(pair, displacement, R, nb.idx, o))
+            def edge_fn(R, barrier=False, nb=nbrs,
+                        ordered=layout == "OrderedSparse"):
+                return _edge_forces(pair, displacement, R, nb.idx, ordered,
+                                    barrier)
             stage(f"forces {layout} edges", edge_fn, inputs, entries=edges)
             stage(f"forces {layout} edges barrier",
-                  lambda R, nb=nbrs, o=layout == "OrderedSparse":
-                  _edge_forces(pair, displacement, R, nb.idx, o, True),
-                  inputs, entries=edges)
+                  functools.partial(edge_fn, barrier=True), inputs,
+                  entries=edges)
             if wanted(f"forces {layout} edges"):
-                a = np.asarray(edge_fn(inputs[0]))
+                a = np.asarray(jax.jit(edge_fn)(inputs[0]))
                 b = np.asarray(jax.jit(jax.grad(energy))(inputs[0], nbrs))
                 print(f"edges vs grad ({layout}): max |diff| "
                       f"{np.abs(a - b).max():.3g} (max |F| {np.abs(b).max():.3g})")
