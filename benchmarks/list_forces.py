@@ -14,7 +14,10 @@ Rows (``stage``):
 
 * ``update <layout>``: `neighbor_list(...).update` of a list of that layout;
 * ``convert Sparse`` / ``convert OrderedSparse``: `_backend.dense_to_sparse`
-  alone, on the Dense rows the update builds first;
+  alone, on the Dense rows the update builds first; ``... scan all``: the
+  same as it was until 631d12d (one scan over all N x M entries), and
+  ``convert OrderedSparse rank by matmul``: the ranks along the rows from a
+  matrix product (the variants' edges are checked equal);
 * ``forces <layout>``: ``jax.grad`` of the energy on that list (Dense:
   each row summed in place, no scatter; Sparse layouts: reverse mode
   through jax-md's pair map, a scatter-add over every edge);
@@ -57,6 +60,46 @@ LAYOUTS = ("Dense", "Sparse", "OrderedSparse")
 # unless the function flushes denormals (global atom.add.f32 flushes them);
 # this hidden option makes it emit the native instruction anyway.
 FTZ_ATOMICS = "-nvptx-allow-ftz-atomics"
+
+
+def _scan_all_entries(dense, capacity: int, ordered: bool):
+    """Dense rows to edges as `_backend.dense_to_sparse` did until 631d12d:
+    each entry's slot from one scan over all N x M entries (the
+    comparison row ``convert <layout> scan all``)."""
+    import jax.numpy as jnp
+    n = dense.shape[0]
+    senders = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None],
+                               dense.shape).reshape(-1)
+    receivers = dense.reshape(-1)
+    keep = receivers < n
+    if ordered:
+        keep = keep & (receivers < senders)
+    slot = jnp.where(keep, jnp.cumsum(keep, dtype=jnp.int32) - 1, capacity)
+    out = jnp.full((2, capacity), n, jnp.int32)
+    out = out.at[0, slot].set(receivers, mode="drop")
+    return out.at[1, slot].set(senders, mode="drop"), jnp.sum(keep)
+
+
+def _rank_by_matmul(dense, capacity: int):
+    """OrderedSparse edges with each kept entry's rank in its row from a
+    matrix product with a triangle of ones (exact: 0/1 products, float32
+    sums below 2^24) instead of a cumsum along the rows (the comparison row
+    ``convert OrderedSparse rank by matmul``)."""
+    import jax.numpy as jnp
+    n, width = dense.shape
+    senders = jnp.arange(n, dtype=jnp.int32)[:, None]
+    keep = (dense < n) & (dense < senders)
+    upper = jnp.triu(jnp.ones((width, width), jnp.bfloat16))
+    rank = jnp.dot(keep.astype(jnp.bfloat16), upper,
+                   preferred_element_type=jnp.float32).astype(jnp.int32) - 1
+    counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
+    slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
+    out = jnp.full((2, capacity), n, jnp.int32)
+    out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
+    out = out.at[1, slot].set(jnp.broadcast_to(senders, dense.shape).reshape(-1),
+                              mode="drop")
+    return out, jnp.sum(counts)
 
 
 def _segmented_sum(values, segment):
@@ -225,6 +268,20 @@ def main(argv=None) -> None:
         stage(f"convert {layout}",
               lambda d, c=cap, o=ordered: _backend.dense_to_sparse(d, c, o),
               [dense, dense], capacity=cap)
+        stage(f"convert {layout} scan all",
+              lambda d, c=cap, o=ordered: _scan_all_entries(d, c, o),
+              [dense, dense], capacity=cap)
+        variants = [_scan_all_entries(dense, cap, ordered)]
+        if ordered:
+            stage("convert OrderedSparse rank by matmul",
+                  lambda d, c=cap: _rank_by_matmul(d, c), [dense, dense],
+                  capacity=cap)
+            variants.append(_rank_by_matmul(dense, cap))
+        if wanted("convert"):
+            ours = _backend.dense_to_sparse(dense, cap, ordered)
+            same = all(np.array_equal(np.asarray(ours[0]), np.asarray(v[0]))
+                       and int(ours[1]) == int(v[1]) for v in variants)
+            print(f"convert {layout}: the variants' edges equal: {same}")
 
     # The reductions alone, on per-edge vectors of the OrderedSparse list
     # (receivers j = idx[0], senders i = idx[1], the senders ascending as

@@ -298,26 +298,34 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool
     """Convert a left-packed Dense list to jax-md's Sparse layout.
 
     Args:
-      dense: int32 ``(N, M)`` padded with ``N``.
+      dense: int32 ``(N, M)`` padded with ``N``, each row's entries first.
       capacity: number of edge slots in the output.
       ordered: keep only edges with ``j < i`` (OrderedSparse).
     Returns:
-      int32 ``(2, capacity)`` = (receivers j, senders i), valid edges first,
-      padded with ``N``; and the exact int32 number of edges.
+      int32 ``(2, capacity)`` = (receivers j, senders i), valid edges first
+      in row order, padded with ``N``; and the exact int32 number of edges.
     """
-    n = dense.shape[0]
-    senders = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None],
-                               dense.shape).reshape(-1)
-    receivers = dense.reshape(-1)
-    keep = receivers < n
+    n, width = dense.shape
+    senders = jnp.arange(n, dtype=jnp.int32)[:, None]
+    keep = dense < n
     if ordered:
-        keep = keep & (receivers < senders)
-    slot = jnp.cumsum(keep, dtype=jnp.int32) - 1
-    slot = jnp.where(keep, slot, capacity)
+        keep = keep & (dense < senders)
+        # The kept entries are spread along each row: rank them in it.
+        rank = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
+    else:
+        # Left-packed: entry c of a row is its c-th edge.
+        rank = jnp.arange(width, dtype=jnp.int32)[None, :]
+    # Each row's first slot from N row counts, not a scan over all N x M
+    # entries (the conversion's cost at 10^6: benchmarks/RESULTS.md).
+    counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
+    slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
+    slot = jax.lax.optimization_barrier(slot)
     out = jnp.full((2, capacity), n, jnp.int32)
-    out = out.at[0, slot].set(receivers, mode="drop")
-    out = out.at[1, slot].set(senders, mode="drop")
-    return out, jnp.sum(keep, dtype=jnp.int32)
+    out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
+    out = out.at[1, slot].set(
+        jnp.broadcast_to(senders, dense.shape).reshape(-1), mode="drop")
+    return out, jnp.sum(counts, dtype=jnp.int32)
 
 
 def format_dense_rows(dense: Array, counts: Array, query: Query,

@@ -57,6 +57,7 @@ from jax_md import partition, smap, space
 from jax.ops import segment_sum
 
 from jaxrt.energy._checks import concrete
+from jaxrt.energy._edges import materialized_metric
 from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
 from jaxrt.energy._rows import dense_pair_energy
@@ -445,8 +446,11 @@ def lennard_jones_pair_neighbor_list(
             reduce_axis = (1,)
         # ignore_unused_parameters: metric_kwargs (e.g. box=) reach the
         # displacement only, never the pair function.
+        # Edge layouts: the gathered ends written out first (_edges).
+        edge_metric = (materialized_metric(metric)
+                       if partition.is_sparse(neighbor.format) else metric)
         mapped = smap.pair_neighbor_list(
-            pair, metric, species=species, reduce_axis=reduce_axis,
+            pair, edge_metric, species=species, reduce_axis=reduce_axis,
             ignore_unused_parameters=True, sigma=p["sigma"],
             epsilon=p["epsilon"], **pair_params)
         out = mapped(R, neighbor, **metric_kwargs)

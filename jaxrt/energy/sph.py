@@ -38,10 +38,10 @@ from typing import Callable, ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.ops import segment_sum
 from jax_md import partition
 
 from jaxrt.energy._checks import check_positive, concrete
+from jaxrt.energy._edges import edge_sum, materialized
 from jaxrt.energy._keywords import reject_unknown
 
 Array = jax.Array
@@ -334,9 +334,9 @@ def _sum_pairs(to_centre: Array, to_other: Array, pairs: _Pairs,
     if not partition.is_sparse(neighbor.format):
         return jnp.sum(to_centre, axis=1)
     # Padding pairs carry index n: outside the segment range, hence dropped.
-    out = segment_sum(to_centre, pairs.centre, n)
+    out = edge_sum(to_centre, pairs.centre, n)
     if neighbor.format is partition.OrderedSparse:
-        out = out + segment_sum(jnp.where(valid, to_other, 0), pairs.other, n)
+        out = out + edge_sum(jnp.where(valid, to_other, 0), pairs.other, n)
     return out
 
 
@@ -376,9 +376,11 @@ def _column(x):
 
 def _displacement_vectors(displacement: Callable, R: Array,
                           pairs: _Pairs) -> Array:
-    return jax.vmap(displacement)(
-        R[pairs.centre.reshape(-1)], R[pairs.other.reshape(-1)]
-    ).reshape(pairs.centre.shape + (R.shape[-1],))
+    ends = R[pairs.centre.reshape(-1)], R[pairs.other.reshape(-1)]
+    if pairs.centre.ndim == 1:  # an edge layout (_edges)
+        ends = materialized(ends)
+    return jax.vmap(displacement)(*ends).reshape(
+        pairs.centre.shape + (R.shape[-1],))
 
 
 def _check_displacement(displacement: Callable, dim: int) -> None:

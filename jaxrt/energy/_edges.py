@@ -1,0 +1,48 @@
+"""Per-edge arrays of jax-md's edge layouts (Sparse, OrderedSparse) kept
+out of XLA's scatter fusions.
+
+A sum over edges ends in a scatter-add onto particles: `segment_sum` in the
+forward pass, and the transpose of every gather ``R[idx]`` in reverse mode.
+XLA fuses the computation of the values being scattered (the gathers and the
+pair arithmetic) into that scatter, and on the H200 (jax/jaxlib 0.11.2) the
+fused scatter ran about ten times slower than the same values written to
+memory and then scattered, for jax-md's own energies as for ours
+(`benchmarks/list_forces.py`, "What does a list's layout cost?" in
+benchmarks/RESULTS.md). An optimization barrier on the per-edge arrays makes
+XLA write them out; its transpose puts a barrier on their cotangents too, so
+reverse mode's scatters read plain arrays. The values are unchanged: the
+barrier is the identity.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+from jax.ops import segment_sum
+
+Array = jax.Array
+
+
+def materialized(tree):
+    """``tree`` unchanged, written to memory before its consumers (and, in
+    reverse mode, its cotangents before theirs)."""
+    return jax.lax.optimization_barrier(tree)
+
+
+def edge_sum(values: Array, segment_ids: Array, n: int) -> Array:
+    """`jax.ops.segment_sum` of per-edge ``values`` (float ``(E, ...)``) onto
+    ``n`` particles by int ``(E,)`` ``segment_ids``; ids ``>= n`` (padding)
+    are dropped. Returns float ``(n, ...)``."""
+    return segment_sum(materialized(values), segment_ids, n)
+
+
+def materialized_metric(metric: Callable) -> Callable:
+    """``metric(Ra, Rb, **kw)`` on materialized inputs: given to jax-md's
+    ``smap.pair_neighbor_list``, which vmaps it over the gathered ends of an
+    edge list, the barrier falls on the whole ``(E, dim)`` gathers."""
+
+    def metric_of_materialized(Ra, Rb, **kwargs):
+        Ra, Rb = materialized((Ra, Rb))
+        return metric(Ra, Rb, **kwargs)
+
+    return metric_of_materialized
