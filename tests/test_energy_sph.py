@@ -349,3 +349,17 @@ def test_under_jit_bad_values_poison_with_nan():
     assert np.isfinite(p[0]) and np.isnan(p[1])
     rho = jax.jit(lambda h: density(R, nbrs, h=h))(0.1)
     assert math.isfinite(float(rho[0]))
+
+
+@pytest.mark.parametrize("fmt", [partition.Sparse, partition.OrderedSparse])
+def test_edge_layout_sums_scatter_materialized_edges(fmt):
+    # The per-pair terms are written out before their scatter-adds
+    # (jaxrt.energy._edges: XLA:GPU's fused scatters ran ~10x slower);
+    # a Dense list has no scatter and no barrier.
+    texts = {}
+    for f in (fmt, partition.Dense):
+        nbrs = partition.neighbor_list(DISP1, SIDE1, float(KERNEL1.cutoff),
+                                       format=f).allocate(R1)
+        texts[f] = _sph1.lower(R1, V1, nbrs).as_text()
+    assert "optimization_barrier" not in texts[partition.Dense]
+    assert "scatter" in texts[fmt] and "optimization_barrier" in texts[fmt]
