@@ -15,9 +15,8 @@ Rows (``stage``):
 * ``update <layout>``: `neighbor_list(...).update` of a list of that layout;
 * ``convert Sparse`` / ``convert OrderedSparse``: `_backend.dense_to_sparse`
   alone, on the Dense rows the update builds first; ``... scan all``: the
-  same as it was until 631d12d (one scan over all N x M entries), and
-  ``convert OrderedSparse rank by matmul``: the ranks along the rows from a
-  matrix product (the variants' edges are checked equal);
+  same as it was until 631d12d (one scan over all N x M entries; the two
+  ways' edges are checked equal);
 * ``forces <layout>``: ``jax.grad`` of the energy on that list (Dense:
   each row summed in place, no scatter; Sparse layouts: reverse mode
   through jax-md's pair map, a scatter-add over every edge);
@@ -29,9 +28,9 @@ Rows (``stage``):
   then two `segment_sum`s (padding dropped by range): reverse mode with
   its scatter written out, to compare with ``reduce scatter``, and
   ``... edges barrier``, the per-edge gradients written to memory before
-  the scatters (no producer fused into them). At b88f2a3
-  on the H200 the edge layouts' forces took 68 ms (10^6, k = 52) and
-  1 025 ms (k = 700) while one scatter of all edges took 1.7 ms;
+  the scatters (no producer fused into them): the pair of rows that showed
+  XLA's fused scatters to be the edge layouts' cost (jaxrt.energy._edges;
+  benchmarks/RESULTS.md, "What does a list's layout cost?");
 * ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
   per-particle forces on the OrderedSparse list's edges, four ways: two
   scatter-adds as reverse mode does (``scatter``), the sender side with
@@ -78,28 +77,6 @@ def _scan_all_entries(dense, capacity: int, ordered: bool):
     out = jnp.full((2, capacity), n, jnp.int32)
     out = out.at[0, slot].set(receivers, mode="drop")
     return out.at[1, slot].set(senders, mode="drop"), jnp.sum(keep)
-
-
-def _rank_by_matmul(dense, capacity: int):
-    """OrderedSparse edges with each kept entry's rank in its row from a
-    matrix product with a triangle of ones (exact: 0/1 products, float32
-    sums below 2^24) instead of a cumsum along the rows (the comparison row
-    ``convert OrderedSparse rank by matmul``)."""
-    import jax.numpy as jnp
-    n, width = dense.shape
-    senders = jnp.arange(n, dtype=jnp.int32)[:, None]
-    keep = (dense < n) & (dense < senders)
-    upper = jnp.triu(jnp.ones((width, width), jnp.bfloat16))
-    rank = jnp.dot(keep.astype(jnp.bfloat16), upper,
-                   preferred_element_type=jnp.float32).astype(jnp.int32) - 1
-    counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
-    starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
-    slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
-    out = jnp.full((2, capacity), n, jnp.int32)
-    out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
-    out = out.at[1, slot].set(jnp.broadcast_to(senders, dense.shape).reshape(-1),
-                              mode="drop")
-    return out, jnp.sum(counts)
 
 
 def _segmented_sum(values, segment):
@@ -271,17 +248,12 @@ def main(argv=None) -> None:
         stage(f"convert {layout} scan all",
               lambda d, c=cap, o=ordered: _scan_all_entries(d, c, o),
               [dense, dense], capacity=cap)
-        variants = [_scan_all_entries(dense, cap, ordered)]
-        if ordered:
-            stage("convert OrderedSparse rank by matmul",
-                  lambda d, c=cap: _rank_by_matmul(d, c), [dense, dense],
-                  capacity=cap)
-            variants.append(_rank_by_matmul(dense, cap))
         if wanted("convert"):
             ours = _backend.dense_to_sparse(dense, cap, ordered)
-            same = all(np.array_equal(np.asarray(ours[0]), np.asarray(v[0]))
-                       and int(ours[1]) == int(v[1]) for v in variants)
-            print(f"convert {layout}: the variants' edges equal: {same}")
+            old = _scan_all_entries(dense, cap, ordered)
+            same = (np.array_equal(np.asarray(ours[0]), np.asarray(old[0]))
+                    and int(ours[1]) == int(old[1]))
+            print(f"convert {layout}: the two ways' edges equal: {same}")
 
     # The reductions alone, on per-edge vectors of the OrderedSparse list
     # (receivers j = idx[0], senders i = idx[1], the senders ascending as

@@ -34,15 +34,11 @@
 #             then Table 2 part 4's periodic disordered and cluster rows
 #             (ran at ce9013a)
 #   formats   where a list step's time goes per layout (list_forces.py:
-#             update, Dense-to-Sparse conversion, the energy alone, the
-#             forces by reverse mode and with the scatter written out, the
-#             edge reductions four ways) at #18's N = 10^6, k = 52, then the
-#             forces again with native f32 atomics (--xla-ftz-atomics:
-#             jaxlib 0.10.2+ lowers f32 scatter-adds to CAS loops,
-#             jax-ml/jax#38806) at 10^6 and at seed 003's r = 160 density
-#             (N = 50 000, k = 700): why the edge layouts' forces took
-#             68 / 1 025 ms at b88f2a3 while one scatter of their edges
-#             took 1.7 ms
+#             update, Dense-to-Sparse conversion both ways, the energy
+#             alone, the forces by reverse mode and with the scatter written
+#             out, the edge reductions four ways) at #18's N = 10^6, k = 52,
+#             then seed 003's r = 160 density (N = 50 000, k = 700), whose
+#             OrderedSparse rows did not fit in 4f8087d's call
 #   alloc     allocate's reuse of its compiled build (0ad79c5) on the GPU:
 #             the list kernel's tests and tests/test_neighbors.py, then
 #             benchmarks/neighbors.py at N = 10^6 with its reallocate_ms
@@ -178,19 +174,14 @@ case $PART in
       > "$DEST/logs/table2_4.log" 2>&1
     note "table2 part 4 periodic rc=$?" ;;
   formats)
-    # 250 + 150 + 150 s: the part stays inside one 10-minute call.
-    timeout 250 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
+    # 300 + 250 s: the part stays inside one 10-minute call.
+    timeout 300 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
       --out "$DEST/list_forces_1e6_k52_$GIT_SHA.csv" > "$DEST/logs/lf_1e6.log" 2>&1
     note "list_forces 1e6 rc=$?"
-    # The same forces with native f32 atomics (jax-ml/jax#38806).
-    timeout 150 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
-      --stages forces reduce --xla-ftz-atomics \
-      --out "$DEST/list_forces_1e6_k52_ftz_$GIT_SHA.csv" > "$DEST/logs/lf_1e6_ftz.log" 2>&1
-    note "list_forces 1e6 ftz-atomics rc=$?"
-    timeout 150 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
-      --stages forces --xla-ftz-atomics \
-      --out "$DEST/list_forces_5e4_k700_ftz_$GIT_SHA.csv" > "$DEST/logs/lf_5e4_ftz.log" 2>&1
-    note "list_forces 5e4 ftz-atomics rc=$?" ;;
+    timeout 250 "$PY" benchmarks/list_forces.py --n 50000 --k 700 --repeats 5 \
+      --stages update forces convert \
+      --out "$DEST/list_forces_5e4_k700_$GIT_SHA.csv" > "$DEST/logs/lf_5e4.log" 2>&1
+    note "list_forces 5e4 rc=$?" ;;
   alloc)
     # ~480 s: the kernel's tests and allocate's (bucketed sizes run the
     # kernel at widths the list itself never has), then the rows.
