@@ -77,6 +77,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt.energy._edges import materialized
+
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
 _CELL_MARGIN = 2.0 ** -10
@@ -206,7 +208,10 @@ def _vectors(result: Pairs, positions, cell):
     valid = result.i < n
     ii = jnp.minimum(result.i, n - 1)
     jj = jnp.minimum(result.j, n - 1)
-    d = positions[jj] - positions[ii]
+    # The gathered ends written out, so that reverse mode's scatters do not
+    # fuse the gathers (jaxrt.energy._edges).
+    to, start = materialized((positions[jj], positions[ii]))
+    d = to - start
     if cell is not None:
         d = d + _shift_vectors(result.shift.astype(positions.dtype),
                                _as_cell_matrix(cell))

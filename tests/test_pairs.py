@@ -467,6 +467,19 @@ def test_forces_and_cell_gradient_match_finite_differences(x64):
         assert abs(fd - g_h[a, b]) < 1e-7 * max(1, abs(fd))
 
 
+def test_forces_scatter_materialized_pair_ends():
+    # Reverse mode of the vectors' gathers is a scatter-add; the gathered
+    # ends are written out first, so XLA:GPU cannot fuse the gathers into
+    # it (jaxrt.energy._edges).
+    atoms = triclinic(6, 5)
+    r = jnp.asarray(atoms.positions, jnp.float32)
+    h = jnp.asarray(np.asarray(atoms.cell), jnp.float32)
+    sizes = jaxrt.pairs_sizes(r, CUT, cell=h)
+    text = jax.jit(jax.grad(lambda r: energy_of(r, h, sizes))).lower(
+        r).as_text()
+    assert "scatter" in text and "optimization_barrier" in text
+
+
 def test_stress_from_the_strain_derivative_is_the_virial(x64):
     atoms = si2()
     atoms.rattle(0.05, seed=7)

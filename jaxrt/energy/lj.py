@@ -54,10 +54,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
-from jax.ops import segment_sum
 
 from jaxrt.energy._checks import concrete
-from jaxrt.energy._edges import materialized_metric
+from jaxrt.energy._edges import edge_sum, materialized_metric
 from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
 from jaxrt.energy._rows import dense_pair_energy
@@ -458,8 +457,8 @@ def lennard_jones_pair_neighbor_list(
             # Each unordered pair appears once: give half to each end. The
             # padding index n falls outside segment_sum's range and is
             # dropped (its energies are zero anyway).
-            out = (segment_sum(out, neighbor.idx[0], n)
-                   + segment_sum(out, neighbor.idx[1], n)) / 2
+            out = (edge_sum(out, neighbor.idx[0], n)
+                   + edge_sum(out, neighbor.idx[1], n)) / 2
         return out + poison.astype(out.dtype)
 
     return energy_fn
