@@ -29,7 +29,7 @@ Rows (``stage``):
   its scatter written out, to compare with ``reduce scatter``, and
   ``... edges barrier``, the per-edge gradients written to memory before
   the scatters (no producer fused into them): the pair of rows that showed
-  XLA's fused scatters to be the edge layouts' cost (jaxrt.energy._edges;
+  XLA's fused scatters to be the edge layouts' cost (jaxrt._edges;
   benchmarks/RESULTS.md, "What does a list's layout cost?");
 * ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
   per-particle forces on the OrderedSparse list's edges, four ways: two

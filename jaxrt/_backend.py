@@ -320,7 +320,7 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool
     counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
     starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
     slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
-    # Written out, not fused into the scatters (jaxrt.energy._edges).
+    # Written out, not fused into the scatters (jaxrt._edges).
     slot = jax.lax.optimization_barrier(slot)
     out = jnp.full((2, capacity), n, jnp.int32)
     out = out.at[0, slot].set(dense.reshape(-1), mode="drop")

@@ -77,7 +77,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.energy._edges import materialized
+from jaxrt._edges import materialized
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -209,7 +209,7 @@ def _vectors(result: Pairs, positions, cell):
     ii = jnp.minimum(result.i, n - 1)
     jj = jnp.minimum(result.j, n - 1)
     # The gathered ends written out, so that reverse mode's scatters do not
-    # fuse the gathers (jaxrt.energy._edges).
+    # fuse the gathers (jaxrt._edges).
     to, start = materialized((positions[jj], positions[ii]))
     d = to - start
     if cell is not None:

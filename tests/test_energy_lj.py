@@ -556,8 +556,8 @@ def test_row_gradient_compiles_no_scatter():
 @pytest.mark.parametrize("fmt", [partition.Sparse, partition.OrderedSparse])
 def test_edge_layout_gradients_scatter_materialized_edges(fmt):
     # On the H200 XLA fused the pair arithmetic and the gathers into the
-    # scatters of reverse mode, ~10x slower than scattering written-out
-    # edges (jaxrt.energy._edges); the barrier is what prevents it.
+    # scatters of reverse mode, far slower than scattering written-out
+    # edges (jaxrt._edges); the barrier is what prevents it.
     R, side, _ = fluid(n_side=4, dim=3)
     disp, _ = space.periodic(side)
     nbrs = partition.neighbor_list(disp, side, 2.5, format=fmt).allocate(R)

@@ -354,7 +354,7 @@ def test_under_jit_bad_values_poison_with_nan():
 @pytest.mark.parametrize("fmt", [partition.Sparse, partition.OrderedSparse])
 def test_edge_layout_sums_scatter_materialized_edges(fmt):
     # The per-pair terms are written out before their scatter-adds
-    # (jaxrt.energy._edges: XLA:GPU's fused scatters ran ~10x slower);
+    # (jaxrt._edges: XLA:GPU's fused scatters ran far slower);
     # a Dense list has no scatter and no barrier.
     texts = {}
     for f in (fmt, partition.Dense):

@@ -56,7 +56,7 @@ from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
 
 from jaxrt.energy._checks import concrete
-from jaxrt.energy._edges import edge_sum, materialized_metric
+from jaxrt._edges import edge_sum, materialized_metric
 from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
 from jaxrt.energy._rows import dense_pair_energy

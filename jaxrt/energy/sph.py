@@ -41,7 +41,7 @@ import numpy as np
 from jax_md import partition
 
 from jaxrt.energy._checks import check_positive, concrete
-from jaxrt.energy._edges import edge_sum, materialized
+from jaxrt._edges import edge_sum, materialized
 from jaxrt.energy._keywords import reject_unknown
 
 Array = jax.Array

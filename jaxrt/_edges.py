@@ -1,13 +1,13 @@
-"""Per-edge arrays of jax-md's edge layouts (Sparse, OrderedSparse) kept
-out of XLA's scatter fusions.
+"""Per-edge arrays (jax-md's Sparse and OrderedSparse layouts, `jaxrt.pairs`)
+kept out of XLA's scatter fusions.
 
 A sum over edges ends in a scatter-add onto particles: `segment_sum` in the
 forward pass, and the transpose of every gather ``R[idx]`` in reverse mode.
 XLA fuses the computation of the values being scattered (the gathers and the
 pair arithmetic) into that scatter, and on the H200 (jax/jaxlib 0.11.2) the
-fused scatter ran about ten times slower than the same values written to
-memory and then scattered, for jax-md's own energies as for ours
-(`benchmarks/list_forces.py`, "What does a list's layout cost?" in
+fused scatter ran an order of magnitude or more slower than the same values
+written to memory and then scattered, for jax-md's own energies as for ours
+(`benchmarks/list_forces.py`; "What does a list's layout cost?" in
 benchmarks/RESULTS.md). An optimization barrier on the per-edge arrays makes
 XLA write them out; its transpose puts a barrier on their cotangents too, so
 reverse mode's scatters read plain arrays. The values are unchanged: the
