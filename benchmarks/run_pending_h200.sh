@@ -29,10 +29,10 @@
 #   accuracy  the accuracy sweep's knobs last added to the H200 runs
 #             (pairs, spheres-epsilon, list-free), N = 16 384; all ran at
 #             e898c00, pairs owes a re-run that records missed_depth_ulps
-#   owed      what session 16 left unrun: the cell list's refusal before
-#             its rows (18cf8ac), the pairs knob with missed_depth_ulps,
-#             then Table 2 part 4's periodic disordered and cluster rows
-#             (ran at ce9013a)
+#   owed      what session 21 left unrun: the tests of the edges written
+#             out before their scatters (f5c665d: jaxrt.pairs, LJ, SPH),
+#             then the accuracy sweep's format and pairs knobs, whose H200
+#             rows predate it (the SPH rows: part sph)
 #   formats   where a list step's time goes per layout (list_forces.py:
 #             update, Dense-to-Sparse conversion both ways, the energy
 #             alone, the forces by reverse mode and with the scatter written
@@ -162,17 +162,12 @@ case $PART in
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
   owed)
-    tests refusal 120 tests/test_neighbors.py -k rows_past_the_limit
-    timeout 200 "$PY" -m jaxrt accuracy --quick --n 16384 --steps 2000 \
-      --budget 170 --knobs pairs \
-      --out "$DEST/accuracy_lj_pairs_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
-    note "accuracy pairs rc=$?"
-    LEFT=$(( 560 - (SECONDS - START) ))
-    OUT=$DEST SCENES="disordered cluster" BOUNDARIES=periodic \
-      BUDGET=$(( LEFT - 100 )) HARD_STOP=$(( LEFT - 20 )) ROW_TIMEOUT=100 \
-      timeout "$LEFT" bash benchmarks/run_table2_h200.sh 4 \
-      > "$DEST/logs/table2_4.log" 2>&1
-    note "table2 part 4 periodic rc=$?" ;;
+    tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
+      tests/test_energy_sph.py
+    timeout 380 "$PY" -m jaxrt accuracy --quick --n 16384 --steps 2000 \
+      --budget 340 --knobs format,pairs \
+      --out "$DEST/accuracy_lj_format_pairs_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
+    note "accuracy format,pairs rc=$?" ;;
   formats)
     # 300 + 250 s: the part stays inside one 10-minute call.
     timeout 300 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
