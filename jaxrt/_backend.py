@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jax_md.partition import NeighborListFormat
 
-from jaxrt import _space
+from jaxrt import _edge_kernel, _space
 from jaxrt.errors import ListTooLargeError
 
 Array = jax.Array
@@ -293,7 +293,11 @@ def pack_rows(idx: Array, keep: Array, capacity: int) -> tuple[Array, Array]:
     return out, jnp.sum(keep, axis=1, dtype=jnp.int32)
 
 
-def dense_to_sparse(dense: Array, capacity: int, ordered: bool
+_ENGINES = ("auto", "xla", "interpret")
+
+
+def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
+                    counts: Array | None = None, engine: str = "auto"
                     ) -> tuple[Array, Array]:
     """Convert a left-packed Dense list to jax-md's Sparse layout.
 
@@ -301,10 +305,20 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool
       dense: int32 ``(N, M)`` padded with ``N``, each row's entries first.
       capacity: number of edge slots in the output.
       ordered: keep only edges with ``j < i`` (OrderedSparse).
+      counts: None, or int32 ``(N,)`` the rows' entries (each at most
+        ``M``), known already; else counted from ``dense``.
+      engine: ``"auto"``: rows that are edges as they stand (``ordered``
+        false) are copied by one kernel on CUDA GPUs
+        (`jaxrt._edge_kernel`), by XLA's scatters elsewhere; ``"xla"``:
+        the scatters everywhere; ``"interpret"``: the kernel in Pallas'
+        interpreter (tests). All write the same array.
     Returns:
       int32 ``(2, capacity)`` = (receivers j, senders i), valid edges first
       in row order, padded with ``N``; and the exact int32 number of edges.
     """
+    if engine not in _ENGINES:
+        raise ValueError(f"dense_to_sparse: engine={engine!r}; choose one "
+                         f"of {_ENGINES}.")
     n, width = dense.shape
     senders = jnp.arange(n, dtype=jnp.int32)[:, None]
     keep = dense < n
@@ -312,32 +326,55 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool
         keep = keep & (dense < senders)
         # The kept entries are spread along each row: rank them in it.
         rank = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
+        counts = None
     else:
         # Left-packed: entry c of a row is its c-th edge.
         rank = jnp.arange(width, dtype=jnp.int32)[None, :]
     # Each row's first slot from N row counts, not a scan over all N x M
     # entries (the conversion's cost at 10^6: benchmarks/RESULTS.md).
-    counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    if counts is None:
+        counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    counts = counts.astype(jnp.int32)
     starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
-    slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
-    # Written out, not fused into the scatters (jaxrt._edges).
-    slot = jax.lax.optimization_barrier(slot)
-    out = jnp.full((2, capacity), n, jnp.int32)
-    out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
-    out = out.at[1, slot].set(
-        jnp.broadcast_to(senders, dense.shape).reshape(-1), mode="drop")
-    return out, jnp.sum(counts, dtype=jnp.int32)
+    total = jnp.sum(counts, dtype=jnp.int32)
+
+    def scatters():
+        slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
+        # Written out, not fused into the scatters (jaxrt._edges).
+        slot = jax.lax.optimization_barrier(slot)
+        out = jnp.full((2, capacity), n, jnp.int32)
+        out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
+        return out.at[1, slot].set(
+            jnp.broadcast_to(senders, dense.shape).reshape(-1), mode="drop")
+
+    def kernel(interpret=False):
+        return _edge_kernel.rows_to_edges(dense, counts, starts, capacity,
+                                          interpret=interpret)
+
+    if (ordered or engine == "xla" or capacity == 0
+            or not _edge_kernel.fits(n, width, capacity)):
+        return scatters(), total
+    if engine == "interpret":
+        return kernel(interpret=True), total
+    return jax.lax.platform_dependent(cuda=kernel, default=scatters), total
 
 
 def format_dense_rows(dense: Array, counts: Array, query: Query,
-                      capacity: Capacity) -> SearchResult:
+                      capacity: Capacity, *, lower_only: bool = False
+                      ) -> SearchResult:
     """Turn exact Dense rows (wide enough for ``capacity["row"]``) into the
     requested layout.
 
     Args:
       dense: int32 ``(N, capacity["row"])`` left-packed rows.
       counts: int32 ``(N,)`` exact row counts (may exceed the width).
+      lower_only: the rows hold only neighbours ``j < i`` (an OrderedSparse
+        search that wrote its edges as half rows): they are the edges, in
+        order, with no rank along the rows.
     """
+    if lower_only and query.format is not NeighborListFormat.OrderedSparse:
+        raise ValueError(f"format_dense_rows: lower_only=True holds "
+                         f"OrderedSparse's edges, not {query.format.name}'s.")
     row_overflow = jnp.any(counts > dense.shape[1])
     if query.format is NeighborListFormat.Dense:
         occupancy = jnp.max(counts, initial=0)
@@ -353,5 +390,8 @@ def format_dense_rows(dense: Array, counts: Array, query: Query,
     # With truncated rows the edge count is a lower bound, but then
     # ``row_overflow`` is already set and allocate re-measures exactly.
     ordered = query.format is NeighborListFormat.OrderedSparse
-    idx, edges = dense_to_sparse(dense, capacity.neighbors, ordered)
+    idx, edges = dense_to_sparse(
+        dense, capacity.neighbors, ordered and not lower_only,
+        counts=None if ordered and not lower_only else jnp.minimum(
+            counts, dense.shape[1]))
     return SearchResult(idx, edges, row_overflow | (edges > capacity.neighbors))

@@ -97,7 +97,8 @@ def _padding(n: int, block: int):
 
 def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
                    side, *, periodic: tuple[bool, ...], mask_self: bool,
-                   row_width: int, shell: int, interpret: bool = False):
+                   row_width: int, shell: int, lower_only: bool = False,
+                   interpret: bool = False):
     """Walk every particle's runs; append sure hits to its row, shell hits
     to its shell buffer.
 
@@ -111,6 +112,9 @@ def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
         pair is sure, and below which it is in the shell.
       side: float ``(dim,)`` box sides (used on periodic axes only).
       row_width, shell: static widths of the two outputs.
+      lower_only: keep only candidates whose caller's index is below the
+        particle's own (OrderedSparse's edges, written as half rows: half
+        the entries, and no rank along full rows to convert them).
       interpret: run in Pallas' interpreter (any backend; for tests).
     Returns:
       In the caller's order: int32 ``(N, row_width)`` rows, left-packed with
@@ -139,8 +143,9 @@ def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
     row_width = max(row_width, 1)
     shell = max(shell, 1)
     kernel = functools.partial(_walk, n=n, dim=dim, periodic=periodic,
-                               mask_self=mask_self, row_width=row_width,
-                               shell=shell, runs=n_runs, reach=grid.reach)
+                               mask_self=mask_self, lower_only=lower_only,
+                               row_width=row_width, shell=shell, runs=n_runs,
+                               reach=grid.reach)
     outputs = (
         jax.ShapeDtypeStruct((n * row_width,), jnp.int32),
         jax.ShapeDtypeStruct((n,), jnp.int32),
@@ -158,8 +163,8 @@ def candidate_rows(sorted_cart, order, grid: CellGrid, inner_sq, outer_sq,
             shell_rows.reshape(n, shell), shell_count)
 
 
-def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
-          runs, reach):
+def _walk(params_ref, *refs, n, dim, periodic, mask_self, lower_only,
+          row_width, shell, runs, reach):
     """One program: ``_BLOCK`` consecutive sorted particles, one per thread.
 
     Refs: float ``(8,)`` params (inner_sq, outer_sq, then ``dim`` box
@@ -210,9 +215,11 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, row_width, shell,
                 d2 = d2 + d * d
             if mask_self:
                 inside = inside & (j != me)
+            caller_j = plgpu.load(order_ref.at[j])
+            if lower_only:
+                inside = inside & (caller_j < dest)
             sure = inside & (d2 < inner_sq)
             maybe = inside & ~sure & (d2 < outer_sq)
-            caller_j = plgpu.load(order_ref.at[j])
             plgpu.store(rows_ref.at[dest * row_width
                                     + jnp.minimum(count, row_width - 1)],
                         caller_j, mask=sure & (count < row_width))

@@ -22,6 +22,10 @@ a candidate needs):
    per hundred particles), which join the sure bits; then each particle's
    set bits are left-packed into its row with gathers (`_select`).
 
+For OrderedSparse both passes keep only the candidates ``j < i`` (caller's
+indices): its edges come out as half rows, left-packed, which become edges
+with no rank along full rows (`_lower_only`).
+
 On CUDA, passes 3 and 4 are one kernel instead (`jaxrt._cell_kernel`,
 Pallas lowered to Triton, chosen where the program is lowered): each thread
 walks its particle's runs to their real ends with the same cheap test and
@@ -744,6 +748,15 @@ def _thresholds(cart, geometry: Geometry, query: Query, position):
     return inner_sq, outer_sq
 
 
+def _lower_only(query: Query) -> bool:
+    """Whether rows hold only the neighbours ``j < i`` (caller's indices):
+    OrderedSparse's edges. Half the entries of full rows, left-packed, so
+    that its edges are the rows' entries in order: full rows would need a
+    rank along each row and twice the memory (benchmarks/list_forces.py's
+    ``update`` rows)."""
+    return query.format.name == "OrderedSparse"
+
+
 def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
                      window: int, position, metric_sq: MetricSq):
     """The cheap distance test on every slot of every stencil row's window.
@@ -760,7 +773,8 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     Returns:
       uint32 ``(N, R · slots / 32)`` twice: the slots surely within the
       cutoff, and the slots within ``tol`` of it (the shell); bit ``s`` of
-      row ``r`` is the run's ``s``-th particle.
+      row ``r`` is the run's ``s``-th particle. Only slots ``j < i`` where
+      `_lower_only`.
     """
     n, dim = cart.shape
     slots = _slots(window)
@@ -776,8 +790,16 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
     slot = jnp.arange(slots, dtype=jnp.int32)[None, :]
     me = jnp.zeros((n,), jnp.int32).at[order].set(
         jnp.arange(n, dtype=jnp.int32))[:, None]  # each particle's sorted index
+    lower_only = _lower_only(query)
+    if lower_only:  # slot -> caller's index, laid out as ``table``
+        no_one = jnp.full((slots,), n, jnp.int32)
+        caller_table = jnp.concatenate([no_one, order, no_one])
+        caller = jnp.arange(n, dtype=jnp.int32)[:, None]
 
-    def windows(first):  # float (N, dim, slots): slot s -> sorted first + s
+    def windows(first, values=None):  # (N, [dim,] slots): s -> sorted first + s
+        if values is not None:
+            return jax.vmap(lambda f: jax.lax.dynamic_slice(
+                values, (f + slots,), (slots,)))(first)
         return jax.vmap(lambda f: jax.lax.dynamic_slice(
             table, (jnp.zeros_like(f), f + slots), (dim, slots)))(first)
 
@@ -798,6 +820,12 @@ def _candidate_words(cart, order, runs, geometry: Geometry, query: Query,
                     d = d - side[a] * jnp.round(d * inverse_side[a])
                 d2 = d2 + d * d
         inside = slot < size1 + size2
+        if lower_only:
+            theirs = windows(run[0], caller_table)
+            if query.periodic[0]:
+                theirs = jnp.where(slot < size1, theirs,
+                                   windows(run[2] - run[1], caller_table))
+            inside &= theirs < caller
         if query.mask_self:
             # The particle's own slot, a scalar per row (a per-slot index
             # made XLA GPU write a slot < size1 mask to memory).
@@ -874,8 +902,9 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
       shell_rows: static most particles with a shell pair.
       row_width: static width of the output rows (0: only count).
     Returns:
-      rows int32 ``(N, row_width)``, left-packed with neighbour indices,
-      padded with ``N``; counts int32 ``(N,)``, exact unless a buffer
+      rows int32 ``(N, row_width)``, left-packed with neighbour indices
+      (only ``j < i`` where `_lower_only`), padded with ``N``; counts
+      int32 ``(N,)``, exact unless a buffer
       overflowed; int32 ``(2,)`` the particles with a shell pair and the
       most shell pairs of one; and whether a run was longer than the window
       or a shell buffer too small (bool scalar).
@@ -949,7 +978,8 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     rows, count, shells, shell_count = _cell_kernel.candidate_rows(
         cart[order], order, grid, inner_sq, outer_sq, geometry.side,
         periodic=query.periodic, mask_self=query.mask_self,
-        row_width=row_width, shell=shell, interpret=interpret)
+        lower_only=_lower_only(query), row_width=row_width, shell=shell,
+        interpret=interpret)
     width = rows.shape[1]
 
     # The shell, decided by the caller's metric for the few particles that
@@ -1138,17 +1168,8 @@ class Cell:
         sizes = {"row": int(count.max(initial=0)), "window": window,
                  "shell": max(2 * fullest, _MIN_SHELL),
                  "shell_rows": _shell_rows(max(has, liquid), n)}
-        if query.format.name == "OrderedSparse":
-            width = min(_backend.compile_size(max(sizes["row"], 1)), n)
-            engine = self._engine(n, width, shell, query, platform)
-            rows, _, _, _ = self._candidates(
-                engine, position, geometry, metric_sq, window=words,
-                shell=shell, shell_rows=shell_rows, row_width=width,
-                query=query)
-            rows = np.asarray(rows)
-            sizes["edges"] = int(np.sum(rows < np.arange(len(rows))[:, None]))
-        else:
-            sizes["edges"] = int(count.sum())
+        # OrderedSparse's rows hold its edges alone (`_lower_only`).
+        sizes["edges"] = int(count.sum())
         # An explicit kernel that cannot hold the sized buffers fails here,
         # at allocate, not at the first traced update.
         self._engine(n, max(sizes["row"], 1), sizes["shell"], query, None)
@@ -1167,7 +1188,8 @@ class Cell:
         rows, count, _, overflow = self._candidates(
             engine, position, geometry, metric_sq, window=capacity["window"],
             **options)
-        result = _backend.format_dense_rows(rows, count, query, capacity)
+        result = _backend.format_dense_rows(
+            rows, count, query, capacity, lower_only=_lower_only(query))
         return result._replace(overflow=result.overflow | overflow)
 
 

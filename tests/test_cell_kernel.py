@@ -196,3 +196,104 @@ def test_kernel_list_update_inside_grad(kernel):
         assert np.all(np.isfinite(g))
         np.testing.assert_allclose(g, w, rtol=1e-6,
                                    atol=64 * eps * np.max(np.abs(w)))
+
+
+# --------------------------------------------------------------------------
+# OrderedSparse as half rows: both candidate passes keep only j < i, so the
+# rows hold its edges alone (no rank along full rows, no second measuring
+# pass at allocate).
+
+
+@pytest.mark.parametrize("backend", [INTERPRETED, PORTABLE],
+                         ids=["interpret", "xla"])
+@pytest.mark.parametrize("name", ["random", "lattice at cutoff", "faces",
+                                  "coincident", "box of 2.01 cutoffs",
+                                  "2d free"])
+def test_ordered_sparse_rows_hold_only_lower_neighbours(backend, name):
+    from jaxrt.backends import Geometry, MetricSq, Query
+    from jaxrt.neighbors import _metric_sq_fn
+
+    if backend is INTERPRETED:
+        from jaxrt import _cell_kernel
+        if not _cell_kernel.fits(1, 1, 1):
+            pytest.skip("SKIPPED KERNEL TEST: no Pallas Triton backend")
+    R, side, cutoff, periodic = SCENES[name]
+    nbrs = kernel_list(R, side, cutoff, periodic, partition.OrderedSparse,
+                       backend=backend)
+    want = brute_pairs(R, cutoff, side, periodic, True)
+    assert list_pairs(nbrs) == expected_pairs(partition.OrderedSparse, want)
+    # The rows' width is the most lower neighbours of one particle, exactly
+    # (full rows would need the most neighbours: larger wherever the
+    # particle with the most neighbours has one of higher index).
+    dim = R.shape[1]
+    disp = space.periodic(side)[0] if periodic else space.free()[0]
+    query = Query(cutoff, (periodic,) * dim, True, partition.OrderedSparse)
+    geometry = Geometry(jnp.full(dim, side, jnp.float32), jnp.ones(dim))
+    sizes = backend.measure(jnp.asarray(R), geometry, query,
+                            MetricSq(_metric_sq_fn(disp, dim)))
+    lower = np.zeros(len(R), int)
+    for i, j in want:
+        lower[i] += j < i
+    assert sizes["row"] == lower.max(initial=0)
+    assert sizes["edges"] == lower.sum()
+
+
+# --------------------------------------------------------------------------
+# Rows to edges (`jaxrt._edge_kernel`), run in Pallas' interpreter, against
+# XLA's scatters: the same array, slot for slot.
+
+
+def _rows(counts, width, seed=0):
+    counts = np.asarray(counts)
+    n = len(counts)
+    rng = np.random.default_rng(seed)
+    dense = np.full((n, width), n, np.int32)
+    for i, c in enumerate(counts):
+        dense[i, :c] = rng.integers(0, n, c)
+    return jnp.asarray(dense), jnp.asarray(counts, jnp.int32)
+
+
+EDGE_ROWS = {
+    # name: (counts, width); N and widths off the kernel's 32 x 32 tiles
+    "random": (np.random.default_rng(1).integers(0, 41, 75), 40),
+    "all empty": (np.zeros(33, int), 5),
+    "all full": (np.full(65, 70), 70),
+    "one row": ([3], 3),
+    "one full row among empty ones": ([0] * 40 + [64] + [0] * 30, 64),
+    "width one": (np.random.default_rng(2).integers(0, 2, 100), 1),
+}
+
+
+@pytest.mark.parametrize("name", EDGE_ROWS)
+@pytest.mark.parametrize("room", [0, 9, -7], ids=["exact", "more", "fewer"])
+def test_rows_to_edges_kernel_writes_what_the_scatters_write(name, room):
+    from jaxrt import _backend, _edge_kernel
+
+    counts, width = EDGE_ROWS[name]
+    dense, counts = _rows(counts, width)
+    total = int(counts.sum())
+    capacity = max(total + room, 1)
+    if not _edge_kernel.fits(len(counts), width, capacity):
+        pytest.skip("SKIPPED KERNEL TEST: no Pallas Triton backend")
+    want, want_total = _backend.dense_to_sparse(dense, capacity, False,
+                                                engine="xla")
+    got, got_total = _backend.dense_to_sparse(dense, capacity, False,
+                                              counts=counts,
+                                              engine="interpret")
+    assert int(got_total) == int(want_total) == total
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    # The scatters themselves, against the definition.
+    dense_np, counts_np = np.asarray(dense), np.asarray(counts)
+    edges = [(int(dense_np[i, c]), i) for i in range(len(counts_np))
+             for c in range(counts_np[i])][:capacity]
+    listed = np.asarray(want)[:, :len(edges)].T
+    assert [tuple(e) for e in listed.tolist()] == edges
+    assert np.all(np.asarray(want)[:, len(edges):] == len(counts_np))
+
+
+def test_rows_to_edges_refuses_unknown_engine():
+    from jaxrt import _backend
+
+    dense, _ = _rows([1, 0], 1)
+    with pytest.raises(ValueError, match="engine='gpu'.*choose one of"):
+        _backend.dense_to_sparse(dense, 2, False, engine="gpu")
