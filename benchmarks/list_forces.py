@@ -14,9 +14,14 @@ Rows (``stage``):
 
 * ``update <layout>``: `neighbor_list(...).update` of a list of that layout;
 * ``convert Sparse`` / ``convert OrderedSparse``: `_backend.dense_to_sparse`
-  alone, on the Dense rows the update builds first; ``... scan all``: the
+  alone, on the Dense rows the update builds first (on CUDA the
+  left-packed rows of Sparse are copied by `jaxrt._edge_kernel`);
+  ``... xla``: XLA's scatters everywhere; ``... scan all``: the
   same as it was until 631d12d (one scan over all N x M entries; the two
-  ways' edges are checked equal);
+  ways' edges are checked equal); ``convert OrderedSparse half rows
+  auto`` / ``xla``: the rows of the neighbours j < i alone, as the cell
+  list's OrderedSparse search now writes them (the kernel, and the
+  scatters);
 * ``forces <layout>``: ``jax.grad`` of the energy on that list (Dense:
   each row summed in place, no scatter; Sparse layouts: reverse mode
   through jax-md's pair map, a scatter-add over every edge);
@@ -245,9 +250,30 @@ def main(argv=None) -> None:
         stage(f"convert {layout}",
               lambda d, c=cap, o=ordered: _backend.dense_to_sparse(d, c, o),
               [dense, dense], capacity=cap)
+        stage(f"convert {layout} xla",
+              lambda d, c=cap, o=ordered: _backend.dense_to_sparse(
+                  d, c, o, engine="xla"), [dense, dense], capacity=cap)
         stage(f"convert {layout} scan all",
               lambda d, c=cap, o=ordered: _scan_all_entries(d, c, o),
               [dense, dense], capacity=cap)
+        if ordered and wanted("convert OrderedSparse half rows"):
+            # What the cell list's OrderedSparse search now converts: rows
+            # of the neighbours j < i alone, left-packed (cell_list's
+            # _lower_only), with their counts from the search.
+            half, half_counts = _backend.pack_rows(
+                dense, dense < jnp.arange(n)[:, None],
+                int(jnp.max(jnp.sum(dense < jnp.arange(n)[:, None], 1))))
+            for engine in ("auto", "xla"):
+                stage(f"convert OrderedSparse half rows {engine}",
+                      lambda d, c=cap, e=engine, k=half_counts:
+                      _backend.dense_to_sparse(d, c, False, counts=k,
+                                               engine=e),
+                      [half, half], capacity=cap)
+            same = np.array_equal(
+                np.asarray(_backend.dense_to_sparse(
+                    half, cap, False, counts=half_counts)[0]),
+                np.asarray(_backend.dense_to_sparse(dense, cap, True)[0]))
+            print(f"convert OrderedSparse: half rows' edges equal: {same}")
         if wanted("convert"):
             ours = _backend.dense_to_sparse(dense, cap, ordered)
             old = _scan_all_entries(dense, cap, ordered)
