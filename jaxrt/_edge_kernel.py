@@ -36,9 +36,13 @@ _WARPS = 4
 def fits(n: int, width: int, capacity: int) -> bool:
     """Whether this JAX has Pallas' Triton backend, and the kernel's int32
     flat offsets address the rows (``n x width``) and both halves of the
-    output (``2 x capacity`` slots, and one parking slot)."""
-    return (plgpu is not None and n > 0 and width > 0
-            and n * width < 2 ** 31 - 1 and 2 * capacity + 1 < 2 ** 31 - 1)
+    output (``2 x capacity`` slots, a parking slot, and the padding's
+    offsets, which run up to a program's worth of lanes per row block
+    past ``capacity``)."""
+    past = -(-n // _ROWS) * _ROWS * _COLUMNS + _ROWS * _COLUMNS
+    return (plgpu is not None and n > 0 and width > 0 and capacity > 0
+            and n * width < 2 ** 31 - 1
+            and 2 * capacity + past + 1 < 2 ** 31 - 1)
 
 
 def rows_to_edges(dense, counts, starts, capacity: int, *,
@@ -58,34 +62,41 @@ def rows_to_edges(dense, counts, starts, capacity: int, *,
       row each came from, slots past the last edge padded with ``N``.
     """
     n, width = dense.shape
-    padded = -(-n // _ROWS) * _ROWS
+    programs = -(-n // _ROWS)
+    lanes = _ROWS * _COLUMNS
+    # Each program also pads its share of the slots (those past the last
+    # edge): no fill of the whole output beforehand, which cost as much
+    # again as the edges' stores.
+    chunk = -(-capacity // (programs * lanes)) * lanes
     # A masked-off store is no write on a GPU, but Pallas' interpreter
     # writes the old value back, which may land after another lane's write
     # to the same slot: there masked lanes are parked on a spare slot.
     spare = 1 if interpret else 0
-    fill = jnp.full((2 * capacity + spare,), n, jnp.int32)
+    counts = counts.astype(jnp.int32)
+    total = jnp.sum(counts, dtype=jnp.int32).reshape(1)
     kernel = functools.partial(_copy_rows, n=n, width=width,
-                               capacity=capacity, park=spare > 0)
+                               capacity=capacity, chunk=chunk,
+                               park=spare > 0)
     edges = pl.pallas_call(
-        kernel, out_shape=jax.ShapeDtypeStruct(fill.shape, jnp.int32),
-        grid=(padded // _ROWS,), input_output_aliases={3: 0},
+        kernel, out_shape=jax.ShapeDtypeStruct((2 * capacity + spare,),
+                                               jnp.int32),
+        grid=(programs,),
         compiler_params=_COMPILER_PARAMS(num_warps=_WARPS),
         interpret=interpret, name="jaxrt_rows_to_edges",
-    )(dense.reshape(-1), counts.astype(jnp.int32),
-      starts.astype(jnp.int32), fill)
+    )(dense.reshape(-1), counts, starts.astype(jnp.int32), total)
     if spare:
         edges = edges[:2 * capacity]
     return edges.reshape(2, capacity)
 
 
-def _copy_rows(dense_ref, counts_ref, starts_ref, fill_ref, edges_ref, *,
-               n, width, capacity, park):
+def _copy_rows(dense_ref, counts_ref, starts_ref, total_ref, edges_ref, *,
+               n, width, capacity, chunk, park):
     """One program: rows ``_ROWS p ..``, lane ``l`` on row ``l // _COLUMNS``
-    and column ``l % _COLUMNS`` of each step. ``fill_ref`` is aliased to
-    ``edges_ref`` (its padding)."""
-    del fill_ref
+    and column ``l % _COLUMNS`` of each step; then slots ``chunk p ..``
+    past the last edge (``total_ref``), padded with ``n``."""
     lane = jnp.arange(_ROWS * _COLUMNS, dtype=jnp.int32)
-    row = pl.program_id(0) * _ROWS + lane // _COLUMNS
+    program = pl.program_id(0)
+    row = program * _ROWS + lane // _COLUMNS
     column = lane - (lane // _COLUMNS) * _COLUMNS
     live = row < n
     row = jnp.minimum(row, n - 1)
@@ -93,19 +104,34 @@ def _copy_rows(dense_ref, counts_ref, starts_ref, fill_ref, edges_ref, *,
     start = plgpu.load(starts_ref.at[row])
     steps = (jnp.max(count) + _COLUMNS - 1) // _COLUMNS
 
-    def step(t, carry):
+    def write(slot, receiver, sender, keep):
+        """Both halves of edge ``slot`` where ``keep``."""
+        other = capacity + slot
+        if park:
+            slot = jnp.where(keep, slot, 2 * capacity)
+            other = jnp.where(keep, other, 2 * capacity)
+        plgpu.store(edges_ref.at[slot], receiver, mask=keep)
+        plgpu.store(edges_ref.at[other], sender, mask=keep)
+
+    def copy(t, carry):
         col = t * _COLUMNS + column
         slot = start + col
         keep = (col < count) & (slot < capacity)
         entry = plgpu.load(dense_ref.at[row * width
                                         + jnp.minimum(col, width - 1)],
                            mask=keep, other=n)
-        sender = capacity + slot
-        if park:
-            slot = jnp.where(keep, slot, 2 * capacity)
-            sender = jnp.where(keep, sender, 2 * capacity)
-        plgpu.store(edges_ref.at[slot], entry, mask=keep)
-        plgpu.store(edges_ref.at[sender], row, mask=keep)
+        write(slot, entry, row, keep)
         return carry
 
-    jax.lax.fori_loop(0, steps, step, 0)
+    jax.lax.fori_loop(0, steps, copy, 0)
+
+    total = total_ref[0]
+    first = program * chunk
+    padding = jnp.full(lane.shape, n, jnp.int32)
+
+    def pad(t, carry):
+        slot = first + t * lane.shape[0] + lane
+        write(slot, padding, padding, (slot >= total) & (slot < capacity))
+        return carry
+
+    jax.lax.fori_loop(0, chunk // lane.shape[0], pad, 0)
