@@ -33,6 +33,9 @@
 #             out before their scatters (f5c665d: jaxrt.pairs, LJ, SPH),
 #             then the accuracy sweep's format and pairs knobs, whose H200
 #             rows predate it (the SPH rows: part sph)
+#   layouts   #18's layouts target: the edge kernel (jaxrt/_edge_kernel.py)
+#             and OrderedSparse's half rows compiled, the updates at
+#             N = 10^6 side by side, the LJ step on every layout
 #   formats   where a list step's time goes per layout (list_forces.py:
 #             update, Dense-to-Sparse conversion both ways, the energy
 #             alone, the forces by reverse mode and with the scatter written
@@ -73,7 +76,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|formats|alloc|seed-rest|seed-big|model|table2-6p}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|layouts|formats|alloc|seed-rest|seed-big|model|table2-6p}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -168,6 +171,22 @@ case $PART in
       --budget 340 --knobs format,pairs \
       --out "$DEST/accuracy_lj_format_pairs_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy format,pairs rc=$?" ;;
+  layouts)
+    # #18's Sparse / OrderedSparse within 1.2x of Dense: the edge kernel
+    # and OrderedSparse's half rows compiled (their tests, and every
+    # Sparse list of test_neighbors.py through them), the updates side by
+    # side, then the LJ step on each layout against jax-md's default.
+    tests layouts 110 tests/test_cell_kernel.py tests/test_neighbors.py \
+      -k "rows_to_edges or ordered or sparse or Sparse"
+    timeout 110 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
+      --stages update convert \
+      --out "$DEST/list_forces_1e6_k52_$GIT_SHA.csv" > "$DEST/logs/lf_1e6.log" 2>&1
+    note "list_forces 1e6 rc=$?"
+    timeout 170 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
+      --repeats 5 --timeout 60 --budget 160 --only jaxrt:cell/Dense \
+      jaxrt:cell/OrderedSparse jaxrt:cell/Sparse jax-md/OrderedSparse \
+      --out "$DEST/md_step_$GIT_SHA.csv" > "$DEST/logs/md_step.log" 2>&1
+    note "md_step rc=$?" ;;
   formats)
     # 300 + 250 s: the part stays inside one 10-minute call.
     timeout 300 "$PY" benchmarks/list_forces.py --n 1000000 --k 52 \
