@@ -94,15 +94,19 @@ def _copy_rows(dense_ref, counts_ref, starts_ref, total_ref, edges_ref, *,
     """One program: rows ``_ROWS p ..``, lane ``l`` on row ``l // _COLUMNS``
     and column ``l % _COLUMNS`` of each step; then slots ``chunk p ..``
     past the last edge (``total_ref``), padded with ``n``."""
+    # Divisions as `jax.lax.div` of non-negative ints: jnp's ``//`` fixes
+    # signs with a ``rem``, which reads as periodic wrapping to the checks
+    # that a wall box does none (tests/test_scene.py).
     lane = jnp.arange(_ROWS * _COLUMNS, dtype=jnp.int32)
     program = pl.program_id(0)
-    row = program * _ROWS + lane // _COLUMNS
-    column = lane - (lane // _COLUMNS) * _COLUMNS
+    lane_row = jax.lax.div(lane, jnp.int32(_COLUMNS))
+    row = program * _ROWS + lane_row
+    column = lane - lane_row * _COLUMNS
     live = row < n
     row = jnp.minimum(row, n - 1)
     count = jnp.where(live, plgpu.load(counts_ref.at[row]), 0)
     start = plgpu.load(starts_ref.at[row])
-    steps = (jnp.max(count) + _COLUMNS - 1) // _COLUMNS
+    steps = jax.lax.div(jnp.max(count) + _COLUMNS - 1, jnp.int32(_COLUMNS))
 
     def write(slot, receiver, sender, keep):
         """Both halves of edge ``slot`` where ``keep``."""

@@ -1031,7 +1031,7 @@ class Cell:
     ``"shell"`` (most pairs of one particle that the caller's metric
     decides), ``"shell_rows"`` (most particles with such pairs) and
     ``"row"`` (width of the rows built before conversion to a Sparse
-    layout).
+    layout; for OrderedSparse, rows of the neighbours ``j < i`` alone).
     """
 
     kernel: str = "auto"
