@@ -352,14 +352,24 @@ def test_under_jit_bad_values_poison_with_nan():
 
 
 @pytest.mark.parametrize("fmt", [partition.Sparse, partition.OrderedSparse])
-def test_edge_layout_sums_scatter_materialized_edges(fmt):
-    # The per-pair terms are written out before their scatter-adds
-    # (jaxrt._edges: XLA:GPU's fused scatters ran far slower);
-    # a Dense list has no scatter and no barrier.
-    texts = {}
+def test_edge_layout_sums_scatter_materialized_edges_in_reverse_only(fmt):
+    # An SPH step runs forward: its per-pair terms fuse into their
+    # scatter-adds as XLA likes (a forward barrier made the H200's
+    # OrderedSparse step slower). Differentiated (a fit of h or the EOS),
+    # the cotangents are written out before reverse mode's scatters
+    # (jaxrt._edges). A Dense list has no scatter and no barrier.
+    def loss(R, V, nbrs):
+        out = _ACCEL1(R, V, nbrs)
+        return jnp.sum(out.density) + jnp.sum(out.pressure ** 2)
+
+    forward, reverse = {}, {}
     for f in (fmt, partition.Dense):
         nbrs = partition.neighbor_list(DISP1, SIDE1, float(KERNEL1.cutoff),
                                        format=f).allocate(R1)
-        texts[f] = _sph1.lower(R1, V1, nbrs).as_text()
-    assert "optimization_barrier" not in texts[partition.Dense]
-    assert "scatter" in texts[fmt] and "optimization_barrier" in texts[fmt]
+        forward[f] = _sph1.lower(R1, V1, nbrs).as_text()
+        reverse[f] = jax.jit(jax.grad(loss)).lower(R1, V1, nbrs).as_text()
+    for texts in (forward, reverse):
+        assert "optimization_barrier" not in texts[partition.Dense]
+        assert "scatter" in texts[fmt]
+    assert "optimization_barrier" not in forward[fmt]
+    assert "optimization_barrier" in reverse[fmt]

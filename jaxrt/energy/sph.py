@@ -41,7 +41,7 @@ import numpy as np
 from jax_md import partition
 
 from jaxrt.energy._checks import check_positive, concrete
-from jaxrt._edges import edge_sum, materialized
+from jaxrt._edges import edge_sum, materialized_in_reverse
 from jaxrt.energy._keywords import reject_unknown
 
 Array = jax.Array
@@ -334,9 +334,11 @@ def _sum_pairs(to_centre: Array, to_other: Array, pairs: _Pairs,
     if not partition.is_sparse(neighbor.format):
         return jnp.sum(to_centre, axis=1)
     # Padding pairs carry index n: outside the segment range, hence dropped.
-    out = edge_sum(to_centre, pairs.centre, n)
+    # An SPH step runs forward alone: the barrier in reverse mode only.
+    out = edge_sum(to_centre, pairs.centre, n, forward_barrier=False)
     if neighbor.format is partition.OrderedSparse:
-        out = out + edge_sum(jnp.where(valid, to_other, 0), pairs.other, n)
+        out = out + edge_sum(jnp.where(valid, to_other, 0), pairs.other, n,
+                             forward_barrier=False)
     return out
 
 
@@ -378,7 +380,7 @@ def _displacement_vectors(displacement: Callable, R: Array,
                           pairs: _Pairs) -> Array:
     ends = R[pairs.centre.reshape(-1)], R[pairs.other.reshape(-1)]
     if pairs.centre.ndim == 1:  # an edge layout (_edges)
-        ends = materialized(ends)
+        ends = materialized_in_reverse(ends)
     return jax.vmap(displacement)(*ends).reshape(
         pairs.centre.shape + (R.shape[-1],))
 
