@@ -21,7 +21,9 @@
 #             Table 2 part 1 again (now with GPU-CELL-fused): does the fix
 #             of the Warp calls' fixed cost hold on the GPU?
 #   sph       list-free SPH (the cell kernel) against SPH on lists, side by
-#             side: 2D N = 10^6 and 3D N = 10^5 (#18's 2x target)
+#             side: 2D N = 10^6 and 3D N = 10^5 (#18's 2x target); owed
+#             since f6dc44e (SPH's barrier in reverse mode only: the
+#             OrderedSparse rows at 0d9699f had it forward too)
 #   radii     the radius classes (refusal at allocate, packed rows) on the
 #             GPU: tests/test_radii.py (slow included), the radius tests
 #             of the other files, then test_fused.py whole with a per-test
@@ -29,10 +31,11 @@
 #   accuracy  the accuracy sweep's knobs last added to the H200 runs
 #             (pairs, spheres-epsilon, list-free), N = 16 384; all ran at
 #             e898c00, pairs owes a re-run that records missed_depth_ulps
-#   owed      what session 21 left unrun: the tests of the edges written
-#             out before their scatters (f5c665d: jaxrt.pairs, LJ, SPH),
-#             then the accuracy sweep's format and pairs knobs, whose H200
-#             rows predate it (the SPH rows: part sph)
+#   owed      the tests of the edges written out before their scatters
+#             (jaxrt.pairs, LJ, SPH; LJ and SPH passed at b9da909, but
+#             tests/test_pairs.py skips itself where ASE is missing, as on
+#             the staged GPU machine), then the accuracy sweep's format and
+#             pairs knobs (ran at 0d9699f)
 #   layouts   #18's layouts target: the edge kernel (jaxrt/_edge_kernel.py)
 #             and OrderedSparse's half rows compiled, the updates at
 #             N = 10^6 side by side, the LJ step on every layout
