@@ -4,9 +4,9 @@ lowered to Triton).
 Row ``i``'s ``count_i`` entries become the edges in slots ``start_i ..
 start_i + count_i - 1``, where ``start`` is the rows' counts' exclusive
 prefix sum. XLA writes them with two scatters of all ``N x M`` entries (the
-invalid ones dropped), which at #18's N = 10^6, k = 52 took ten times what
-their bytes take at the H200's bandwidth ("What does a list's layout cost?"
-in benchmarks/RESULTS.md). Here a program takes ``_ROWS`` consecutive rows
+invalid ones dropped), far slower on the H200 than the bytes they move
+("What does a list's layout cost?" in benchmarks/RESULTS.md). Here a
+program takes ``_ROWS`` consecutive rows
 and copies them ``_COLUMNS`` columns at a time: each row's step is one
 contiguous load and two contiguous stores (the entries, and the row's index
 as their senders), and nothing past a row's count is read or written but
@@ -65,8 +65,8 @@ def rows_to_edges(dense, counts, starts, capacity: int, *,
     programs = -(-n // _ROWS)
     lanes = _ROWS * _COLUMNS
     # Each program also pads its share of the slots (those past the last
-    # edge): no fill of the whole output beforehand, which cost as much
-    # again as the edges' stores.
+    # edge): no fill of the whole output beforehand, which writes every
+    # slot once more.
     chunk = -(-capacity // (programs * lanes)) * lanes
     # A masked-off store is no write on a GPU, but Pallas' interpreter
     # writes the old value back, which may land after another lane's write

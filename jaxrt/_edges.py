@@ -29,29 +29,26 @@ def materialized(tree):
     return jax.lax.optimization_barrier(tree)
 
 
-@jax.custom_vjp
+@jax.custom_jvp
 def materialized_in_reverse(tree):
-    """``tree`` unchanged and fused as XLA likes in the forward pass; in
-    reverse mode its cotangents are written to memory before the scatters
-    that consume them (the transposes of its gathers).
+    """``tree`` unchanged, and fused as XLA likes where nothing is
+    differentiated; its tangents are written to memory, so that in reverse
+    mode its cotangents are written out before the scatters that consume
+    them (the transposes of its gathers).
 
-    For per-edge work that runs forward alone (an SPH step): there the
-    forward barrier of `materialized` only added memory traffic (SPH's
-    OrderedSparse step on the H200 went from 1.32 to 1.63 ms in 2D at
-    10^6, Dense unchanged; benchmarks/RESULTS.md, the SPH section).
+    For per-edge work that runs forward alone (an SPH step), where the
+    forward barrier of `materialized` is memory traffic for nothing
+    (measured slower on the H200: benchmarks/RESULTS.md, the SPH section).
+    A custom JVP, not a custom VJP: forward mode (``jax.jvp``, Hessians)
+    keeps working.
     """
     return tree
 
 
-def _forward(tree):
-    return tree, None
-
-
-def _backward(_, cotangent):
-    return (jax.lax.optimization_barrier(cotangent),)
-
-
-materialized_in_reverse.defvjp(_forward, _backward)
+@materialized_in_reverse.defjvp
+def _tangents_materialized(primals, tangents):
+    (tree,), (tangent,) = primals, tangents
+    return tree, jax.lax.optimization_barrier(tangent)
 
 
 def edge_sum(values: Array, segment_ids: Array, n: int, *,
