@@ -16,7 +16,8 @@ max.
 * SPH: 2D periodic box of water at spacing dx, cubic spline h = 1.3 dx,
   summation density + Tait + pressure + viscosity, symplectic Euler.
 
-Setup labels (``--list`` prints them):
+Setup labels (``--list`` prints them; <format> is Dense or OrderedSparse by
+default, and ``--only`` takes Sparse as well):
   jax-md/<format>                   jax-md's list and jax-md's energy
   jax-md list + jaxrt energy/Dense  (LJ) the energy's share, separated
   jaxrt:<backend>/<format>          jaxrt's list and energy; <backend> is a
@@ -46,6 +47,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _harness  # noqa: E402
 
 FORMATS = ("Dense", "OrderedSparse")
+# Accepted in --only (jax-md's three layouts); the defaults are FORMATS.
+ALL_FORMATS = ("Dense", "Sparse", "OrderedSparse")
 DEFAULT_BACKENDS = ("cell", "bvh", "bvh-unsorted", "squares", "spheres",
                     "brute")
 JAXMD_LIST_JAXRT_ENERGY = "jax-md list + jaxrt energy"
@@ -103,8 +106,8 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
                              "kernel's launch)")
         return "fused", backend, None
     lists, sep, fmt = label.rpartition("/")
-    if not sep or fmt not in FORMATS:
-        raise ValueError(f"setup {label!r}: end it with /Dense or "
+    if not sep or fmt not in ALL_FORMATS:
+        raise ValueError(f"setup {label!r}: end it with /Dense, /Sparse or "
                          "/OrderedSparse")
     if lists.startswith("jaxrt:"):
         backend = lists[len("jaxrt:"):]

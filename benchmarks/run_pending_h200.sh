@@ -38,9 +38,9 @@
 #             pairs knobs (ran at 0d9699f)
 #   layouts   #18's layouts target: the edge kernel (jaxrt/_edge_kernel.py)
 #             and OrderedSparse's half rows compiled, the updates at
-#             N = 10^6 side by side, the LJ step on Dense and OrderedSparse
-#             (md_step.py has no Sparse setups) against jax-md's default
-#             (ran at 6e87170 without the jax-md row)
+#             N = 10^6 side by side, the LJ step on every layout against
+#             jax-md's default (ran at 6e87170 on Dense and OrderedSparse
+#             alone: md_step.py took no Sparse setups then)
 #   formats   where a list step's time goes per layout (list_forces.py:
 #             update, Dense-to-Sparse conversion both ways, the energy
 #             alone, the forces by reverse mode and with the scatter written
@@ -189,7 +189,7 @@ case $PART in
     note "list_forces 1e6 rc=$?"
     timeout 170 "$PY" benchmarks/md_step.py --n 1000000 --systems lj \
       --repeats 5 --timeout 60 --budget 160 --only jaxrt:cell/Dense \
-      jaxrt:cell/OrderedSparse jax-md/OrderedSparse \
+      jaxrt:cell/OrderedSparse jaxrt:cell/Sparse jax-md/OrderedSparse \
       --out "$DEST/md_step_$GIT_SHA.csv" > "$DEST/logs/md_step.log" 2>&1
     note "md_step rc=$?" ;;
   formats)
