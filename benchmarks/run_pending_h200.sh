@@ -73,6 +73,9 @@
 #
 #   GIT_SHA=$(git rev-parse --short HEAD) bash benchmarks/run_pending_h200.sh PART
 #
+# (with carry [".gpu/p2", ".gpu/extra"] for the parts whose tests need ASE
+# or netCDF4: benchmarks/gpu_extras.sh)
+#
 # Everything goes under $OUT/pending_<PART>/ (else
 # benchmarks/results/h200/pending_<PART>/) and, on the device machine, into
 # one tarball $OUT/pending_<PART>.tgz (a call brings back at most 8 files).
@@ -85,6 +88,12 @@ PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
+# Test-only wheels carried as .gpu/extra (benchmarks/gpu_extras.sh): ASE for
+# tests/test_pairs.py, netCDF4 for tests/test_jax_md_acceptance.py.
+if compgen -G ".gpu/extra/*.whl" > /dev/null; then
+  "$PY" -m pip install -q --no-deps --no-index --target /tmp/site \
+    .gpu/extra/*.whl > "$DEST/logs/extras.log" 2>&1
+fi
 START=$SECONDS
 note() { echo "$1 [$(( SECONDS - START )) s]" | tee -a "$DEST/logs/summary.txt"; }
 tests() {  # name timeout pytest-args...
@@ -171,7 +180,7 @@ case $PART in
     note "accuracy rc=$?" ;;
   owed)
     tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
-      tests/test_energy_sph.py
+      tests/test_energy_sph.py tests/test_jax_md_acceptance.py
     timeout 380 "$PY" -m jaxrt accuracy --quick --n 16384 --steps 2000 \
       --budget 340 --knobs format,pairs \
       --out "$DEST/accuracy_lj_format_pairs_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
