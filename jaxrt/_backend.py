@@ -306,7 +306,9 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
       capacity: number of edge slots in the output.
       ordered: keep only edges with ``j < i`` (OrderedSparse).
       counts: None, or int32 ``(N,)`` the rows' entries (each at most
-        ``M``), known already; else counted from ``dense``.
+        ``M``), known already; else counted from ``dense``. Only for rows
+        that are edges as they stand (``ordered`` false): ordered rows'
+        counts are those of their ``j < i`` entries, counted here.
       engine: ``"auto"``: rows that are edges as they stand (``ordered``
         false) are copied by one kernel on CUDA GPUs
         (`jaxrt._edge_kernel`), by XLA's scatters elsewhere; ``"xla"``:
@@ -319,6 +321,10 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
     if engine not in _ENGINES:
         raise ValueError(f"dense_to_sparse: engine={engine!r}; choose one "
                          f"of {_ENGINES}.")
+    if ordered and counts is not None:
+        raise ValueError("dense_to_sparse: counts= is for rows that are "
+                         "edges as they stand; with ordered=True the j < i "
+                         "entries are counted here (pass counts=None).")
     n, width = dense.shape
     senders = jnp.arange(n, dtype=jnp.int32)[:, None]
     keep = dense < n
@@ -326,7 +332,6 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
         keep = keep & (dense < senders)
         # The kept entries are spread along each row: rank them in it.
         rank = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
-        counts = None
     else:
         # Left-packed: entry c of a row is its c-th edge.
         rank = jnp.arange(width, dtype=jnp.int32)[None, :]
@@ -389,9 +394,11 @@ def format_dense_rows(dense: Array, counts: Array, query: Query,
                             row_overflow | (occupancy > width))
     # With truncated rows the edge count is a lower bound, but then
     # ``row_overflow`` is already set and allocate re-measures exactly.
-    ordered = query.format is NeighborListFormat.OrderedSparse
+    # Full rows into OrderedSparse: ranked along each row. Otherwise the
+    # rows are the edges, and their counts (clipped to the rows) are known.
+    ranked = (query.format is NeighborListFormat.OrderedSparse
+              and not lower_only)
     idx, edges = dense_to_sparse(
-        dense, capacity.neighbors, ordered and not lower_only,
-        counts=None if ordered and not lower_only else jnp.minimum(
-            counts, dense.shape[1]))
+        dense, capacity.neighbors, ranked,
+        counts=None if ranked else jnp.minimum(counts, dense.shape[1]))
     return SearchResult(idx, edges, row_overflow | (edges > capacity.neighbors))

@@ -11,7 +11,9 @@ written to memory and then scattered, for jax-md's own energies as for ours
 benchmarks/RESULTS.md). An optimization barrier on the per-edge arrays makes
 XLA write them out; its transpose puts a barrier on their cotangents too, so
 reverse mode's scatters read plain arrays. The values are unchanged: the
-barrier is the identity.
+barrier is the identity. Work that runs forward alone (an SPH step) takes
+`materialized_in_reverse`, whose barrier falls on the tangents only: there
+the forward barrier was memory traffic for nothing.
 """
 from __future__ import annotations
 

@@ -324,3 +324,11 @@ def test_rows_to_edges_refuses_unknown_engine():
     dense, _ = _rows([1, 0], 1)
     with pytest.raises(ValueError, match="engine='gpu'.*choose one of"):
         _backend.dense_to_sparse(dense, 2, False, engine="gpu")
+
+
+def test_rows_to_edges_refuses_counts_of_ordered_rows():
+    from jaxrt import _backend
+
+    dense, counts = _rows([1, 0], 1)
+    with pytest.raises(ValueError, match="counts=.*ordered=True"):
+        _backend.dense_to_sparse(dense, 2, True, counts=counts)
