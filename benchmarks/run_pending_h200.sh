@@ -36,6 +36,10 @@
 #             tests/test_pairs.py skips itself where ASE is missing, as on
 #             the staged GPU machine), then the accuracy sweep's format and
 #             pairs knobs (ran at 0d9699f)
+#   stability #21's suite compiled (tests/stability: the cell kernel and the
+#             Warp calls where CI runs their portable or CPU paths), fast
+#             part then slow part, after the edge tests that owed runs
+#             (jaxrt.pairs and jax-md's acceptance tests need .gpu/extra)
 #   layouts   #18's layouts target: the edge kernel (jaxrt/_edge_kernel.py)
 #             and OrderedSparse's half rows compiled, the updates at
 #             N = 10^6 side by side, the LJ step on every layout against
@@ -84,7 +88,7 @@ cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 PY=${PYTHON:-python3}
-PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|layouts|formats|alloc|seed-rest|seed-big|model|table2-6p}
+PART=${1:?usage: run_pending_h200.sh tests|radii|runs|step|profile|overhead|sph|accuracy|owed|stability|layouts|formats|alloc|seed-rest|seed-big|model|table2-6p}
 DEST=${OUT:+$OUT/pending_$PART}; DEST=${DEST:-benchmarks/results/h200/pending_$PART}
 mkdir -p "$DEST/logs"
 [[ -n ${OUT:-} ]] && trap 'tar czf "$OUT/pending_$PART.tgz" -C "$DEST" .' EXIT
@@ -178,6 +182,11 @@ case $PART in
       --budget 480 --knobs list-free,pairs,spheres-epsilon \
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
+  stability)
+    tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
+      tests/test_energy_sph.py tests/test_jax_md_acceptance.py
+    tests stability 170 tests/stability
+    tests stability_slow 240 tests/stability -m "stability and slow" ;;
   owed)
     tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
       tests/test_energy_sph.py tests/test_jax_md_acceptance.py
