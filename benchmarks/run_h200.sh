@@ -4,7 +4,7 @@
 #   1. the cell list's rebuild, uniform rho = 1, rc = 2.5, N = 1e6, Dense:
 #      cell[pallas] (the GPU kernel), cell[xla], bvh, jax-md   (neighbors.py)
 #   2. the LJ MD step at N = 1e6: jax-md's default (OrderedSparse) and
-#      Dense, jaxrt cell and bvh on Dense                      (md_step.py)
+#      Dense, jaxrt cell and bvh on Dense, the list-free fused cell (md_step.py)
 #   3. the unit-sphere surface at N = 1e6 (k ~ 30, the seed's box 2 + 2C),
 #      the same four methods                                   (neighbors.py)
 #   4. the bvh rebuild and refit through jax.jit against Warp's HashGrid,
@@ -67,6 +67,7 @@ part 28 "neighbors_uniform_$TAG" benchmarks/neighbors.py --scenes uniform \
   --sizes "$N" --backends "${CELL[@]}" bvh "${NB_REPS[@]}"
 part 58 "md_step_lj_$TAG" benchmarks/md_step.py --systems lj --n "$MD_N" \
   --only jax-md/OrderedSparse jax-md/Dense jaxrt:cell/Dense jaxrt:bvh/Dense \
+  fused:cell \
   "${MD_REPS[@]}"
 part 80 "neighbors_sphere_$TAG" benchmarks/neighbors.py --scenes sphere \
   --sphere-n "$N" --backends "${CELL[@]}" bvh "${NB_REPS[@]}"
