@@ -183,10 +183,14 @@ case $PART in
       --out "$DEST/accuracy_lj_$GIT_SHA" > "$DEST/logs/accuracy.log" 2>&1
     note "accuracy rc=$?" ;;
   stability)
-    tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
+    # 120 + 150 + 180 + 130 s: the part stays inside one 10-minute call.
+    tests edges 120 tests/test_pairs.py tests/test_energy_lj.py \
       tests/test_energy_sph.py tests/test_jax_md_acceptance.py
-    tests stability 170 tests/stability
-    tests stability_slow 240 tests/stability -m "stability and slow" ;;
+    tests stability 150 tests/stability
+    tests stability_slow 180 tests/stability -m "stability and slow" \
+      -k "not long_nve"
+    tests stability_nve 130 tests/stability/test_nve_drift.py \
+      -m "stability and slow" -k long_nve ;;
   owed)
     tests edges 150 tests/test_pairs.py tests/test_energy_lj.py \
       tests/test_energy_sph.py tests/test_jax_md_acceptance.py
