@@ -236,7 +236,7 @@ def compile_size(size: int) -> int:
     Sizes that become static shapes of a compiled program at ``allocate``:
     data of one N measured a little differently then reuse the program
     instead of compiling another (a compile is most of an ``allocate`` on
-    a CPU: benchmarks/RESULTS.md)."""
+    a CPU: docs/benchmarks.md, "Where an `allocate` goes")."""
     size = int(size)
     if size <= 4:
         return size
@@ -336,7 +336,7 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
         # Left-packed: entry c of a row is its c-th edge.
         rank = jnp.arange(width, dtype=jnp.int32)[None, :]
     # Each row's first slot from N row counts, not a scan over all N x M
-    # entries (the conversion's cost at 10^6: benchmarks/RESULTS.md).
+    # entries (the conversion's cost: docs/benchmarks.md, the layouts).
     if counts is None:
         counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
     counts = counts.astype(jnp.int32)

@@ -3,7 +3,7 @@
 `jaxrt.cell_list` finds, for each particle, the runs of the cell-sorted order
 that hold its candidates. On CPUs it tests them as fixed windows of whole
 32-slot words and left-packs the hits with array programs; on a GPU that
-formulation is at XLA's floor (`benchmarks/RESULTS.md`): every particle
+formulation is at XLA's floor (docs/benchmarks-notes.md): every particle
 reads windows sized by the longest run, two thirds of them past its own
 run, and the left-packing is a search per output slot. A kernel does neither: each
 thread walks its particle's runs to their real ends and appends hits to its
@@ -237,7 +237,7 @@ def _walk(params_ref, *refs, n, dim, periodic, mask_self, lower_only,
 
 
 # ---------------------------------------------------------------------------
-# Pair sums with no list (issue #18): the same walk, but each thread folds
+# Pair sums with no list: the same walk, but each thread folds
 # every candidate into its own particle's sums instead of writing it down.
 
 

@@ -4,8 +4,8 @@ lowered to Triton).
 Row ``i``'s ``count_i`` entries become the edges in slots ``start_i ..
 start_i + count_i - 1``, where ``start`` is the rows' counts' exclusive
 prefix sum. XLA writes them with two scatters of all ``N x M`` entries (the
-invalid ones dropped), far slower on the H200 than the bytes they move
-("What does a list's layout cost?" in benchmarks/RESULTS.md). Here a
+invalid ones dropped), far slower on the GPU than the bytes they move
+(docs/benchmarks-notes.md, "Layouts"). Here a
 program takes ``_ROWS`` consecutive rows
 and copies them ``_COLUMNS`` columns at a time: each row's step is one
 contiguous load and two contiguous stores (the entries, and the row's index

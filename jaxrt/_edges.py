@@ -4,11 +4,11 @@ kept out of XLA's scatter fusions.
 A sum over edges ends in a scatter-add onto particles: `segment_sum` in the
 forward pass, and the transpose of every gather ``R[idx]`` in reverse mode.
 XLA fuses the computation of the values being scattered (the gathers and the
-pair arithmetic) into that scatter, and on the H200 (jax/jaxlib 0.11.2) the
-fused scatter ran an order of magnitude or more slower than the same values
-written to memory and then scattered, for jax-md's own energies as for ours
-(`benchmarks/list_forces.py`; "What does a list's layout cost?" in
-benchmarks/RESULTS.md). An optimization barrier on the per-edge arrays makes
+pair arithmetic) into that scatter, and on the GPU the fused scatter ran an
+order of magnitude or more slower than the same values written to memory
+and then scattered, for jax-md's own energies as for ours
+(`benchmarks/list_forces.py`; docs/benchmarks-notes.md, "Layouts"). An
+optimization barrier on the per-edge arrays makes
 XLA write them out; its transpose puts a barrier on their cotangents too, so
 reverse mode's scatters read plain arrays. The values are unchanged: the
 barrier is the identity. Work that runs forward alone (an SPH step) takes
@@ -40,7 +40,7 @@ def materialized_in_reverse(tree):
 
     For per-edge work that runs forward alone (an SPH step), where the
     forward barrier of `materialized` is memory traffic for nothing
-    (measured slower on the H200: benchmarks/RESULTS.md, the SPH section).
+    (measured slower on the GPU: docs/benchmarks.md, the SPH step).
     A custom JVP, not a custom VJP: forward mode (``jax.jvp``, Hessians)
     keeps working.
     """

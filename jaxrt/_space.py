@@ -113,8 +113,8 @@ def apply(matrix, vectors):
 
 
 # The model's functions are jitted (``space`` static, hashed by identity):
-# called eagerly at allocate, op by op, their dozens of tiny programs took
-# 1.7 s to compile at N = 1e5 on the CPU, most of a cold allocate's extra.
+# called eagerly at allocate, op by op, their dozens of tiny programs each
+# compiled on its own, most of a cold allocate's extra time.
 @functools.partial(jax.jit, static_argnames=("space", "dtype"))
 def gram(metric_sq, space: Space, dtype):
     """``G``: float ``(dim, dim)`` in ``dtype``, the Gram matrix of
@@ -302,7 +302,7 @@ def _axis_samples_on_host(q, take):
 def _axis_samples_on_device(q, take):
     """`_axis_samples_on_host`, sorted where ``q`` lives (ties in index
     order): at millions of particles the host's sorts were most of an
-    `allocate` on the H200's machine (RESULTS.md); only the samples come
+    `allocate` with a GPU (docs/benchmarks-notes.md); only the samples come
     back."""
     order = jnp.argsort(q, axis=0, stable=True)
     dim = q.shape[1]

@@ -40,7 +40,7 @@ Euclidean minimum-image distance up to ``tol`` (``2**-18`` of the cutoff
 plus 16 ulps of the largest coordinate, wrapped or not: the metric rounds
 the unwrapped difference), which the cell grid assumes anyway.
 The caller's metric is not used on every slot because jax-md's periodic
-wrap (a float ``mod``) is a scalar libm call on CPU: 20x the cheap test.
+wrap (a float ``mod``) is a scalar libm call on CPU: many times the cheap test.
 Where the metric is not that distance (a triclinic box, binned in its
 fractional coordinates scaled by its heights; a metric that is not a
 quadratic form), ``Query.decide_by_metric`` makes the metric the test on
@@ -351,7 +351,7 @@ def _runs(sorted_key, cell, n, query: Query,
         c = cell[:, a:a + 1] + d
         if query.periodic[a]:
             # |d| <= across < n or aliased away: one wrap (an integer mod
-            # per candidate cell costs 10x more).
+            # per candidate cell costs far more).
             c = jnp.where(c < 0, c + n[a], jnp.where(c >= n[a], c - n[a], c))
             # Small boxes alias offsets: keep the first to name each cell.
             gap = np.arange(1, 2 * across + 1)  # d - e for earlier e
@@ -561,8 +561,7 @@ def _run_ends(start, first, extra):
     """Sorted positions where the run of cells ``first .. first + extra``
     begins and ends (int32, any shape; ``extra < _RUN_SPAN``, negative for
     an empty run): two gathers from the table. (One slice of the table per
-    run, its end picked by a mask, was slower on both devices: 1.8x on the
-    CPU in `cell_runs` at N = 1.25e5, and on the H200,
+    run, its end picked by a mask, was slower on both the CPU and the GPU:
     benchmarks/grid_stages.py.)"""
     size = start.shape[0] - _RUN_SPAN
     first = jnp.clip(first, 0, size)
@@ -1153,7 +1152,7 @@ class Cell:
         # front would refuse after sizing (a cluster where each particle
         # sees all others needs N^2), before the rows pass below allocates
         # them (seed 003's cluster at n = 50 000 was killed for host memory
-        # there, and ran past 100 s on the GPU).
+        # there, and ran past the benchmark's time limit on the GPU).
         entries = n * int(count.max(initial=0))
         if entries > limit:
             raise _backend.list_too_large(self.name, entries,

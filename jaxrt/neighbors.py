@@ -1030,24 +1030,22 @@ def _auto_backend(*, has_radii: bool = False) -> str:
 def choose_backend(*, platform: str, has_radii: bool = False,
                    warp: bool = True) -> str:
     """The backend ``backend="auto"`` picks, from the measured tables
-    (`benchmarks/RESULTS.md`; the README's "Which backend auto picks").
+    (docs/benchmarks.md; the reasons in docs/guide.md, "Which backend
+    auto picks").
 
     The rule:
 
     * per-particle radii given to `neighbor_list` (``radii=``), on a CPU,
-      with Warp installed: ``"bvh"``. CPU, n = 4000, seed 003's Disordered
-      scene with LN[1, 330] radii: bvh 36 ms per rebuild against 492 ms for
-      the cell list's radius classes (13x);
-    * everything else: ``"cell"``. On the GPU (H200, N = 10^6) `cell`'s
-      kernel is the fastest in every table: rebuild, uniform 3.06 ms
-      against bvh's 12.8; sphere surface 1.90 against 4.99; LJ MD step
-      2.07 against 3.59; with radii (n = 50 000) 21.7 against 25.7. On the
-      CPU without radii, `cell` is within 5-12 % of `bvh` for an LJ step
-      (N = 10^4; the VM varies ~2x from day to day) and 26 % faster for an
-      SPH step, and it needs no Warp. `delaunay` (2D) was slower than
-      `cell` in every case measured (19-140x), and `spheres` / `squares`
-      slower than `bvh` in every seed-study configuration, so neither is
-      ever chosen; nor is `brute` (no table measures it against `cell`).
+      with Warp installed: ``"bvh"``, much faster there than the cell
+      list's radius classes on seed 003's radii;
+    * everything else: ``"cell"``. On the GPU `cell`'s kernel is the
+      fastest in every table (rebuilds, the sphere surface, the LJ step,
+      radii). On the CPU without radii, `cell` is close to `bvh` for an
+      LJ step and faster for an SPH step, and it needs no Warp.
+      `delaunay` (2D) was slower than `cell` in every case measured, and
+      `spheres` / `squares` slower than `bvh` in every seed-study
+      configuration, so neither is ever chosen; nor is `brute` (no table
+      measures it against `cell`).
 
     Dimension and N do not enter: no table shows a different winner for
     2D or for small N. Args: ``platform``: ``jax.default_backend()``

@@ -90,7 +90,7 @@ BRUTE_CANDIDATES = 2 ** 20
 _CHUNK_CANDIDATES = 2 ** 22
 # Slots of each run read per step on the cell grid (the fullest cell of a
 # dense solid at a 5 Å cutoff holds ~12 atoms; 4 measured as fast as 2
-# and faster than 8 at N = 1.8e4 on the CPU).
+# and faster than 8 on the CPU).
 _CELL_CHUNK = 4
 BACKENDS = ("auto", "brute", "cell")
 

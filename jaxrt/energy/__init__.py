@@ -13,7 +13,7 @@ Without a list (`jaxrt.energy.fused`, seed 003 ORCS): `lennard_jones_fused`
 SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
 `WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
 `acceleration` -> `Acceleration`.
-Without a list (`jaxrt.energy.sph_fused`, #18): `density_fused`,
+Without a list (`jaxrt.energy.sph_fused`): `density_fused`,
 `acceleration_fused` (the same results, a walk over the cell grid; first
 derivatives from a second walk).
 """

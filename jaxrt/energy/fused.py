@@ -343,8 +343,8 @@ class _Cell(_Backend):
     # stencil cell across repeats (`run_image_axes`); elsewhere, and in the
     # array walk, every pair is met from both sides as without it. The
     # same sums to rounding (the atomics' order varies). Off by default:
-    # on the H200 the atomics cost more than the evaluations they save
-    # (benchmarks/RESULTS.md, #18).
+    # on the GPUs measured the atomics cost more than the evaluations they
+    # save (docs/benchmarks-notes.md, the list-free step).
     newton: bool = False
 
     def __post_init__(self):
@@ -661,9 +661,9 @@ def _sort_by_key(key: Array, table: int) -> tuple[Array, Array]:
     order.
 
     Key and index packed into one unsigned word when they fit (32 bits, or
-    64 with x64 on): XLA's CPU sort of one integer operand is 5-10x faster
-    than its sort of two operands by a comparator (1.5 -> 0.26 ms at
-    N = 10^4, 36 -> 3.3 ms at 10^5). Otherwise the two-operand sort.
+    64 with x64 on): XLA's CPU sort of one integer operand is several
+    times faster than its sort of two operands by a comparator. Otherwise
+    the two-operand sort.
     """
     n = key.shape[0]
     index_bits = max(1, (n - 1).bit_length())

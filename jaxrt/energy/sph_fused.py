@@ -1,5 +1,5 @@
 """SPH without a neighbour list: summation density, pressure and viscosity
-from a walk over the cell grid (issue #18), differentiable to first order.
+from a walk over the cell grid, differentiable to first order.
 
 `density_fused` and `acceleration_fused` take the arguments of
 `jaxrt.energy.sph.density` and `jaxrt.energy.sph.acceleration` plus the box,
@@ -40,11 +40,9 @@ Cost. A walk evaluates, per particle, one candidate of each stencil row (3
 in 2D, 9 in 3D) per step of a loop as long as the longest run (2.25 x the
 support along x): about 2x (2D) and 5x (3D) the pairs within the support,
 each pair from both sides, at every call, where a list path reads rows of
-support + skin rebuilt every few steps. On a shared 2-core CPU
-(`benchmarks/sph_step.py`, water box, float32, ms per step) the list-free
-step took 6.1 at N = 10^4 in 2D against 4.4 (jaxrt cell list, Dense) and
-2.9 (OrderedSparse), 24.8 against 19.1 / 17.4 at 3·10^4, and 449 against
-120 / 123 in 3D at 27000: slower on the CPU; its case is the GPU (#18).
+support + skin rebuilt every few steps. On the CPU that makes it slower
+than a step on a list; its case is the GPU, where the walk is one kernel
+(`benchmarks/sph_step.py`; the numbers are in docs/benchmarks.md).
 
 Derivatives. Each walk is a `jax.custom_vjp` (reverse mode through a loop
 of dynamic length is impossible): its backward pass is another walk over
@@ -115,7 +113,7 @@ _first_order_only = first_order_only(_HIGHER_ORDER)
 # Per-particle data as one table, particles on the minor axis: a candidate
 # costs one gather of its row, and every pair term is an array (K, M) whose
 # long axis M (the particles) the CPU vectorises ((M, K) with K = 3 stencil
-# rows did not vectorise: 2-3x slower).
+# rows did not vectorise, and was slower).
 
 
 def _pack(data: dict) -> tuple[Array, tuple]:

@@ -15,7 +15,7 @@ Clusters (an extension, ``cluster_size`` g > 1): one box around each run of
 g consecutive Morton-sorted particles, grown by the cutoff, so the BVH has
 g times fewer leaves and a ray that lands in a box tests the g particles
 exactly. The result is the same. On a GPU without RT cores it did not pay
-(`benchmarks/RESULTS.md`), so g = 1 is the default and clusters stay an
+(docs/benchmarks-notes.md), so g = 1 is the default and clusters stay an
 option for other hardware.
 
 The BVH is float32 (Warp's only kind). float64 positions get float32 boxes
@@ -456,9 +456,9 @@ def _pad_pairs_kernel(total: wp.array(dtype=wp.int32), n_particles: wp.int32,
 
 # The overloads of the generic kernels, by (kernel, scalar type). Launching
 # the overload itself skips Warp's inference of a generic kernel's argument
-# types on every launch, which costs more than the rest of the launch (a
-# 10-argument kernel: 39 us generic, 14 us overload, host CPU) and is paid
-# by every kernel of every search call: the calls' fixed cost in Python.
+# types on every launch, which costs more than the rest of the launch
+# and is paid by every kernel of every search call: the calls' fixed cost
+# in Python.
 _OVERLOADS: dict = {}
 
 

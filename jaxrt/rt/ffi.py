@@ -31,8 +31,8 @@ How the Warp calls behave under JAX:
   inputs do not change in a loop, and no two calls merge (each carries its
   own call id). Declared with side effects (as they were), the calls made
   every program that holds one effectful, and JAX dispatches effectful
-  programs through Python, not its C++ fast path: ~0.1 ms more per call
-  on a CPU host, on top of the callback's own.
+  programs through Python, not its C++ fast path: a fixed cost per call
+  on the host, on top of the callback's own.
 * Persistence: every traced call site gets its own *slot*, and each slot
   keeps one `jaxrt.rt.aabb.AabbSearch`. A compiled loop body calls the
   same slot every step, so its BVH is refit or rebuilt in place. Slots

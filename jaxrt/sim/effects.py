@@ -277,7 +277,7 @@ class SPHDensity:
     cutoff is the kernel's support (``2h`` or ``3h``).
 
     ``list_free``: no neighbour list, a walk over the cell grid at every
-    step (`jaxrt.energy.density_fused`, #18); sph_pressure and
+    step (`jaxrt.energy.density_fused`); sph_pressure and
     sph_viscosity must say the same. ``walk`` (with ``list_free`` only),
     the walk's program for all three (`jaxrt.energy.sph_fused.WALKS`):
     ``"auto"``, the Pallas kernel on CUDA and array programs elsewhere;
