@@ -114,6 +114,24 @@ BENCHMARKS = [
      "Strong and weak scaling of `jaxrt.domains` (fake CPU devices: a "
      "check, not a speed-up)."),
 ]
+# Scripts whose output is not a table of this page.
+OTHER_SCRIPTS = [
+    ("benchmarks/run_h200.sh", "the GPU tables behind the headline in one "
+     "device call (`--quick`: a CPU smoke run)"),
+    ("benchmarks/run_pending_h200.sh PART", "one part of the GPU work per "
+     "device call (its header lists the parts)"),
+    ("benchmarks/run_table2_h200.sh", "seed 003's Table 2 in parts"),
+    ("benchmarks/table2_energy_plot.py", "seed 003's energy figures from a "
+     "`table2.py --energy` run"),
+    ("benchmarks/step_overhead.py", "where a step's host time goes (dispatch, "
+     "Warp callbacks, read-backs, launches)"),
+    ("benchmarks/profile_cell_kernels.py", "a driver for Nsight Compute on "
+     "the cell kernels"),
+    ("benchmarks/tune_cell_list.py", "the cell list's stencil reach, swept"),
+    ("benchmarks/debug/debug_pairs_gpu.py", "`jaxrt.pairs` under `vmap` "
+     "against ASE with several `XLA_FLAGS` (XLA's GPU level 0 miscompiles "
+     "it)"),
+]
 # CSV name prefixes written by a script of another name.
 ALIASES = {"list_update": "list_forces", "rt_query_groups": "rt_neighbors"}
 
@@ -300,16 +318,16 @@ def _plain_table(bench: str, table: Table) -> tuple[list[str], list[str]]:
     left_out = len(table.rows) - len(rows)
     columns = [c for c in table.columns if c not in PROVENANCE
                and not DROPPED.search(c)]
-    wanted = COLUMNS.get(bench)
-    if wanted:
-        columns = [c for c in wanted if c in columns]
     columns = [c for c in columns if any(_value(r, c) for r in rows)]
+    wanted = COLUMNS.get(bench)
     constants, shown = [], []
     seen: dict[tuple, str] = {}
     for c in columns:
         values = tuple(_value(r, c) for r in rows)
         if len(rows) > 1 and len(set(values)) == 1:
             constants.append(f"{c} = {_cell(values[0])}")
+        elif wanted and c not in wanted:
+            continue
         elif values in seen:
             continue                    # a copy of another column
         else:
@@ -571,6 +589,8 @@ def page() -> str:
                 out += ["", "Raw data (per-call traces, power samples): "
                         + ", ".join(f"`{t.rel}`" for t in all_series["_raw"])
                         + "."]
+    out += ["", "## Other scripts", ""]
+    out += [f"- `{script}`: {what}." for script, what in OTHER_SCRIPTS]
     return "\n".join(out) + "\n"
 
 
