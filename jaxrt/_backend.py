@@ -187,6 +187,10 @@ class Backend(Protocol):
       without Dense rows first, so the front does not bound ``N x row``;
     * ``supports_radii`` (default False): it honours `Geometry.reach`;
       the front refuses ``radii=`` otherwise;
+    * ``small_boxes`` (default False): it lists periodic boxes less than
+      twice the cutoff across (each pair once, through the image the
+      caller's metric picks, every candidate image tested once); the front
+      refuses such boxes otherwise;
     * ``build_at_exact_capacity`` (default False): ``allocate`` builds the
       list at exactly its capacity, not at sizes rounded up for a compiled
       program that data of other sizes reuse (`compile_size`): for a

@@ -27,7 +27,11 @@ Height: a neighbour within ``c`` lies within ``c / h_a`` of the particle
 along axis ``a`` of the grid's space, with ``h_a = 1 / sqrt((G^-1)_aa)``
 (Cauchy-Schwarz on ``q_a = e_a^T G^-1/2 G^1/2 q``); for a diagonal ``G``,
 ``h_a = sqrt(G_aa)``. ``P_a h_a`` is the periodic cell's height across
-axis ``a``, and the cutoff must stay below half of it.
+axis ``a``. A cutoff of half of it or more is a small box (`cutoff_fits`):
+the grid then holds every particle whose image under the metric's wrap is
+within the cutoff (its cells are no narrower than the cutoff, or the
+stencil spans the whole axis), and `jaxrt.neighbor_list` lists it on the
+backends that can (``small_boxes``).
 """
 from __future__ import annotations
 
@@ -48,9 +52,10 @@ _DIAGONAL_TOLERANCE = 2.0 ** -20
 # then decides only pairs within 2**-18 of the cutoff by the metric).
 _AGREE_RELATIVE = 2.0 ** -16
 _AGREE_ULPS = 64
-# The cutoff must stay this far (relatively) below half a periodic height,
-# the ray-traced backends' margin (`jaxrt.rt.periodic.CUTOFF_MARGIN`), so
-# that every backend refuses the same boxes.
+# A box is small unless the cutoff is this far (relatively) below half a
+# periodic height: the ray-traced backends' margin
+# (`jaxrt.rt.periodic.CUTOFF_MARGIN`), so that the front refuses for them
+# exactly the boxes they cannot serve.
 CUTOFF_MARGIN = 2.0 ** -16
 # The largest relative shortfall of the metric under its model that the
 # grid absorbs by searching that much farther (TF32 rounding is 2**-11).
@@ -97,12 +102,18 @@ class Space:
         return apply(jnp.asarray(np.linalg.inv(self.transform), q.dtype), q)
 
     def wrap(self, dq):
-        """Minimum image of grid displacements ``dq`` (float ``(..., dim)``)."""
+        """Grid displacements ``dq`` (float ``(..., dim)``) wrapped into
+        ``[-P/2, P/2)`` on periodic axes, with jax-md's arithmetic (its
+        ``space.periodic_displacement``): a difference of exactly half a
+        period goes to ``-P/2`` as jax-md's does. In a triclinic box the two
+        ways differ in length, and lattices in fractional coordinates have
+        such differences (a rounding wrap made the model longer than
+        jax-md's metric there, and the check refused the list)."""
         if not any(self.periodic):
             return dq
         p = jnp.asarray(np.where(self.periodic, self.period, 1.0), dq.dtype)
         on = jnp.asarray(self.periodic)
-        return jnp.where(on, dq - p * jnp.round(dq / p), dq)
+        return jnp.where(on, jnp.mod(dq + 0.5 * p, p) - 0.5 * p, dq)
 
 
 def apply(matrix, vectors):
@@ -334,6 +345,7 @@ def sample_deviation(position, metric_sq, g, h, space: Space):
 
 
 def cutoff_fits(cutoff: float, height_times_period):
-    """Traced: is ``cutoff`` below half of every periodic height (with the
-    margin)? ``height_times_period``: float ``(dim,)``; free axes ignored."""
+    """Traced: is ``cutoff`` below half of the periodic height (with the
+    margin), i.e. not a small box? ``height_times_period``: float
+    ``(dim,)``, one answer per axis (the caller ignores free axes)."""
     return cutoff < 0.5 * (1.0 - CUTOFF_MARGIN) * height_times_period

@@ -1,8 +1,9 @@
 """All pairs: the backend ``"brute"`` (jax-md's ``disable_cell_list=True``).
 
 O(N²) time and memory; exact for any metric jax-md accepts, triclinic boxes
-included, and for per-particle radii (``d < max(r_i, r_j)``). Meant for
-small systems and as a reference.
+and periodic boxes of any size included (each pair as the caller's metric
+measures it, through the image it picks), and for per-particle radii
+(``d < max(r_i, r_j)``). Meant for small systems and as a reference.
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ class Brute:
     decides_by_metric: ClassVar[bool] = True
     exact_for_any_metric: ClassVar[bool] = True
     supports_radii: ClassVar[bool] = True
+    small_boxes: ClassVar[bool] = True
 
     def measure(self, position, geometry, query, metric_sq):
         _, count, lower = _rows(position, geometry.reach, metric_sq, width=0,

@@ -48,6 +48,21 @@ every slot instead, on the portable path: slower, and exact as long as
 the metric is never shorter than the grid's distance, which the front
 checks (`jaxrt._space`).
 
+Small boxes (a cutoff of half a periodic height or more) need nothing of
+their own. Cells are at least ``cutoff / reach`` wide, so a partner whose
+image under the caller's wrap (each axis's difference into half a period
+either way) is within the cutoff lies within ``reach`` cells of the
+particle, counted around the periodic axis; an axis with fewer cells than
+the stencil spans has each cell once in it (`_runs` drops an offset that
+names a cell an earlier one named, and a periodic x row of at most
+``2 reach + 1`` cells is one whole run; the kernel's run reader does the
+same), so every candidate is met once. The cheap test rounds each axis's
+difference to its nearest image, which in an orthorhombic box has the
+length of the caller's image (ties at half a side are the same length);
+in a triclinic box the metric decides every candidate anyway. So the list
+is every pair the caller's metric puts within the cutoff, once: jax-md's
+list for such a box.
+
 Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
 ``N × 27 × cell capacity`` candidate array. The grid is recomputed on every
@@ -1039,6 +1054,7 @@ class Cell:
     name: ClassVar[str] = "cell"
     decides_by_metric: ClassVar[bool] = True
     supports_radii: ClassVar[bool] = True
+    small_boxes: ClassVar[bool] = True
     fixed_sizes: ClassVar[tuple[str, ...]] = ("classes",)
 
     def __post_init__(self):

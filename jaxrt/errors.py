@@ -48,8 +48,11 @@ _MESSAGES = {
         "sheared. Reallocate; allocate names the pair and the fix.",
     ErrorCode.BOX_TOO_SMALL:
         "the box passed to update shrank so that r_cutoff + dr_threshold is "
-        "no longer below half its height on a periodic axis: the list would "
-        "drop periodic images. Use a larger box or a smaller cutoff.",
+        "no longer below half its height on a periodic axis, which the "
+        "list's backend needs (the ray-traced ones and delaunay; "
+        "backend='cell' and 'brute' list such boxes), or the box has no "
+        "height or is not finite. Use a larger box, a smaller cutoff, or "
+        "backend='cell'.",
     ErrorCode.SEARCH_FAILED:
         "the search could not build a right list at the last update: the "
         "radii passed to update had a NaN, infinite or negative entry, or "

@@ -21,13 +21,26 @@ Where jaxrt differs from jax-md, on purpose (the README's table):
   safe) and on the extreme particles of each axis at every rebuild under
   ``jit`` (an error bit). A periodic displacement given ``box=None`` is
   caught so.
-* A cutoff of half a periodic height or more raises (an index-only list
-  holds one image per pair).
+* A cutoff of half a periodic height or more (a small box) gives the list
+  jax-md's rule defines: every pair whose distance under
+  ``displacement_or_metric`` is below the cutoff, once, through the image
+  the displacement picks, on ``cell`` and ``brute``, with a warning
+  (`SmallBoxWarning`) at the first ``allocate`` that meets it: other
+  images within the cutoff are in no index-only list (`jaxrt.pairs` lists
+  every image). The ray-traced backends and ``delaunay`` refuse such boxes,
+  naming ``cell`` and ``brute``.
+* Fractional positions that the caller does not announce (jax-md's
+  ``energy.stillinger_weber_neighbor_list`` and ``eam_neighbor_list`` do
+  not forward ``fractional_coordinates``): where ``displacement_or_metric``
+  is periodic with period 1 along the axes rather than with ``box``, the
+  positions are taken as fractional, with a warning naming
+  ``fractional_coordinates=True``.
 * Positions on a periodic axis outside ``[0, L)`` are binned after wrapping,
   so the list is right (jax-md's cell list silently misses pairs there).
 * Bad input raises at ``allocate``; under ``jit`` a non-finite position, a
-  metric that disagrees with the box, or a box shrunk below twice the
-  cutoff sets an error bit (see `jaxrt.errors`) that also reads as overflow.
+  metric that disagrees with the box, or (on the backends that refuse small
+  boxes) a box shrunk below twice the cutoff sets an error bit (see
+  `jaxrt.errors`) that also reads as overflow.
 * Per-particle radii (``radii=``, seed 003 §3, a jaxrt extension): ``i``
   and ``j`` are neighbours iff ``d(i, j) < max(r_i, r_j) + dr_threshold``;
   ``r_cutoff`` bounds every radius and sizes the search.
@@ -145,12 +158,14 @@ def _grid_space(box, dim: int, fractional: bool, periodic) -> _space.Space:
     return _space.Space(axes, np.ones(dim) if sides is None else sides)
 
 
-def _infer_periodic(metric, space: _space.Space, box_known: bool, g
-                    ) -> tuple[bool, ...]:
-    """Probe the metric along each grid axis: free, or periodic with the
-    box? ``g``: the metric's Gram matrix (`jaxrt._space.gram`)."""
+def _probe_axes(metric, space: _space.Space, g
+                 ) -> tuple[tuple[bool, ...], tuple[bool, ...]]:
+    """Probe the metric along each grid axis at 0.75, 1.3 and 7.3 periods:
+    does it look free, and does it look periodic with the grid's period?
+    ``g``: the metric's Gram matrix in that space (`jaxrt._space.gram`).
+    Returns two tuples of ``dim`` bools."""
     dim = space.dim
-    periodic = []
+    free, periodic = [], []
     for a in range(dim):
         unit = float(space.period[a])
         length = float(np.sqrt(max(float(g[a, a]), 0.0)))
@@ -164,14 +179,44 @@ def _infer_periodic(metric, space: _space.Space, box_known: bool, g
             tol = 1e-4 * t * unit * length + 1e-6
             looks_free &= abs(r - t * unit * length) <= tol
             looks_periodic &= abs(r - abs(t - round(t)) * unit * length) <= tol
-        if looks_free == looks_periodic or (looks_periodic and not box_known):
-            raise ValueError(
-                f"could not tell from displacement_or_metric whether axis {a} "
-                f"is free or periodic with the given box. Pass periodic=True/"
-                "False (or one bool per axis) explicitly, and check that box "
-                "matches the displacement function.")
-        periodic.append(looks_periodic)
-    return tuple(periodic)
+        free.append(bool(looks_free))
+        periodic.append(bool(looks_periodic))
+    return tuple(free), tuple(periodic)
+
+
+def _infer_periodic(free, periodic, box_known: bool
+                    ) -> tuple[bool, ...] | None:
+    """The periodic axes the probes (`_probe_axes`: ``free``,
+    ``periodic``) tell, or None where some axis looks neither free nor
+    periodic, or both, or periodic with no box to give the period."""
+    if any(f == p or (p and not box_known) for f, p in zip(free, periodic)):
+        return None
+    return periodic
+
+
+def _fractional_reading(metric, dim: int) -> tuple[bool, ...] | None:
+    """The periodic axes of ``metric`` read as a metric of fractional
+    coordinates (period 1 along every periodic axis, as jax-md's
+    ``space.periodic_general`` measures by default), or None where that
+    reading does not fit it either (some axis neither free nor periodic
+    with period 1, or no axis periodic)."""
+    unit = _space.Space((False,) * dim, np.ones(dim))
+    with jax.ensure_compile_time_eval():
+        g = np.asarray(_space.gram(metric, unit, jnp.float32))
+    axes = _infer_periodic(*_probe_axes(metric, unit, g), True)
+    return axes if axes is not None and any(axes) else None
+
+
+def _undetermined_error(free, periodic, box_known: bool) -> ValueError:
+    a = next(a for a, (f, p) in enumerate(zip(free, periodic))
+             if f == p or (p and not box_known))
+    return ValueError(
+        f"could not tell from displacement_or_metric whether axis {a} is free"
+        " or periodic with the given box. Pass periodic=True/False (or one "
+        "bool per axis) explicitly, and check that box matches the "
+        "displacement function: box=L for space.periodic(L); for positions "
+        "in fractional coordinates (space.periodic_general's default), pass "
+        "fractional_coordinates=True.")
 
 
 def _normalise_periodic(periodic, dim: int) -> tuple[bool, ...]:
@@ -408,29 +453,72 @@ def _radii_errors(radii, r_cutoff: float) -> jax.Array:
 
 class _Setup(NamedTuple):
     """What the first ``allocate`` of a dimension fixes: the squared
-    metric ``fn(Ra, Rb, **kw)``, the grid's `jaxrt._space.Space` and the
-    `Query`."""
+    metric ``fn(Ra, Rb, **kw)``, the grid's `jaxrt._space.Space`, the
+    `Query`, and the warnings given so far for this factory and dimension
+    (``warned``, a mutable set of keys: each warning is given once)."""
 
     metric_fn: Callable
     grid: _space.Space
     query: Query
+    warned: set
+
+
+class SmallBoxWarning(UserWarning):
+    """A periodic box less than twice the cutoff across: the list holds
+    each pair once, through the image the caller's displacement picks, and
+    other images within the cutoff are in no neighbour list."""
 
 
 def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
     """Geometry and periodicity for positions of dimension ``dim`` (the
-    keywords of the first ``allocate`` reach the metric's probes)."""
+    keywords of the first ``allocate`` reach the metric's probes).
+
+    Where ``displacement_or_metric`` is neither free nor periodic with
+    ``box`` along some axis (inferred periodicity), or not periodic with
+    ``box`` along an axis given as periodic, but is periodic with period 1
+    there, the positions are fractional coordinates that the caller did not
+    announce (jax-md's Stillinger-Weber and EAM wrappers do not forward
+    ``fractional_coordinates``): the grid is then fractional, with a
+    warning."""
     fn = _metric_sq_fn(settings.metric, dim)
     axes = (None if settings.periodic is None
             else _normalise_periodic(settings.periodic, dim))
     box = settings.box
-    grid = _grid_space(box, dim, settings.fractional_coordinates, axes)
+    fractional = settings.fractional_coordinates
+    grid = _grid_space(box, dim, fractional, axes)
     has_box = any(part is not None for part in _box_parts(box, dim))
-    if axes is None:
-        metric = MetricSq(fn, dict(kwargs))
+    metric = MetricSq(fn, dict(kwargs))
+    if axes is None or (any(axes) and has_box and not fractional):
         with jax.ensure_compile_time_eval():
             g = np.asarray(_space.gram(metric, grid, jnp.float32))
-        axes = _infer_periodic(metric, grid, has_box, g)
-        grid = dataclasses.replace(grid, periodic=axes)
+        free, periodic = _probe_axes(metric, grid, g)
+        if axes is None:
+            inferred = _infer_periodic(free, periodic, has_box)
+            fits = inferred is not None
+        else:
+            fits = all(p <= q for p, q in zip(axes, periodic))
+        unit = None if fits or not has_box else _fractional_reading(metric,
+                                                                    dim)
+        if unit is not None and axes not in (None, unit):
+            unit = None  # periodic= says otherwise: leave it to allocate
+        if unit is not None:
+            warnings.warn(
+                "displacement_or_metric is periodic with period 1 along "
+                f"axes {[a for a in range(dim) if unit[a]]}, not with box: "
+                "the positions are taken as fractional coordinates. Pass "
+                "fractional_coordinates=True to say so (jax-md's "
+                "energy.*_neighbor_list wrappers do not forward it; "
+                "functools.partial(jaxrt.neighbor_list, "
+                "fractional_coordinates=True) as neighbor_list_fn does).",
+                stacklevel=4)
+            axes, fractional = unit, True
+            grid = _grid_space(box, dim, True, axes)
+        elif axes is None:
+            if not fits:
+                raise _undetermined_error(free, periodic, has_box)
+            axes = inferred
+        if grid.periodic != axes:
+            grid = dataclasses.replace(grid, periodic=axes)
     if any(axes) and not has_box:
         raise ValueError("periodic axes need box: pass the box side(s) "
                          "as box=L or box=(Lx, Ly[, Lz]).")
@@ -441,7 +529,7 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
             "box or fractional_coordinates=True.")
     query = Query(cutoff=settings.cutoff, periodic=axes,
                   mask_self=settings.mask_self, format=settings.format)
-    return _Setup(fn, grid, query)
+    return _Setup(fn, grid, query, set())
 
 
 class _Model(NamedTuple):
@@ -464,7 +552,11 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
     g = _space.gram(metric, grid, position.dtype)
     diagonal = grid.transform is None and _space.is_diagonal(g)
     h = _space.heights(g, diagonal)
-    _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64))
+    small = _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64),
+                          searcher)
+    if small is not None and "small box" not in setup.warned:
+        setup.warned.add("small box")
+        warnings.warn(small, SmallBoxWarning, stacklevel=3)
     metric_decides = not diagonal
     slack = 0.0
     if not getattr(searcher, "exact_for_any_metric", False):
@@ -773,8 +865,9 @@ class _Lists:
         h = _space.heights(g, capacity.orthorhombic)
         geometry = _geometry(setup.grid, h, position.dtype, capacity.slack,
                              self.reach(radii, position.dtype))
-        code = neighbors.error.code | _input_errors(position, setup.grid, h,
-                                                    self.settings.cutoff)
+        code = neighbors.error.code | _input_errors(
+            position, setup.grid, h, _box_limit(self.searcher,
+                                                self.settings.cutoff))
         if given_radii:
             code |= _radii_errors(jnp.asarray(radii),
                                   self.settings.r_cutoff)
@@ -836,21 +929,53 @@ def _check_unknown_keywords(unknown: dict) -> None:
         f"{', '.join(_ARGUMENTS)}.", stacklevel=3)
 
 
-def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray
-                  ) -> None:
-    """Refuse a cutoff of half a periodic height or more: an index-only list
-    would hold each pair once, through its nearest image, and drop the
-    other images within the cutoff, which interact too."""
+def lists_small_boxes(backend) -> bool:
+    """Whether ``backend`` lists periodic boxes less than twice the cutoff
+    across (its ``small_boxes`` capability, `jaxrt.backends.Backend`)."""
+    return bool(getattr(backend, "small_boxes", False))
+
+
+def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray,
+                  backend) -> str | None:
+    """A cutoff of half a periodic height or more (a small box): the
+    warning's text (`SmallBoxWarning`) where ``backend`` lists such boxes
+    (`lists_small_boxes`), else raise; None where the box is not small.
+
+    In a small box an index-only list holds each pair once, through the
+    image the caller's displacement picks, which is jax-md's list; the
+    other images within the cutoff interact too but are in no such list.
+    ``height``: float64 ``(dim,)`` per unit grid step (`_space.heights`).
+    """
     span = grid.period * height
-    for a, p in enumerate(grid.periodic):
-        if p and not bool(_space.cutoff_fits(cutoff, span[a])):
-            raise ValueError(
-                f"r_cutoff + dr_threshold = {cutoff:g} is not below half the "
-                f"periodic box's height on axis {a} (L/2 = {span[a] / 2:g}): "
-                "a neighbour list holds each pair once, through its nearest "
-                "image, and would drop the other images within the cutoff. "
-                "Use a larger box (replicate the cell) or a smaller r_cutoff "
-                "/ dr_threshold.")
+    small = [a for a, p in enumerate(grid.periodic)
+             if p and not bool(_space.cutoff_fits(cutoff, span[a]))]
+    if not small:
+        return None
+    a = small[0]
+    where = (f"r_cutoff + dr_threshold = {cutoff:g} is not below half the "
+             f"periodic box's height on axis {a} (L/2 = {span[a] / 2:g})")
+    if not lists_small_boxes(backend):
+        raise ValueError(
+            f"{where}, which backend={backend.name!r} needs (it finds each "
+            "pair through its nearest image and cannot tell which image the "
+            "displacement picks when several are within the cutoff). Use "
+            "backend='cell' or backend='brute', which list each pair once "
+            "through the image displacement_or_metric picks (jax-md's "
+            "list), a larger box (replicate the cell), or a smaller "
+            "r_cutoff / dr_threshold.")
+    return (f"{where}: the list holds each pair once, through the image "
+            "displacement_or_metric picks (as jax-md's does); other periodic "
+            "images of a pair within the cutoff are not in a neighbour list, "
+            "although they interact too. jaxrt.pairs lists every image, "
+            "with its lattice shift.")
+
+
+def _box_limit(backend, cutoff: float) -> float:
+    """The cutoff below half of which a periodic box passed to ``update``
+    must stay (else `ErrorCode.BOX_TOO_SMALL`): the list's where
+    ``backend`` refuses small boxes; 0 where it lists any box (only a box
+    of no height, or a non-finite one, is then flagged)."""
+    return 0.0 if lists_small_boxes(backend) else cutoff
 
 
 def _shorter_metric_error(position, metric, g, grid, i, j, dev, box

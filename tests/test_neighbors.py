@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import warnings
 
 import hypothesis
 import hypothesis.strategies as st
@@ -817,3 +818,117 @@ def test_portable_candidates_past_int32_are_refused_before_counting():
     nbrs = jaxrt.neighbor_list(disp, None, 1.5,
                                backend=limited(n * n)).allocate(R)
     assert int(np.sum(np.asarray(nbrs.idx) < n)) == n * (n - 1)
+
+
+# --------------------------------------------------------------------------
+# Fractional positions the caller does not announce. jax-md's
+# Stillinger-Weber and EAM wrappers take fractional_coordinates but do not
+# pass it on to neighbor_list_fn: on a space.periodic_general(box) space
+# (fractional positions by default) the list is asked for with a box and no
+# word of fractional coordinates. jaxrt must read the displacement as one of
+# fractional coordinates (it is periodic with period 1) and give jax-md's
+# list, with a warning naming fractional_coordinates=True.
+
+
+def _fcc_fractional(basis, n: int):
+    """Fractional positions (float32 ``(n**3 len(basis), 3)``) of a basis
+    (fractional, in the primitive cell) repeated ``n`` times per axis."""
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"),
+                     -1).reshape(-1, 3)
+    basis = np.asarray(basis, np.float64)
+    return ((cells[:, None, :] + basis[None]) / n).reshape(-1, 3).astype(
+        np.float32)
+
+
+def _fcc_box(a: float, n: int) -> np.ndarray:
+    """The fcc primitive lattice vectors (columns) times ``n``."""
+    return (np.array([[0, 1, 1], [1, 0, 1], [1, 1, 0]]) * a / 2 * n).astype(
+        np.float32)
+
+
+def _silicon(n: int = 3):
+    """Diamond silicon (a = 5.428 Å): two atoms per fcc primitive cell."""
+    return _fcc_fractional([[0, 0, 0], [0.25, 0.25, 0.25]], n), \
+        _fcc_box(5.428, n)
+
+
+def _our_eam(cutoff: float):
+    """A small EAM of our own (smooth to zero at ``cutoff``)."""
+    def charge(r):
+        return jnp.where(r < cutoff, (cutoff - r) ** 2, 0.0)
+
+    def embedding(rho):
+        return -jnp.sqrt(rho + 1e-12)
+
+    def pairwise(r):
+        return jnp.where(r < cutoff, 0.2 * (cutoff - r) ** 3, 0.0)
+    return charge, embedding, pairwise
+
+
+def _unannounced_scene(name):
+    """``(displacement, box_size, positions, wrapper)``: ``wrapper(disp,
+    box_size, neighbor_list_fn)`` -> jax-md's (neighbor_fn, energy_fn)."""
+    if name == "stillinger-weber":
+        R, box = _silicon(3)
+
+        def wrapper(disp, box_size, neighbor_list_fn):
+            return energy.stillinger_weber_neighbor_list(
+                disp, box_size, neighbor_list_fn=neighbor_list_fn)
+    else:
+        # fcc aluminium-like, 4 cells per axis: fractional differences of
+        # exactly 1/2, where jax-md's wrap picks -1/2 (a triclinic box makes
+        # the two images differ in length).
+        R, box = _fcc_fractional([[0, 0, 0]], 4), _fcc_box(4.05, 4)
+
+        def wrapper(disp, box_size, neighbor_list_fn):
+            return energy.eam_neighbor_list(
+                disp, box_size, *_our_eam(4.0), cutoff=4.0,
+                format=partition.Dense, neighbor_list_fn=neighbor_list_fn)
+    disp, _ = space.periodic_general(jnp.asarray(box))
+    # As jax-md's own tests pass it: a side length, not the box.
+    box_size = float(np.linalg.det(box.astype(np.float64)) ** (1 / 3))
+    return disp, box_size, jnp.asarray(R), wrapper
+
+
+@pytest.mark.parametrize("name", ["stillinger-weber", "eam"])
+def test_fractional_positions_the_wrapper_does_not_announce(name):
+    disp, box_size, R, wrapper = _unannounced_scene(name)
+    ref_fn, energy_fn = wrapper(disp, box_size, partition.neighbor_list)
+    ref = ref_fn.allocate(R)
+    with pytest.warns(UserWarning, match="fractional_coordinates=True"):
+        neighbor_fn, _ = wrapper(disp, box_size, jaxrt.neighbor_list)
+        nbrs = neighbor_fn.allocate(R)
+    assert not nbrs.did_buffer_overflow
+    assert list_pairs(nbrs) == list_pairs(ref)
+    # The same terms summed in another order (float32, a few hundred
+    # terms per atom: 1e-5 of the energy is ~100 ulps of each sum).
+    np.testing.assert_allclose(energy_fn(R, nbrs), energy_fn(R, ref),
+                               rtol=1e-5)
+    if name == "stillinger-weber":
+        # The perfect crystal's energy per atom, from jax-md's all-pairs
+        # Stillinger-Weber (no list).
+        want = energy.stillinger_weber(disp)(R) / len(R)
+        np.testing.assert_allclose(energy_fn(R, nbrs) / len(R), want,
+                                   rtol=1e-5)
+    # periodic=True, the fix an earlier error message suggested, reads the
+    # positions the same way; fractional_coordinates=True says it outright.
+    with pytest.warns(UserWarning, match="fractional_coordinates=True"):
+        periodic = wrapper(disp, box_size, functools.partial(
+            jaxrt.neighbor_list, periodic=True))[0].allocate(R)
+    assert list_pairs(periodic) == list_pairs(ref)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        said = wrapper(disp, box_size, functools.partial(
+            jaxrt.neighbor_list, fractional_coordinates=True))[0].allocate(R)
+    assert not [w for w in caught if "fractional" in str(w.message)]
+    assert list_pairs(said) == list_pairs(ref)
+
+
+def test_a_displacement_periodic_with_neither_box_nor_one_is_refused():
+    """Neither the box's period nor fractional coordinates' period 1: the
+    error names periodic=, the box and fractional_coordinates=True."""
+    disp, _ = space.periodic(3.0)
+    R = jax.random.uniform(jax.random.PRNGKey(0), (10, 3)) * 3.0
+    with pytest.raises(ValueError, match="periodic=True/False.*"
+                       "fractional_coordinates=True"):
+        jaxrt.neighbor_list(disp, 7.0, 1.0).allocate(R)

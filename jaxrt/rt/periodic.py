@@ -60,8 +60,10 @@ def cutoff_error(cutoff: float, side: float, axis: int) -> str:
     return (f"the search radius r_cutoff + dr_threshold = {cutoff:g} must be "
             f"below half the periodic box side {side:g} on axis {axis} for the "
             "ray-traced backends (they report each pair through its nearest "
-            "image only). Use a larger box, a smaller r_cutoff / dr_threshold, "
-            "or backend='cell'.")
+            "image only). Use backend='cell' or backend='brute' (they list "
+            "each pair once, through the image the displacement picks, as "
+            "jax-md does), a larger box, or a smaller r_cutoff / "
+            "dr_threshold.")
 
 
 def check_cutoff(cutoff: float, side, periodic) -> None:
