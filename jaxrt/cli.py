@@ -1,6 +1,6 @@
 """The ``jaxrt`` command.
 
-    jaxrt demo [--steps 500] [--n 2048] [--backend auto] [--out jaxrt-out]
+    jaxrt demo [--steps 2000] [--n 2048] [--backend auto] [--out jaxrt-out]
         LJ fluid NVE; checks jaxrt's list against jax-md's every chunk.
         The same as ``jaxrt run lj-fluid --compare-jax-md``.
     jaxrt run SCENE.toml|NAME [--steps N] [--out DIR] [--chunk K]
@@ -14,6 +14,9 @@
                    [--budget S] [--knobs a,b] [--n N] [--steps N]
         what accuracy costs in time: every knob against a float64
         reference (CSV, one PNG per knob, summary.md; jaxrt.accuracy)
+
+Arguments and scene files are checked before JAX, jax-md and Warp are
+imported (they take seconds to load): a typo is reported at once.
 """
 from __future__ import annotations
 
@@ -28,6 +31,28 @@ import warnings
 import numpy as np
 
 DEMO_STEPS, DEMO_N = 2000, 2048
+TOML_STEPS = 1000
+"""Steps of a scene read from a TOML file when --steps is not given."""
+
+EXAMPLE_SCENE = """\
+name = "two-atoms"
+
+[box]
+size = [10.0, 10.0, 10.0]
+boundary = "periodic"            # per axis: "periodic", "wall" or "free"
+
+[particles]
+positions = [[1.0, 1.0, 1.0], [2.2, 1.0, 1.0]]
+temperature = 1.0                # or velocities = [[vx, vy, vz], ...]
+
+[[effects]]
+kind = "lj"
+r_cutoff = 2.5
+
+[integrator]
+dt = 0.005
+"""
+"""A minimal scene file (`run`'s help shows it)."""
 
 # trajectory.xyz names species 0, 1, 2, ... by these elements (ASE and OVITO
 # need real symbols; "X0" is a KeyError in ase.io.read): noble gases first,
@@ -42,9 +67,30 @@ _NOBLE = ("Ar", "Ne", "Kr", "Xe", "He", "Rn")
 XYZ_ELEMENTS = _NOBLE + tuple(e for e in _BY_Z if e not in _NOBLE)
 
 
+def _builtin_lines() -> list[str]:
+    """``name  steps  summary`` of each built-in scene (no JAX needed)."""
+    from jaxrt.sim.builtin import BUILTIN
+    return [f"{name:16s} {steps:5d} steps  "
+            f"{factory.__doc__.strip().splitlines()[0]}"
+            for name, (factory, steps) in BUILTIN.items()]
+
+
+def _run_epilog() -> str:
+    builtin = "\n".join("  " + line for line in _builtin_lines())
+    example = "\n".join(("  " + line).rstrip()
+                        for line in EXAMPLE_SCENE.splitlines())
+    return (f"built-in scenes (also `jaxrt scenes`):\n{builtin}\n\n"
+            "a scene file (TOML), the smallest:\n\n"
+            f"{example}\n\n"
+            "every table, key and effect, with defaults: `python -m pydoc "
+            "jaxrt.sim.toml`.\nOutputs in --out: energies.png, final.png, "
+            "snapshots.npz, trajectory.xyz.")
+
+
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="jaxrt", description=__doc__.split(
-        "\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="jaxrt", description="Run simulations on jaxrt's neighbour "
+        "lists; `jaxrt COMMAND --help` for each command.")
     sub = ap.add_subparsers(dest="command", required=True)
     sub.add_parser("scenes", help="list the built-in scenes (for jaxrt "
                    "run NAME): name, default steps, what each is")
@@ -52,7 +98,9 @@ def _parser() -> argparse.ArgumentParser:
                          "accuracy for time against a float64 reference")
     acc.add_argument("scene", nargs="?", default="lj-fluid",
                      choices=("lj-fluid", "lj-fluid-2d", "dam-break"))
-    acc.add_argument("--out", default="jaxrt-accuracy")
+    acc.add_argument("--out", default="jaxrt-accuracy",
+                     help="folder for the CSV, PNGs and summary.md "
+                     "(default: %(default)s)")
     acc.add_argument("--quick", action="store_true",
                      help="small N, short runs, a subset of values (a CPU "
                      "in a few minutes)")
@@ -67,10 +115,14 @@ def _parser() -> argparse.ArgumentParser:
     acc.add_argument("--steps", type=int, default=None,
                      help="steps per run")
     for name in ("run", "demo"):
-        p = sub.add_parser(name, help="run a scene" if name == "run" else
-                           "LJ fluid NVE, compared with jax-md's lists")
         if name == "run":
-            p.add_argument("scene", help="a .toml file or a built-in name")
+            p = sub.add_parser(
+                name, help="run a scene: a TOML file or a built-in name",
+                description="Run a scene: a TOML file or a built-in name.",
+                epilog=_run_epilog(),
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+            p.add_argument("scene", help="a .toml file or a built-in name "
+                           "(listed below)")
             p.add_argument("--compare-jax-md", action="store_true",
                            help="check jaxrt's list equals jax-md's at every "
                            "chunk and time both rebuilds")
@@ -88,8 +140,20 @@ def _parser() -> argparse.ArgumentParser:
                            help="write pairs.npy: the list's pairs (i < j, "
                            "as i * N + j) closer than the cutoff at the "
                            "final positions")
-        p.add_argument("--steps", type=int, default=None)
-        p.add_argument("--out", default="jaxrt-out")
+            steps_help = ("time steps to run (default: the built-in "
+                          "scene's, listed below; "
+                          f"{TOML_STEPS} for a TOML file)")
+        else:
+            p = sub.add_parser(name, help="LJ fluid NVE, compared with "
+                               "jax-md's lists", description="The LJ fluid "
+                               "(run lj-fluid), its list checked against "
+                               "jax-md's at every chunk.")
+            steps_help = f"time steps to run (default: {DEMO_STEPS})"
+        p.add_argument("--steps", type=int, default=None, help=steps_help)
+        p.add_argument("--out", default="jaxrt-out",
+                       help="folder for energies.png, final.png, "
+                       "snapshots.npz and trajectory.xyz, made if missing "
+                       "(default: %(default)s)")
         p.add_argument("--chunk", type=int, default=None,
                        help="steps per jitted chunk (overflow is checked "
                        "between chunks); default steps/10, at most 100")
@@ -97,26 +161,25 @@ def _parser() -> argparse.ArgumentParser:
                        help="neighbour backend (see jaxrt.available_backends)")
         p.add_argument("--n", type=int, default=None,
                        help="particles (lj-fluid, lj-polydisperse and "
-                       "boids only)")
+                       "boids only)" + ("" if name == "run" else
+                                        f"; default: {DEMO_N}"))
     return ap
 
 
+_TAKES_N = ("lj-fluid", "boids", "lj-polydisperse")
+"""Built-in scenes whose factory takes a particle count (--n)."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit status."""
+    """Entry point; returns the exit status.
+
+    Arguments and the scene file are checked before JAX, jax-md and Warp
+    are imported (`_early_error`), so that a mistake is reported at once.
+    """
+    from_command_line = argv is None
     args = _parser().parse_args(argv)
-    warnings.filterwarnings("ignore", message="Explicitly requested dtype")
-    devices = getattr(args, "devices", None)
-    if devices is not None:
-        if devices < 1:
-            print("jaxrt: --devices must be >= 1", file=sys.stderr)
-            return 2
-        if argv is None:  # the command line: it may start itself again
-            _fake_cpu_devices(devices)
-    from jaxrt import sim
     if args.command == "scenes":
-        for name, (factory, steps) in sim.BUILTIN.items():
-            summary = factory.__doc__.strip().split("\n")[0]
-            print(f"{name:16s} {steps:5d} steps  {summary}")
+        print("\n".join(_builtin_lines()))
         return 0
     if args.command == "accuracy":
         return _accuracy(args)
@@ -124,15 +187,21 @@ def main(argv: list[str] | None = None) -> int:
         args.scene, args.compare_jax_md = "lj-fluid", True
         args.steps = args.steps or DEMO_STEPS
         args.n = args.n or DEMO_N
+    problem = _early_error(args)
+    if problem:
+        print(f"jaxrt: {problem}", file=sys.stderr)
+        return 2
+    warnings.filterwarnings("ignore", message="Explicitly requested dtype")
+    devices = getattr(args, "devices", None)
+    if devices is not None and from_command_line:
+        _fake_cpu_devices(devices)  # it may start the command again
+    from jaxrt import sim
     try:
         scene, default_steps = _load(args)
     except sim.SceneError as e:
         print(f"jaxrt: bad scene: {e}", file=sys.stderr)
         return 2
     steps = args.steps or default_steps
-    if steps < 1:
-        print("jaxrt: --steps must be >= 1", file=sys.stderr)
-        return 2
     if getattr(args, "dtype", None):
         scene = dataclasses.replace(scene, dtype=args.dtype)
     check_brute = (getattr(args, "check_brute", False)
@@ -156,6 +225,38 @@ def main(argv: list[str] | None = None) -> int:
         compare_jax_md=args.compare_jax_md, check_brute=check_brute,
         save_pairs=save_pairs)
     return 0
+
+
+def _early_error(args) -> str | None:
+    """What is wrong with ``run``'s (or ``demo``'s) arguments and scene
+    file that can be told without JAX, or None: counts below 1, a scene
+    that is neither a built-in name nor a file, and the scene file's TOML
+    and keys (`jaxrt.sim.toml.check_text`; an effect's parameters are
+    checked when the scene is loaded)."""
+    from jaxrt.sim.builtin import BUILTIN
+    from jaxrt.sim.spec import SceneError
+    from jaxrt.sim.toml import check_text
+    for flag in ("steps", "chunk", "n", "devices"):
+        value = getattr(args, flag, None)
+        if value is not None and value < 1:
+            return f"--{flag} must be >= 1; got {value}."
+    if args.scene in BUILTIN:
+        if args.n is not None and args.scene not in _TAKES_N:
+            return (f"--n: only {', '.join(_TAKES_N)} take a particle "
+                    "count.")
+        return None
+    path = pathlib.Path(args.scene)
+    if not path.is_file():
+        return (f"{args.scene!r} is neither a file nor a built-in scene "
+                f"({', '.join(BUILTIN)}); `jaxrt run --help` shows how to "
+                "write a scene file.")
+    if args.n is not None:
+        return f"--n: only for the built-in {', '.join(_TAKES_N)}."
+    try:
+        check_text(path.read_text(), base=path.parent)
+    except SceneError as e:
+        return f"bad scene: {e}"
+    return None
 
 
 def _fake_cpu_devices(n: int) -> None:
@@ -198,23 +299,13 @@ def _load(args):
     kw = {}
     if args.backend:
         kw["backend"] = args.backend
-    if args.scene in sim.BUILTIN:
+    if args.scene in sim.BUILTIN:  # --n and the file: `_early_error`
         if args.n is not None:
-            if args.scene not in ("lj-fluid", "boids", "lj-polydisperse"):
-                raise sim.SceneError("--n: only lj-fluid, lj-polydisperse "
-                                     "and boids take a particle count.")
             kw["n"] = args.n
         scene = sim.builtin(args.scene, **kw)
         steps = sim.BUILTIN[args.scene][1]
     else:
-        path = pathlib.Path(args.scene)
-        if not path.exists():
-            raise sim.SceneError(f"{args.scene!r} is neither a file nor a "
-                                 f"built-in scene ({', '.join(sim.BUILTIN)}).")
-        if args.n is not None:
-            raise sim.SceneError("--n: only for the built-in lj-fluid, "
-                                 "lj-polydisperse and boids.")
-        scene, steps = sim.load(path), 1000
+        scene, steps = sim.load(pathlib.Path(args.scene)), TOML_STEPS
         if args.backend:
             scene = dataclasses.replace(scene, neighbors=dataclasses.replace(
                 scene.neighbors, backend=args.backend))
@@ -630,10 +721,6 @@ def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
     frames, velocities: float ``(F, N, dim)`` per snapshot; frame_steps:
     ``F`` step numbers; ke, u: float ``(steps,)`` energies.
     """
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     p = scene.particles
     # velocity: the final one (kept for old readers); velocities: per frame.
     np.savez(out / "snapshots.npz", positions=frames, velocities=velocities,
@@ -642,28 +729,108 @@ def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
              box=np.asarray(scene.box.size))
     _write_xyz(out / "trajectory.xyz", scene, frames, velocities, frame_steps)
 
-    steps = np.arange(1, len(ke) + 1)
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(steps, ke, label="kinetic")
-    if np.any(u):
-        ax.plot(steps, u, label="potential")
-        ax.plot(steps, ke + u, label="total", color="k")
-    ax.set_xlabel("step")
-    ax.set_ylabel("energy")
-    ax.set_title(f"{scene.name}: energies")
-    ax.legend()
-    fig.savefig(out / "energies.png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    # Figures made without pyplot: nothing to close, no GUI backend.
+    energy_figure(scene, ke, u).savefig(out / "energies.png", dpi=100,
+                                        bbox_inches="tight")
+    final_figure(scene, frames[-1], np.asarray(state.velocity),
+                 frame_steps[-1]).savefig(out / "final.png", dpi=100,
+                                          bbox_inches="tight")
 
-    pos = frames[-1]
-    speed = np.linalg.norm(np.asarray(state.velocity), axis=1)
-    fig, ax = plt.subplots(figsize=(6, 6))
-    ax.scatter(pos[:, 0], pos[:, 1] if pos.shape[1] > 1 else 0 * pos[:, 0],
-               c=speed, s=4, cmap="viridis")
+
+@dataclasses.dataclass(frozen=True)
+class Units:
+    """Unit names for the plots' labels: ``length``, ``time``, ``energy``,
+    ``speed``, and ``system``, what they are (for the title)."""
+
+    length: str
+    time: str
+    energy: str
+    speed: str
+    system: str
+
+
+def units(scene) -> Units:
+    """The units a scene's numbers are in, as far as it tells: reduced LJ
+    units (σ, ε, τ = σ √(m/ε)) where an LJ effect has σ = ε = 1 and every
+    mass is 1; SI for the built-in dam break (its tank is given in metres
+    and its gravity as 9.81 m/s², in 2D energies per metre of depth);
+    otherwise the scene file's own, unnamed."""
+    p = scene.particles
+    lj = [e for e in scene.effects if getattr(e, "kind", None) == "lj"]
+    if lj and all(np.all(np.asarray(e.sigma, float) == 1.0)
+                  and np.all(np.asarray(e.epsilon, float) == 1.0)
+                  for e in lj) and np.all(p.masses == 1.0):
+        return Units("σ", "τ", "ε", "σ/τ", "reduced LJ units")
+    if scene.name == "dam-break":
+        energy = "J/m" if p.dim == 2 else "J"
+        return Units("m", "s", energy, "m/s", "SI units")
+    return Units("scene units", "scene units", "scene units", "scene units",
+                 "the scene's units")
+
+
+def energy_figure(scene, ke, u):
+    """The run's energies against time: kinetic, and where there is one,
+    potential and total (each summed over the particles), with the step on
+    the top axis. ke, u: float ``(steps,)``, after each step. Returns a
+    matplotlib Figure."""
+    from matplotlib.figure import Figure
+
+    un = units(scene)
+    dt = scene.integrator.dt
+    steps = np.arange(1, len(ke) + 1)
+    t = steps * dt
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
+    ax.plot(t, ke, label="kinetic")
+    if np.any(u):
+        ax.plot(t, u, label="potential")
+        ax.plot(t, ke + u, label="total", color="k")
+    ax.set_xlabel(f"time t ({un.time}); dt = {_amount(dt, un.time)}")
+    ax.set_ylabel(f"energy ({un.energy}), sum over "
+                  f"{scene.particles.n} particles")
+    top = ax.secondary_xaxis("top", functions=(lambda x: x / dt,
+                                               lambda k: k * dt))
+    top.set_xlabel("step")
+    ax.set_title(f"{scene.name}: energies ({un.system})", pad=10)
+    ax.legend()
+    return fig
+
+
+def final_figure(scene, position, velocity, step: int):
+    """The particles at the end of the run seen along z (3D: projected on
+    x-y; 1D: on the x axis), coloured by speed |v|, inside the box's
+    finite sides. position, velocity: float ``(N, dim)``; step: the step
+    they are at. Returns a matplotlib Figure."""
+    from matplotlib.figure import Figure
+
+    un = units(scene)
+    pos = np.asarray(position, float)
+    dim = pos.shape[1]
+    speed = np.linalg.norm(np.asarray(velocity, float), axis=1)
+    fig = Figure(figsize=(6.8, 6))
+    ax = fig.subplots()
+    y = pos[:, 1] if dim > 1 else np.zeros(len(pos))
+    dots = ax.scatter(pos[:, 0], y, c=speed, s=4, cmap="viridis")
+    fig.colorbar(dots, ax=ax, shrink=0.8,
+                 label=f"speed |v| ({un.speed})")
+    ax.set_xlabel(f"x ({un.length})")
+    ax.set_ylabel(f"y ({un.length})" if dim > 1 else "(1D: no y axis)")
+    size = np.asarray(scene.box.size, float)
+    for axis, set_lim in zip(range(min(dim, 2)), (ax.set_xlim, ax.set_ylim)):
+        if np.isfinite(size[axis]) and size[axis] > 0:
+            set_lim(0, size[axis])
     ax.set_aspect("equal")
-    ax.set_title(f"{scene.name}: final state (colour: speed; x-y)")
-    fig.savefig(out / "final.png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    view = {3: ", seen along z", 1: ", on the x axis"}.get(dim, "")
+    t = step * scene.integrator.dt
+    ax.set_title(f"{scene.name}: step {step}, t = {_amount(t, un.time)}"
+                 f"{view}")
+    return fig
+
+
+def _amount(value: float, unit: str) -> str:
+    """``value`` and its unit (the number alone in the scene's unnamed
+    units)."""
+    return f"{value:.4g}" if unit == "scene units" else f"{value:.4g} {unit}"
 
 
 def _triangulation_stats(nbrs) -> dict | None:
@@ -699,11 +866,16 @@ def _write_triangulation(path, scene, state, nbrs) -> None:
     fig, ax = plt.subplots(figsize=(8, 8))
     ax.add_collection(LineCollection(segments, colors="0.75",
                                      linewidths=0.3))
-    ax.quiver(R[:, 0], R[:, 1], V[:, 0], V[:, 1], np.linalg.norm(V, axis=1),
-              cmap="viridis", scale=30, width=0.003)
+    arrows = ax.quiver(R[:, 0], R[:, 1], V[:, 0], V[:, 1],
+                       np.linalg.norm(V, axis=1), cmap="viridis", scale=30,
+                       width=0.003)
+    un = units(scene)
+    fig.colorbar(arrows, ax=ax, shrink=0.8, label=f"speed |v| ({un.speed})")
     size = np.asarray(scene.box.size, float)
     ax.set_xlim(0, size[0])
     ax.set_ylim(0, size[1])
+    ax.set_xlabel(f"x ({un.length})")
+    ax.set_ylabel(f"y ({un.length})")
     ax.set_aspect("equal")
     ax.set_title(f"{scene.name}: {n} boids and their Delaunay triangulation")
     fig.savefig(path, dpi=120, bbox_inches="tight")

@@ -13,9 +13,12 @@ that silently lacks the bad particle's pairs.
 from __future__ import annotations
 
 import enum
+from typing import TYPE_CHECKING
 
 import numpy as np
-from jax_md.partition import NeighborList
+
+if TYPE_CHECKING:  # jax-md takes long to import; the CLI imports this early
+    from jax_md.partition import NeighborList
 
 
 class ErrorCode(enum.IntFlag):
@@ -73,6 +76,12 @@ _MESSAGES = {
 }
 
 
+# The causes that also set the overflow bit (module docstring): with one of
+# them set, "the buffer overflowed" would send the reader the wrong way.
+_SETS_OVERFLOW = (ErrorCode.NONFINITE_POSITION | ErrorCode.METRIC_MISMATCH
+                  | ErrorCode.BOX_TOO_SMALL | ErrorCode.SEARCH_FAILED)
+
+
 class NeighborListError(RuntimeError):
     """Raised by `check` for a list whose error bits are set."""
 
@@ -86,14 +95,17 @@ class ListTooLargeError(ValueError):
     switch to it."""
 
 
-def check(neighbors: NeighborList) -> None:
+def check(neighbors: "NeighborList") -> None:
     """Raise `NeighborListError` if ``neighbors`` carries any error bit.
 
     Host-side (it reads the error code), so call it outside ``jit``: after a
     ``lax.scan`` of steps, or every few hundred steps. Works on a batch of
-    lists (any bit set in any system).
+    lists (any bit set in any system). The message names each cause once:
+    the overflow bit that a cause sets with its own is not reported apart.
     """
     code = int(np.bitwise_or.reduce(np.asarray(neighbors.error.code).ravel()))
+    if code & _SETS_OVERFLOW:
+        code &= ~int(ErrorCode.NEIGHBOR_LIST_OVERFLOW)
     problems = [msg for bit, msg in _MESSAGES.items() if code & bit]
     if problems:
         raise NeighborListError("neighbour list error: " + " ".join(problems))

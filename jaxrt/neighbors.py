@@ -102,8 +102,11 @@ def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
     except Exception as e:  # noqa: BLE001 - re-raised with the argument named
         raise TypeError(
             "displacement_or_metric must be a function d(Ra, Rb) of two "
-            f"({dim},) positions, as made by jax_md.space; calling it "
-            f"failed with: {e}") from e
+            f"({dim},) positions (the positions are {dim}-D), as made by "
+            f"jax_md.space; calling it failed with: {e} A displacement "
+            "made for another dimension (space.periodic(side) with a side "
+            f"per axis of another count) fails so: make it for {dim}-D "
+            "positions.") from e
     if out.shape == ():
         return lambda ra, rb, **kw: displacement_or_metric(ra, rb, **kw) ** 2
     if out.shape != (dim,):
@@ -118,25 +121,49 @@ def _box_parts(box, dim: int):
     """The box as float64 ``(dim,)`` sides or a ``(dim, dim)`` triclinic
     matrix (columns are the lattice vectors, jax-md's convention): returns
     ``(sides, matrix)``, at most one of them not None; both None where no
-    usable box was given (None, or not positive: free space needs none)."""
+    usable box was given (None, or a side infinite or not positive: free
+    space needs none). Raises for a NaN entry and for a box whose shape
+    does not fit ``dim``-D positions."""
     if box is None:
         return None, None
     b = np.asarray(box, dtype=np.float64)
+    which = f"positions are {dim}-D (shape (N, {dim})) but box"
+    if b.ndim == 1 and b.shape != (dim,):
+        raise ValueError(
+            f"{which} has {b.shape[0]} sides: pass one side per axis "
+            f"({dim} sides) or a scalar, or positions with {b.shape[0]} "
+            "columns.")
+    if b.ndim == 2 and b.shape != (dim, dim):
+        raise ValueError(
+            f"{which} is a {b.shape} matrix: pass a ({dim}, {dim}) matrix "
+            f"(the lattice vectors as columns), {dim} sides or a scalar.")
+    if b.ndim > 2:
+        raise ValueError(f"box must be a scalar, ({dim},) or ({dim}, {dim}) "
+                         f"for {dim}D positions; got shape {b.shape}.")
+    if np.any(np.isnan(b)):
+        # Dropping the box as unusable (as for an infinite side) would
+        # blame the displacement, or the first axis, for a NaN on another.
+        at = tuple(int(k) for k in np.argwhere(np.isnan(b))[0])
+        if b.ndim == 0:
+            raise ValueError("box is nan: pass a finite side > 0 (or "
+                             "box=None in free space).")
+        if b.ndim == 1:
+            raise ValueError(
+                f"box has a non-finite side on axis {at[0]} (nan): pass a "
+                "finite side > 0 on every axis (a free axis's side is not "
+                "read; any positive number will do).")
+        raise ValueError(
+            f"box has a non-finite entry at [{at[0]}, {at[1]}] (nan): pass a "
+            "finite matrix with the lattice vectors as its columns.")
     if b.ndim == 0:
         b = np.full(dim, float(b))
     elif b.ndim == 2:
-        if b.shape != (dim, dim):
-            raise ValueError(f"box must be ({dim}, {dim}) for {dim}D positions;"
-                             f" got shape {b.shape}.")
         if np.any(b - np.diag(np.diag(b))):
             if not np.all(np.isfinite(b)) or abs(np.linalg.det(b)) <= 0:
                 raise ValueError("box is a singular or non-finite matrix; "
                                  "pass the lattice vectors as its columns.")
             return None, b
         b = np.diag(b)
-    elif b.shape != (dim,):
-        raise ValueError(f"box must be a scalar, ({dim},) or ({dim}, {dim}) "
-                         f"for {dim}D positions; got shape {b.shape}.")
     if not np.all(np.isfinite(b) & (b > 0)):
         return None, None
     return b, None
@@ -480,12 +507,14 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
     announce (jax-md's Stillinger-Weber and EAM wrappers do not forward
     ``fractional_coordinates``): the grid is then fractional, with a
     warning."""
-    fn = _metric_sq_fn(settings.metric, dim)
     axes = (None if settings.periodic is None
             else _normalise_periodic(settings.periodic, dim))
     box = settings.box
     fractional = settings.fractional_coordinates
+    # The box first: a box of another dimension also breaks the metric's
+    # probe, and its error would blame the displacement.
     grid = _grid_space(box, dim, fractional, axes)
+    fn = _metric_sq_fn(settings.metric, dim)
     has_box = any(part is not None for part in _box_parts(box, dim))
     metric = MetricSq(fn, dict(kwargs))
     if axes is None or (any(axes) and has_box and not fractional):
@@ -688,10 +717,13 @@ def _input_errors(position, grid: _space.Space, h, cutoff: float) -> jax.Array:
 def _metric_errors(position, metric, g, h, grid, capacity: Capacity
                    ) -> jax.Array:
     """Error bits of a rebuild: the extreme particles of each axis, where
-    the metric disagrees with its model fixed at ``allocate``."""
-    wrong = _space.extremes_disagree(position, metric, g, h, grid,
-                                     lower_bound_only=capacity.metric_decides,
-                                     slack=capacity.slack)
+    the metric disagrees with its model fixed at ``allocate``. Positions
+    with a NaN or infinite entry have their own bit (`_input_errors`): the
+    metric of such a particle is not compared."""
+    finite = jnp.all(jnp.isfinite(position))
+    wrong = finite & _space.extremes_disagree(
+        position, metric, g, h, grid, lower_bound_only=capacity.metric_decides,
+        slack=capacity.slack)
     if capacity.orthorhombic:
         wrong |= _space.off_diagonal(g)
     return _bits(wrong, ErrorCode.METRIC_MISMATCH | _OVERFLOW)

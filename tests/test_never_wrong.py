@@ -417,3 +417,59 @@ def test_box_sides_just_below_a_power_of_two_stay_orthorhombic(side, backend):
     capacity = nbrs.cell_list_capacity
     assert capacity.orthorhombic and not capacity.metric_decides
     assert list_pairs(nbrs) == brute_pairs(R, 0.9, side, True)
+
+
+# --------------------------------------------------------------------------
+# 7. Boxes that do not fit the positions, named as such.
+
+
+@pytest.mark.parametrize("axis", [0, 1, 2])
+@pytest.mark.parametrize("free", [False, True])
+def test_box_with_a_nan_side_is_refused_naming_its_axis(axis, free):
+    # Found: a NaN side dropped the whole box, so a periodic displacement
+    # was refused as ambiguous on axis 0 (whatever axis held the NaN), and
+    # a free one silently ran without it.
+    box = np.full(3, 6.0)
+    box[axis] = np.nan
+    disp = space.free()[0] if free else space.periodic(jnp.asarray(box))[0]
+    R = jax.random.uniform(jax.random.PRNGKey(23), (40, 3)) * 6.0
+    with pytest.raises(ValueError, match=rf"box has a non-finite side on "
+                                         rf"axis {axis} \(nan\)"):
+        jaxrt.neighbor_list(disp, box, 1.0).allocate(R)
+
+
+def test_triclinic_box_with_a_nan_entry_is_refused_naming_it():
+    box = np.eye(3) * 6.0
+    box[0, 2] = np.nan
+    disp = space.free()[0]
+    R = jax.random.uniform(jax.random.PRNGKey(24), (40, 3)) * 6.0
+    with pytest.raises(ValueError, match=r"box has a non-finite entry at "
+                                         r"\[0, 2\] \(nan\)"):
+        jaxrt.neighbor_list(disp, box, 1.0).allocate(R)
+
+
+@pytest.mark.parametrize("box", [(6.0, 6.0, 6.0), np.eye(3) * 6.0],
+                         ids=["sides", "matrix"])
+@pytest.mark.parametrize("made_for", [2, 3])
+def test_2d_positions_with_a_3d_box_name_the_dimensions(box, made_for):
+    # Found: with space.periodic of the same 3 sides the error blamed
+    # displacement_or_metric ("incompatible shapes for broadcasting") and
+    # never said that positions and box disagree on the dimension.
+    box = np.asarray(box)
+    side = jnp.asarray(np.full(made_for, 6.0))
+    disp, _ = space.periodic(side)
+    R = jax.random.uniform(jax.random.PRNGKey(25), (40, 2)) * 6.0
+    with pytest.raises(ValueError, match=r"positions are 2-D \(shape "
+                                         r"\(N, 2\)\) but box has 3 sides"
+                                         if box.ndim == 1 else
+                                         r"positions are 2-D \(shape "
+                                         r"\(N, 2\)\) but box is a \(3, 3\)"):
+        jaxrt.neighbor_list(disp, box, 1.0).allocate(R)
+
+
+def test_displacement_of_another_dimension_is_named_as_such():
+    disp, _ = space.periodic(jnp.asarray([6.0, 6.0, 6.0]))
+    R = jax.random.uniform(jax.random.PRNGKey(26), (40, 2)) * 6.0
+    with pytest.raises(TypeError, match=r"positions are 2-D.*made for "
+                                        r"another dimension"):
+        jaxrt.neighbor_list(disp, 6.0, 1.0).allocate(R)

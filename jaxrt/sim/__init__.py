@@ -23,37 +23,29 @@ A run::
     state, nbrs = jaxrt.sim.run_chunk(compiled, state, nbrs, steps=100,
                                       stats=stats)
 """
-from jaxrt.sim.spec import (BOUNDARIES, Box, Context, Effect, Integrator,
-                            Neighbors, Particles, Scene, SceneError, Term,
-                            check_reach, make_particles)
-from jaxrt.sim.effects import (EFFECTS, LJ, Boids, Gravity, Registry,
-                               SPHDensity,
-                               SPHPressure, SPHViscosity, Walls, register,
-                               registered, unregister)
-from jaxrt.sim.validate import check_backend
-from jaxrt.sim.toml import from_toml, load, to_toml
-from jaxrt.sim.compile import (FORMATS, Compiled, State, Trace, compile_scene,
-                               list_radii)
-from jaxrt.sim.run import BlowUpError, RunStats, run_chunk
-from jaxrt.sim.builtin import (BUILTIN, boids, builtin, dam_break,
-                               lj_fluid, lj_polydisperse, sphere_surface)
+from jaxrt._lazy import lazy_package
 
-__all__ = [
-    # spec
-    "BOUNDARIES", "Box", "Context", "Effect", "Integrator", "Neighbors",
-    "Particles", "Scene", "SceneError", "Term", "check_reach",
-    "make_particles",
-    # effects
-    "EFFECTS", "LJ", "Boids", "Gravity", "Registry", "SPHDensity", "SPHPressure",
-    "SPHViscosity", "Walls", "register", "registered", "unregister",
-    # validate, toml
-    "check_backend", "from_toml", "load", "to_toml",
-    # compile, run
-    "FORMATS", "BlowUpError", "Compiled", "State", "Trace", "compile_scene",
-    "list_radii",
-    "RunStats",
-    "run_chunk",
-    # builtin
-    "BUILTIN", "boids", "builtin", "dam_break", "lj_fluid", "lj_polydisperse",
-    "sphere_surface",
-]
+# The modules above, by the names each exports; each is imported when one
+# of its names is first read, so that the spec, the TOML reader and the
+# list of built-in scenes load without JAX (`jaxrt._lazy`).
+_MODULES = {
+    "spec": ("BOUNDARIES", "Box", "Context", "Effect", "Integrator",
+             "Neighbors", "Particles", "Scene", "SceneError", "Term",
+             "check_reach", "make_particles"),
+    "effects": ("EFFECTS", "LJ", "Boids", "Gravity", "Registry",
+                "SPHDensity", "SPHPressure", "SPHViscosity", "Walls",
+                "register", "registered", "unregister"),
+    "validate": ("check_backend",),
+    "toml": ("from_toml", "load", "to_toml"),
+    "compile": ("FORMATS", "Compiled", "State", "Trace", "compile_scene",
+                "list_radii"),
+    "run": ("BlowUpError", "RunStats", "run_chunk"),
+    "builtin": ("BUILTIN", "boids", "builtin", "dam_break", "lj_fluid",
+                "lj_polydisperse", "sphere_surface"),
+}
+
+__all__ = [name for names in _MODULES.values() for name in names]
+
+lazy_package(__name__, {name: f"{__name__}.{module}"
+                        for module, names in _MODULES.items()
+                        for name in names}, shadowed=("builtin",))

@@ -1,20 +1,17 @@
 """The built-in scenes, by name in `BUILTIN` (``jaxrt scenes`` lists them).
 
 Each factory returns a `Scene`; the first line of its docstring is the
-summary ``jaxrt scenes`` prints.
+summary ``jaxrt scenes`` prints. The effects (and JAX with them) are
+imported by the factories, so that `BUILTIN` lists the scenes without JAX.
 """
 from __future__ import annotations
 
 import math
 from typing import Callable
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxrt import seed_distributions
-from jaxrt.energy import sph as _sph
-from jaxrt.sim.effects import (LJ, Boids, Gravity, SPHDensity, SPHPressure,
-                               SPHViscosity, Walls)
 from jaxrt.sim.spec import (Box, Integrator, Neighbors, Scene, SceneError,
                             make_particles)
 
@@ -29,6 +26,7 @@ def lj_fluid(*, n: int = 2048, density: float = 0.8, kT: float = 1.0,
     cut from 2.0 to 2.5 sigma, skin 0.3, time step ``dt``. Named
     ``lj-fluid`` (``lj-fluid-2d`` in 2D).
     """
+    from jaxrt.sim.effects import LJ
     side = math.sqrt(n / density) if dim == 2 else (n / density) ** (1 / 3)
     pos = seed_distributions.lattice(n, side, dim=dim)
     flat = dim == 3  # the 3D scene keeps its name and description
@@ -70,6 +68,7 @@ def lj_polydisperse(*, n: int = 1000, density: float = 0.45,
     ``density``, skin 0.3, time step ``dt``. Positions float64 ``(n,
     dim)``; the LJ's radii float ``(n,)``, in the particles' order.
     """
+    from jaxrt.sim.effects import LJ
     r = np.asarray(radii, float)
     f = np.asarray(fractions, float)
     if r.ndim != 1 or not r.size or not np.all(np.isfinite(r) & (r > 0)):
@@ -144,6 +143,8 @@ def dam_break(*, dx: float = 0.05, backend: str = "auto") -> Scene:
     A 1 x 2 m column at particle spacing ``dx`` in a 4 x 3 m tank, gravity,
     Tait pressure, artificial viscosity, potential walls.
     """
+    from jaxrt.sim.effects import (Gravity, SPHDensity, SPHPressure,
+                                   SPHViscosity, Walls)
     g, height = 9.81, 2.0
     xs = np.arange(dx / 2, 1.0, dx)
     ys = np.arange(dx / 2, height, dx)
@@ -174,6 +175,10 @@ def sphere_surface(*, alpha: int = 8, p: int = 2, backend: str = "auto",
     ``p``), no gravity: the shell relaxes under pressure. Kernel support =
     the seed's cutoff.
     """
+    import jax.numpy as jnp
+
+    from jaxrt.energy import sph as _sph
+    from jaxrt.sim.effects import SPHDensity, SPHPressure, SPHViscosity
     pos, cutoff = seed_distributions.sphere_surface(alpha, p, seed)
     h = cutoff / 2  # cubic spline support is 2h
     c0 = 1.0
@@ -207,6 +212,7 @@ def boids(*, n: int = 2000, neighbours: float = 12.0, dt: float = 0.05,
     0.1, Dense, capacity multiplier 2. ``jaxrt run boids`` checks the list
     against brute force after every chunk and draws the triangulation.
     """
+    from jaxrt.sim.effects import Boids
     rng = np.random.default_rng(seed)
     rule = Boids()
     side = math.sqrt(math.pi * rule.radius ** 2 * n / neighbours)

@@ -18,13 +18,17 @@ import contextlib
 import dataclasses
 from typing import Any, ClassVar, Iterator
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.energy import lj as _lj
-from jaxrt.energy import sph as _sph
+from jaxrt._lazy import lazy_module
 from jaxrt.sim.spec import Context, SceneError, Term, check_reach
+
+# Imported on first use: the TOML reader checks an effect's keys, and the
+# jaxrt command a scene file, before JAX and jax-md are loaded.
+jax = lazy_module("jax")
+jnp = lazy_module("jax.numpy")
+_lj = lazy_module("jaxrt.energy.lj")
+_sph = lazy_module("jaxrt.energy.sph")
 
 
 class Registry:

@@ -57,10 +57,10 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import re
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from jaxrt.sim.effects import EFFECTS, Registry
 from jaxrt.sim.spec import (Box, Integrator, Neighbors, Particles, Scene,
                             SceneError, make_particles)
 from jaxrt.sim.validate import check_backend
@@ -72,6 +72,9 @@ except ImportError:  # Python 3.10
 
 _PARTICLE_ARRAYS = ("positions", "velocities", "masses", "species", "radius")
 
+if TYPE_CHECKING:  # the effects import JAX; `check_text` runs without it
+    from jaxrt.sim.effects import Registry
+
 
 def from_toml(text: str, *, base: pathlib.Path | None = None,
               effects: Registry | None = None) -> Scene:
@@ -80,17 +83,38 @@ def from_toml(text: str, *, base: pathlib.Path | None = None,
     base: folder for ``particles.file`` (default: the working directory).
     effects: the registry to look ``kind`` up in (default ``EFFECTS``).
     """
+    data = _parse(text)
+    if effects is None:
+        from jaxrt.sim.effects import EFFECTS
+        effects = EFFECTS
     try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"not valid TOML: {e}") from None
-    try:
-        scene = _scene(data, base or pathlib.Path("."),
-                       EFFECTS if effects is None else effects)
+        scene = _scene(data, base or pathlib.Path("."), effects)
         check_backend(scene)
         return scene
     except SceneError as e:
         raise SceneError(_with_line(str(e), text)) from None
+
+
+def check_text(text: str, *, base: pathlib.Path | None = None) -> None:
+    """Check scene TOML as far as the spec alone can, without importing
+    JAX: the TOML itself, the keys and values of every table, and each
+    effect's kind and keys (`from_toml` also runs the effects' checks
+    against the whole scene, which need JAX). Raises `SceneError` naming
+    the field and its line. ``base`` as in `from_toml`."""
+    from jaxrt.sim.effects import EFFECTS
+    data = _parse(text)
+    try:
+        _parts(data, base or pathlib.Path("."))
+        _effects(data.get("effects", []), EFFECTS)
+    except SceneError as e:
+        raise SceneError(_with_line(str(e), text)) from None
+
+
+def _parse(text: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"not valid TOML: {e}") from None
 
 
 def load(path: str | pathlib.Path, *, effects: Registry | None = None
@@ -142,6 +166,20 @@ def _check_keys(table: dict, allowed, where: str) -> None:
 
 
 def _scene(d: dict, base: pathlib.Path, effects: Registry) -> Scene:
+    box, particles, integrator, neighbors = _parts(d, base)
+    effect_list = _effects(d.get("effects", []), effects)
+    return Scene(particles=particles, box=box, effects=effect_list,
+                 integrator=integrator, neighbors=neighbors,
+                 name=d.get("name", "scene"),
+                 description=d.get("description", ""),
+                 dtype=d.get("dtype", "float32"))
+
+
+def _parts(d: dict, base: pathlib.Path
+           ) -> tuple[Box, Particles, Integrator, Neighbors]:
+    """The scene's parts other than its effects, checked and built by the
+    spec alone (no JAX); of the effects, that each is a table with a
+    kind."""
     _check_keys(d, ("name", "description", "dtype", "box", "particles",
                     "effects", "integrator", "neighbors"), "")
     for key in ("box", "particles", "integrator"):
@@ -149,18 +187,14 @@ def _scene(d: dict, base: pathlib.Path, effects: Registry) -> Scene:
             raise SceneError.at(key, f"missing table [{key}].")
     box = _box(d["box"])
     particles = _particles(d["particles"], base)
-    effect_list = _effects(d.get("effects", []), effects)
+    _effect_tables(d.get("effects", []))
     it = d["integrator"]
     _check_keys(it, _fields(Integrator), "integrator")
     if "dt" not in it:
         raise SceneError.at("integrator.dt", "missing parameter.")
     nb = d.get("neighbors", {})
     _check_keys(nb, _fields(Neighbors), "neighbors")
-    return Scene(particles=particles, box=box, effects=effect_list,
-                 integrator=Integrator(**it), neighbors=Neighbors(**nb),
-                 name=d.get("name", "scene"),
-                 description=d.get("description", ""),
-                 dtype=d.get("dtype", "float32"))
+    return box, particles, Integrator(**it), Neighbors(**nb)
 
 
 def _box(b) -> Box:
@@ -192,15 +226,20 @@ def _particles(table, base: pathlib.Path) -> Particles:
         seed=p.get("seed", 0))
 
 
-def _effects(raw, registry: Registry) -> tuple:
+def _effect_tables(raw) -> None:
     if not isinstance(raw, list):
         raise SceneError.at("effects", "must be an array of tables "
                             "[[effects]].")
+    for i, e in enumerate(raw):
+        if not isinstance(e, dict) or "kind" not in e:
+            raise SceneError.at(f"effects[{i}].kind", "missing parameter.")
+
+
+def _effects(raw, registry: Registry) -> tuple:
+    _effect_tables(raw)
     out = []
     for i, e in enumerate(raw):
         where = f"effects[{i}]"
-        if not isinstance(e, dict) or "kind" not in e:
-            raise SceneError.at(f"{where}.kind", "missing parameter.")
         kind = e["kind"]
         if kind not in registry:
             raise SceneError.at(f"{where}.kind", f"unknown effect {kind!r}; "
@@ -241,7 +280,8 @@ def _with_line(msg: str, text: str) -> str:
         s = lines[i].strip()
         if s.startswith("[") and i > start + 1 and start >= 0:
             break
-        if re.match(rf"{re.escape(key)}\s*=", s):
+        if re.match(rf"{re.escape(key)}\s*=", s) or (
+                start < 0 and s in (f"[{key}]", f"[[{key}]]")):
             return f"{msg} (line {i + 1})"
     return f"{msg} (line {start + 1})" if start >= 0 else msg
 

@@ -47,9 +47,33 @@ def test_non_finite_position_is_refused_and_flagged(backend, value):
     nbrs = fns.allocate(R)
     flagged = jax.jit(fns.update)(bad, nbrs)
     assert int(flagged.error.code) & BAD == BAD
+    assert not int(flagged.error.code) & ErrorCode.METRIC_MISMATCH
     assert flagged.did_buffer_overflow
     with pytest.raises(jaxrt.NeighborListError, match="NaN or infinite"):
         jaxrt.check(flagged)
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_non_finite_position_is_reported_alone(periodic):
+    """The rebuild's metric check reads the extreme particles of each axis;
+    a NaN among them must not also be reported as a metric that disagrees
+    with the box (found: check's message blamed displacement_or_metric and
+    a buffer overflow next to the NaN)."""
+    R = scene()
+    disp = space.periodic(6.0)[0] if periodic else space.free()[0]
+    fns = jaxrt.neighbor_list(disp, 6.0 if periodic else None, 1.0,
+                              backend="cell")
+    nbrs = fns.allocate(R)
+    flagged = jax.jit(fns.update)(R.at[17, 1].set(jnp.nan), nbrs)
+    code = ErrorCode(int(flagged.error.code))
+    assert code & BAD == BAD
+    assert not code & ErrorCode.METRIC_MISMATCH
+    with pytest.raises(jaxrt.NeighborListError) as info:
+        jaxrt.check(flagged)
+    message = str(info.value)
+    assert "NaN" in message
+    assert "displacement_or_metric" not in message
+    assert "buffer overflowed" not in message
 
 
 @pytest.mark.parametrize(*grid(lambda backend: backend == "bvh",
