@@ -202,10 +202,6 @@ LONG_CASES = {
     "tests/test_fused.py::test_run_images_on_faces_and_corners[2-float64-kernel-periodic]",
     # test_delaunay.py: [True-Dense] keeps it.
     "tests/test_delaunay.py::test_random_scene_and_a_jitted_move_are_exact[False-NeighborListFormat.OrderedSparse]",
-    # jax-md's cases that jaxrt refuses by design (xfail): the refusal of
-    # a cell thinner than twice the cutoff is test_never_wrong's.
-    "tests/test_jax_md_acceptance.py::test_jax_md_neighbor_list_case[default-150-test_general_unit_cell]",
-    "tests/test_jax_md_acceptance.py::test_jax_md_neighbor_list_case[default-150-test_general_unit_cell_resize_factor=20]",
     # test_scene.py: test_lj_only_has_no_sph and the wall box keep "a
     # scene simulates only the effects it calls for".
     "tests/test_scene.py::test_equal_radii_no_radius_handling",

@@ -57,6 +57,7 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import re
+import tomllib
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -64,11 +65,6 @@ import numpy as np
 from jaxrt.sim.spec import (Box, Integrator, Neighbors, Particles, Scene,
                             SceneError, make_particles)
 from jaxrt.sim.validate import check_backend
-
-try:
-    import tomllib
-except ImportError:  # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
 
 _PARTICLE_ARRAYS = ("positions", "velocities", "masses", "species", "radius")
 
