@@ -18,16 +18,16 @@ import types
 
 
 class _Package(types.ModuleType):
-    """A package module whose functions keep their names over submodules
-    of the same name (``jaxrt.pairs`` the function, ``jaxrt/pairs.py`` the
-    module): importing the submodule later binds it on the package, which
-    with eager imports happened before the function was bound over it."""
+    """A package module told of each submodule the import system binds on
+    it (after the submodule has run): `lazy_package`'s ``_lazy_bound``
+    then binds the names that submodule exports as well."""
 
     def __setattr__(self, name: str, value) -> None:
-        if (isinstance(value, types.ModuleType)
-                and name in self.__dict__.get("_lazy_shadowed", ())):
-            return
-        super().__setattr__(name, value)
+        bound = self.__dict__.get("_lazy_bound")
+        if bound is not None and isinstance(value, types.ModuleType):
+            bound(name, value)
+        else:
+            super().__setattr__(name, value)
 
 
 def lazy_package(name: str, exports: dict[str, str],
@@ -40,20 +40,34 @@ def lazy_package(name: str, exports: dict[str, str],
       is read from that module), or the name of a submodule mapped to
       itself.
     shadowed: public names that are also submodules, the public name being
-      a function of that module (kept over the submodule).
+      a function of that module (``jaxrt.pairs``): the function is kept
+      over the submodule, as eager imports bound it last.
     renamed: public name -> its name in its module, where they differ.
     """
     renamed = renamed or {}
     package = sys.modules[name]
     namespace = package.__dict__
+    by_module: dict[str, list[str]] = {}
+    for public, where in exports.items():
+        by_module.setdefault(where, []).append(public)
+
+    def value_of(public: str, module):
+        if module.__name__ == f"{name}.{public}" and public not in shadowed:
+            return module
+        return getattr(module, renamed.get(public, public))
+
+    def bound(child: str, module) -> None:
+        # Names are bound as soon as their module is loaded, so that what
+        # reads the package's __dict__ (pdoc, for one) finds them there.
+        if child not in shadowed:
+            namespace[child] = module
+        for public in by_module.get(module.__name__, ()):
+            namespace[public] = value_of(public, module)
 
     def __getattr__(attr: str):
         where = exports.get(attr)
         if where is not None:
-            module = importlib.import_module(where)
-            itself = where == f"{name}.{attr}" and attr not in shadowed
-            value = module if itself else getattr(module,
-                                                  renamed.get(attr, attr))
+            value = value_of(attr, importlib.import_module(where))
         else:
             try:
                 value = importlib.import_module(f"{name}.{attr}")
@@ -70,7 +84,7 @@ def lazy_package(name: str, exports: dict[str, str],
 
     namespace["__getattr__"] = __getattr__
     namespace["__dir__"] = __dir__
-    namespace["_lazy_shadowed"] = frozenset(shadowed)
+    namespace["_lazy_bound"] = bound
     package.__class__ = _Package
 
 
