@@ -828,7 +828,11 @@ def _periodicity(displacement, sides, dim: int, periodic) -> tuple:
     metric = MetricSq(neighbors._metric_sq_fn(displacement, dim), {})
     with jax.ensure_compile_time_eval():
         g = np.asarray(_space.gram(metric, grid, jnp.float32))
-    return neighbors._infer_periodic(metric, grid, sides is not None, g)
+    free, periodic = neighbors._probe_axes(metric, grid, g)
+    axes = neighbors._infer_periodic(free, periodic, sides is not None)
+    if axes is None:
+        raise neighbors._undetermined_error(free, periodic, sides is not None)
+    return axes
 
 
 def _check_displacement(displacement, params: _Params, dim: int) -> None:
