@@ -3,7 +3,7 @@ hand-written query kernel writing the same Dense rows, periodic images by
 the same gamma rays (`jaxrt.rt.periodic`). Imported only in workers."""
 import warp as wp
 
-from jaxrt.rt import periodic as gamma
+from jaxrt.backends.rt import periodic as gamma
 
 
 @wp.kernel

@@ -39,7 +39,7 @@ def run_row(job: dict) -> dict:
     from jax_md import space
 
     import jaxrt
-    from jaxrt import neighbors
+    from jaxrt.lists import neighbors
 
     n, name = job["N"], job["scene"]
     _, side, cutoff, periodic = scene(name, n, 0)

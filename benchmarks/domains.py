@@ -64,7 +64,7 @@ def lj_row(job: dict) -> dict:
     import jax
     import numpy as np
     from jax import lax
-    from jaxrt import domains
+    from jaxrt.sim import domains
     from jaxrt.energy import lennard_jones_pair_neighbor_list
     d = job["devices"]
     if len(jax.devices()) < d:

@@ -63,7 +63,7 @@ COLUMNS = ["scene", "radii", "policy", "N", "k", "steps", "total_ms",
 
 def _scene(scene: str, radii: str, n: int, seed: int):
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     make = {"lattice": lambda: sd.lattice(n),
             "disordered": lambda: sd.disordered(n, seed),
             "cluster": lambda: sd.cluster(n, seed)}[scene]
@@ -81,7 +81,7 @@ def run_row(job: dict) -> dict:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt.rt import ffi
+    from jaxrt.backends.rt import ffi
 
     d = job["dynamics"]
     position, radii = _scene(job["scene"], job["radii"], job["N"], job["seed"])
@@ -269,7 +269,7 @@ def histogram(n: int, seed: int, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     r = sd.radii("LN[1,330]", n, seed + 1)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.hist(r, bins=np.logspace(0, np.log10(330), 60))

@@ -42,9 +42,9 @@ def main(argv=None) -> None:
     import numpy as np
     from jax_md.partition import NeighborListFormat
     import roofline
-    from jaxrt import cell_list
-    from jaxrt._backend import Geometry, Query
-    from jaxrt.energy import fused
+    from jaxrt.backends.cell import search as cell_list
+    from jaxrt.backends.contract import Geometry, Query
+    from jaxrt.energy.listfree import lj as fused
 
     R, box, _ = roofline._system(args.n, jnp.float32)
     n = R.shape[0]

@@ -160,7 +160,7 @@ def main(argv=None) -> None:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt import _backend
+    from jaxrt.backends import contract as _backend
     from jaxrt.energy import lennard_jones_pair_neighbor_list
     from jaxrt.energy.lj import lennard_jones_truncated
 

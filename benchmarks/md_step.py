@@ -72,7 +72,7 @@ def launched(label: str):
     """The fused cell backend of
     ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS][s][n]]`` or of the bare launch
     (the kernel, compiled: CUDA only)."""
-    from jaxrt.energy.fused import _Cell
+    from jaxrt.energy.listfree.lj import _Cell
     match = _LAUNCH.fullmatch(label) or re.fullmatch(LAUNCH, label)
     if match is None:
         raise ValueError(f"launch {label!r}: write BLOCKxWARPS[xTILE]"

@@ -116,7 +116,7 @@ def run_row(job: dict) -> dict:
         temp_mb = float("nan")
     counts = None
     if name.startswith("bvh"):
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
         before = ffi.update_counts.copy()
     timing = _harness.time_calls(lambda x: update(x, nbrs).idx, inputs,
                                  repeats=job["repeats"], warmup=job["warmup"])

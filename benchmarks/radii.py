@@ -38,7 +38,7 @@ def run_row(job: dict) -> dict:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
 
     n, seed = job["N"], job["seed"]
     position = {"lattice": lambda: sd.lattice(n),

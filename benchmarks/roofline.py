@@ -78,7 +78,7 @@ def _system(n: int, dtype):
 
 def _grid(box):
     """The fused energy's static parameters for md_step's LJ system."""
-    from jaxrt.energy import fused
+    from jaxrt.energy.listfree import lj as fused
     return fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
                          periodic=(True,) * 3, side=(box,) * 3)
 
@@ -87,7 +87,7 @@ def _work(R, box, across: int = 1):
     """Candidates per particle and runs per particle of the cell grid the
     fused energy walks (`jaxrt.energy.fused.cell_runs`)."""
     import numpy as np
-    from jaxrt.energy import fused
+    from jaxrt.energy.listfree import lj as fused
     _, runs, _ = fused.cell_runs(R, _grid(box), across=across)
     start1 = fused.kernel_runs(runs)[0]
     return (float(np.mean(np.sum(np.asarray(runs.length), axis=1))),
@@ -181,7 +181,7 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     """`grid` or `walk`: one half of the fused forces (module docstring)."""
     import jax
     import jax.numpy as jnp
-    from jaxrt.energy import fused
+    from jaxrt.energy.listfree import lj as fused
     params = _grid(box)
     cell = backend or fused._Cell()
     interpret = jax.default_backend() not in ("gpu", "cuda")  # CPU smoke

@@ -227,7 +227,7 @@ def _jax_row(job, kind, sets, side, cutoff, periodic, reps):
     update = jax.jit(fns.update)
     updates = None
     if kind == "jit":
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
         before = ffi.update_counts.copy()
     timing = _harness.time_calls(lambda x: update(x, nbrs), inputs, **reps)
     if kind == "jit":
@@ -244,7 +244,7 @@ def _warp_row(job, kind, sets, side, cutoff, periodic, reps, warp_device):
     query) and, for queries, the counts on the first input set."""
     import warp as wp
 
-    from jaxrt.rt import aabb
+    from jaxrt.backends.rt import aabb
     n = sets[0].shape[0]
     width = int(1.3 * NOMINAL_K[job["scene"]]) + 16
     warp_sets = [wp.array(x, dtype=wp.vec3, device=warp_device) for x in sets]

@@ -83,7 +83,8 @@ def _instrument(meter: _Meter) -> None:
         from warp._src.jax import ffi as warp_ffi
     except ImportError:  # no Warp: the cell methods only
         return
-    from jaxrt.rt import aabb, orcs
+    from jaxrt.backends.rt import aabb
+    from jaxrt.backends.rt import orcs
     meter.wrap(warp_ffi.FfiCallable, "ffi_callback", "callback")
     meter.wrap(warp_ffi.FfiCallable, "_build_arg_list", "arg_arrays")
     meter.wrap(aabb.AabbSearch, "update", "update")

@@ -152,7 +152,7 @@ PAPER_CLAIMS = ("persé ~1.3x RT-REF at r = 1; ORCS-forces up to ~1.6x "
 
 def _scene(scene: str, radii: str, n: int, seed: int):
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     make = {"lattice": lambda: sd.lattice(n),
             "disordered": lambda: sd.disordered(n, seed),
             "cluster": lambda: sd.cluster(n, seed)}[scene]

@@ -30,7 +30,7 @@ def run_row(job: dict) -> dict:
     from jax_md import space
 
     import jaxrt
-    import jaxrt.cell_list as cl
+    import jaxrt.backends.cell.search as cl
 
     n, reach = job["N"], tuple(int(v) for v in job["reach"].split(","))
     cl._REACH = reach

@@ -15,10 +15,10 @@ from jaxrt import backends
 from jaxrt.backends import available as available_backends
 from jaxrt.errors import (ErrorCode, ListTooLargeError, NeighborListError,
                           check)
-from jaxrt.ase_bridge import neighbor_list as ase_neighbor_list
-from jaxrt.ase_bridge import pairs_from_ase, pairs_to_ase
-from jaxrt.neighbors import Dense, OrderedSparse, Sparse, neighbor_list
-from jaxrt.pairs import Pairs, PairsError, PairSizes, pairs, pairs_sizes
+from jaxrt.pairs.ase import neighbor_list as ase_neighbor_list
+from jaxrt.pairs.ase import pairs_from_ase, pairs_to_ase
+from jaxrt.lists.neighbors import Dense, OrderedSparse, Sparse, neighbor_list
+from jaxrt.pairs.search import Pairs, PairsError, PairSizes, pairs, pairs_sizes
 from jaxrt.sim import Scene
 
 __version__ = "0.1.0"

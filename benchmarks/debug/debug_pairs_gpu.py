@@ -22,7 +22,7 @@ def one(dtype):
     sys.path.insert(0, "tests")
     import jaxrt
     import importlib
-    P = importlib.import_module("jaxrt.pairs")
+    P = importlib.import_module("jaxrt.pairs.search")
     from test_pairs import si2, triclinic, fe_bcc_rattled, cu_primitive, as_set, ase_set
     systems = [si2(), triclinic(3, 6), fe_bcc_rattled(), cu_primitive()]
     cutoff = 4.5

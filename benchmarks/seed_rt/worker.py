@@ -19,7 +19,7 @@ def make_scene(scene: str, param: int, p: int):
     box that just holds it, side ``2 + 2C``, the points shifted by ``1 + C``.
     Every method gets that box (jax-md's grid is sized by it)."""
     import numpy as np
-    from jaxrt import seed_distributions as scenes
+    from jaxrt.sim import distributions as scenes
     if scene == "uniform":
         pos, cutoff = scenes.uniform(param, p, seed=0)
         box = 1.0
@@ -76,7 +76,7 @@ def release_memory() -> None:
     fused mode; an internal, looked up defensively)."""
     import gc
     try:
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
     except ImportError:  # no Warp: nothing kept
         gc.collect()
         return
@@ -126,11 +126,12 @@ def warp_split(method: str, inputs, cutoff: float, box: float, job: dict,
     import time
 
     import warp as wp
-    from jaxrt.rt import aabb, seed_energy
-    from jaxrt.rt import policy as rt_policy
-    from jaxrt.rt._method import FindArguments
-    from jaxrt.rt.spheres import SpheresMethod
-    from jaxrt.rt.squares import SquaresMethod
+    from jaxrt.backends.rt import aabb
+    from jaxrt.backends.rt import seed_energy
+    from jaxrt.backends.rt import policy as rt_policy
+    from jaxrt.backends.rt.method import FindArguments
+    from jaxrt.backends.rt.spheres import SpheresMethod
+    from jaxrt.backends.rt.squares import SquaresMethod
 
     points = [wp.from_jax(x, dtype=wp.vec3) for x in inputs]
     device = points[0].device
@@ -228,7 +229,7 @@ def _fused_job(row, method, inputs, cutoff, box, sigma, job) -> None:
     call (custom AABB: refit of the kept tree + rays, as the list aabb's
     compute; spheres / squares: build + rays, as theirs)."""
     import jax
-    from jaxrt.rt import FusedEnergy
+    from jaxrt.backends.rt import FusedEnergy
 
     fused = FusedEnergy(_harness.backend(METHODS[method]), cutoff=cutoff, sigma=sigma)
     call = jax.jit(fused)

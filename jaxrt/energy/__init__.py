@@ -17,8 +17,10 @@ Without a list (`jaxrt.energy.sph_fused`, #18): `density_fused`,
 `acceleration_fused` (the same results, a walk over the cell grid; first
 derivatives from a second walk).
 """
-from jaxrt.energy import fused, lj, sph, sph_fused
-from jaxrt.energy.fused import (
+from jaxrt.energy import lj, sph
+from jaxrt.energy.listfree import lj as fused
+from jaxrt.energy.listfree import sph as sph_fused
+from jaxrt.energy.listfree.lj import (
     FusedInputError,
     FusedSums,
     HigherOrderError,
@@ -46,7 +48,7 @@ from jaxrt.energy.sph import (
     density,
     kernel,
 )
-from jaxrt.energy.sph_fused import acceleration_fused, density_fused
+from jaxrt.energy.listfree.sph import acceleration_fused, density_fused
 
 __all__ = [
     "KERNELS",

@@ -55,11 +55,11 @@ import numpy as np
 from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
 
-from jaxrt.energy._checks import concrete
-from jaxrt._edges import edge_sum, materialized_metric
-from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
+from jaxrt.energy.checks import concrete
+from jaxrt.layouts.edges import edge_sum, materialized_metric
+from jaxrt.energy.keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
-from jaxrt.energy._rows import dense_pair_energy
+from jaxrt.energy.rows import dense_pair_energy
 
 Array = jax.Array
 
@@ -516,7 +516,7 @@ def lennard_jones_neighbor_list(
       ``(neighbor_fn, energy_fn)`` as in jax-md.
     """
     if neighbor_list_fn is None:
-        from jaxrt.neighbors import neighbor_list as neighbor_list_fn
+        from jaxrt.lists.neighbors import neighbor_list as neighbor_list_fn
     s = concrete(sigma)
     if s is None:
         raise ValueError("sigma must be concrete (not traced) here: it sets "

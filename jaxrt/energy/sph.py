@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax_md import partition
 
-from jaxrt.energy._checks import check_positive, concrete
-from jaxrt._edges import edge_sum, materialized_in_reverse
-from jaxrt.energy._keywords import reject_unknown
+from jaxrt.energy.checks import check_positive, concrete
+from jaxrt.layouts.edges import edge_sum, materialized_in_reverse
+from jaxrt.energy.keywords import reject_unknown
 
 Array = jax.Array
 

@@ -11,7 +11,7 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt import seed_distributions
+from jaxrt.sim import distributions as seed_distributions
 from jaxrt.energy import sph as _sph
 from jaxrt.sim.effects import (LJ, Boids, Gravity, SPHDensity, SPHPressure,
                                SPHViscosity, Walls)

@@ -42,7 +42,7 @@ import numpy as np
 from jax import lax
 from jax_md import partition
 
-from jaxrt import neighbors as _neighbors
+from jaxrt.lists import neighbors as _neighbors
 from jaxrt.sim.spec import Box, Context, Scene, SceneError
 from jaxrt.sim.validate import check_backend
 

@@ -309,7 +309,7 @@ class SPHDensity:
                                 f"one of {list(_sph.KERNELS)}.")
         if scene.particles.dim not in (2, 3):
             raise SceneError.at(f"{where}", "SPH needs 2D or 3D positions.")
-        from jaxrt.energy.sph_fused import WALKS
+        from jaxrt.energy.listfree.sph import WALKS
         if self.walk not in WALKS:
             raise SceneError.at(f"{where}.walk", f"one of {list(WALKS)}.")
         if self.walk != "auto" and not self.list_free:

@@ -29,7 +29,7 @@ pytestmark = pytest.mark.skipif("bvh" not in WARP, reason="needs Warp")
 
 def walk(steps, n=120, side=6.0, cutoff=1.0, step_size=0.02, seed=21,
          policy="drift"):
-    from jaxrt.rt import ffi
+    from jaxrt.backends.rt import ffi
     disp, shift = space.periodic(side)
     R0 = jax.random.uniform(jax.random.PRNGKey(seed), (n, 3)) * side
     kicks = jax.random.normal(jax.random.PRNGKey(seed + 1), (steps, n, 3))
