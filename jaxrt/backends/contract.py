@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 from jax_md.partition import NeighborListFormat
 
-from jaxrt.layouts import edge_kernel as _edge_kernel
+from jaxrt.layouts.rows import dense_to_sparse, pack_rows
 from jaxrt.lists import metric as _space
 from jaxrt.errors import ListTooLargeError
 
@@ -173,39 +173,78 @@ class SearchResult(NamedTuple):
     error: Array | None = None
 
 
-class Backend(Protocol):
-    """``name``; optionally:
+# int32 indices address at most this many entries (the default of
+# `Capabilities.max_list_entries`).
+MAX_LIST_ENTRIES = 2 ** 31 - 1
 
-    * ``max_list_entries``: the largest int32 buffer the backend can index
-      (default ``2**31 - 1``): `jaxrt.neighbor_list` refuses larger lists
-      at ``allocate``;
-    * ``decides_by_metric`` (default False): it honours
-      `Query.decide_by_metric` (a triclinic box, a metric that is not the
-      Euclidean minimum image); the front refuses such lists otherwise;
-    * ``exact_for_any_metric`` (default False): it asks the caller's metric
-      about every pair, so the front skips its checks of the metric;
-    * ``sparse_without_rows`` (default False): it writes Sparse layouts
-      without Dense rows first, so the front does not bound ``N x row``;
-    * ``supports_radii`` (default False): it honours `Geometry.reach`;
-      the front refuses ``radii=`` otherwise;
-    * ``build_at_exact_capacity`` (default False): ``allocate`` builds the
-      list at exactly its capacity, not at sizes rounded up for a compiled
-      program that data of other sizes reuse (`compile_size`): for a
-      backend whose state lives with the compiled call (the kept BVH);
-    * ``fixed_sizes`` (default ``()``): names of internal sizes from
-      ``measure`` that are counts of things, not buffers, so the front
-      takes them as measured (no ``capacity_multiplier``, no cap at N);
-    * ``bind()``: called once per `jaxrt.neighbor_list` call; returns the
-      backend that searches for that factory's lists (a stateful backend
-      returns a fresh object owning its state; default: the backend itself);
-    * ``stateful = True`` with ``init_state(position, geometry, query)``: the
-      backend keeps a pytree of arrays *in the list* (the Delaunay
-      backend's triangulation). ``init_state`` runs eagerly at
-      ``allocate``; then ``measure`` and ``search`` get it as ``state=``,
-      and ``search`` returns ``(SearchResult, new_state)``. The front puts
-      the state in `jaxrt.neighbors.StatefulNeighborList.backend_state`,
-      so that it travels with the list through ``jit`` and ``lax.scan``.
+
+@dataclasses.dataclass(frozen=True)
+class Capabilities:
+    """What a backend can do beyond ``name``, ``measure`` and ``search``,
+    each with its default: the one place the front reads them
+    (`capabilities`). A backend declares one by an attribute of that name
+    (a class attribute, usually); one it does not declare has the default
+    here, so a backend of one's own needs none of them.
+
+    Attributes:
+      max_list_entries: the largest int32 buffer the backend can index:
+        `jaxrt.neighbor_list` refuses larger lists at ``allocate``.
+      decides_by_metric: it honours `Query.decide_by_metric` (a triclinic
+        box, a metric that is not the Euclidean minimum image); the front
+        refuses such lists otherwise.
+      exact_for_any_metric: it asks the caller's metric about every pair,
+        so the front skips its checks of the metric.
+      sparse_without_rows: it writes Sparse layouts without Dense rows
+        first, so the front does not bound ``N x row``.
+      supports_radii: it honours `Geometry.reach`; the front refuses
+        ``radii=`` otherwise.
+      build_at_exact_capacity: ``allocate`` builds the list at exactly its
+        capacity, not at sizes rounded up for a compiled program that data
+        of other sizes reuse (`compile_size`): for a backend whose state
+        lives with the compiled call (the kept BVH).
+      fixed_sizes: names of internal sizes from ``measure`` that are counts
+        of things, not buffers, so the front takes them as measured (no
+        ``capacity_multiplier``, no cap at N).
+      stateful: the backend keeps a pytree of arrays *in the list* (the
+        Delaunay backend's triangulation) and has ``init_state(position,
+        geometry, query)``, which runs eagerly at ``allocate``; then
+        ``measure`` and ``search`` get the state as ``state=``, and
+        ``search`` returns ``(SearchResult, new_state)``. The front puts
+        the state in `jaxrt.lists.neighbors.StatefulNeighborList.
+        backend_state`, so that it travels with the list through ``jit``
+        and ``lax.scan``.
+      binds: the backend has ``bind()``, called once per
+        `jaxrt.neighbor_list` call, which returns the backend that searches
+        for that factory's lists: a fresh object owning its state (the
+        ray-traced BVHs). Without it the backend searches itself (`bind`).
     """
+
+    max_list_entries: int = MAX_LIST_ENTRIES
+    decides_by_metric: bool = False
+    exact_for_any_metric: bool = False
+    sparse_without_rows: bool = False
+    supports_radii: bool = False
+    build_at_exact_capacity: bool = False
+    fixed_sizes: tuple[str, ...] = ()
+    stateful: bool = False
+    binds: bool = False
+
+
+def capabilities(backend) -> Capabilities:
+    """``backend``'s `Capabilities`: each one it declares, else the
+    default. Duck-typed: ``backend`` need not subclass anything."""
+    found = {f.name: getattr(backend, f.name, f.default)
+             for f in dataclasses.fields(Capabilities) if f.name != "binds"}
+    found["fixed_sizes"] = tuple(found["fixed_sizes"])
+    return Capabilities(**found, binds=callable(getattr(backend, "bind",
+                                                        None)))
+
+
+class Backend(Protocol):
+    """A search backend: ``name``, ``measure`` and ``search``, plus any of
+    the optional `Capabilities` (attributes of the same names; their
+    defaults are `Capabilities`' and hold for a backend that leaves them
+    out), ``bind()`` and, with ``stateful``, ``init_state``."""
 
     name: str
 
@@ -220,14 +259,9 @@ class Backend(Protocol):
         """Neighbour list of ``position`` (float ``(N, dim)``). jit-able."""
 
 
-# int32 indices address at most this many entries (`Backend`'s
-# ``max_list_entries`` default).
-MAX_LIST_ENTRIES = 2 ** 31 - 1
-
-
 def max_list_entries(backend) -> int:
     """The largest int32 buffer ``backend`` can index."""
-    return getattr(backend, "max_list_entries", MAX_LIST_ENTRIES)
+    return capabilities(backend).max_list_entries
 
 
 def compile_size(size: int) -> int:
@@ -259,110 +293,21 @@ def list_too_large(backend_name: str, entries: int, what: str, n: int,
         "jaxrt.energy.lennard_jones_fused(..., backend='cell').")
 
 
-# ---------------------------------------------------------------------------
-# Layout helpers shared by backends that build Dense rows first.
-
-
 def is_stateful(backend: Backend) -> bool:
-    """Whether ``backend`` keeps state in the list (`Backend`)."""
-    return bool(getattr(backend, "stateful", False))
+    """Whether ``backend`` keeps state in the list (`Capabilities`)."""
+    return bool(capabilities(backend).stateful)
 
 
 def bind(backend: Backend) -> Backend:
-    """The object that searches for one `jaxrt.neighbor_list` factory."""
-    bind_fn = getattr(backend, "bind", None)
-    return backend if bind_fn is None else bind_fn()
+    """The object that searches for one `jaxrt.neighbor_list` factory:
+    ``backend.bind()`` where it has one (`Capabilities.binds`), else
+    ``backend`` itself."""
+    return backend.bind() if capabilities(backend).binds else backend
 
 
-def pack_rows(idx: Array, keep: Array, capacity: int) -> tuple[Array, Array]:
-    """Left-pack the kept entries of each row into ``capacity`` columns.
-
-    Args:
-      idx: int32 ``(N, M)`` candidate neighbour indices.
-      keep: bool ``(N, M)``, which candidates are neighbours.
-      capacity: output width.
-    Returns:
-      int32 ``(N, capacity)`` padded with ``N``, and int32 ``(N,)`` exact
-      counts (which may exceed ``capacity``).
-    """
-    n = idx.shape[0]
-    slot = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
-    slot = jnp.where(keep, slot, capacity)  # out of range: dropped
-    rows = jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32)[:, None], idx.shape)
-    out = jnp.full((n, capacity), n, jnp.int32)
-    out = out.at[rows, slot].set(idx.astype(jnp.int32), mode="drop")
-    return out, jnp.sum(keep, axis=1, dtype=jnp.int32)
-
-
-_ENGINES = ("auto", "xla", "interpret")
-
-
-def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
-                    counts: Array | None = None, engine: str = "auto"
-                    ) -> tuple[Array, Array]:
-    """Convert a left-packed Dense list to jax-md's Sparse layout.
-
-    Args:
-      dense: int32 ``(N, M)`` padded with ``N``, each row's entries first.
-      capacity: number of edge slots in the output.
-      ordered: keep only edges with ``j < i`` (OrderedSparse).
-      counts: None, or int32 ``(N,)`` the rows' entries (each at most
-        ``M``), known already; else counted from ``dense``. Only for rows
-        that are edges as they stand (``ordered`` false): ordered rows'
-        counts are those of their ``j < i`` entries, counted here.
-      engine: ``"auto"``: rows that are edges as they stand (``ordered``
-        false) are copied by one kernel on CUDA GPUs
-        (`jaxrt._edge_kernel`), by XLA's scatters elsewhere; ``"xla"``:
-        the scatters everywhere; ``"interpret"``: the kernel in Pallas'
-        interpreter (tests). All write the same array.
-    Returns:
-      int32 ``(2, capacity)`` = (receivers j, senders i), valid edges first
-      in row order, padded with ``N``; and the exact int32 number of edges.
-    """
-    if engine not in _ENGINES:
-        raise ValueError(f"dense_to_sparse: engine={engine!r}; choose one "
-                         f"of {_ENGINES}.")
-    if ordered and counts is not None:
-        raise ValueError("dense_to_sparse: counts= is for rows that are "
-                         "edges as they stand; with ordered=True the j < i "
-                         "entries are counted here (pass counts=None).")
-    n, width = dense.shape
-    senders = jnp.arange(n, dtype=jnp.int32)[:, None]
-    keep = dense < n
-    if ordered:
-        keep = keep & (dense < senders)
-        # The kept entries are spread along each row: rank them in it.
-        rank = jnp.cumsum(keep, axis=1, dtype=jnp.int32) - 1
-    else:
-        # Left-packed: entry c of a row is its c-th edge.
-        rank = jnp.arange(width, dtype=jnp.int32)[None, :]
-    # Each row's first slot from N row counts, not a scan over all N x M
-    # entries (the conversion's cost at 10^6: benchmarks/RESULTS.md).
-    if counts is None:
-        counts = jnp.sum(keep, axis=1, dtype=jnp.int32)
-    counts = counts.astype(jnp.int32)
-    starts = jnp.cumsum(counts, dtype=jnp.int32) - counts
-    total = jnp.sum(counts, dtype=jnp.int32)
-
-    def scatters():
-        slot = jnp.where(keep, starts[:, None] + rank, capacity).reshape(-1)
-        # Written out, not fused into the scatters (jaxrt._edges).
-        slot = jax.lax.optimization_barrier(slot)
-        out = jnp.full((2, capacity), n, jnp.int32)
-        out = out.at[0, slot].set(dense.reshape(-1), mode="drop")
-        return out.at[1, slot].set(
-            jnp.broadcast_to(senders, dense.shape).reshape(-1), mode="drop")
-
-    def kernel(interpret=False):
-        return _edge_kernel.rows_to_edges(dense, counts, starts, capacity,
-                                          interpret=interpret)
-
-    if (ordered or engine == "xla" or capacity == 0
-            or not _edge_kernel.fits(n, width, capacity)):
-        return scatters(), total
-    if engine == "interpret":
-        return kernel(interpret=True), total
-    return jax.lax.platform_dependent(cuda=kernel, default=scatters), total
+# ---------------------------------------------------------------------------
+# The layout helper shared by backends that build Dense rows first (the
+# others, `pack_rows` and `dense_to_sparse`, are `jaxrt.layouts.rows`').
 
 
 def format_dense_rows(dense: Array, counts: Array, query: Query,

@@ -60,7 +60,8 @@ from jax_md.partition import (NeighborList, NeighborListFns,
 from jaxrt import backends
 from jaxrt.backends import contract as _backend
 from jaxrt.lists import metric as _space
-from jaxrt.backends.contract import Capacity, Geometry, MetricSq, Query
+from jaxrt.backends.contract import (Capacity, Geometry, MetricSq, Query,
+                                     capabilities)
 from jaxrt.errors import ErrorCode
 
 Dense = NeighborListFormat.Dense
@@ -355,7 +356,7 @@ def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
 
 
 def _check_radii_backend(backend) -> None:
-    if not getattr(backend, "supports_radii", False):
+    if not capabilities(backend).supports_radii:
         raise ValueError(
             f"backend={backend.name!r} has no per-particle radii (its search "
             "radius is one number); use backend='bvh', 'cell' or 'brute' "
@@ -469,7 +470,7 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
     _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64))
     metric_decides = not diagonal
     slack = 0.0
-    if not getattr(searcher, "exact_for_any_metric", False):
+    if not capabilities(searcher).exact_for_any_metric:
         # A positive slack means some pair deviates (|dev| > 1), so it
         # only ever comes with metric_decides.
         dev, slack, i, j = _space.sample_deviation(position, metric, g, h, grid)
@@ -477,7 +478,7 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
             raise _shorter_metric_error(position, metric, g, grid, i, j, dev,
                                         settings.box)
         metric_decides |= bool(np.any(np.abs(dev) > 1))
-    if metric_decides and not getattr(searcher, "decides_by_metric", False):
+    if metric_decides and not capabilities(searcher).decides_by_metric:
         raise ValueError(
             f"backend={searcher.name!r} computes Euclidean "
             "minimum-image distances in an orthorhombic box itself, but "
@@ -615,8 +616,8 @@ class _Lists:
     def __init__(self, settings: _Settings):
         self.settings = settings
         self.searcher = backends.bind(settings.backend)
-        self.checks_metric = not getattr(self.searcher,
-                                         "exact_for_any_metric", False)
+        self.checks_metric = not capabilities(
+            self.searcher).exact_for_any_metric
         self.setups: dict[int, _Setup] = {}
         self.build = _make_build(self.searcher, settings.custom_mask_function)
         # Per (N, dtype, query): the capacities allocate's build has been
@@ -636,7 +637,7 @@ class _Lists:
         if rounded is capacity:
             return capacity
         built = self.compiled.setdefault((n, np.dtype(dtype).name, query), [])
-        fixed = getattr(self.searcher, "fixed_sizes", ())
+        fixed = capabilities(self.searcher).fixed_sizes
         reused = _reused_capacity(built, capacity, fixed)
         if reused is not None:
             return reused
@@ -699,7 +700,7 @@ class _Lists:
                          query, metric, state)
         capacity = dataclasses.replace(
             _capacity(self.settings, sizes, n, extra_capacity,
-                      getattr(self.searcher, "fixed_sizes", ())),
+                      capabilities(self.searcher).fixed_sizes),
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
@@ -883,8 +884,8 @@ def _largest_buffer(backend, n: int, capacity: Capacity, query: Query
     ``capacity`` writes."""
     entries = {"idx": n * capacity.neighbors if query.format is Dense
                else 2 * capacity.neighbors}
-    rows_first = query.format is Dense or not getattr(
-        backend, "sparse_without_rows", False)
+    rows_first = query.format is Dense or not capabilities(
+        backend).sparse_without_rows
     if "row" in dict(capacity.internal) and rows_first:
         entries["rows before conversion"] = n * capacity["row"]
     return max(entries.items(), key=lambda kv: kv[1])
@@ -916,7 +917,7 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
     stateful backend (its state may be shaped by the sizes) or one that
     asks for it (``build_at_exact_capacity``), or where the rounded list
     would pass ``limit`` int32 entries or what the backend can index."""
-    fixed = getattr(backend, "fixed_sizes", ())
+    fixed = capabilities(backend).fixed_sizes
     needed = {k: v for k, v in sizes.items()
               if k not in ("row", "edges", "row_before_mask")}
     needed["row"] = sizes.get("row_before_mask", sizes["row"])
@@ -925,7 +926,7 @@ def _compiled_capacity(backend, n: int, capacity: Capacity, query: Query,
         capacity[k] < v for k, v in needed.items()
         if k not in fixed and k in dict(capacity.internal))
     if (short or _backend.is_stateful(backend)
-            or getattr(backend, "build_at_exact_capacity", False)):
+            or capabilities(backend).build_at_exact_capacity):
         return capacity
 
     def up(size):  # an eighth more first: the next structure's may be larger
