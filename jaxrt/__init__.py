@@ -3,29 +3,66 @@
 Public API:
   neighbor_list            drop-in for jax_md.partition.neighbor_list
   Dense, Sparse, OrderedSparse   jax-md's layouts (re-exported)
-  check, NeighborListError, ErrorCode   host-side error check
+  check, Error, NeighborListError, ListTooLargeError, ErrorCode
+                           host-side error check; every jaxrt exception is
+                           a `jaxrt.Error`
   backends                 the backends as options values (Cell, Brute, Bvh, ...)
   available_backends()     names usable as backend=
+  energy                   energies on lists and without one (jaxrt.energy)
   Scene                    a simulation of only the effects it names (jaxrt.sim)
   pairs, Pairs, pairs_sizes, PairsError   pairs with lattice shifts (i, j, S)
                            in any cell, jit/vmap/grad-able (jaxrt.pairs)
   pairs_from_ase, pairs_to_ase, ase_neighbor_list   ASE in and out
+
+Every name loads on first use (`jaxrt.lazy`): ``import jaxrt`` imports
+neither JAX, jax-md, Warp nor `jaxrt.sim`.
 """
-from jaxrt import backends
-from jaxrt.backends import available as available_backends
-from jaxrt.errors import (ErrorCode, ListTooLargeError, NeighborListError,
-                          check)
-from jaxrt.pairs.ase import neighbor_list as ase_neighbor_list
-from jaxrt.pairs.ase import pairs_from_ase, pairs_to_ase
-from jaxrt.lists.neighbors import Dense, OrderedSparse, Sparse, neighbor_list
-from jaxrt.pairs.search import Pairs, PairsError, PairSizes, pairs, pairs_sizes
-from jaxrt.sim import Scene
+import sys as _sys
+import types as _types
+
+from jaxrt import lazy as _lazy
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "Dense", "ErrorCode", "ListTooLargeError", "NeighborListError",
-    "OrderedSparse", "PairSizes", "Pairs", "PairsError", "Scene", "Sparse",
-    "ase_neighbor_list", "available_backends", "backends", "check",
-    "neighbor_list", "pairs", "pairs_from_ase", "pairs_sizes", "pairs_to_ase",
-]
+_NAMES = {
+    "Dense": "jaxrt.lists.neighbors:Dense",
+    "Error": "jaxrt.errors:Error",
+    "ErrorCode": "jaxrt.errors:ErrorCode",
+    "ListTooLargeError": "jaxrt.errors:ListTooLargeError",
+    "NeighborListError": "jaxrt.errors:NeighborListError",
+    "OrderedSparse": "jaxrt.lists.neighbors:OrderedSparse",
+    "PairSizes": "jaxrt.pairs.search:PairSizes",
+    "Pairs": "jaxrt.pairs.search:Pairs",
+    "PairsError": "jaxrt.pairs.search:PairsError",
+    "Scene": "jaxrt.sim.spec:Scene",
+    "Sparse": "jaxrt.lists.neighbors:Sparse",
+    "ase_neighbor_list": "jaxrt.pairs.ase:neighbor_list",
+    "available_backends": "jaxrt.backends:available",
+    "backends": "jaxrt.backends",
+    "check": "jaxrt.errors:check",
+    "energy": "jaxrt.energy",
+    "neighbor_list": "jaxrt.lists.neighbors:neighbor_list",
+    "pairs": "jaxrt.pairs.search:pairs",
+    "pairs_from_ase": "jaxrt.pairs.ase:pairs_from_ase",
+    "pairs_sizes": "jaxrt.pairs.search:pairs_sizes",
+    "pairs_to_ase": "jaxrt.pairs.ase:pairs_to_ase",
+    "sim": "jaxrt.sim",
+}
+__all__ = sorted(_NAMES)
+__getattr__, __dir__ = _lazy.exports(__name__, _NAMES)
+
+
+class _Package(_types.ModuleType):
+    """``jaxrt`` itself. ``jaxrt.pairs`` is the function `pairs` (as it
+    always was), and also the name of the package that holds it: importing
+    the package ``jaxrt.pairs`` must not replace the function in ``jaxrt``
+    (the import system sets a package's submodules as its attributes), so
+    that ``jaxrt.pairs(...)`` works whatever was imported first."""
+
+    def __setattr__(self, name, value):
+        if name == "pairs" and isinstance(value, _types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+_sys.modules[__name__].__class__ = _Package

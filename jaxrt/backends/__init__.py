@@ -22,46 +22,81 @@ needs), passed as ``backend=`` directly; no registration is needed.
 """
 from __future__ import annotations
 
-from typing import Callable
+import importlib
+from typing import TYPE_CHECKING, Callable
 
-from jaxrt.backends.contract import (Backend, Capacity, Geometry, MetricSq,
-                                     Query, SearchResult, bind,
-                                     dense_to_sparse, format_dense_rows,
-                                     pack_rows)
-from jaxrt.backends.brute import Brute
-from jaxrt.backends.cell.search import Cell
-from jaxrt.backends.delaunay import Delaunay
+from jaxrt import lazy as _lazy
 
-try:  # Warp is a dependency, but a broken install must not break the rest.
-    from jaxrt.backends.rt.ffi import Bvh, Spheres, Squares
-except ImportError as _warp_error:
-    _WARP_ERROR: ImportError | None = _warp_error
-else:
-    _WARP_ERROR = None
+if TYPE_CHECKING:
+    from jaxrt.backends.contract import Backend
 
-__all__ = ["Backend", "Brute", "Bvh", "Capacity", "Cell", "Delaunay",
-           "Geometry",
-           "MetricSq", "Query", "SearchResult", "Spheres", "Squares",
-           "available", "bind", "dense_to_sparse", "format_dense_rows",
-           "pack_rows", "resolve"]
+# Every name loads on first use: the ray-traced ones import Warp, and a
+# list on the cell list never needs it.
+_NAMES = {
+    "Backend": "jaxrt.backends.contract:Backend",
+    "Brute": "jaxrt.backends.brute:Brute",
+    "Bvh": "jaxrt.backends.rt.ffi:Bvh",
+    "Capacity": "jaxrt.backends.contract:Capacity",
+    "Cell": "jaxrt.backends.cell.search:Cell",
+    "Delaunay": "jaxrt.backends.delaunay:Delaunay",
+    "Geometry": "jaxrt.backends.contract:Geometry",
+    "MetricSq": "jaxrt.backends.contract:MetricSq",
+    "Query": "jaxrt.backends.contract:Query",
+    "SearchResult": "jaxrt.backends.contract:SearchResult",
+    "Spheres": "jaxrt.backends.rt.ffi:Spheres",
+    "Squares": "jaxrt.backends.rt.ffi:Squares",
+    "bind": "jaxrt.backends.contract:bind",
+    "capabilities": "jaxrt.backends.contract:capabilities",
+    "dense_to_sparse": "jaxrt.layouts.rows:dense_to_sparse",
+    "format_dense_rows": "jaxrt.backends.contract:format_dense_rows",
+    "pack_rows": "jaxrt.layouts.rows:pack_rows",
+}
+__all__ = sorted([*_NAMES, "available", "resolve"])
+__getattr__, __dir__ = _lazy.exports(__name__, _NAMES)
+
+
+def _backend(target: str) -> Callable[[], Backend]:
+    """A factory of the backend class ``"module:Class"`` (imported then)."""
+    module, _, name = target.partition(":")
+    return lambda **options: getattr(importlib.import_module(module),
+                                     name)(**options)
+
 
 _RAY_TRACED: dict[str, Callable[[], Backend]] = {
-    "bvh": lambda: Bvh(),
-    "bvh-unsorted": lambda: Bvh(sort=False),
-    "spheres": lambda: Spheres(),
-    "squares": lambda: Squares(),
+    "bvh": lambda: _backend(_NAMES["Bvh"])(),
+    "bvh-unsorted": lambda: _backend(_NAMES["Bvh"])(sort=False),
+    "spheres": lambda: _backend(_NAMES["Spheres"])(),
+    "squares": lambda: _backend(_NAMES["Squares"])(),
 }
-_NAMED: dict[str, Callable[[], Backend]] = {
-    "brute": lambda: Brute(),
-    "cell": lambda: Cell(),
-    "delaunay": lambda: Delaunay(),
-    **(_RAY_TRACED if _WARP_ERROR is None else {}),
+_PURE_JAX: dict[str, Callable[[], Backend]] = {
+    "brute": lambda: _backend(_NAMES["Brute"])(),
+    "cell": lambda: _backend(_NAMES["Cell"])(),
+    "delaunay": lambda: _backend(_NAMES["Delaunay"])(),
 }
+_WARP: list[ImportError | None] = []  # [the error importing Warp, or None]
+
+
+def _warp_error() -> ImportError | None:
+    """Why the ray-traced backends cannot load (None: they can); tried once.
+    Warp is a dependency, but a broken install must not break the rest."""
+    if not _WARP:
+        try:
+            importlib.import_module("jaxrt.backends.rt.ffi")
+        except ImportError as e:
+            _WARP.append(e)
+        else:
+            _WARP.append(None)
+    return _WARP[0]
+
+
+def _named() -> dict[str, Callable[[], Backend]]:
+    return {**_PURE_JAX, **(_RAY_TRACED if _warp_error() is None else {})}
 
 
 def available() -> list[str]:
-    """The names ``backend=`` accepts (besides ``"auto"``)."""
-    return sorted(_NAMED)
+    """The names ``backend=`` accepts (besides ``"auto"``); the ray-traced
+    ones only where Warp imports (tried at the first call)."""
+    return sorted(_named())
 
 
 def resolve(backend: str | Backend) -> Backend:
@@ -72,11 +107,13 @@ def resolve(backend: str | Backend) -> Backend:
       TypeError: an object that is not a `Backend`.
     """
     if isinstance(backend, str):
-        if backend in _NAMED:
-            return _NAMED[backend]()
-        if backend in _RAY_TRACED:  # named, but Warp failed to import
-            raise ValueError(f"backend={backend!r} needs warp-lang, which "
-                             f"failed to import: {_WARP_ERROR}")
+        if backend in _PURE_JAX:
+            return _PURE_JAX[backend]()
+        if backend in _RAY_TRACED:
+            if _warp_error() is not None:
+                raise ValueError(f"backend={backend!r} needs warp-lang, "
+                                 f"which failed to import: {_warp_error()}")
+            return _RAY_TRACED[backend]()
         raise ValueError(
             f"backend={backend!r} is not known; choose one of {available()}, "
             "'auto', or pass an options object such as "

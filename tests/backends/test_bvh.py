@@ -13,6 +13,7 @@ from jax_md import partition, space
 import jaxrt
 from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
 
+pytest.importorskip("warp")
 rt = pytest.importorskip("jaxrt.rt")
 from jaxrt import backends  # noqa: E402
 from jaxrt.backends import Capacity, Geometry, Query  # noqa: E402

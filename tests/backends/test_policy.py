@@ -13,6 +13,7 @@ from jax_md import space
 import jaxrt
 from oracle import brute_pairs
 
+pytest.importorskip("warp")
 rt = pytest.importorskip("jaxrt.rt")
 from jaxrt.backends.rt import ffi  # noqa: E402
 from jaxrt.backends.rt import policy

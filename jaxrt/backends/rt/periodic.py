@@ -44,36 +44,16 @@ from typing import Any
 
 import warp as wp
 
+# The half-box rule, re-exported for the methods that import it from here.
+from jaxrt.backends.rt.halfbox import (CUTOFF_MARGIN,  # noqa: F401
+                                       check_cutoff, cutoff_error,
+                                       cutoff_fits)
+
 RAYS_PER_PARTICLE = wp.constant(27)  # all shift combinations; ray 0 is direct
-
-# Cutoffs must stay this far (relatively) below half the side, so that
-# rounding of box centres can never make two images both canonical-looking.
-CUTOFF_MARGIN = 2.0 ** -16
-
-
-def cutoff_fits(cutoff: float, side: float) -> bool:
-    """Does ``cutoff`` allow gamma rays on a periodic axis of ``side``?"""
-    return side > 0 and cutoff < 0.5 * side * (1.0 - CUTOFF_MARGIN)
-
-
-def cutoff_error(cutoff: float, side: float, axis: int) -> str:
-    return (f"the search radius r_cutoff + dr_threshold = {cutoff:g} must be "
-            f"below half the periodic box side {side:g} on axis {axis} for the "
-            "ray-traced backends (they report each pair through its nearest "
-            "image only). Use a larger box, a smaller r_cutoff / dr_threshold, "
-            "or backend='cell'.")
-
-
-def check_cutoff(cutoff: float, side, periodic) -> None:
-    """Raise ValueError unless ``cutoff`` is below half of every periodic side
-    (`cutoff_fits`), naming the first axis where it is not."""
-    for a, p in enumerate(periodic):
-        if p and not cutoff_fits(cutoff, float(side[a])):
-            raise ValueError(cutoff_error(cutoff, float(side[a]), a))
 
 
 # ---------------------------------------------------------------------------
-# Positions wrapped into the box: one formula (`_wrap_coordinate`), two
+# Positions wrapped into the box: one formula (`wrap_coordinate`), two
 # variants. The AABB method's (`wrap_point`, float32 or float64) turns
 # non-finite coordinates into 0, since its boxes must not be NaN. The
 # seed-001 methods' (`wrap_into_box`, float64) keeps them non-finite, so that
@@ -83,7 +63,7 @@ def check_cutoff(cutoff: float, side, periodic) -> None:
 
 
 @wp.func
-def _wrap_coordinate(v: Any, side: Any):
+def wrap_coordinate(v: Any, side: Any):
     """``v`` in ``[0, side)``: ``v - side * floor(v / side)``, with the
     rounding of that expression folded back into the interval."""
     w = v - side * wp.floor(v / side)
@@ -103,7 +83,7 @@ def wrap_point(x: Any, box: Any, periodic: wp.vec3i):
     for a in range(3):
         v = x[a]
         if periodic[a] != 0:
-            v = _wrap_coordinate(v, box[a])
+            v = wrap_coordinate(v, box[a])
         if not wp.isfinite(v):
             v = type(v)(0.0)
         w[a] = v
@@ -122,7 +102,7 @@ def wrap_into_box(p: wp.vec3d, side: wp.vec3d, periodic: wp.vec3i) -> wp.vec3d:
         if periodic[axis] != 0:
             v = p[axis]
             if v < wp.float64(0.0) or v >= side[axis]:
-                v = _wrap_coordinate(v, side[axis])
+                v = wrap_coordinate(v, side[axis])
             wrapped[axis] = v
     return wrapped
 

@@ -63,6 +63,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from typing import Callable, NamedTuple
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -770,7 +771,9 @@ def _backend(backend) -> _Backend:
     from jaxrt.backends.rt import ffi
     if isinstance(backend, _Cell):  # launch options (tests, benchmarks)
         return backend
-    if isinstance(backend, ffi.Bvh):
+    # A Bvh value was made by its module: Warp is loaded only if it was.
+    ffi = sys.modules.get("jaxrt.backends.rt.ffi")
+    if ffi is not None and isinstance(backend, ffi.Bvh):
         return _Bvh(backend)
     if backend == "bvh":
         return _Bvh(ffi.Bvh())
@@ -854,10 +857,10 @@ def _check_displacement(displacement, params: _Params, dim: int) -> None:
             "box of the displacement function, or periodic= explicitly.")
 
 
-def _static_params(displacement, box, periodic, dim: int, r_onset: float,
-                   r_cutoff: float, bound: float) -> _Params:
-    """The `_Params` of ``dim``-D positions, geometry checked."""
-    from jaxrt.backends.rt.periodic import check_cutoff
+def static_params(displacement, box, periodic, dim: int, r_onset: float,
+                   r_cutoff: float, bound: float) -> Params:
+    """The `Params` of ``dim``-D positions, geometry checked."""
+    from jaxrt.backends.rt.halfbox import check_cutoff
     if dim not in (2, 3):
         raise ValueError(f"R must be (N, 2) or (N, 3); got dim {dim}.")
     sides = _sides(box, dim)
