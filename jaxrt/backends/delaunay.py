@@ -890,7 +890,7 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
     found, count, overflow, repeated = _frontiers(
         position, geometry, state, metric_sq, query, capacity)
     bad = state.failed | repeated
-    error = jnp.where(bad, jnp.uint8(ErrorCode.DELAUNAY_FAILED
+    error = jnp.where(bad, jnp.uint8(ErrorCode.SEARCH_FAILED
                                      | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
                       jnp.uint8(0))
     return found, count, overflow | bad, error, state

@@ -277,7 +277,7 @@ def neighbor_list(displacement_or_metric: Callable,
         ``allocate`` and ``update`` take ``radii=`` too, replacing these for
         that call (``update``'s may be traced: it then always rebuilds, as
         it cannot tell whether they changed; bad values set
-        `jaxrt.errors.ErrorCode.BAD_RADII`). Backends ``"brute"``,
+        `jaxrt.errors.ErrorCode.SEARCH_FAILED`). Backends ``"brute"``,
         ``"cell"`` and ``"bvh"`` support radii.
     Returns:
       jax-md's `NeighborListFns` (``allocate``, ``update``).
@@ -406,7 +406,7 @@ def _concrete_radii(radii, r_cutoff: float, where: str,
 def _radii_errors(radii, r_cutoff: float) -> jax.Array:
     """Error bits of traced radii (update's): NaN, negative, too large."""
     bad = ~jnp.all(jnp.isfinite(radii) & (radii >= 0) & (radii <= r_cutoff))
-    return _bits(bad, ErrorCode.BAD_RADII | _OVERFLOW)
+    return _bits(bad, ErrorCode.SEARCH_FAILED | _OVERFLOW)
 
 
 class _Setup(NamedTuple):

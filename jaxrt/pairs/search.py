@@ -69,6 +69,7 @@ non-finite position, a singular cell) sets ``overflow`` and a bit of
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 import itertools
 import math
@@ -77,6 +78,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt.errors import Bits, Error, raise_for
 from jaxrt.layouts.edges import materialized
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
@@ -95,12 +97,13 @@ _CELL_CHUNK = 4
 BACKENDS = ("auto", "brute", "cell")
 
 
-class PairsError(RuntimeError):
+class PairsError(Error, RuntimeError):
     """Raised by `Pairs.check` (and by an eager `pairs`) for an incomplete
     list."""
 
 
-class ErrorBit:
+@enum.unique
+class ErrorBit(Bits):
     """Bits of `Pairs.error`."""
     CAPACITY = 1
     MAX_SHIFT = 2
@@ -174,19 +177,20 @@ class Pairs:
     def check(self) -> "Pairs":
         """Raise `PairsError` if the list (or any list of a batch) is
         incomplete; host-side, so call it outside ``jit``. Returns self."""
-        code = int(np.bitwise_or.reduce(np.asarray(self.error).ravel()))
-        if code:
-            raise PairsError(_explain(code, self))
+        _raise_if(ErrorBit.of(self.error), self)
         return self
 
 
-def _explain(code: int, result=None) -> str:
-    why = [msg for bit, msg in _MESSAGES.items() if code & bit]
-    extra = ""
+def _raise_if(code: int, result=None) -> None:
+    """Raise `PairsError` naming each bit set in ``code`` (and, with
+    ``result``, the count that overflowed)."""
+    messages = dict(_MESSAGES)
     if result is not None and code & ErrorBit.CAPACITY:
-        extra = (f" (count {int(np.max(np.asarray(result.count)))}, "
-                 f"capacity {result.capacity})")
-    return "jaxrt.pairs: the list is incomplete: " + "; ".join(why) + extra
+        messages[ErrorBit.CAPACITY] += (
+            f" (count {int(np.max(np.asarray(result.count)))}, "
+            f"capacity {result.capacity})")
+    raise_for(code, messages, PairsError,
+              "jaxrt.pairs: the list is incomplete: ")
 
 
 def _arrays(result: Pairs, positions, cell):
@@ -295,8 +299,9 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     bad_cell = ~(jnp.isfinite(det) & (jnp.abs(det) > 0)
                  & jnp.all(jnp.isfinite(hinv)))
     finite = jnp.all(jnp.isfinite(r), axis=1)
-    error = jnp.where(jnp.any(mask & ~finite), ErrorBit.NONFINITE_POSITION, 0)
-    error = error | jnp.where(bad_cell, ErrorBit.SINGULAR_CELL, 0)
+    error = jnp.where(jnp.any(mask & ~finite),
+                      int(ErrorBit.NONFINITE_POSITION), 0)
+    error = error | jnp.where(bad_cell, int(ErrorBit.SINGULAR_CELL), 0)
     real = mask & finite
     hinv = jnp.where(bad_cell, jnp.eye(3, dtype=dtype), hinv)
     f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv[None],
@@ -334,7 +339,7 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     # The reach covers the cutoff unless the cell is too short for it.
     reach_needed = cutoff * cells / height
     short = jnp.any(periodic & (reach_needed > np.array(reach)))
-    error = error | jnp.where(short & ~bad_cell, ErrorBit.MAX_SHIFT, 0)
+    error = error | jnp.where(short & ~bad_cell, int(ErrorBit.MAX_SHIFT), 0)
 
     coord = jnp.clip(jnp.floor((fw - origin) / width).astype(jnp.int32), 0,
                      cells - 1)
@@ -406,7 +411,7 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     total, out = jax.lax.fori_loop(0, steps, step,
                                    (jnp.zeros((), jnp.int32), out))
     total = 2 * total
-    error = error | jnp.where(total > capacity, ErrorBit.CAPACITY, 0)
+    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
     stored = out[:, 0] < n
     out = out.at[:, 1].set(jnp.where(stored, order[jnp.where(
         stored, out[:, 1], 0)], n))
@@ -697,12 +702,13 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
                               np.asarray(mask), concrete_cell, pbc, cutoff))
     out, total, error = _search(positions, h, mask, cutoff, capacity=guess,
                                 **options)
-    _raise_if(int(error) & ~ErrorBit.CAPACITY)
+    _raise_if(int(error) & ~int(ErrorBit.CAPACITY))
     count = int(total)
     if count > guess:
         out, total, error = _search(positions, h, mask, cutoff,
                                     capacity=_bucket(count), **options)
-    return _result(out[:count], total, error & ~ErrorBit.CAPACITY).check()
+    return _result(out[:count], total,
+                   error & ~int(ErrorBit.CAPACITY)).check()
 
 
 def _bucket(n: int) -> int:
@@ -726,11 +732,6 @@ def _estimate(r: np.ndarray, mask: np.ndarray, cell: np.ndarray, pbc,
     volume = abs(np.linalg.det(cell)) * np.prod(span)
     k = n / volume * 4 / 3 * np.pi * cutoff ** 3
     return int(1.25 * n * k) + 16
-
-
-def _raise_if(code: int) -> None:
-    if code:
-        raise PairsError(_explain(code))
 
 
 def _per_system_cells(cell, batch):
@@ -782,6 +783,6 @@ def pairs_sizes(positions, cutoff, *, cell=None, pbc=None, mask=None,
         _search, pbc=pbc, reach=reach, capacity=0, brute=brute,
         chunk=chunk), in_axes=(0, 0, 0, None))
     _, total, error = count(r, jnp.stack(mats), m, cutoff)
-    _raise_if(int(np.bitwise_or.reduce(np.asarray(error))) & ~ErrorBit.CAPACITY)
+    _raise_if(ErrorBit.of(error) & ~int(ErrorBit.CAPACITY))
     return PairSizes(capacity=int(np.max(np.asarray(total), initial=0)),
                      max_shift=shift)

@@ -72,6 +72,7 @@ from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from jax_md import partition
 
+from jaxrt.errors import Bits, Error, raise_for
 from jaxrt.lists import neighbors as _neighbors
 
 __all__ = ["Decomposition", "DomainError", "DomainState", "Domains",
@@ -91,11 +92,12 @@ else:  # older JAX
                     check_rep=False)
 
 
-class DomainError(ValueError):
+class DomainError(Error, ValueError):
     """A decomposition that cannot work, or a run that overflowed."""
 
 
-class Overflow(enum.IntFlag):
+@enum.unique
+class Overflow(Bits):
     """Bits of `DomainState.error`."""
     OWNED = 1 << 0       # more particles in a slab than capacity
     HALO = 1 << 1        # more halo particles at a face than halo_capacity
@@ -721,18 +723,16 @@ class Domains:
         return state._replace(rebuilds=state.rebuilds * 0)
 
     def errors(self, state: DomainState) -> Overflow:
-        return Overflow(int(np.bitwise_or.reduce(np.asarray(state.error))))
+        return Overflow.of(state.error)
 
     def check(self, state: DomainState) -> None:
         """Raise `DomainError` naming each overflow (and its fix)."""
-        bits = self.errors(state)
-        if bits:
-            per = np.asarray(state.error)
-            msgs = [f"{b.name} on device(s) "
-                    f"{np.flatnonzero(per & int(b)).tolist()}: {_FIX[b]}"
-                    for b in Overflow if b & bits]
-            raise DomainError("domain decomposition overflowed (results "
-                              "since then are wrong): " + "; ".join(msgs))
+        per = np.asarray(state.error)
+        raise_for(self.errors(state), {
+            b: f"{b.name} on device(s) "
+               f"{np.flatnonzero(per & int(b)).tolist()}: {_FIX[b]}"
+            for b in Overflow}, DomainError, "domain decomposition "
+            "overflowed (results since then are wrong): ")
 
     def gather(self, state: DomainState, what: str = "position",
                n: int | None = None) -> np.ndarray:

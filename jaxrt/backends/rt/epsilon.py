@@ -54,6 +54,8 @@ from typing import Any
 
 import warp as wp
 
+from jaxrt.errors import Error
+
 from jaxrt.backends.rt.method import FindArguments, describe
 from jaxrt.backends.rt.periodic import wrap_into_box
 
@@ -72,7 +74,7 @@ needed candidate's box strictly around the axis-aligned rays: Warp's
 in a node's face, which can prune that node."""
 
 
-class ParticlesTooCloseError(ValueError):
+class ParticlesTooCloseError(Error, ValueError):
     """Two particles are closer than a method's resolution (module docstring).
 
     Attributes:

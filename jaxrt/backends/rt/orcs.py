@@ -61,10 +61,10 @@ wp.set_module_options({"fuse_fp": False})
 SIGMA, EPSILON, R_ONSET, R_CUTOFF, RADIUS_BOUND, DT, MASS = range(7)
 N_PARAMS = 7
 
-# Bits of ``error[0]`` (`jaxrt.errors.ErrorCode` values, so the JAX side
-# reports them in jaxrt's words).
-ERROR_NONFINITE = wp.constant(1 << 4)  # ErrorCode.NONFINITE_POSITION
-ERROR_RADII = wp.constant(1 << 7)      # ErrorCode.BAD_RADII
+# Bits of ``error[0]`` (`jaxrt.energy.listfree.lj.InputBit` values, so the
+# JAX side reports them in jaxrt's words).
+ERROR_NONFINITE = wp.constant(1 << 4)  # InputBit.NONFINITE_POSITION
+ERROR_RADII = wp.constant(1 << 7)      # InputBit.BAD_RADII
 
 
 @wp.func

@@ -61,6 +61,7 @@ Conventions, and where they differ from jax-md on purpose:
 from __future__ import annotations
 
 import dataclasses
+import enum
 import functools
 from typing import Callable, NamedTuple
 import sys
@@ -71,7 +72,7 @@ import numpy as np
 
 from jaxrt.energy.checks import concrete
 from jaxrt.energy.keywords import SIMULATE_KEYWORDS, reject_unknown
-from jaxrt.errors import ErrorCode
+from jaxrt.errors import Bits, Error, raise_for
 
 Array = jax.Array
 
@@ -87,7 +88,7 @@ class FusedSums(NamedTuple):
         ``(N, dim)`` from ``energy_fn.sums``: ``-dE/dR``.
       d_sigma, d_epsilon: float scalars, ``dE/dsigma`` and ``dE/depsilon``.
       count: float scalar, unordered interacting pairs.
-      error: int32 scalar, `jaxrt.errors.ErrorCode` bits (0: fine).
+      error: int32 scalar, `InputBit` bits (0: fine).
     """
 
     energy: Array
@@ -120,11 +121,11 @@ class _Params:
     dim: int | None = None
 
 
-class HigherOrderError(TypeError):
+class HigherOrderError(Error, TypeError):
     """A second derivative was asked of a fused energy."""
 
 
-class FusedInputError(ValueError):
+class FusedInputError(Error, ValueError):
     """A fused energy was given non-finite positions or radii out of range."""
 
 
@@ -918,31 +919,37 @@ def _check_radii(radii):
                          f"got shape {r.shape}.")
     return float(np.max(r, initial=0.0))
 
+@enum.unique
+class InputBit(Bits):
+    """Bits of a list-free energy's input check, int32 (the ORCS kernels
+    set the same values: `jaxrt.backends.rt.orcs`' ``ERROR_*``)."""
+    NONFINITE_POSITION = 1 << 4
+    BAD_RADII = 1 << 7
+
+
 
 def _input_errors(R, radii, bound: float) -> Array:
-    """`ErrorCode` bits of the inputs (traceable)."""
+    """`InputBit` bits of the inputs (traceable)."""
     bad_r = ~jnp.all(jnp.isfinite(R))
-    error = jnp.where(bad_r, int(ErrorCode.NONFINITE_POSITION), 0)
+    error = jnp.where(bad_r, int(InputBit.NONFINITE_POSITION), 0)
     if radii is not None:
         ok = jnp.all((radii >= 0) & (radii <= bound))
-        error = error | jnp.where(ok, 0, int(ErrorCode.BAD_RADII))
+        error = error | jnp.where(ok, 0, int(InputBit.BAD_RADII))
     return error.astype(jnp.int32)
 
 
 def _raise_for(error, bound: float) -> None:
-    code = int(error)
-    if code & ErrorCode.NONFINITE_POSITION:
-        raise FusedInputError("R has NaN or infinite entries: the energy is "
-                              "NaN. Find where the simulation blew up (time "
-                              "step, overlapping particles).")
-    if code & ErrorCode.BAD_RADII:
-        raise FusedInputError(f"radii must be finite and in [0, {bound:g}] "
-                              "(the factory's largest radius sets the search); "
-                              "pass smaller radii or build the energy with "
-                              "them.")
+    raise_for(int(error), {
+        InputBit.NONFINITE_POSITION:
+            "R has NaN or infinite entries: the energy is NaN. Find where "
+            "the simulation blew up (time step, overlapping particles).",
+        InputBit.BAD_RADII:
+            f"radii must be finite and in [0, {bound:g}] (the factory's "
+            "largest radius sets the search); pass smaller radii or build "
+            "the energy with them."}, FusedInputError, "", sep=" ")
 
 
-def _make_energy(backend: _Backend, params: _Params, dim: int) -> Callable:
+def _make_energy(backend: _Backend, params: Params, dim: int) -> Callable:
     """``energy(R, sigma, epsilon, radii)`` with its custom VJP."""
 
     def padded(R):
