@@ -5,7 +5,7 @@ beside the alternatives that would replace a stage.
 
 Rows: ``grid+key`` (`cell_list._grid`, its coarsening while_loop, and the
 cell keys), ``grid+key static`` (the same with the cells per axis known
-when tracing), the sort as `fused._sort_by_key` does it and three others,
+when tracing), the sort as `fused.sort_by_key` does it and three others,
 ``cell_starts`` (a scatter-add and a cumsum over the 4 N + 64 table) with
 its two pieces, ``runs`` (`cell_list._runs`: starts and both parts' run
 ends), the run ends of 9 runs per particle as one slice each (before
@@ -84,13 +84,13 @@ def main(argv=None) -> None:
 
     stage("grid+key static", grid_static, inputs)
     keys = [o[2] for o in outs]
-    stage("sort: _sort_by_key", lambda k: fused._sort_by_key(k, table), keys)
+    stage("sort: sort_by_key", lambda k: fused.sort_by_key(k, table), keys)
     stage("sort: argsort", jnp.argsort, keys)
     stage("sort: uint32 keys only", lambda k: jnp.sort(k.astype(jnp.uint32)), keys)
     stage("sort: uint32 packed (lossy)", lambda k: jnp.sort(
         (k.astype(jnp.uint32) << 11) | (jnp.arange(n, dtype=jnp.uint32) & 2047)),
         keys)
-    srt = [jax.jit(lambda k: fused._sort_by_key(k, table))(k) for k in keys]
+    srt = [jax.jit(lambda k: fused.sort_by_key(k, table))(k) for k in keys]
     stage("cell_starts", cell_list._cell_starts, [s[1] for s in srt])
     stage("cell_starts: cumsum", lambda x: jnp.cumsum(x, dtype=jnp.int32),
           [jnp.ones((table,), jnp.int32)] * 2)

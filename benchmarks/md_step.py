@@ -72,7 +72,7 @@ def launched(label: str):
     """The fused cell backend of
     ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS][s][n]]`` or of the bare launch
     (the kernel, compiled: CUDA only)."""
-    from jaxrt.energy.listfree.lj import _Cell
+    from jaxrt.energy.listfree.lj import CellSums
     match = _LAUNCH.fullmatch(label) or re.fullmatch(LAUNCH, label)
     if match is None:
         raise ValueError(f"launch {label!r}: write BLOCKxWARPS[xTILE]"
@@ -80,7 +80,7 @@ def launched(label: str):
                          "32x1s or 32x1n")
     *numbers, stored, newton = match.groups()
     block, warps, tile, unroll, across = (int(v) if v else 0 for v in numbers)
-    return _Cell(kernel="pallas", block=block, warps=warps, tile=tile,
+    return CellSums(kernel="pallas", block=block, warps=warps, tile=tile,
                  unroll=unroll or 1, across=across or 1,
                  runs="stored" if stored else "kernel", newton=bool(newton))
 

@@ -79,7 +79,7 @@ def _system(n: int, dtype):
 def _grid(box):
     """The fused energy's static parameters for md_step's LJ system."""
     from jaxrt.energy.listfree import lj as fused
-    return fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
+    return fused.Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
                          periodic=(True,) * 3, side=(box,) * 3)
 
 
@@ -183,7 +183,7 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     import jax.numpy as jnp
     from jaxrt.energy.listfree import lj as fused
     params = _grid(box)
-    cell = backend or fused._Cell()
+    cell = backend or fused.CellSums()
     interpret = jax.default_backend() not in ("gpu", "cuda")  # CPU smoke
     n = R.shape[0]
     def walk(R):

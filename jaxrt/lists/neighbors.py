@@ -1060,3 +1060,14 @@ def choose_backend(*, platform: str, has_radii: bool = False,
     if has_radii and platform == "cpu" and warp:
         return "bvh"
     return "cell"
+
+
+# ---------------------------------------------------------------------------
+# The front's reading of the caller's space, by public-internal names, for
+# the list-free energies (`jaxrt.energy.listfree`), which take the same
+# arguments.
+
+grid_space = _grid_space
+infer_periodic = _infer_periodic
+metric_sq_fn = _metric_sq_fn
+normalise_periodic = _normalise_periodic

@@ -581,7 +581,7 @@ class Boids:
 
         def boids(R, V, nbrs, rho):
             n = R.shape[0]
-            pairs = _sph._pairs(nbrs, n)
+            pairs = _sph.list_pairs(nbrs, n)
             c = jnp.minimum(pairs.centre, n - 1)
             o = jnp.minimum(pairs.other, n - 1)
             # x_j - x_i, from i's point of view.
@@ -595,7 +595,7 @@ class Boids:
 
             def total(weight, to_centre, to_other):
                 w = weight[..., None]
-                return _sph._sum_pairs(jnp.where(w, to_centre, 0),
+                return _sph.sum_pairs(jnp.where(w, to_centre, 0),
                                        jnp.where(w, to_other, 0), pairs,
                                        nbrs, n)
             count = total(seen, one, one)[:, 0]

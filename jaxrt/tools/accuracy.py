@@ -533,8 +533,8 @@ def _fused_newton(s):
     """The fused walk meeting each pair once (`Cell(newton=True)` of the
     fused energy's own backend; "auto": the kernel where it runs, which is
     where this value runs)."""
-    from jaxrt.energy.listfree.lj import _Cell
-    return _list_free(_Cell(kernel="auto", newton=True))(s)
+    from jaxrt.energy.listfree.lj import CellSums
+    return _list_free(CellSums(kernel="auto", newton=True))(s)
 
 
 def _same(s):
@@ -1142,7 +1142,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
     compiling ``scene`` (the reference continues its equilibration)."""
     import jax
     from jaxrt import sim
-    from jaxrt.tools.cli import _pair_codes
+    from jaxrt.layouts.codes import pair_codes
     if start is None:
         compiled = sim.compile_scene(scene)
         state, nbrs = compiled.init()
@@ -1193,7 +1193,7 @@ def measure(scene, plan: Plan, *, ref_forces: dict, start=None) -> Measured:
         if nbrs is not None or own is not None:
             want = exact_pairs(pos, own[0] if own else scene.cutoff, side,
                                periodic, radii=None if own else radii)
-            got = own[1](pos) if own else _pair_codes(nbrs, n)
+            got = own[1](pos) if own else pair_codes(nbrs, n)
             missed += pairs_missed(got, want)
             depth = max(depth, missed_depth_ulps(
                 got, want, pos, own[0] if own else scene.cutoff, side,

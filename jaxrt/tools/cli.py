@@ -27,6 +27,8 @@ import warnings
 
 import numpy as np
 
+from jaxrt.layouts.codes import pair_codes as _pair_codes
+
 DEMO_STEPS, DEMO_N = 2000, 2048
 
 # trajectory.xyz names species 0, 1, 2, ... by these elements (ASE and OVITO
@@ -223,20 +225,6 @@ def _load(args):
 
 
 # ---------------------------------------------------------------------------
-
-
-def _pair_codes(nbrs, n: int) -> np.ndarray:
-    """Sorted unique ``i * n + j`` (i < j) of a list in any layout."""
-    from jax_md import partition
-    idx = np.asarray(nbrs.idx)
-    if partition.is_sparse(nbrs.format):
-        i, j = idx[0], idx[1]
-    else:
-        i = np.broadcast_to(np.arange(n)[:, None], idx.shape).ravel()
-        j = idx.ravel()
-    keep = (i < n) & (j < n) & (i != j)
-    i, j = i[keep].astype(np.int64), j[keep].astype(np.int64)
-    return np.unique(np.minimum(i, j) * n + np.maximum(i, j))
 
 
 def _pair_cut(scene, i, j, extra: float = 0.0):

@@ -22,7 +22,7 @@ from jaxrt import backends
 from jaxrt.backends.cell import search as cell_list
 from jaxrt.backends.contract import Geometry, Query
 from jaxrt.energy import lennard_jones_fused
-from jaxrt.energy.listfree.lj import _Cell
+from jaxrt.energy.listfree.lj import CellSums
 from oracle import (assert_layout, brute_pairs, brute_pairs_radii,
                     expected_pairs, list_pairs)
 from scenes import fluid as fused_fluid
@@ -301,11 +301,11 @@ def test_fused_grid_of_a_proven_box_has_no_search():
     md_step fluid), the slab search is not even in the program."""
     from jaxrt.energy.listfree import lj as fused
     R, side = fluid()
-    params = fused._static_params(space.periodic(side)[0], side, None, 3,
+    params = fused.static_params(space.periodic(side)[0], side, None, 3,
                                   2.0, 2.5, 2.5)
     program = str(jax.make_jaxpr(lambda R: fused.cell_runs(R, params))(R))
     assert "cummax" not in program and "cond" not in program
-    big = fused._static_params(space.periodic(SIDE)[0], SIDE, None, 3, 2.0,
+    big = fused.static_params(space.periodic(SIDE)[0], SIDE, None, 3, 2.0,
                                2.5, 2.5)
     program = str(jax.make_jaxpr(lambda R: fused.cell_runs(R, big))(R))
     assert "cummax" in program  # a sparse box searches
@@ -313,9 +313,9 @@ def test_fused_grid_of_a_proven_box_has_no_search():
 
 # The fused sums: the kernel walks runs through each run's periodic image
 # (`fused.run_image_axes`), which on a compacted axis is 0.
-FUSED = {"xla": _Cell(kernel="xla"), "kernel": _Cell(kernel="interpret"),
-         "tiles": _Cell(kernel="interpret", block=16, tile=16),
-         "stored": _Cell(kernel="interpret", runs="stored")}
+FUSED = {"xla": CellSums(kernel="xla"), "kernel": CellSums(kernel="interpret"),
+         "tiles": CellSums(kernel="interpret", block=16, tile=16),
+         "stored": CellSums(kernel="interpret", runs="stored")}
 
 
 @pytest.mark.parametrize("backend, centre", [
@@ -332,7 +332,7 @@ def test_fused_sums_of_a_cluster_match_brute_force(x64, backend, centre):
     dim = len(centre)
     R = jnp.asarray(droplet(centre, 4.5 if dim == 3 else 8.0, SIDE))
     displacement = space.periodic(SIDE)[0]
-    params = fused._static_params(displacement, SIDE, None, dim, 2.0, 2.5,
+    params = fused.static_params(displacement, SIDE, None, dim, 2.0, 2.5,
                                   2.5)
     assert fused.run_image_axes(params, len(R))[:dim] == (True,) * dim
     # Compacted: a run holds a few cells' particles (box-wide 90 to 215 of

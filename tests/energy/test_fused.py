@@ -25,7 +25,7 @@ from jax_md import partition, space
 from scenes import fluid
 
 import jaxrt
-from jaxrt.energy.listfree.lj import _Cell
+from jaxrt.energy.listfree.lj import CellSums
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           lennard_jones_fused, lennard_jones_neighbor_list,
                           lennard_jones_perse_step, lennard_jones_truncated)
@@ -39,11 +39,11 @@ KERNEL = jaxrt.backends.Cell(kernel="pallas" if ON_GPU else "interpret")
 
 # The same kernel in its cluster layout (tiles of candidates per program of
 # particles), small tiles so that several are walked per run.
-TILES = _Cell(kernel=KERNEL.kernel, block=16, tile=16)
+TILES = CellSums(kernel=KERNEL.kernel, block=16, tile=16)
 # The thread walk two candidates per step, on cells half a cutoff across (25
 # runs in 3D); and the array walk on those cells.
-FINE = _Cell(kernel=KERNEL.kernel, unroll=2, across=2)
-FINE_XLA = _Cell(kernel="xla", across=2)
+FINE = CellSums(kernel=KERNEL.kernel, unroll=2, across=2)
+FINE_XLA = CellSums(kernel="xla", across=2)
 
 
 def pick(backend):
@@ -472,7 +472,7 @@ def test_kernel_lowers_for_cuda(x64, launch):
     R, side = fluid(n_side=6)
     displacement, _ = space.periodic(side)
     energy_fn = lennard_jones_fused(displacement, side,
-                                    backend=_Cell(kernel="auto", **launch))
+                                    backend=CellSums(kernel="auto", **launch))
     for dtype in (jnp.float32, jnp.float64):
         exported = export.export(
             jax.jit(jax.value_and_grad(energy_fn)), platforms=["cuda"],
@@ -497,7 +497,7 @@ def image_axes(R, box, periodic=None, across=1, cutoff=2.5):
     dim = R.shape[1]
     displacement, _, _ = GEOMETRIES["periodic" if periodic is None
                                     else "slab"](box)
-    params = fused._static_params(displacement, box, periodic, dim, 2.0,
+    params = fused.static_params(displacement, box, periodic, dim, 2.0,
                                   cutoff, cutoff)
     return fused.run_image_axes(params, len(R), across=across)
 
@@ -529,7 +529,7 @@ def _traced_grid_cells():
     from jaxrt.backends.cell import search as cell_list
     from jaxrt.backends.contract import Geometry
     from jaxrt.energy.listfree import lj as fused
-    query = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True,) * 3,
+    query = fused.grid_query(fused.Params(2.0, 2.5, 2.5, (True,) * 3,
                                             (1.0,) * 3))
 
     @jax.jit
@@ -558,7 +558,7 @@ def test_run_image_axes_bound_the_traced_grid(dtype):
                 k = rng.integers(2, 30, 3) / np.array([4, 1, 1])
                 side = tuple(float(x) for x in 2.5 * (1 + 2.0 ** -10) * k
                              * (1 + rng.uniform(-1e-6, 1e-6, 3)))
-                params = fused._Params(2.0, 2.5, 2.5, (True,) * 3, side)
+                params = fused.Params(2.0, 2.5, 2.5, (True,) * 3, side)
                 axes = np.array(fused.run_image_axes(params, n))
                 got = np.asarray(cells(jnp.asarray(side, dtype), R))
                 assert np.all(got[axes] >= need[axes]), (side, n, got)
@@ -597,7 +597,7 @@ def test_static_cells_bound_the_traced_grid(dtype):
                     # no coarsening happened: the counts are the box's
                     assert np.all(np.abs(got - uncoarsened) <= 1), (side, got)
     assert given > 30  # the rule is not just "never"
-    free = fused._grid_query(fused._Params(2.0, 2.5, 2.5, (True, False, True),
+    free = fused.grid_query(fused.Params(2.0, 2.5, 2.5, (True, False, True),
                                            (10.0,) * 3))
     assert cell_list._static_cells(100, (10.0,) * 3, free) is None
 
@@ -730,7 +730,7 @@ def test_runs_found_by_the_kernel_equal_the_stored_runs(x64, case, layout):
     for runs in ("kernel", "stored"):
         fused = lennard_jones_fused(
             displacement, jnp.asarray(box), periodic=periodic,
-            backend=_Cell(kernel=KERNEL.kernel, runs=runs, **launch))
+            backend=CellSums(kernel=KERNEL.kernel, runs=runs, **launch))
         sums = fused.sums(R)
         got[runs] = (np.asarray(sums.energy), np.asarray(sums.forces),
                      int(sums.count))
@@ -743,7 +743,7 @@ def test_runs_found_by_the_kernel_equal_the_stored_runs(x64, case, layout):
 
 def test_cell_runs_option_is_checked():
     with pytest.raises(ValueError, match="runs='table'.*'kernel' or 'stored'"):
-        _Cell(runs="table")
+        CellSums(runs="table")
 
 
 # ---------------------------------------------------------------------------
@@ -761,7 +761,7 @@ def test_newton_meets_each_pair_once(x64):
     R, side = fluid(n_side=7)
     R = jnp.asarray(R)
     displacement, _ = space.periodic(side)
-    params = fused_module._static_params(displacement, side, None, 3, 2.0,
+    params = fused_module.static_params(displacement, side, None, 3, 2.0,
                                          2.5, 2.5)
     order, runs, images = fused_module.cell_runs(R, params)
     assert images.axes == (True, True, True)
@@ -791,7 +791,7 @@ def brute_pair_set(R, side, cutoff):
     return set(zip(i.tolist(), j.tolist()))
 
 
-NEWTON = _Cell(kernel=KERNEL.kernel, newton=True)
+NEWTON = CellSums(kernel=KERNEL.kernel, newton=True)
 
 
 @pytest.mark.parametrize("case", [
@@ -830,4 +830,4 @@ def test_newton_matches_brute_force(x64, case):
 
 def test_newton_refuses_the_cluster_layout():
     with pytest.raises(ValueError, match="newton=True, tile=16"):
-        _Cell(newton=True, tile=16)
+        CellSums(newton=True, tile=16)

@@ -438,10 +438,10 @@ def test_scene_walk_key():
 def test_sort_by_key_branches(table, wide):
     """`fused.cell_runs`'s sort: key and index packed in 32 bits, in 64
     (x64 on), or the two-operand sort (neither fits)."""
-    from jaxrt.energy.listfree.lj import _sort_by_key
+    from jaxrt.energy.listfree.lj import sort_by_key
     key = np.random.default_rng(0).integers(0, 1000, 500).astype(np.int32)
     with jax.enable_x64(wide):
-        order, sorted_key = _sort_by_key(jnp.asarray(key), table)
+        order, sorted_key = sort_by_key(jnp.asarray(key), table)
     order, sorted_key = np.asarray(order), np.asarray(sorted_key)
     np.testing.assert_array_equal(sorted_key, np.sort(key))
     np.testing.assert_array_equal(key[order], sorted_key)

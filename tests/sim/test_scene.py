@@ -260,8 +260,8 @@ def test_mixed_boundaries_wrap_periodic_axis_only():
                  effects=(LJ,), integrator=S.Integrator(dt=0.001),
                  neighbors=S.Neighbors(skin=0.3))
     c, state, stats = _run(sc, 5)
-    from jaxrt.tools.cli import _pair_codes  # i * n + j, i < j, any layout
-    assert list(_pair_codes(c.init()[1], 6)) == [0 * 6 + 1]
+    from jaxrt.layouts.codes import pair_codes  # i * n + j, i < j
+    assert list(pair_codes(c.init()[1], 6)) == [0 * 6 + 1]
     # Same as every pair within reach under the scene's own displacement.
     d = np.asarray(jax.vmap(jax.vmap(c.displacement, (None, 0)), (0, None))(
         state.position, state.position))

@@ -65,12 +65,12 @@ def test_pairs_missed_on_a_deliberately_short_cutoff():
     import jax.numpy as jnp
     from jax_md import space
     import jaxrt
-    from jaxrt.tools.cli import _pair_codes
+    from jaxrt.layouts.codes import pair_codes
     displacement, _ = space.periodic(4.0)
     fn = jaxrt.neighbor_list(displacement, 4.0, 1.1, backend="brute",
                              format=jaxrt.OrderedSparse)
     nbrs = fn.allocate(jnp.asarray(r, jnp.float32))
-    assert accuracy.pairs_missed(_pair_codes(nbrs, 64), full) == 64 * 12 // 2
+    assert accuracy.pairs_missed(pair_codes(nbrs, 64), full) == 64 * 12 // 2
 
 
 def test_missed_depth_tells_rounding_from_a_wrong_list():

@@ -43,7 +43,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt.backends import contract as _backend
-from jaxrt.backends.cell import search as _cells
 from jaxrt.backends.contract import Capacity, Geometry, MetricSq, Query
 from jaxrt.errors import ListTooLargeError
 
@@ -85,6 +84,7 @@ def _stencil(coord, n, query: Query):
       on free axes; on periodic axes of fewer than 3 cells, the offsets that
       alias an earlier one are dropped, so no cell is visited twice).
     """
+    from jaxrt.backends.cell import grid  # which imports the search, ours
     dim = query.dim
     offsets = np.array(list(itertools.product((-1, 0, 1), repeat=dim)),
                        np.int32)  # (S, dim)
@@ -104,7 +104,7 @@ def _stencil(coord, n, query: Query):
         else:
             valid &= (c >= 0) & (c < n[a])
         wrapped.append(c)
-    return _cells._key(jnp.stack(wrapped, axis=-1), n), valid
+    return grid.key(jnp.stack(wrapped, axis=-1), n), valid
 
 
 def _class_grid(cart, members, geometry: Geometry, query: Query):
@@ -119,10 +119,11 @@ def _class_grid(cart, members, geometry: Geometry, query: Query):
       begins, and the stencil (`_stencil`) of every particle, int32 and
       bool ``(N, S)``.
     """
+    from jaxrt.backends.cell import grid  # which imports the search, ours
     n_particles = cart.shape[0]
-    _, coord, n = _cells._grid(cart, geometry, query, reach=(1, 1))
-    size = _cells._table_size(n_particles)
-    key = jnp.where(members, _cells._key(coord, n), size)  # others past the table
+    _, coord, n = grid.grid(cart, geometry, query, reach=(1, 1))
+    size = grid.table_size(n_particles)
+    key = jnp.where(members, grid.key(coord, n), size)  # others past the table
     sorted_key, order = jax.lax.sort(
         (key, jnp.arange(n_particles, dtype=jnp.int32)), num_keys=1,
         is_stable=False)
@@ -195,7 +196,7 @@ def _candidates(position, geometry: Geometry, metric_sq: MetricSq, *,
 
 def _packed(j, mask, width: int):
     """Left-pack ``j`` where ``mask``, a row at a time, by the cell list's
-    bit selection (`jaxrt.cell_list._select`): the output is written, not
+    bit selection (`jaxrt.backends.cell.grid.select`): the output is written, not
     scattered from every candidate (a scatter over N x M candidates was
     most of the update on CPUs).
 
@@ -204,6 +205,7 @@ def _packed(j, mask, width: int):
     Returns:
       int32 ``(N, width)`` padded with N, int32 ``(N,)`` exact counts.
     """
+    from jaxrt.backends.cell import grid  # which imports the search, ours
     n, m = j.shape
     words = -(-m // 32)
     # About as many groups as words per group: the selection compares
@@ -216,7 +218,7 @@ def _packed(j, mask, width: int):
     packed = jnp.sum(bits, axis=2, dtype=jnp.uint32)  # distinct bits: an or
     payload = jnp.broadcast_to(
         jnp.arange(words, dtype=jnp.int32)[None, :, None], (n, words, 1))
-    bit, got, valid, count = _cells._select(packed, width, payload, group)
+    bit, got, valid, count = grid.select(packed, width, payload, group)
     column = jnp.clip(32 * got[..., 0] + bit, 0, m - 1)
     picked = jnp.take_along_axis(j, column, axis=1)
     return jnp.where(valid, picked, n), count

@@ -1204,3 +1204,19 @@ def _platform_of(position) -> str:
         except Exception:  # noqa: BLE001 - a tracer or a deleted array
             pass
     return jax.default_backend()
+
+
+# ---------------------------------------------------------------------------
+# The grid, by public-internal names (`jaxrt.backends.cell.grid` holds them
+# for the radius classes and the list-free energies).
+
+REACH = _REACH
+cell_starts = _cell_starts
+grid = _grid
+image_axes = _image_axes
+key = _key
+run_images = _run_images
+runs = _runs
+select = _select
+static_cells = _static_cells
+table_size = _table_size

@@ -61,11 +61,11 @@ _MORTON_CELLS_PER_CUTOFF = 2.0
 
 # An infinitesimal ray: any direction with no zero component (zero
 # components make the slab test compute 0 * inf).
-_RAY_DIRECTION = wp.constant(wp.vec3(0.57735026, 0.57735026, 0.57735026))
+RAY_DIRECTION = wp.constant(wp.vec3(0.57735026, 0.57735026, 0.57735026))
 
 
 @wp.func
-def _box_reach(half_width: wp.float32, extent: wp.float32, largest_side: wp.float32):
+def box_reach(half_width: wp.float32, extent: wp.float32, largest_side: wp.float32):
     """Half-width of every box: the cutoff plus the rounding pad."""
     return half_width + wp.float32(PAD_FRACTION) * (extent + largest_side + half_width)
 
@@ -154,7 +154,7 @@ def _cluster_box_kernel(item_coords: wp.array(dtype=Any), side: wp.array(dtype=A
     c = wp.tid()
     first = c * cluster_size
     last = wp.min(first + cluster_size, item_coords.shape[0])
-    pad = _box_reach(half_width, extent[0], gamma.largest_side(side[0], periodic)) - half_width
+    pad = box_reach(half_width, extent[0], gamma.largest_side(side[0], periodic)) - half_width
     low = wp.vec3(1.0e30, 1.0e30, 1.0e30)
     high = -low
     for m in range(first, last):
@@ -306,13 +306,13 @@ def _query_radii_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     xi = item_points[k]
     ui = item_coords[k]
     box = side[0]
-    face_reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic)) + drift_limit
+    face_reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic)) + drift_limit
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     for ray in range(gamma.RAYS_PER_PARTICLE):
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
-            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            query = wp.bvh_query_ray(bvh, origin, RAY_DIRECTION)
             hit = int(0)
             while wp.bvh_query_next(query, hit, 0.0):
                 first = hit * cluster_size
@@ -345,7 +345,7 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     xi = item_points[k]
     ui = item_coords[k]
     box = side[0]
-    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
     # Items may sit up to drift_limit outside the box since the last build.
     face_reach = reach + drift_limit
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
@@ -357,7 +357,7 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
-            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            query = wp.bvh_query_ray(bvh, origin, RAY_DIRECTION)
             hit = int(0)
             if cluster_size == 1:
                 while wp.bvh_query_next(query, hit, 0.0):
@@ -398,7 +398,7 @@ def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     xi = item_points[k]
     ui = item_coords[k]
     box = side[0]
-    reach = _box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
     face_reach = reach + drift_limit
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     n = int(0)
@@ -406,7 +406,7 @@ def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
-            query = wp.bvh_query_ray(bvh, origin, _RAY_DIRECTION)
+            query = wp.bvh_query_ray(bvh, origin, RAY_DIRECTION)
             payload = cutoff_sq - cutoff_sq
             hit = int(0)
             while wp.bvh_query_next(query, hit, 0.0):
@@ -462,7 +462,7 @@ def _pad_pairs_kernel(total: wp.array(dtype=wp.int32), n_particles: wp.int32,
 _OVERLOADS: dict = {}
 
 
-def _instantiate(kernel, vectors=(), scalars=(), scalar_arrays=()):
+def instantiate(kernel, vectors=(), scalars=(), scalar_arrays=()):
     """Overload ``kernel`` for float32 and float64: ``vectors`` name arrays
     of positions, ``scalars`` name position-precision scalars,
     ``scalar_arrays`` arrays of them."""
@@ -474,7 +474,7 @@ def _instantiate(kernel, vectors=(), scalars=(), scalar_arrays=()):
 
 
 def overload(kernel, scalar):
-    """The overload of generic ``kernel`` (made by `_instantiate`) for
+    """The overload of generic ``kernel`` (made by `instantiate`) for
     position precision ``scalar`` (``wp.float32`` or ``wp.float64``), to
     launch directly; Warp still checks every argument against it."""
     try:
@@ -484,17 +484,17 @@ def overload(kernel, scalar):
                         f"{getattr(scalar, '__name__', scalar)}.") from None
 
 
-_instantiate(_extent_kernel, vectors=("points",))
-_instantiate(_morton_kernel, vectors=("points", "side"))
-_instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coords"))
-_instantiate(_cluster_box_kernel, vectors=("item_coords", "side"))
-_instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
+instantiate(_extent_kernel, vectors=("points",))
+instantiate(_morton_kernel, vectors=("points", "side"))
+instantiate(_place_kernel, vectors=("points", "side", "item_points", "item_coords"))
+instantiate(_cluster_box_kernel, vectors=("item_coords", "side"))
+instantiate(_query_kernel, vectors=("item_points", "item_coords", "side"),
              scalars=("cutoff_sq",))
-_instantiate(_energy_kernel, vectors=("item_points", "item_coords", "side"),
+instantiate(_energy_kernel, vectors=("item_points", "item_coords", "side"),
              scalars=("cutoff_sq",), scalar_arrays=("params", "energy"))
-_instantiate(_query_radii_kernel, vectors=("item_points", "item_coords", "side"),
+instantiate(_query_radii_kernel, vectors=("item_points", "item_coords", "side"),
              scalar_arrays=("reach",))
-_instantiate(_item_reach_kernel, scalar_arrays=("reach",))
+instantiate(_item_reach_kernel, scalar_arrays=("reach",))
 
 
 def vector_type(points: wp.array):

@@ -163,7 +163,7 @@ def _forces_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         if not (r >= type(r)(0.0) and r <= params[RADIUS_BOUND]):
             wp.atomic_or(error, 0, ERROR_RADII)
     # Gamma rays reach the largest radius (§3.3), plus the refit drift.
-    reach = aabb._box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    reach = aabb.box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
     face_reach = reach + drift_limit
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     f_i = xi - xi
@@ -175,7 +175,7 @@ def _forces_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
-            query = wp.bvh_query_ray(bvh, origin, aabb._RAY_DIRECTION)
+            query = wp.bvh_query_ray(bvh, origin, aabb.RAY_DIRECTION)
             hit = int(0)
             while wp.bvh_query_next(query, hit, 0.0):
                 j = order[hit]
@@ -230,7 +230,7 @@ def _perse_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     r_cutoff = params[R_CUTOFF]
     if not is_finite3(xi):
         wp.atomic_or(error, 0, ERROR_NONFINITE)
-    reach = aabb._box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
+    reach = aabb.box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
     face_reach = reach + drift_limit
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     cut2 = r_cutoff * r_cutoff
@@ -241,7 +241,7 @@ def _perse_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         shift = gamma.ray_shift(ray)
         if gamma.ray_is_cast(shift, ui, box, periodic, face_reach):
             origin = wp.vec3(gamma.shifted(ui, shift, box))
-            query = wp.bvh_query_ray(bvh, origin, aabb._RAY_DIRECTION)
+            query = wp.bvh_query_ray(bvh, origin, aabb.RAY_DIRECTION)
             hit = int(0)
             while wp.bvh_query_next(query, hit, 0.0):
                 j = order[hit]
@@ -264,18 +264,18 @@ def _perse_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     x = xi + dt * v
     for a in range(3):
         if periodic[a] != 0:
-            x[a] = gamma._wrap_coordinate(x[a], box[a])
+            x[a] = gamma.wrap_coordinate(x[a], box[a])
     positions_out[i] = x
     velocities_out[i] = v
     energy[i] = e_i
     count[i] = n
 
 
-aabb._instantiate(_forces_kernel,
+aabb.instantiate(_forces_kernel,
                   vectors=("item_points", "item_coords", "side", "forces"),
                   scalar_arrays=("radii", "params", "energy", "d_sigma",
                                  "d_epsilon"))
-aabb._instantiate(_perse_kernel,
+aabb.instantiate(_perse_kernel,
                   vectors=("item_points", "item_coords", "side", "velocities",
                            "positions_out", "velocities_out"),
                   scalar_arrays=("params", "energy"))

@@ -26,7 +26,7 @@ Backends (``backend=``), one protocol (`_Backend.sums`):
   stored. On CUDA one Pallas kernel (`jaxrt._cell_kernel.pair_sums`, a
   thread per particle), elsewhere array programs (`walk_runs`, one slot
   of every run per step of a loop as long as the longest run); ``Cell(
-  kernel=...)`` picks one (`_Cell`).
+  kernel=...)`` picks one (`CellSums`).
 
 `lennard_jones_perse_step` is ORCS-persé: one leapfrog step ``(R, V) ->
 (R', V')`` in a single kernel (``backend="bvh"``), equal radii only.
@@ -63,8 +63,8 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-from typing import Callable, NamedTuple
 import sys
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -100,7 +100,7 @@ class FusedSums(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class _Params:
+class Params:
     """Static potential parameters, absolute (already times sigma).
 
     Attributes:
@@ -217,7 +217,7 @@ class _Backend:
     ``sums(R3, sigma, epsilon, radii, params)`` with R3 float ``(N, 3)``
     (zero-padded Cartesian positions), sigma and epsilon float scalars in
     R3's dtype, radii float ``(N,)`` or None, ``params`` the static
-    `_Params`; returns `FusedSums`. ``derivatives=False`` says that
+    `Params`; returns `FusedSums`. ``derivatives=False`` says that
     nothing differentiates in sigma or epsilon: a backend may then leave
     ``d_sigma`` and ``d_epsilon`` at zero and skip their terms;
     ``count=False``, that nobody reads the pair count (the energy's path):
@@ -228,18 +228,18 @@ class _Backend:
 
     name: str
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+    def sums(self, R3, sigma, epsilon, radii, params: Params, *,
              derivatives: bool = True, count: bool = True) -> FusedSums:
         raise NotImplementedError
 
-    def perse(self, R3, V3, sigma, epsilon, dt, mass, params: _Params):
+    def perse(self, R3, V3, sigma, epsilon, dt, mass, params: Params):
         """(R', V', energy): a leapfrog step from the forces of `sums`."""
         s = self.sums(R3, sigma, epsilon, None, params)
         V = V3 + (dt / mass) * s.forces
         return _wrap(R3 + dt * V, params), V, s.energy
 
 
-def _wrap(R3, params: _Params):
+def _wrap(R3, params: Params):
     """Positions wrapped into the box on periodic axes."""
     side = jnp.asarray(params.side, R3.dtype)
     wrapped = R3 - side * jnp.floor(R3 / side)
@@ -248,7 +248,7 @@ def _wrap(R3, params: _Params):
     return jnp.where(jnp.asarray(params.periodic), wrapped, R3)
 
 
-def _min_image(d, params: _Params):
+def _min_image(d, params: Params):
     """jax-md's ``periodic_displacement`` on periodic axes."""
     side = jnp.asarray(params.side, d.dtype)
     wrapped = jnp.mod(d + side * 0.5, side) - side * 0.5
@@ -262,7 +262,7 @@ class _Brute(_Backend):
     block: int | None = None
     name: str = "brute"
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+    def sums(self, R3, sigma, epsilon, radii, params: Params, *,
              derivatives: bool = True, count: bool = True) -> FusedSums:
         n = R3.shape[0]
         block = self.block or max(1, min(n, 2 ** 21 // max(n, 1)))
@@ -295,11 +295,11 @@ class _Brute(_Backend):
                          jnp.zeros((), jnp.int32))
 
 
-_CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
+CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
 
 
 @dataclasses.dataclass(frozen=True)
-class _Cell(_Backend):
+class CellSums(_Backend):
     """List-free sums over jaxrt's sorted cell grid (module docstring).
 
     The grid and its runs are `jaxrt.cell_list`'s (cells ``cutoff / 4``
@@ -351,9 +351,9 @@ class _Cell(_Backend):
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
-        if self.kernel not in _CELL_KERNELS:
+        if self.kernel not in CELL_KERNELS:
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): choose "
-                             f"one of {_CELL_KERNELS}.")
+                             f"one of {CELL_KERNELS}.")
         if self.kernel in ("pallas", "interpret") and _cell_kernel.pl is None:
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): this JAX "
                              "has no Pallas Triton backend; use "
@@ -371,7 +371,7 @@ class _Cell(_Backend):
                 f"default backend is {jax.default_backend()!r}; use "
                 "Cell(kernel='auto') (the kernel where it can run) or 'xla'.")
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+    def sums(self, R3, sigma, epsilon, radii, params: Params, *,
              derivatives: bool = True, count: bool = True) -> FusedSums:
         from jaxrt.backends.cell import kernel as _cell_kernel
         dtype = R3.dtype
@@ -406,7 +406,7 @@ class _Cell(_Backend):
                          jnp.zeros((), jnp.int32))
 
     @staticmethod
-    def _walk(Ri, runs, sigma, epsilon, cut_i, params: _Params,
+    def _walk(Ri, runs, sigma, epsilon, cut_i, params: Params,
               derivatives: bool = True):
         """The array-program walk (`walk_runs`): per-particle sums, sorted
         order."""
@@ -440,7 +440,7 @@ class _Cell(_Backend):
 
     @staticmethod
     def _kernel_walk(images: RunImages, runs, side, sigma, epsilon, radii,
-                     order, params: _Params, interpret: bool,
+                     order, params: Params, interpret: bool,
                      derivatives: bool = True, count: bool = True,
                      run_source: str = "kernel", newton: bool = False,
                      **launch):
@@ -558,7 +558,7 @@ class RunImages:
                     else (self.first, self.wrapped), image_axes=self.axes)
 
 
-def _grid_query(params: _Params):
+def grid_query(params: Params):
     """The `jaxrt.cell_list` query of the fused grid (cutoff: the bound)."""
     from jaxrt.backends.contract import Query
     from jax_md.partition import NeighborListFormat
@@ -566,32 +566,31 @@ def _grid_query(params: _Params):
                  mask_self=True, format=NeighborListFormat.Dense)
 
 
-def _flat_axes(params: _Params) -> tuple[bool, ...]:
-    """The padding axes (`_Params.dim`)."""
+def _flat_axes(params: Params) -> tuple[bool, ...]:
+    """The padding axes (`Params.dim`)."""
     dim = len(params.side) if params.dim is None else params.dim
     return tuple(a >= dim for a in range(len(params.side)))
 
 
-def run_image_axes(params: _Params, n: int, *, across: int = 1
+def run_image_axes(params: Params, n: int, *, across: int = 1
                    ) -> tuple[bool, ...]:
     """Static: the axes on which the kernel walk over `cell_runs`' grid of
     ``n`` particles adds each run's periodic image once instead of rounding
     every candidate's difference (`jaxrt.cell_list._image_axes`): periodic
     axes with enough cells that no stencil cell repeats (3 across, 10
     along x, with ``across=1``) for any positions. Where any free axis is
-    not padding (`_Params.dim`) the grid's coarsening depends on the
+    not padding (`Params.dim`) the grid's coarsening depends on the
     positions: none.
 
     Returns:
       ``len(params.side)`` bools.
     """
-    from jaxrt.backends.cell import search as cell_list
-    return cell_list._image_axes(n, params.side, _grid_query(params),
-                                 (cell_list._REACH[0], across),
-                                 _flat_axes(params))
+    from jaxrt.backends.cell import grid
+    return grid.image_axes(n, params.side, grid_query(params),
+                           (grid.REACH[0], across), _flat_axes(params))
 
 
-def cell_runs(R: Array, params: _Params, *, across: int = 1
+def cell_runs(R: Array, params: Params, *, across: int = 1
               ) -> tuple[Array, Runs, RunImages]:
     """The sorted cell grid of `jaxrt.cell_list` (cells ``bound / 4`` along
     x and ``bound / across`` across), recomputed from ``R``: every pair
@@ -601,7 +600,7 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
 
     Args:
       R: float ``(N, dim)``, Cartesian, unwrapped; ``params.periodic`` and
-        ``params.side`` have ``dim`` entries. Padding axes (`_Params.dim`)
+        ``params.side`` have ``dim`` entries. Padding axes (`Params.dim`)
         are taken as zero.
     Returns:
       int32 ``(N,)`` ``order`` (sorted position -> caller's index), the
@@ -609,7 +608,7 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
       images, for the kernel walk). Not differentiable; pass R through
       ``stop_gradient`` when it is traced for a derivative.
     """
-    from jaxrt.backends.cell import search as cell_list
+    from jaxrt.backends.cell import grid
     from jaxrt.backends.contract import Geometry
     dim = R.shape[1]
     flat = _flat_axes(params)
@@ -617,29 +616,29 @@ def cell_runs(R: Array, params: _Params, *, across: int = 1
         R = jnp.where(jnp.asarray(flat), 0, R)
     geometry = Geometry(side=jnp.asarray(params.side, R.dtype),
                         scale=jnp.ones((dim,), R.dtype))
-    query = _grid_query(params)
-    # `cell_list._sorted_system`, with a faster sort.
-    reach = (cell_list._REACH[0], across)
+    query = grid_query(params)
+    # The search's sorted system (`jaxrt.backends.cell.search`), with a
+    # faster sort.
+    reach = (grid.REACH[0], across)
     # Where the box fixes the grid (periodic, no coarsening), the grid needs
     # no coarsening loop and the cell-start table only as many entries as
     # there are cells (md_step at 10^6: 3.2e5, not the 4e6 of the budget).
-    table = cell_list._static_cells(R.shape[0], params.side, query, reach,
-                                    flat)
-    wrapped, cell, cells = cell_list._grid(geometry.grid_coordinates(R),
-                                           geometry, query, reach,
-                                           coarsen=table is None)
-    key = cell_list._key(cell, cells)
-    order, sorted_key = _sort_by_key(
-        key, table or cell_list._table_size(R.shape[0]))
+    table = grid.static_cells(R.shape[0], params.side, query, reach, flat)
+    wrapped, cell, cells = grid.grid(geometry.grid_coordinates(R),
+                                     geometry, query, reach,
+                                     coarsen=table is None)
+    key = grid.key(cell, cells)
+    order, sorted_key = sort_by_key(
+        key, table or grid.table_size(R.shape[0]))
     cell = cell[order]
-    cell_starts = cell_list._cell_starts(sorted_key, table)
-    start1, len1, start2, len2 = cell_list._runs(
+    cell_starts = grid.cell_starts(sorted_key, table)
+    start1, len1, start2, len2 = grid.runs(
         sorted_key, cell, cells, query, reach, table, cell_starts=cell_starts)
     axes = run_image_axes(params, R.shape[0], across=across)
     # The codes only where some axis uses them (the kernel reads nothing else).
     first = second = None
     if any(axes):
-        first, second = cell_list._run_images(cell, cells, query, reach)
+        first, second = grid.run_images(cell, cells, query, reach)
     # Under jit, whichever of the runs and the grid the walk does not read
     # is never computed.
     images = RunImages(wrapped[order], first, second, axes, cell_starts,
@@ -658,7 +657,7 @@ def kernel_runs(runs: Runs) -> tuple[Array, Array, Array, Array]:
             runs.length - runs.split)
 
 
-def _sort_by_key(key: Array, table: int) -> tuple[Array, Array]:
+def sort_by_key(key: Array, table: int) -> tuple[Array, Array]:
     """(order, sorted key) of int32 keys in ``[0, table)``, ties in any
     order.
 
@@ -736,7 +735,7 @@ class _Bvh(_Backend):
         self._ffi = ffi
         self.owner = ffi.TreeOwner(options)
 
-    def _params(self, dtype, sigma, epsilon, params: _Params, dt=0.0, mass=1.0):
+    def _params(self, dtype, sigma, epsilon, params: Params, dt=0.0, mass=1.0):
         from jaxrt.backends.rt import orcs
         values = [None] * orcs.N_PARAMS
         values[orcs.SIGMA], values[orcs.EPSILON] = sigma, epsilon
@@ -745,7 +744,7 @@ class _Bvh(_Backend):
         values[orcs.DT], values[orcs.MASS] = dt, mass
         return jnp.stack([jnp.asarray(v, dtype) for v in values])
 
-    def sums(self, R3, sigma, epsilon, radii, params: _Params, *,
+    def sums(self, R3, sigma, epsilon, radii, params: Params, *,
              derivatives: bool = True, count: bool = True) -> FusedSums:
         dtype = R3.dtype
         reach = jnp.zeros((1,), dtype) if radii is None else radii
@@ -758,7 +757,7 @@ class _Bvh(_Backend):
                          jnp.sum(ds), jnp.sum(de), jnp.sum(c.astype(dtype)),
                          err[..., 0])
 
-    def perse(self, R3, V3, sigma, epsilon, dt, mass, params: _Params):
+    def perse(self, R3, V3, sigma, epsilon, dt, mass, params: Params):
         dtype = R3.dtype
         side = jnp.asarray(params.side, dtype)[None, :]
         x, v, e, _, _ = self._ffi.orcs_perse(
@@ -769,37 +768,37 @@ class _Bvh(_Backend):
 
 
 def _backend(backend) -> _Backend:
-    from jaxrt.backends.rt import ffi
-    if isinstance(backend, _Cell):  # launch options (tests, benchmarks)
+    from jaxrt.backends.cell.search import Cell
+    if isinstance(backend, CellSums):  # launch options (tests, benchmarks)
         return backend
     # A Bvh value was made by its module: Warp is loaded only if it was.
     ffi = sys.modules.get("jaxrt.backends.rt.ffi")
     if ffi is not None and isinstance(backend, ffi.Bvh):
         return _Bvh(backend)
     if backend == "bvh":
+        from jaxrt.backends.rt import ffi
         return _Bvh(ffi.Bvh())
     if backend == "brute":
         return _Brute()
     if backend == "cell":
-        return _Cell()
-    from jaxrt.backends.cell import search as cell_list
-    if isinstance(backend, cell_list.Cell):
+        return CellSums()
+    if isinstance(backend, Cell):
         if backend.radius_classes is not None:
             raise ValueError(
                 f"backend=Cell(radius_classes={backend.radius_classes!r}): "
                 "the fused sums walk one grid of the largest radius; leave "
                 "radius_classes at None.")
-        return _Cell(kernel=backend.kernel)
+        return CellSums(kernel=backend.kernel)
     raise ValueError(f"backend={backend!r} is not known; choose one of "
-                     f"{BACKENDS}, or pass options: jaxrt.rt.ffi.Bvh(...) or "
-                     "jaxrt.backends.Cell(kernel=...).")
+                     f"{BACKENDS}, or pass options: jaxrt.backends.Bvh(...) "
+                     "or jaxrt.backends.Cell(kernel=...).")
 
 
 # ---------------------------------------------------------------------------
 # Geometry: the box and its periodic axes, from the caller's displacement.
 
 
-def _sides(box, dim: int):
+def box_sides(box, dim: int):
     """float64 ``(dim,)`` box sides, or None for free space."""
     if box is None:
         return None
@@ -817,26 +816,26 @@ def _sides(box, dim: int):
     return b
 
 
-def _periodicity(displacement, sides, dim: int, periodic) -> tuple:
+def periodicity(displacement, sides, dim: int, periodic) -> tuple:
     """Per-axis periodic flags: given, or inferred by probing
     ``displacement`` as `jaxrt.neighbor_list` does."""
     from jaxrt.lists import metric as _space
     from jaxrt.lists import neighbors
     from jaxrt.backends.contract import MetricSq
     if periodic is not None:
-        axes = neighbors._normalise_periodic(periodic, dim)
+        axes = neighbors.normalise_periodic(periodic, dim)
         if any(axes) and sides is None:
             raise ValueError("periodic axes need box: pass box=L or "
                              "box=(Lx, Ly[, Lz]).")
         return axes
-    grid = neighbors._grid_space(sides, dim, False, None)
-    metric = MetricSq(neighbors._metric_sq_fn(displacement, dim), {})
+    grid = neighbors.grid_space(sides, dim, False, None)
+    metric = MetricSq(neighbors.metric_sq_fn(displacement, dim), {})
     with jax.ensure_compile_time_eval():
         g = np.asarray(_space.gram(metric, grid, jnp.float32))
-    return neighbors._infer_periodic(metric, grid, sides is not None, g)
+    return neighbors.infer_periodic(metric, grid, sides is not None, g)
 
 
-def _check_displacement(displacement, params: _Params, dim: int) -> None:
+def _check_displacement(displacement, params: Params, dim: int) -> None:
     """The displacement must agree with the box and axes the kernels use
     (they compute distances themselves): checked on random pairs."""
     rng = np.random.default_rng(0)
@@ -864,10 +863,10 @@ def static_params(displacement, box, periodic, dim: int, r_onset: float,
     from jaxrt.backends.rt.halfbox import check_cutoff
     if dim not in (2, 3):
         raise ValueError(f"R must be (N, 2) or (N, 3); got dim {dim}.")
-    sides = _sides(box, dim)
-    axes = _periodicity(displacement, sides, dim, periodic)
+    sides = box_sides(box, dim)
+    axes = periodicity(displacement, sides, dim, periodic)
     side = tuple(sides) if sides is not None else (1.0,) * dim
-    params = _Params(r_onset, r_cutoff, bound,
+    params = Params(r_onset, r_cutoff, bound,
                      tuple(axes) + (False,) * (3 - dim),
                      tuple(float(s) for s in side) + (1.0,) * (3 - dim), dim)
     check_cutoff(bound, params.side, params.periodic)
@@ -919,13 +918,13 @@ def _check_radii(radii):
                          f"got shape {r.shape}.")
     return float(np.max(r, initial=0.0))
 
+
 @enum.unique
 class InputBit(Bits):
     """Bits of a list-free energy's input check, int32 (the ORCS kernels
     set the same values: `jaxrt.backends.rt.orcs`' ``ERROR_*``)."""
     NONFINITE_POSITION = 1 << 4
     BAD_RADII = 1 << 7
-
 
 
 def _input_errors(R, radii, bound: float) -> Array:
@@ -1039,7 +1038,7 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
 
     def setup(dim: int):
         if dim not in by_dim:
-            params = _static_params(displacement, box, periodic, dim,
+            params = static_params(displacement, box, periodic, dim,
                                     r_on * sigma0, r_c * sigma0, bound)
             energy = _make_energy(impl, params, dim)
 
@@ -1133,7 +1132,7 @@ def lennard_jones_perse_step(displacement: Callable, box, *, dt: float,
 
     def setup(dim: int):
         if dim not in by_dim:
-            params = _static_params(displacement, box, periodic, dim,
+            params = static_params(displacement, box, periodic, dim,
                                     r_on * sigma0, r_c * sigma0, r_c * sigma0)
 
             @jax.jit

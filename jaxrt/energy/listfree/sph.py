@@ -93,15 +93,15 @@ import numpy as np
 from jaxrt.energy import sph as _sph
 from jaxrt.energy.checks import concrete
 from jaxrt.energy.keywords import reject_unknown
-from jaxrt.energy.listfree.lj import (_CELL_KERNELS, FusedInputError, _Params,
-                                _periodicity, _sides, _static_params,
+from jaxrt.energy.listfree.lj import (CELL_KERNELS, FusedInputError, Params,
+                                periodicity, box_sides, static_params,
                                 cell_runs, first_order_only, walk_runs)
 
 Array = jax.Array
 
 BACKENDS = ("cell", "brute")
 # The cell walk's programs (``jaxrt.backends.Cell(kernel=...)``).
-WALKS = _CELL_KERNELS
+WALKS = CELL_KERNELS
 
 _HIGHER_ORDER = (
     "density_fused / acceleration_fused are differentiable once (their "
@@ -150,7 +150,7 @@ def _masked_sum(t: Array, keep: Array) -> Array:
     return jnp.sum(jnp.where(keep, t, 0), axis=-2)
 
 
-def _min_image_first(d: Array, grid: _Params) -> Array:
+def _min_image_first(d: Array, grid: Params) -> Array:
     """`jaxrt.energy.fused._min_image` with components first."""
     shape = (len(grid.side),) + (1,) * (d.ndim - 1)
     side = jnp.asarray(grid.side, d.dtype).reshape(shape)
@@ -236,7 +236,7 @@ class _PairSum:
     """
 
     pair: Callable
-    grid: _Params
+    grid: Params
     backend: str
     walk: str = "xla"
     block: int | None = None
@@ -601,17 +601,17 @@ def _traversal(backend) -> tuple[str, str]:
     """``backend=`` -> ``(name, walk)`` of `_PairSum`, as
     `jaxrt.energy.fused._backend` parses the LJ energy's: ``"cell"`` is
     ``Cell(kernel="auto")``; a `jaxrt.backends.Cell` picks the walk (its
-    own checks reject an unknown ``kernel``; `jaxrt.energy.fused._Cell`'s,
+    own checks reject an unknown ``kernel``; `jaxrt.energy.fused.CellSums`'s,
     a kernel this JAX or device cannot run)."""
     from jaxrt.backends.cell import search as cell_list
-    from jaxrt.energy.listfree.lj import _Cell
+    from jaxrt.energy.listfree.lj import CellSums
     if isinstance(backend, cell_list.Cell):
         if backend.radius_classes is not None:
             raise ValueError(
                 f"backend=Cell(radius_classes={backend.radius_classes!r}): "
                 "the SPH walks use one grid of the kernel's support; leave "
                 "radius_classes at None.")
-        _Cell(kernel=backend.kernel)
+        CellSums(kernel=backend.kernel)
         return "cell", backend.kernel
     if isinstance(backend, str) and backend in BACKENDS:
         return backend, "auto" if backend == "cell" else "xla"
@@ -625,7 +625,7 @@ def _traversal(backend) -> tuple[str, str]:
 
 
 def _grid(displacement, box, kernel: _sph.Kernel, periodic):
-    """The walk's static geometry (`_Params`, ``dim`` entries) and the
+    """The walk's static geometry (`Params`, ``dim`` entries) and the
     factory kernel's support, checked."""
     if not isinstance(kernel, _sph.Kernel):
         raise TypeError(f"kernel must be a jaxrt.energy.sph kernel (e.g. "
@@ -636,12 +636,12 @@ def _grid(displacement, box, kernel: _sph.Kernel, periodic):
         raise ValueError("kernel.h must be a concrete scalar at construction "
                          "(it sizes the cells); pass a traced h= to the "
                          "returned function instead.")
-    _sph._check_displacement(displacement, kernel.dim)
-    from jaxrt.backends.rt.periodic import cutoff_fits
+    _sph.check_displacement(displacement, kernel.dim)
+    from jaxrt.backends.rt.halfbox import cutoff_fits
     dim = kernel.dim
     cutoff = float(kernel.support * float(h))
-    sides = _sides(box, dim)
-    axes = _periodicity(displacement, sides, dim, periodic)
+    sides = box_sides(box, dim)
+    axes = periodicity(displacement, sides, dim, periodic)
     for a, (side, p) in enumerate(zip(sides if sides is not None else
                                       (np.inf,) * dim, axes)):
         if p and not cutoff_fits(cutoff, side):
@@ -650,8 +650,8 @@ def _grid(displacement, box, kernel: _sph.Kernel, periodic):
                 f"half the periodic box side {side:g} on axis {a} (each pair "
                 "counts through its nearest image only); use a larger box or "
                 "a smaller h.")
-    p = _static_params(displacement, box, axes, dim, 0.0, cutoff, cutoff)
-    grid = _Params(0.0, cutoff, cutoff, p.periodic[:dim], p.side[:dim])
+    p = static_params(displacement, box, axes, dim, 0.0, cutoff, cutoff)
+    grid = Params(0.0, cutoff, cutoff, p.periodic[:dim], p.side[:dim])
     return grid, float(h)
 
 
@@ -659,7 +659,7 @@ def _positions(R, kernel: _sph.Kernel) -> Array:
     R = jnp.asarray(R)
     if not jnp.issubdtype(R.dtype, jnp.floating):
         raise ValueError(f"R must be a float array; got dtype {R.dtype}.")
-    _sph._check_kernel_dim(kernel, R)
+    _sph.check_kernel_dim(kernel, R)
     return R
 
 
@@ -753,7 +753,7 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
         R = _positions(R, kernel)
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
         _check_h(k.h, h0)
-        m = _sph._per_particle("mass", default_mass if mass is None else mass,
+        m = _sph.per_particle("mass", default_mass if mass is None else mass,
                                R.shape[0])
         rho = compute(R, k.h, m)
         _raise_if_bad(rho, R)
@@ -854,13 +854,13 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
         _check_h(k.h, h0)
         n = R.shape[0]
-        m = _sph._per_particle("mass", defaults["mass"] if mass is None
+        m = _sph.per_particle("mass", defaults["mass"] if mass is None
                                else mass, n)
         if rho is not None:
-            _sph._check_density(rho)
-            rho = _sph._per_particle("rho", rho, n)
+            _sph.check_density(rho)
+            rho = _sph.per_particle("rho", rho, n)
         if pressure is not None:
-            pressure = _sph._per_particle("pressure", pressure, n)
+            pressure = _sph.per_particle("pressure", pressure, n)
         out = compute(R, V, rho, pressure, k.h, m,
                       defaults["eos"] if eos is None else eos,
                       defaults["alpha"] if alpha is None else alpha,
