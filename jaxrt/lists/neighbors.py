@@ -1025,9 +1025,12 @@ def _trimmed(idx, overflow, *, width: int, n: int):
 
 
 def _auto_backend(*, has_radii: bool = False) -> str:
-    """``backend="auto"`` here: `choose_backend` for JAX's default device."""
-    return choose_backend(platform=jax.default_backend(), has_radii=has_radii,
-                          warp="bvh" in backends.available())
+    """``backend="auto"`` here: `choose_backend` for JAX's default device.
+    Whether Warp loads is asked (which imports it) only where the rule
+    could pick a ray-traced backend."""
+    platform = jax.default_backend()
+    warp = has_radii and platform == "cpu" and "bvh" in backends.available()
+    return choose_backend(platform=platform, has_radii=has_radii, warp=warp)
 
 
 def choose_backend(*, platform: str, has_radii: bool = False,
