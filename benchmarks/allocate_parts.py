@@ -24,7 +24,10 @@ from __future__ import annotations
 
 import time
 
-import _harness
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 from neighbors import scene
 
 STAGES = ("model", "measure", "build", "trim")

@@ -44,8 +44,10 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 SCENES = ("lattice", "disordered", "cluster")
 RADII = ("r=160", "U[1,160]", "LN[1,330]", "r=1")  # largest first

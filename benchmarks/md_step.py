@@ -43,8 +43,10 @@ import re
 import sys
 import warnings
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 FORMATS = ("Dense", "OrderedSparse")
 # Accepted in --only (jax-md's three layouts); the defaults are FORMATS.

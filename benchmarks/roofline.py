@@ -46,8 +46,10 @@ import dataclasses
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 # Counted in `jaxrt._cell_kernel._sum_walk` with the LJ terms of
 # `jaxrt.energy.fused.lj_terms` (reciprocal, floor, compare and select as

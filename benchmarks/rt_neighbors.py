@@ -61,8 +61,10 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 INPUT_SETS = 3
 NOMINAL_K = {"uniform": 4 / 3 * math.pi * 2.5 ** 3, "sphere": 36.0}
@@ -268,7 +270,10 @@ def _warp_row(job, kind, sets, side, cutoff, periodic, reps, warp_device):
         return run
 
     if kind.startswith("hashgrid"):
-        import _warp_hashgrid
+        if __package__:
+            from benchmarks import _warp_hashgrid
+        else:  # run as a file
+            import _warp_hashgrid
         _warp_hashgrid.load(warp_device)
         dim = 128 if n > 10_000 else 32
         grid = wp.HashGrid(dim, dim, dim, device=warp_device)

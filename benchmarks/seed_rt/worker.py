@@ -6,8 +6,12 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
-import _harness
-from seed_rt.plan import FUSED, METHODS, WARP_METHODS
+if __package__ == "benchmarks.seed_rt":  # the package's module
+    from benchmarks import _harness
+    from benchmarks.seed_rt.plan import FUSED, METHODS, WARP_METHODS
+else:  # a worker of seed_rt_study.py run as a file
+    import _harness
+    from seed_rt.plan import FUSED, METHODS, WARP_METHODS
 
 INPUT_SETS = 3
 

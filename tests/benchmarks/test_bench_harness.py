@@ -3,14 +3,10 @@ which jobs share a worker process and which get a fresh one. A job's row
 says which process measured it (a trivial target module that returns its
 pid), so the sharing is observed, not assumed."""
 import os
-import sys
-from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-import _harness  # noqa: E402
+from benchmarks import _harness
 
 TARGET = '''
 import os

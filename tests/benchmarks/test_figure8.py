@@ -2,14 +2,11 @@
 the trace has one entry per call, every policy is timed, and the ratios
 table compares the three policies over the steps all completed."""
 import csv
-import os
-import sys
 
 import pytest
 
 pytest.importorskip("warp")
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-import figure8  # noqa: E402
+from benchmarks import figure8  # noqa: E402  (after the skip)
 
 
 # jax-md's high_precision_sum asks for float64 sums without x64.

@@ -4,14 +4,11 @@ and why, and the parts (`--part`), which must cover every planned job
 exactly once, in the plan's order, each under its budget."""
 from __future__ import annotations
 
-import os
-import sys
 
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-import seed_rt_study  # noqa: E402
-from seed_rt import plan  # noqa: E402
+from benchmarks import seed_rt_study
+from benchmarks.seed_rt import plan
 
 
 def args_of(*argv):

@@ -4,15 +4,13 @@ a CPU row with the energy window (no NVML here: empty energy with its
 reason, the pair count filled), the power-trace file, and the figures from
 made-up data."""
 import csv
-import os
 import sys
 import time
 import types
 
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "benchmarks"))
-import _energy  # noqa: E402
+from benchmarks import _energy
 
 
 class FakeNvml(types.SimpleNamespace):
@@ -137,7 +135,7 @@ def test_repeat_for_counts_calls():
 @pytest.mark.filterwarnings("ignore:Explicitly requested dtype float64")
 def test_table2_row_with_energy_on_cpu(tmp_path):
     pytest.importorskip("warp")
-    import table2
+    from benchmarks import table2
     counts = {}
     for method in ("ORCS-persé", "RT-REF"):
         job = {"method": method, "scene": "disordered", "radii": "r=160",
@@ -161,8 +159,8 @@ def test_table2_row_with_energy_on_cpu(tmp_path):
 def test_trace_writer_and_figures(tmp_path):
     import argparse
 
-    import table2
-    import table2_energy_plot
+    from benchmarks import table2
+    from benchmarks import table2_energy_plot
     args = argparse.Namespace(energy=True, out=str(tmp_path / "run.csv"),
                               name="x.csv")
     writer = table2.TraceWriter(args, table2.COLUMNS)
@@ -221,7 +219,7 @@ def test_table2_row_refused_at_allocate_is_reported_not_raised(monkeypatch):
     # with status "oom" and jaxrt's reason (any of jaxrt.ListTooLargeError's
     # refusals), not an error. Here CPU-CELL's cell list may index 1 000
     # entries, far fewer than its buffers need for 300 particles.
-    import table2
+    from benchmarks import table2
     from jaxrt.backends.cell import search as cell_list
     monkeypatch.setattr(cell_list.Cell, "max_list_entries", 1000,
                         raising=False)
