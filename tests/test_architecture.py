@@ -23,6 +23,29 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxrt"
 LONGEST_FUNCTION = 120
+LONGEST_MODULE = 800
+
+# Longer than the rules allow, each for its stated reason. "Edited
+# elsewhere": in a file other work changes now, to be split afterwards.
+LONG_FUNCTIONS = {
+    "jaxrt.backends.cell.kernel.pair_sums": "edited elsewhere",
+    "jaxrt.tools.cli.run": "edited elsewhere",
+}
+LONG_MODULES = {
+    "jaxrt.lists.neighbors": "edited elsewhere; the front's pieces could "
+                             "go to lists/ modules of their own",
+    "jaxrt.backends.cell.search": "edited elsewhere; the grid's bodies go "
+                                  "to backends/cell/grid.py",
+    "jaxrt.backends.delaunay": "one backend whose parts share its state's "
+                               "layout",
+    "jaxrt.backends.rt.aabb": "one method's Warp kernels and their host side",
+    "jaxrt.backends.rt.ffi": "the one module that wraps Warp for JAX",
+    "jaxrt.energy.listfree.lj": "the walks shared with SPH could go to a "
+                                "module of their own",
+    "jaxrt.energy.listfree.sph": "one energy's walks, kernel and checks",
+    "jaxrt.sim.domains": "one decomposition: sharding, halos, migration",
+    "jaxrt.pairs.search": "one search and its front (checks, static sizes)",
+}
 
 
 def _modules() -> dict[str, pathlib.Path]:
@@ -212,7 +235,8 @@ def test_a_cell_list_and_a_list_free_energy_import_no_warp():
         "d, _ = space.periodic(5.0)\n"
         "R = jnp.linspace(0.0, 4.9, 60).reshape(20, 3)\n"
         "jaxrt.neighbor_list(d, 5.0, 1.0).allocate(R)\n"
-        "jaxrt.energy.lennard_jones_fused(d, 5.0, r_onset=1.0, r_cutoff=1.5)(R)\n"
+        "jaxrt.energy.lennard_jones_fused(d, 5.0, r_onset=1.0, r_cutoff=1.5,\n"
+        "                                 backend=\"cell\")(R)\n"
         "print(' '.join(sorted(sys.modules)))").split()
     assert "warp" not in loaded
     assert "jaxrt.tools" not in loaded
@@ -240,11 +264,18 @@ def test_lazy_names_resolve_and_all_lists_them(package):
 
 
 def test_no_function_is_longer_than_120_lines():
-    long = []
+    long = {}
     for name, tree in TREES.items():
         for node in ast.walk(tree):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 lines = node.end_lineno - node.lineno + 1
                 if lines > LONGEST_FUNCTION:
-                    long.append(f"{name}.{node.name}: {lines} lines")
-    assert not long, "\n".join(long)
+                    long[f"{name}.{node.name}"] = lines
+    assert long.keys() <= LONG_FUNCTIONS.keys(), long
+    assert set(LONG_FUNCTIONS) <= set(long), "listed but short now"
+
+
+def test_no_module_is_longer_than_800_lines_without_its_reason():
+    long = {name for name, path in MODULES.items()
+            if len(path.read_text().splitlines()) > LONGEST_MODULE}
+    assert long <= LONG_MODULES.keys(), long - LONG_MODULES.keys()

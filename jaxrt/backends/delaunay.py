@@ -68,6 +68,9 @@ rebuild's positions to the new ones.
 Requirements: 2D, float64 positions (``jax_enable_x64``; the poster runs in
 double precision, and the predicates' bounds are for float64), free space
 or a rectangular box periodic on both axes, no coincident points.
+
+One module past 800 lines on purpose: the triangulation, its flips, the
+search and the backend share the state's layout.
 """
 from __future__ import annotations
 

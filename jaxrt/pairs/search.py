@@ -65,6 +65,9 @@ them on a data set); anything that leaves the list incomplete (more pairs
 than ``capacity``, a cell that needs more shifts than ``max_shift``, a
 non-finite position, a singular cell) sets ``overflow`` and a bit of
 ``error``; `Pairs.check` raises on it, and an eager call raises at once.
+
+One module past 800 lines on purpose: one search and its front (checks,
+static sizes).
 """
 from __future__ import annotations
 
@@ -311,31 +314,8 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     height = _heights(hinv)
 
     # The grid (module docstring, 2.).
-    reach_arr = np.maximum(np.array(reach), 1)
-    if brute:
-        cells = jnp.ones((3,), jnp.int32)
-        origin = jnp.zeros((3,), dtype)
-        width = jnp.ones((3,), dtype)
-    else:
-        big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-        lo = jnp.min(jnp.where(real[:, None], fw, big), axis=0)
-        hi = jnp.max(jnp.where(real[:, None], fw, -big), axis=0)
-        origin = jnp.where(periodic, 0, jnp.where(jnp.any(real), lo, 0))
-        extent = jnp.where(periodic, 1, jnp.maximum(hi - origin, 0))
-        least = cutoff * (1 + _CELL_MARGIN) / (reach_arr * height)
-        budget = _CELLS_PER_ATOM * n + 64
-
-        def count_cells(coarsen):
-            size = least * coarsen
-            return jnp.where(periodic, jnp.maximum(jnp.floor(1 / size), 1),
-                             jnp.floor(extent / size) + 1)
-
-        coarsen = jax.lax.while_loop(
-            lambda c: jnp.prod(count_cells(c)) > budget, lambda c: c * 1.25,
-            jnp.ones((), dtype))
-        cells_f = count_cells(coarsen)
-        width = jnp.where(periodic, 1 / cells_f, least * coarsen)
-        cells = cells_f.astype(jnp.int32)
+    cells, origin, width = _grid(fw, real, periodic, reach, cutoff, height,
+                                 brute)
     # The reach covers the cutoff unless the cell is too short for it.
     reach_needed = cutoff * cells / height
     short = jnp.any(periodic & (reach_needed > np.array(reach)))
@@ -343,15 +323,7 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
 
     coord = jnp.clip(jnp.floor((fw - origin) / width).astype(jnp.int32), 0,
                      cells - 1)
-    table = _CELLS_PER_ATOM * n + 64 if not brute else 1
-    key = jnp.where(real, (coord[:, 2] * cells[1] + coord[:, 1]) * cells[0]
-                    + coord[:, 0], table)
-    sorted_key, order = jax.lax.sort(
-        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
-    counts = jnp.zeros((table + 1,), jnp.int32).at[sorted_key].add(
-        1, mode="drop")
-    starts = jnp.concatenate([jnp.zeros((1,), jnp.int32),
-                              jnp.cumsum(counts, dtype=jnp.int32)])
+    order, starts = _cell_table(coord, cells, real, brute)
 
     # The stencil (module docstring, 3.): per atom and offset, the run of
     # its target cell and the image it lies in.
@@ -420,6 +392,59 @@ def _search(positions, cell, mask, cutoff, *, pbc: tuple[bool, ...],
     reverse = jnp.concatenate([out[:, 1:2], out[:, 0:1], -out[:, 2:]], axis=1)
     out = jnp.stack([out, reverse], axis=1).reshape(2 * half_capacity, 5)
     return out[:capacity], total, error.astype(jnp.int32)
+
+
+def _grid(fw, real, periodic: np.ndarray, reach: tuple[int, ...], cutoff,
+          height, brute: bool):
+    """The cell grid in fractional coordinates (module docstring, 2.).
+
+    Args:
+      fw: float ``(N, 3)`` wrapped fractional positions; real: bool
+        ``(N,)``; periodic: bool ``(3,)``; height: float ``(3,)`` the cell's
+        heights over its fractional axes.
+    Returns:
+      int32 ``(3,)`` cells per axis, float ``(3,)`` origin and cell width.
+    """
+    n, dtype = fw.shape[0], fw.dtype
+    reach_arr = np.maximum(np.array(reach), 1)
+    if brute:
+        return (jnp.ones((3,), jnp.int32), jnp.zeros((3,), dtype),
+                jnp.ones((3,), dtype))
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    lo = jnp.min(jnp.where(real[:, None], fw, big), axis=0)
+    hi = jnp.max(jnp.where(real[:, None], fw, -big), axis=0)
+    origin = jnp.where(periodic, 0, jnp.where(jnp.any(real), lo, 0))
+    extent = jnp.where(periodic, 1, jnp.maximum(hi - origin, 0))
+    least = cutoff * (1 + _CELL_MARGIN) / (reach_arr * height)
+    budget = _CELLS_PER_ATOM * n + 64
+
+    def count_cells(coarsen):
+        size = least * coarsen
+        return jnp.where(periodic, jnp.maximum(jnp.floor(1 / size), 1),
+                         jnp.floor(extent / size) + 1)
+
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.prod(count_cells(c)) > budget, lambda c: c * 1.25,
+        jnp.ones((), dtype))
+    cells_f = count_cells(coarsen)
+    width = jnp.where(periodic, 1 / cells_f, least * coarsen)
+    return cells_f.astype(jnp.int32), origin, width
+
+
+def _cell_table(coord, cells, real, brute: bool):
+    """The atoms sorted by cell: int32 ``(N,)`` ``order`` (sorted position
+    -> atom) and int32 ``(table + 2,)`` where each cell's run starts."""
+    n = coord.shape[0]
+    table = _CELLS_PER_ATOM * n + 64 if not brute else 1
+    key = jnp.where(real, (coord[:, 2] * cells[1] + coord[:, 1]) * cells[0]
+                    + coord[:, 0], table)
+    sorted_key, order = jax.lax.sort(
+        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    counts = jnp.zeros((table + 1,), jnp.int32).at[sorted_key].add(
+        1, mode="drop")
+    starts = jnp.concatenate([jnp.zeros((1,), jnp.int32),
+                              jnp.cumsum(counts, dtype=jnp.int32)])
+    return order, starts
 
 
 def _half(offsets: np.ndarray) -> np.ndarray:

@@ -56,6 +56,9 @@ devices``) and too few devices are refused when the functions are made.
 For your own integrator: ``dom.energy(state)`` (a scalar,
 differentiable in ``state.position``), ``dom.energy_and_forces(state)``,
 then ``dom.update(state)`` after moving ``state.position``.
+
+One module past 800 lines on purpose: one decomposition (sharding,
+halos, migration, its checks).
 """
 from __future__ import annotations
 

@@ -57,6 +57,9 @@ Conventions, and where they differ from jax-md on purpose:
 * Boxes: free space, or orthorhombic boxes with any axes periodic, Cartesian
   coordinates, in 2D or 3D. The cutoff (the largest radius) must stay below
   half of every periodic side.
+
+Past 800 lines: the cell walks shared with `jaxrt.energy.listfree.sph`
+(`cell_runs`, `walk_runs`, `Params`) could become a module of their own.
 """
 from __future__ import annotations
 

@@ -78,6 +78,9 @@ parameters, arrays of the wrong shape (those always raise). Under ``jit``
 the value checks cannot raise, and the results are NaN instead: all of
 them for a non-finite position or too large an ``h``. An unknown keyword
 raises ``TypeError`` naming it and the accepted ones.
+
+One module past 800 lines on purpose: one energy's walks, pair terms
+and checks.
 """
 from __future__ import annotations
 
