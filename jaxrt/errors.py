@@ -155,8 +155,18 @@ def check(neighbors: NeighborList) -> None:
 
     Host-side (it reads the error code), so call it outside ``jit``: after a
     ``lax.scan`` of steps, or every few hundred steps. Works on a batch of
-    lists (any bit set in any system).
+    lists (any bit set in any system). The other results with error bits
+    are checked the same way, by their own ``check()``, which this calls:
+    `jaxrt.pairs.Pairs` (`jaxrt.PairsError`) and a domain decomposition's
+    state (`jaxrt.sim.domains.DomainState`, `DomainError`).
     """
+    if not hasattr(getattr(neighbors, "error", None), "code"):
+        if callable(getattr(neighbors, "check", None)):
+            neighbors.check()
+            return
+        raise TypeError(f"check: {type(neighbors).__name__} carries no "
+                        "jaxrt error bits (a neighbour list, Pairs or a "
+                        "domain state does).")
     code = ErrorCode.of(neighbors.error.code)
     messages = dict(_MESSAGES)
     if code & ErrorCode.SEARCH_FAILED:

@@ -36,6 +36,7 @@ _NAMES = {
     "Backend": "jaxrt.backends.contract:Backend",
     "Brute": "jaxrt.backends.brute:Brute",
     "Bvh": "jaxrt.backends.rt.ffi:Bvh",
+    "Capabilities": "jaxrt.backends.contract:Capabilities",
     "Capacity": "jaxrt.backends.contract:Capacity",
     "Cell": "jaxrt.backends.cell.search:Cell",
     "Delaunay": "jaxrt.backends.delaunay:Delaunay",

@@ -182,6 +182,16 @@ class DomainState(NamedTuple):
     rebuilds: jax.Array
     error: jax.Array
 
+    def check(self) -> None:
+        """Raise `DomainError` naming each overflow, its devices and its
+        fix; host-side (`jaxrt.check` does the same)."""
+        per = np.asarray(self.error)
+        raise_for(Overflow.of(per), {
+            b: f"{b.name} on device(s) "
+               f"{np.flatnonzero(per & int(b)).tolist()}: {_FIX[b]}"
+            for b in Overflow}, DomainError, "domain decomposition "
+            "overflowed (results since then are wrong): ")
+
     @property
     def capacity(self) -> int:
         return self.position.shape[1]
@@ -729,13 +739,9 @@ class Domains:
         return Overflow.of(state.error)
 
     def check(self, state: DomainState) -> None:
-        """Raise `DomainError` naming each overflow (and its fix)."""
-        per = np.asarray(state.error)
-        raise_for(self.errors(state), {
-            b: f"{b.name} on device(s) "
-               f"{np.flatnonzero(per & int(b)).tolist()}: {_FIX[b]}"
-            for b in Overflow}, DomainError, "domain decomposition "
-            "overflowed (results since then are wrong): ")
+        """Raise `DomainError` naming each overflow (and its fix):
+        `DomainState.check`."""
+        state.check()
 
     def gather(self, state: DomainState, what: str = "position",
                n: int | None = None) -> np.ndarray:
