@@ -1,6 +1,6 @@
 """Warp's HashGrid as a peer of the "bvh" backend (`rt_neighbors.py`): a
 hand-written query kernel writing the same Dense rows, periodic images by
-the same gamma rays (`jaxrt.rt.periodic`). Imported only in workers."""
+the same gamma rays (`jaxrt.backends.rt.periodic`). Imported only in workers."""
 import warp as wp
 
 from jaxrt.backends.rt import periodic as gamma

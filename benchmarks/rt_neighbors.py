@@ -14,7 +14,7 @@ repeats the previous one:
   bvh jit Dense (rebuild)       jaxrt.neighbor_list(backend="bvh").update
                                 under jax.jit, unrelated inputs: every call
                                 rebuilds the BVH (``bvh_updates`` counts
-                                what it did: `jaxrt.rt.ffi.update_counts`)
+                                what it did: `jaxrt.backends.rt.ffi.update_counts`)
   bvh jit Dense (refit)         the same on inputs jittered by 1 % of the
                                 cutoff: the kept BVH is refit
   bvh[always-rebuild] jit Dense
@@ -26,7 +26,7 @@ repeats the previous one:
                                 one BVH box per g sorted particles
                                 (``--jit-clusters``)
   bvh update (rebuild) / (refit), bvh BVH rebuild only, bvh query Dense,
-  bvh[unsorted] ...             the Warp pieces (`jaxrt.rt.aabb.AabbSearch`,
+  bvh[unsorted] ...             the Warp pieces (`jaxrt.backends.rt.aabb.AabbSearch`,
                                 built from the `jaxrt.backends.Bvh` options)
                                 timed directly, synchronised
   bvh[leaf_size=l,cluster_size=g] update (rebuild) / query Dense

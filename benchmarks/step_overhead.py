@@ -12,7 +12,7 @@ goes through (in the worker; the wrappers cost a few microseconds each):
 * ``callback_us``, ``callbacks``: Warp's FFI callbacks (`wp.jax_callable`)
   per step, all inside them included;
 * ``arg_arrays_us``: Warp building its ``wp.array`` views of the buffers;
-* ``update_us`` / ``query_us``: `jaxrt.rt.aabb.AabbSearch.update` (extent,
+* ``update_us`` / ``query_us``: `jaxrt.backends.rt.aabb.AabbSearch.update` (extent,
   placement, drift read-back, boxes, refit or rebuild) and the query or
   ORCS launch after it;
 * ``readback_us``, ``readbacks``: device-to-host reads (``wp.array.numpy``:

@@ -1,6 +1,6 @@
 """Sweep the cell list's stencil reach on a uniform periodic scene.
 
-The reach is the module constant `jaxrt.cell_list._REACH` = (reach along x,
+The reach is the module constant `jaxrt.backends.cell.search._REACH` = (reach along x,
 reach across): cells are cutoff / reach wide along those axes. Each row
 (N, reach) runs in its own worker process (`_harness`), which sets the
 constant (and `_RUN_SPAN`, derived from it at import) before building the

@@ -52,7 +52,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 # On GPUs XLA rounds float32 matrix products to TF32 by default, so jax-md's
 # periodic_general metric (a matrix product) is only good to ~1e-3 there and
 # the float64 oracles would disagree with it near the cutoff. jaxrt copes
-# (`jaxrt._space`'s slack); the oracles need the metric exact.
+# (`jaxrt.lists.metric`'s slack); the oracles need the metric exact.
 import jax  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")

@@ -1,4 +1,4 @@
-"""Library-level cases of `jaxrt.domains`, run by tests/test_domains.py in
+"""Library-level cases of `jaxrt.sim.domains`, run by tests/sim/test_domains.py in
 a subprocess with 4 fake CPU devices (the count must be set before JAX
 starts). Each case prints ``CASE <name> ok``; any failure raises.
 

@@ -43,7 +43,7 @@ def lj_energy(R, idx, sigma, epsilon=1.0):
     """Per-particle LJ energy summed over each Dense row (padding idx = N):
     ``E_i = sum_j 4 eps [(sigma^2/r2)^6 - (sigma^2/r2)^3]`` with r2 clamped
     at ``(sigma/10)^2``; the quantity the fused kernels sum during the
-    traversal (`jaxrt.rt.seed_energy`, same arithmetic), so the list and
+    traversal (`jaxrt.backends.rt.seed_energy`, same arithmetic), so the list and
     fused rows of a configuration can be compared (``energy_sum``)."""
     import jax.numpy as jnp
     n = R.shape[0]
@@ -74,9 +74,9 @@ def scene_inputs(scene: str, param: int, p: int):
 
 def release_memory() -> None:
     """Drop what jaxrt keeps between calls, before the next method runs:
-    the kept BVHs (`jaxrt.rt.ffi.forget_trees`) and the last scene of the
+    the kept BVHs (`jaxrt.backends.rt.ffi.forget_trees`) and the last scene of the
     spheres / squares methods (their ``_scene``, held by the method objects
-    that `jaxrt.rt.ffi` keeps per options value, for the lists and the
+    that `jaxrt.backends.rt.ffi` keeps per options value, for the lists and the
     fused mode; an internal, looked up defensively)."""
     import gc
     try:

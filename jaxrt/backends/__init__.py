@@ -5,19 +5,19 @@ static (part of what ``jit`` caches on) and no module state decides what a
 list does:
 
 * `Cell` (``"cell"``, the default): the sorted cell list of
-  `jaxrt.cell_list`; ``kernel=`` picks its candidate pass.
+  `jaxrt.backends.cell.search`; ``kernel=`` picks its candidate pass.
 * `Brute` (``"brute"``, jax-md's ``disable_cell_list=True``): all pairs.
 * `Bvh` (``"bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
-  ray-traced custom AABB BVH of `jaxrt.rt.aabb`, kept across calls by the
+  ray-traced custom AABB BVH of `jaxrt.backends.rt.aabb`, kept across calls by the
   list factory that owns it.
 * `Spheres`, `Squares` (``"spheres"``, ``"squares"``): seed 001's other
-  ray-traced methods (`jaxrt.rt.spheres`, `jaxrt.rt.squares`).
+  ray-traced methods (`jaxrt.backends.rt.spheres`, `jaxrt.backends.rt.squares`).
 * `Delaunay` (``"delaunay"``): seed 004's 2D Delaunay triangulation kept by
-  edge flips and searched by BFS (`jaxrt.delaunay`); float64, its
+  edge flips and searched by BFS (`jaxrt.backends.delaunay`); float64, its
   triangulation travels with the list.
 
 A backend of one's own is any object following `Backend` (see
-`jaxrt._backend`, re-exported here with the layout helpers a backend
+`jaxrt.backends.contract`, re-exported here with the layout helpers a backend
 needs), passed as ``backend=`` directly; no registration is needed.
 """
 from __future__ import annotations

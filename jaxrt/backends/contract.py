@@ -5,7 +5,7 @@ A backend finds, for every particle ``i``, the particles ``j`` whose distance
 is strictly below the search radius, and writes them in one of jax-md's
 three layouts. With per-particle radii (`Geometry.reach`, seed 003 §3) the
 radius of a pair is ``max(reach_i, reach_j)``: a symmetric rule, so both
-directions of every pair are listed. The front (`jaxrt.neighbors`) owns everything else: argument
+directions of every pair are listed. The front (`jaxrt.lists.neighbors`) owns everything else: argument
 checks, the skin, capacity sizing, ``custom_mask_function`` and errors.
 
 Layouts (``N`` particles, padding index ``N`` everywhere):
@@ -136,9 +136,9 @@ class Capacity:
       internal: backend-specific sizes as sorted ``(name, size)`` pairs.
       metric_decides: `Query.decide_by_metric`, as ``allocate`` found it.
       orthorhombic: the metric's Gram matrix was diagonal at ``allocate``
-        (`jaxrt._space`); a shear appearing later sets an error bit.
+        (`jaxrt.lists.metric`); a shear appearing later sets an error bit.
       slack: how much (relatively) farther the grid searches, for a metric
-        found up to that much shorter than its model (`jaxrt._space`).
+        found up to that much shorter than its model (`jaxrt.lists.metric`).
       radii: the list was allocated with per-particle radii.
     """
 

@@ -55,11 +55,11 @@ Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
   v, so both its cocircle neighbours are closer), so every w within r of v
   is reached through its parent chain, each exactly once: no "visited"
   scan is needed and the list is exact, ties and lattices included
-  (tests/test_delaunay.py checks it against brute force). Frontier and
+  (tests/backends/test_delaunay.py checks it against brute force). Frontier and
   degree buffers are static; their overflow is flagged, never silent.
 
 State: the triangulation travels with the list: `jaxrt.neighbor_list`
-returns a `jaxrt.neighbors.StatefulNeighborList` (a subclass of jax-md's
+returns a `jaxrt.lists.neighbors.StatefulNeighborList` (a subclass of jax-md's
 ``NeighborList``) whose ``backend_state`` is the `Triangulation`, so a
 ``lax.scan`` over ``nbrs.update(R)`` carries it. Maintenance runs when the
 list is rebuilt (past half the skin), moving the DT from the last

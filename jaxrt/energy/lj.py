@@ -331,7 +331,7 @@ def lennard_jones_pair_neighbor_list(
         between its particles) instead of the total.
       gradient: how the total energy on a *Dense* list is differentiated
         with respect to positions. ``"rows"`` (default): each particle's
-        force is summed from its own row, no scatter (`jaxrt.energy._rows`;
+        force is summed from its own row, no scatter (`jaxrt.energy.rows`;
         several times faster on a GPU; needs the list to hold both
         directions of every pair, as every jaxrt and jax-md list does).
         ``"autodiff"``: plain reverse mode through the gather (use it with a

@@ -96,7 +96,7 @@ def _copy_rows(dense_ref, counts_ref, starts_ref, total_ref, edges_ref, *,
     past the last edge (``total_ref``), padded with ``n``."""
     # Divisions as `jax.lax.div` of non-negative ints: jnp's ``//`` fixes
     # signs with a ``rem``, which reads as periodic wrapping to the checks
-    # that a wall box does none (tests/test_scene.py).
+    # that a wall box does none (tests/sim/test_scene.py).
     lane = jnp.arange(_ROWS * _COLUMNS, dtype=jnp.int32)
     program = pl.program_id(0)
     lane_row = jax.lax.div(lane, jnp.int32(_COLUMNS))

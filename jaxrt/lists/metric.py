@@ -49,7 +49,7 @@ _DIAGONAL_TOLERANCE = 2.0 ** -20
 _AGREE_RELATIVE = 2.0 ** -16
 _AGREE_ULPS = 64
 # The cutoff must stay this far (relatively) below half a periodic height,
-# the ray-traced backends' margin (`jaxrt.rt.periodic.CUTOFF_MARGIN`), so
+# the ray-traced backends' margin (`jaxrt.backends.rt.periodic.CUTOFF_MARGIN`), so
 # that every backend refuses the same boxes.
 CUTOFF_MARGIN = 2.0 ** -16
 # The largest relative shortfall of the metric under its model that the

@@ -14,7 +14,7 @@ Where jaxrt differs from jax-md, on purpose (the README's table):
 * Periodicity is an explicit keyword, ``periodic=``, or, when omitted,
   inferred by probing ``displacement_or_metric`` along each axis against
   ``box``. Free space needs no box (``box=None`` is accepted).
-* The metric is modelled (`jaxrt._space`: periods, a triclinic box's
+* The metric is modelled (`jaxrt.lists.metric`: periods, a triclinic box's
   transform, the metric's Gram matrix) and the model is checked against
   the metric: on sampled pairs at ``allocate`` (a mismatch raises, or
   makes the cell list let the metric decide every pair where that is
@@ -77,7 +77,7 @@ _ARGUMENTS = ("displacement_or_metric", "box", "r_cutoff", "dr_threshold",
 @jax_md_dataclasses.dataclass
 class StatefulNeighborList(NeighborList):
     """jax-md's `NeighborList` plus the backend's state (a pytree of
-    arrays, e.g. `jaxrt.delaunay.Triangulation`), made by a backend with
+    arrays, e.g. `jaxrt.backends.delaunay.Triangulation`), made by a backend with
     ``stateful = True`` (`jaxrt.backends.Backend`). ``update`` maintains
     the state at every rebuild and returns the list with the new state."""
 
@@ -133,7 +133,7 @@ def _box_parts(box, dim: int):
 
 
 def _grid_space(box, dim: int, fractional: bool, periodic) -> _space.Space:
-    """Periods and transform of the grid's space (`jaxrt._space.Space`);
+    """Periods and transform of the grid's space (`jaxrt.lists.metric.Space`);
     ``periodic`` is the per-axis tuple or None (to be inferred)."""
     sides, matrix = _box_parts(box, dim)
     axes = (False,) * dim if periodic is None else periodic
@@ -151,7 +151,7 @@ def _grid_space(box, dim: int, fractional: bool, periodic) -> _space.Space:
 def _infer_periodic(metric, space: _space.Space, box_known: bool, g
                     ) -> tuple[bool, ...]:
     """Probe the metric along each grid axis: free, or periodic with the
-    box? ``g``: the metric's Gram matrix (`jaxrt._space.gram`)."""
+    box? ``g``: the metric's Gram matrix (`jaxrt.lists.metric.gram`)."""
     dim = space.dim
     periodic = []
     for a in range(dim):
@@ -411,7 +411,7 @@ def _radii_errors(radii, r_cutoff: float) -> jax.Array:
 
 class _Setup(NamedTuple):
     """What the first ``allocate`` of a dimension fixes: the squared
-    metric ``fn(Ra, Rb, **kw)``, the grid's `jaxrt._space.Space` and the
+    metric ``fn(Ra, Rb, **kw)``, the grid's `jaxrt.lists.metric.Space` and the
     `Query`."""
 
     metric_fn: Callable
@@ -448,7 +448,7 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
 
 
 class _Model(NamedTuple):
-    """The metric's model at ``allocate`` (`jaxrt._space`): its Gram matrix
+    """The metric's model at ``allocate`` (`jaxrt.lists.metric`): its Gram matrix
     ``g`` and heights ``h`` (float), whether it is ``diagonal``, whether
     the metric must decide every pair, and the grid's ``slack``."""
 
@@ -810,7 +810,7 @@ class _Lists:
 def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
               ) -> Geometry:
     """The backends' `Geometry` from the heights ``h`` (float ``(dim,)``,
-    `jaxrt._space.heights`); traceable. With ``slack`` (the metric decides
+    `jaxrt.lists.metric.heights`); traceable. With ``slack`` (the metric decides
     every pair) the grid's distances shrink by that fraction, so that it
     still holds every neighbour of a metric up to that much shorter than
     its model. ``reach``: None or float ``(N,)`` (`Geometry.reach`)."""

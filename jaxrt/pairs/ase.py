@@ -7,7 +7,7 @@
   S)`` too, so the order is reproducible).
 * `neighbor_list(quantities, atoms, cutoff)`: a drop-in for
   ``ase.neighborlist.neighbor_list`` with one scalar cutoff: switching is
-  ``from jaxrt.ase_bridge import neighbor_list``.
+  ``from jaxrt.pairs.ase import neighbor_list``.
 
 ASE's positions are float64, and so is the search here (run under
 ``jax.enable_x64``), so the pairs are ASE's to the last bit of the decision
@@ -115,12 +115,12 @@ def neighbor_list(quantities: str, atoms, cutoff, self_interaction=False,
     del max_nbins  # documented: ASE's memory knob, nothing to do here
     if isinstance(cutoff, dict) or np.ndim(cutoff) != 0:
         raise NotImplementedError(
-            "jaxrt.ase_bridge.neighbor_list: one scalar cutoff only; ASE's "
+            "jaxrt.pairs.ase.neighbor_list: one scalar cutoff only; ASE's "
             "per-atom and per-species cutoffs are not supported (filter "
             "the pairs of the largest cutoff by species).")
     if self_interaction:
         raise NotImplementedError(
-            "jaxrt.ase_bridge.neighbor_list: self_interaction=True is not "
+            "jaxrt.pairs.ase.neighbor_list: self_interaction=True is not "
             "supported (jaxrt.pairs never lists (i, i, 0)).")
     result = pairs_from_ase(atoms, float(cutoff))
     positions, cell, _ = _atoms_arrays(atoms)

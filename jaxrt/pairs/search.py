@@ -216,7 +216,7 @@ def _vectors(result: Pairs, positions, cell):
     ii = jnp.minimum(result.i, n - 1)
     jj = jnp.minimum(result.j, n - 1)
     # The gathered ends written out, so that reverse mode's scatters do not
-    # fuse the gathers (jaxrt._edges).
+    # fuse the gathers (jaxrt.layouts.edges).
     to, start = materialized((positions[jj], positions[ii]))
     d = to - start
     if cell is not None:

@@ -250,7 +250,7 @@ def _check_radii_backend(scene: Scene) -> None:
     backend = scene.neighbors.backend
     if isinstance(backend, str):
         if backend == "auto":
-            return  # auto picks one with radii (jaxrt.neighbors)
+            return  # auto picks one with radii (jaxrt.lists.neighbors)
         backend = backends.resolve(backend)
     if not backends.capabilities(backend).supports_radii:
         raise SceneError.at("neighbors.backend", f"{backend.name!r} has no "

@@ -37,7 +37,7 @@ capacity to raise. A halo wider than a slab (``cutoff + skin > side /
 devices``) and too few devices are refused when the functions are made.
 
     import jaxrt
-    from jaxrt.domains import Decomposition, decompose
+    from jaxrt.sim.domains import Decomposition, decompose
     from jaxrt.energy import lennard_jones_pair_neighbor_list
 
     dom = decompose(

@@ -159,7 +159,7 @@ def check_cutoff_radii(effect, scene, where: str) -> None:
 @dataclasses.dataclass(frozen=True)
 class LJFields:
     """The fields of the Lennard-Jones effect (`LJ`) and of the effects that
-    stand in for it with another search (`jaxrt.accuracy`'s `LJFused`,
+    stand in for it with another search (`jaxrt.tools.accuracy`'s `LJFused`,
     `LJPairs`): the potential, its cutoff and the cutoff radii."""
 
     r_cutoff: float
@@ -279,7 +279,7 @@ class SPHDensity:
     ``list_free``: no neighbour list, a walk over the cell grid at every
     step (`jaxrt.energy.density_fused`, #18); sph_pressure and
     sph_viscosity must say the same. ``walk`` (with ``list_free`` only),
-    the walk's program for all three (`jaxrt.energy.sph_fused.WALKS`):
+    the walk's program for all three (`jaxrt.energy.listfree.sph.WALKS`):
     ``"auto"``, the Pallas kernel on CUDA and array programs elsewhere;
     ``"xla"``, the arrays; ``"pallas"``, the kernel (CUDA only; the scene
     fails to compile elsewhere); ``"interpret"``, the kernel in Pallas'

@@ -6,14 +6,14 @@
     jaxrt run SCENE.toml|NAME [--steps N] [--out DIR] [--chunk K]
               [--backend B] [--n N] [--compare-jax-md]
               [--dtype float32|float64] [--devices D] [--save-pairs]
-        --devices D: slabs along x over D devices (`jaxrt.domains`; on a
+        --devices D: slabs along x over D devices (`jaxrt.sim.domains`; on a
         CPU, D fake devices are made); LJ and SPH scenes.
     jaxrt scenes            the built-in scenes: name, default steps and
                             what each is, one line each
     jaxrt accuracy [lj-fluid|lj-fluid-2d|dam-break] --out DIR [--quick]
                    [--budget S] [--knobs a,b] [--n N] [--steps N]
         what accuracy costs in time: every knob against a float64
-        reference (CSV, one PNG per knob, summary.md; jaxrt.accuracy)
+        reference (CSV, one PNG per knob, summary.md; jaxrt.tools.accuracy)
 """
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
                      "rest are written as skipped)")
     acc.add_argument("--knobs", default=None,
                      help="comma-separated knob names (default: all that "
-                     "apply; see jaxrt.accuracy.KNOBS)")
+                     "apply; see jaxrt.tools.accuracy.KNOBS)")
     acc.add_argument("--n", type=int, default=None,
                      help="particles (lj-fluid, lj-fluid-2d)")
     acc.add_argument("--steps", type=int, default=None,
@@ -84,7 +84,7 @@ def _parser() -> argparse.ArgumentParser:
                            "(default: the scene's)")
             p.add_argument("--devices", type=int, default=None,
                            help="domain decomposition: slabs along x over "
-                           "this many devices (jaxrt.domains); on a CPU "
+                           "this many devices (jaxrt.sim.domains); on a CPU "
                            "that many fake devices are made")
             p.add_argument("--save-pairs", action="store_true",
                            help="write pairs.npy: the list's pairs (i < j, "
@@ -505,8 +505,8 @@ def run_decomposed(scene, *, steps: int, out: pathlib.Path, devices: int,
                    chunk: int | None = None, save_pairs: bool = False
                    ) -> dict:
     """`run` with the box cut into ``devices`` slabs along x
-    (`jaxrt.domains.from_scene`); the same outputs and summary rows.
-    Raises `jaxrt.domains.DomainError` for a scene it cannot cut."""
+    (`jaxrt.sim.domains.from_scene`); the same outputs and summary rows.
+    Raises `jaxrt.sim.domains.DomainError` for a scene it cannot cut."""
     import types
     import jax
     import jax.numpy as jnp
@@ -655,7 +655,7 @@ def _write_outputs(scene, out, state, frames, velocities, frame_steps, ke,
 
 
 def _triangulation_stats(nbrs) -> dict | None:
-    """`jaxrt.delaunay.stats` of a Delaunay list, else None."""
+    """`jaxrt.backends.delaunay.stats` of a Delaunay list, else None."""
     from jaxrt.backends import delaunay
     if not isinstance(getattr(nbrs, "backend_state", None),
                       delaunay.Triangulation):

@@ -1,4 +1,4 @@
-"""The cell list's GPU kernel (`jaxrt._cell_kernel`) against the float64 brute
+"""The cell list's GPU kernel (`jaxrt.backends.cell.kernel`) against the float64 brute
 force and the portable path, run in Pallas' interpreter so that CPUs test
 the same kernel body that CUDA compiles (on a GPU, every cell-list test in
 `test_neighbors.py` runs the compiled kernel as well)."""
@@ -239,7 +239,7 @@ def test_ordered_sparse_rows_hold_only_lower_neighbours(backend, name):
 
 
 # --------------------------------------------------------------------------
-# Rows to edges (`jaxrt._edge_kernel`), run in Pallas' interpreter, against
+# Rows to edges (`jaxrt.layouts.edge_kernel`), run in Pallas' interpreter, against
 # XLA's scatters: the same array, slot for slot.
 
 

@@ -1,4 +1,4 @@
-"""backend="delaunay" (seed 004, `jaxrt.delaunay`) against the float64
+"""backend="delaunay" (seed 004, `jaxrt.backends.delaunay`) against the float64
 brute force: random scenes in every layout, lattices with the radius on
 lattice distances (cocircular and collinear points, ties at the cutoff),
 many small moves in a ``lax.scan``, a move across several edges, the

@@ -1,4 +1,4 @@
-"""BVH rebuild policies (`jaxrt.rt.policy`, seed 003 §3.1): the decisions
+"""BVH rebuild policies (`jaxrt.backends.rt.policy`, seed 003 §3.1): the decisions
 given injected times, the safety rule, and lists that stay exact while a
 policy refits."""
 from __future__ import annotations

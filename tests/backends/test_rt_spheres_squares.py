@@ -283,7 +283,7 @@ def test_periodic_faces_and_corners(method, dtype):
     grid = np.stack(np.meshgrid(*[coordinates] * 3, indexing="ij"), -1).reshape(-1, 3)
     grid = grid.astype(dtype)
     # Half the side itself is refused (the rule of every ray-traced method,
-    # `jaxrt.rt.periodic.cutoff_fits`); the largest cutoff it admits is not.
+    # `jaxrt.backends.rt.periodic.cutoff_fits`); the largest cutoff it admits is not.
     with pytest.raises(ValueError, match="below half the periodic box side 4 on axis 0"):
         find_rows(method, grid, 2.0, periodic=(True,) * 3, side=side)
     largest = np.nextafter(0.5 * 4.0 * (1.0 - CUTOFF_MARGIN), 0.0)
@@ -479,7 +479,7 @@ def test_radii():
 
 def test_all_three_methods_refuse_the_same_cutoffs_alike():
     """The custom AABB, spheres and squares share one rule for the cutoff
-    against half a periodic side (`jaxrt.rt.periodic.cutoff_fits`): the
+    against half a periodic side (`jaxrt.backends.rt.periodic.cutoff_fits`): the
     largest cutoff that fits works in all three, the next float and L/2
     are refused by all three with the same message."""
     from jaxrt.backends.rt import aabb

@@ -20,7 +20,7 @@ from jaxrt.energy import lj
 
 try:
     import jaxrt
-    # Delaunay triangulates 2D float64 systems only (tests/test_delaunay.py).
+    # Delaunay triangulates 2D float64 systems only (tests/backends/test_delaunay.py).
     JAXRT_BACKENDS = [b for b in jaxrt.available_backends()
                       if b != "delaunay"]
 except ImportError:  # the list front may not exist yet
@@ -481,7 +481,7 @@ def test_under_jit_bad_values_poison_with_nan():
     assert np.isfinite(jax.jit(lambda s: fn(R, nbrs, sigma=s))(1.0))
 
 
-# --- The row gradient on Dense lists (jaxrt.energy._rows) -------------------
+# --- The row gradient on Dense lists (jaxrt.energy.rows) -------------------
 
 def _row_and_autodiff(disp, **kw):
     return (lj.lennard_jones_pair_neighbor_list(disp, gradient="rows", **kw),
@@ -557,7 +557,7 @@ def test_row_gradient_compiles_no_scatter():
 def test_edge_layout_gradients_scatter_materialized_edges(fmt):
     # On the H200 XLA fused the pair arithmetic and the gathers into the
     # scatters of reverse mode, far slower than scattering written-out
-    # edges (jaxrt._edges); the barrier is what prevents it.
+    # edges (jaxrt.layouts.edges); the barrier is what prevents it.
     R, side, _ = fluid(n_side=4, dim=3)
     disp, _ = space.periodic(side)
     nbrs = partition.neighbor_list(disp, side, 2.5, format=fmt).allocate(R)

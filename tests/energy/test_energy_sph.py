@@ -21,7 +21,7 @@ from jaxrt.energy import sph
 
 try:
     import jaxrt
-    # Delaunay triangulates 2D float64 systems only (tests/test_delaunay.py).
+    # Delaunay triangulates 2D float64 systems only (tests/backends/test_delaunay.py).
     JAXRT_BACKENDS = [b for b in jaxrt.available_backends()
                       if b != "delaunay"]
 except ImportError:  # the list front may not exist yet
@@ -357,7 +357,7 @@ def test_edge_layout_sums_scatter_materialized_edges_in_reverse_only(fmt):
     # scatter-adds as XLA likes (a forward barrier made the H200's
     # OrderedSparse step slower). Differentiated (a fit of h or the EOS),
     # the cotangents are written out before reverse mode's scatters
-    # (jaxrt._edges). A Dense list has no scatter and no barrier.
+    # (jaxrt.layouts.edges). A Dense list has no scatter and no barrier.
     def loss(R, V, nbrs):
         out = _ACCEL1(R, V, nbrs)
         return jnp.sum(out.density) + jnp.sum(out.pressure ** 2)

@@ -31,7 +31,7 @@ from jaxrt.energy import (FusedInputError, HigherOrderError,
                           lennard_jones_perse_step, lennard_jones_truncated)
 
 BACKENDS = ("bvh", "brute", "cell")
-# The cell walk as one kernel (`jaxrt._cell_kernel.pair_sums`): compiled on
+# The cell walk as one kernel (`jaxrt.backends.cell.kernel.pair_sums`): compiled on
 # a GPU, in Pallas' interpreter elsewhere; "kernel" in the parameter lists.
 ON_GPU = jax.default_backend() in ("gpu", "cuda")
 KERNEL = jaxrt.backends.Cell(kernel="pallas" if ON_GPU else "interpret")
@@ -524,7 +524,7 @@ def test_run_image_axes_decisions():
 
 def _traced_grid_cells():
     """``(query, cells)``: the fused grid's query in a periodic cube (cutoff
-    2.5), and ``cells(side, R)``, `cell_list._grid`'s traced cells per axis
+    2.5), and ``cells(side, R)``, `grid.grid`'s traced cells per axis
     (int32 ``(3,)``) for box ``side`` and positions ``R``."""
     from jaxrt.backends.cell import search as cell_list
     from jaxrt.backends.contract import Geometry
@@ -535,14 +535,14 @@ def _traced_grid_cells():
     @jax.jit
     def cells(side, R):
         geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
-        return cell_list._grid(R, geometry, query)[2]
+        return grid.grid(R, geometry, query)[2]
 
     return query, cells
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_run_image_axes_bound_the_traced_grid(dtype):
-    """Wherever `run_image_axes` takes an axis, `cell_list._grid` (traced,
+    """Wherever `run_image_axes` takes an axis, `grid.grid` (traced,
     in the positions' dtype) has enough cells on it: boxes a hair around
     whole numbers of cells, and N around the coarsening budget."""
     from jaxrt.energy.listfree import lj as fused
@@ -568,7 +568,7 @@ def test_run_image_axes_bound_the_traced_grid(dtype):
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_static_cells_bound_the_traced_grid(dtype):
-    """Wherever `cell_list._static_cells` gives a table, the traced grid
+    """Wherever `grid.static_cells` gives a table, the traced grid
     (in the positions' dtype) does not coarsen and its every key is below
     the table: boxes a hair around whole numbers of cells, N around the
     coarsening budget; and it gives none with a free axis."""
@@ -581,12 +581,12 @@ def test_static_cells_bound_the_traced_grid(dtype):
     with jax.enable_x64(dtype == "float64"):
         for n in (12, 200, 2000, 20000):
             R = jnp.zeros((n, 3), dtype)
-            budget = cell_list._table_size(n) - 1
+            budget = grid.table_size(n) - 1
             for _ in range(30):
                 k = rng.integers(2, 60, 3) / np.array([4, 1, 1])
                 side = tuple(float(x) for x in 2.5 * (1 + 2.0 ** -10) * k
                              * (1 + rng.uniform(-1e-6, 1e-6, 3)))
-                table = cell_list._static_cells(n, side, query)
+                table = grid.static_cells(n, side, query)
                 got = np.asarray(cells(jnp.asarray(side, dtype), R))
                 uncoarsened = np.floor(np.array(side) * np.array([4, 1, 1])
                                        / (2.5 * (1 + 2.0 ** -10)))
@@ -599,7 +599,7 @@ def test_static_cells_bound_the_traced_grid(dtype):
     assert given > 30  # the rule is not just "never"
     free = fused.grid_query(fused.Params(2.0, 2.5, 2.5, (True, False, True),
                                            (10.0,) * 3))
-    assert cell_list._static_cells(100, (10.0,) * 3, free) is None
+    assert grid.static_cells(100, (10.0,) * 3, free) is None
 
 
 def faces_and_corners(dim, dtype):
@@ -695,7 +695,7 @@ RUN_CASES = {
     "2d": (np.random.default_rng(5).uniform(0, 1, (170, 2)), (11.0, 7.0),
            None),
     # a cloud through the faces of a box that would coarsen its grid:
-    # every axis compacted (`cell_list._grid`)
+    # every axis compacted (`grid.grid`)
     "cluster": ((np.array([0.999, 0.5, 0.002]) + 0.01 * np.random.default_rng(
         6).standard_normal((200, 3))) % 1.0, (300.0,) * 3, None),
 }

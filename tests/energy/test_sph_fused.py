@@ -1,4 +1,4 @@
-"""List-free SPH (`jaxrt.energy.sph_fused`) against the list path
+"""List-free SPH (`jaxrt.energy.listfree.sph`) against the list path
 (`jaxrt.energy.sph` on a jax-md all-pairs Dense list: an independent
 search, and a tenth of the compile time of a cell list's).
 
@@ -12,7 +12,7 @@ The default run keeps one case per property; the other geometries and
 backends run with ``-m slow``.
 
 ``"pallas"`` in the parameter lists is the cell walk as one kernel
-(`jaxrt._cell_kernel.pair_sums`): compiled on a GPU, in Pallas'
+(`jaxrt.backends.cell.kernel.pair_sums`): compiled on a GPU, in Pallas'
 interpreter elsewhere (small systems: it is slow there). On the GPU,
 ``-k pallas`` runs them all compiled.
 """
@@ -495,7 +495,7 @@ def test_kernel_walks_lower_for_cuda(x64, dim, dtype):
 
 def test_kernel_walks_take_run_images():
     """Which axes the kernel walks of these tests' systems take the runs'
-    images on (`jaxrt.energy.fused.run_image_axes`; elsewhere they round
+    images on (`jaxrt.energy.listfree.lj.run_image_axes`; elsewhere they round
     every candidate's difference): all axes of the 2D periodic boxes and
     of the 3D export's, none in the 3D box of 6 (9 cells along x, the
     whole row a run; 2 across, aliased) nor in a slab (its free axes can

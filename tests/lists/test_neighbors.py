@@ -594,7 +594,7 @@ def test_lennard_jones_energy_and_forces_equal_jax_md():
     R = lattice(6, side / 6) + 0.05 * np.asarray(
         jax.random.normal(jax.random.PRNGKey(18), (216, 3)))
     R = jnp.mod(jnp.asarray(R), side)
-    # every format and backend is covered in tests/test_energy_lj.py
+    # every format and backend is covered in tests/energy/test_energy_lj.py
     for fmt in (partition.OrderedSparse,):
         kw = dict(r_cutoff=2.5, format=fmt)
         nf_ref, e_ref = energy.lennard_jones_neighbor_list(disp, side, **kw)

@@ -24,7 +24,7 @@ from oracle import assert_layout, brute_pairs_radii, expected_pairs, list_pairs
 # segfault or an abort, at the cell list's radius-class programs or later),
 # while the file passes whole in one process, and on the H200, and the
 # suite without it passes. Run it with `python3 -m pytest -m slow
-# tests/test_radii.py` until the cause is found.
+# tests/lists/test_radii.py` until the cause is found.
 pytestmark = pytest.mark.slow
 
 FORMATS = [partition.Dense, partition.Sparse, partition.OrderedSparse]

@@ -470,7 +470,7 @@ def test_forces_and_cell_gradient_match_finite_differences(x64):
 def test_forces_scatter_materialized_pair_ends():
     # Reverse mode of the vectors' gathers is a scatter-add; the gathered
     # ends are written out first, so XLA:GPU cannot fuse the gathers into
-    # it (jaxrt._edges).
+    # it (jaxrt.layouts.edges).
     atoms = triclinic(6, 5)
     r = jnp.asarray(atoms.positions, jnp.float32)
     h = jnp.asarray(np.asarray(atoms.cell), jnp.float32)

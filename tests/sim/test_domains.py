@@ -1,4 +1,4 @@
-"""`jaxrt.domains`: the slab decomposition against the single-device run.
+"""`jaxrt.sim.domains`: the slab decomposition against the single-device run.
 
 The multi-device cases need JAX's CPU backend split into 4 fake devices,
 which must be asked for before JAX starts; the suite's processes have

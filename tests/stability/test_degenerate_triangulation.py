@@ -5,7 +5,7 @@ every in-circle test a tie; collinear points make orientations zero. A
 predicate that decides ties by rounding flips edges forever (no
 convergence), inverts a triangle, or leaves the triangulation
 non-Delaunay so that the BFS misses a neighbour. jaxrt's predicates leave
-ties undecided (Shewchuk's static bounds, `jaxrt.delaunay`) and the BFS is
+ties undecided (Shewchuk's static bounds, `jaxrt.backends.delaunay`) and the BFS is
 exact on any DT of cocircular points.
 
 Bounds: set equality (integers) with jax-md's all-pairs list (the metric

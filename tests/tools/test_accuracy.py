@@ -1,4 +1,4 @@
-"""jaxrt.accuracy: the error measures against hand-computed cases, the knob
+"""jaxrt.tools.accuracy: the error measures against hand-computed cases, the knob
 table, the auto rule, and one tiny end-to-end sweep writing CSV, PNG and
 Markdown."""
 from __future__ import annotations

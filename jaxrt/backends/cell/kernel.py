@@ -1,6 +1,6 @@
 """The cell list's candidate pass as one GPU kernel (Pallas, lowered to Triton).
 
-`jaxrt.cell_list` finds, for each particle, the runs of the cell-sorted order
+`jaxrt.backends.cell.search` finds, for each particle, the runs of the cell-sorted order
 that hold its candidates. On CPUs it tests them as fixed windows of whole
 32-slot words and left-packs the hits with array programs; on a GPU that
 formulation is at XLA's floor (`benchmarks/RESULTS.md`): every particle
@@ -13,7 +13,7 @@ The kernel makes the same three-way split as the XLA path, with the same
 thresholds: pairs surely within the cutoff go to the row, pairs within
 ``tol`` of it (a few per hundred particles) to a small shell buffer that the
 caller's metric decides afterwards in JAX, and the rest are dropped. So both
-paths return the same sets, which `tests/test_neighbors.py` checks by running
+paths return the same sets, which `tests/lists/test_neighbors.py` checks by running
 this kernel in Pallas' interpreter on the CPU.
 
 Threads of a block take consecutive particles of the sorted order: they
@@ -35,7 +35,7 @@ try:
 except (ImportError, AttributeError):  # an older JAX: the portable path
     pl = plgpu = None
 
-# Bits per axis of the run image codes (`jaxrt.cell_list._run_images`).
+# Bits per axis of the run image codes (`jaxrt.backends.cell.grid.run_images`).
 IMAGE_BITS = 2
 
 
@@ -46,7 +46,7 @@ class CellGrid(NamedTuple):
     Attributes:
       starts: int32 ``(T + 1 + 2 reach[0] + 2,)``: how many sorted particles
         lie in cells with smaller keys, padded at the end
-        (`jaxrt.cell_list._cell_starts`).
+        (`jaxrt.backends.cell.grid.cell_starts`).
       cell: int32 ``(N, dim)``: the sorted particles' cell coordinates.
       cells: int32 ``(dim,)``: cells per axis (keys: x fastest).
       reach: static ``(along x, across)``: the stencil's reach in cells.
@@ -275,16 +275,16 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
     and the walk is bound by instruction issue), except on the
     ``image_axes``, where each run's image (``images``) is subtracted from
     the particle's own position once per run instead. That is exact where
-    every run lies in one image of the box (`jaxrt.cell_list._run_images`;
-    `jaxrt.cell_list._image_axes` says where, statically).
+    every run lies in one image of the box (`jaxrt.backends.cell.grid.run_images`;
+    `jaxrt.backends.cell.grid.image_axes` says where, statically).
 
     Args:
       sorted_cart: float ``(N, dim)`` wrapped Cartesian positions, sorted
         by cell; with ``image_axes``, exactly those the cells were binned
-        from (`jaxrt.cell_list._grid`'s): a run's image is right only for
+        from (`jaxrt.backends.cell.grid.grid`'s): a run's image is right only for
         a position in its cell.
       sorted_runs: ``(start1, len1, start2, len2)``, int32 ``(N, R)`` in
-        sorted order (`jaxrt.cell_list._runs`).
+        sorted order (`jaxrt.backends.cell.grid.runs`).
       side: float ``(dim,)`` box sides (used on periodic axes only).
       scalars: float ``(S,)`` values handed to ``pair_terms`` (traced
         parameters such as sigma and epsilon).
@@ -292,7 +292,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
         ``pair_terms`` for both particles of a pair (radii, densities).
       images: None, or ``(first, wrapped)``, int32 ``(N, R)`` in sorted
         order as ``sorted_runs``: the image codes of each run's first and
-        wrapped parts (`jaxrt.cell_list._run_images`: ``s_a + 1`` in bits
+        wrapped parts (`jaxrt.backends.cell.grid.run_images`: ``s_a + 1`` in bits
         ``2 a`` and up, the run's candidates standing for their images at
         ``x_a + s_a side_a``).
       image_axes: static ``dim`` bools, periodic axes on which the
@@ -317,7 +317,7 @@ def pair_sums(sorted_cart, sorted_runs, side, scalars, per_particle=(), *,
       newton: meet every pair once, not from both particles (Newton's
         third law, LAMMPS' ``newton on``): a thread walks only the upper
         half of its stencil (the rows after the centre row in
-        `jaxrt.cell_list._stencil_rows`' order, and in the centre row the
+        `jaxrt.backends.cell.search._stencil_rows`' order, and in the centre row the
         sorted particles after its own), adds ``g (x_i - x_j)`` to its own
         vector sum and ``-g (x_i - x_j)`` to the partner's with an atomic
         add, and keeps the scalar terms of the pairs it meets: the scalar
@@ -445,7 +445,7 @@ def _remainder(x, m: int):
     division and a multiply: jnp's ``%`` fixes signs with ops that Triton's
     lowering mistypes under x64, and a ``rem`` in a program reads as
     periodic wrapping to the checks that a wall box does none
-    (tests/test_scene.py)."""
+    (tests/sim/test_scene.py)."""
     return x - jax.lax.div(x, jnp.int32(m)) * jnp.int32(m)
 
 
@@ -458,12 +458,12 @@ def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
 
     Stored runs (``reach`` None) are read from the ``(runs, padded)``
     tables. With the grid (``reach``: the stencil's reach in cells, along
-    x and across), each lane computes its runs as `jaxrt.cell_list._runs`
+    x and across), each lane computes its runs as `jaxrt.backends.cell.grid.runs`
     and `_run_images` do, in their order (the first parts of the ``R``
     stencil rows, then, on a periodic x, their wrapped parts), and two
     loads from the cell-start table give a run's ends as
-    `jaxrt.cell_list._run_ends` does: the same runs and images, so the
-    same sums. (Axes that `jaxrt.cell_list._grid` compacted need nothing
+    `jaxrt.backends.cell.search._run_ends` does: the same runs and images, so the
+    same sums. (Axes that `jaxrt.backends.cell.grid.grid` compacted need nothing
     of their own: their wrapped cells are empty.) ``me``: the lanes'
     sorted indices (``>= n`` is a spare lane, which walks nothing).
     """
@@ -494,7 +494,7 @@ def _run_reader(run_refs, lanes, me, n, mine, side, *, dim, periodic,
     along, across = reach
     width = 2 * across + 1
     rows = width ** (dim - 1)
-    span = 2 * along + 2  # `jaxrt.cell_list._RUN_SPAN`
+    span = 2 * along + 2  # `jaxrt.backends.cell.search._RUN_SPAN`
     size = table_ref.shape[0] - span
     cell = [ref[lanes] for ref in cell_refs]
     cells = [cells_ref[a] for a in range(dim)]

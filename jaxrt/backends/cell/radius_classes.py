@@ -1,6 +1,6 @@
 """Per-particle radii on the cell list: cells by radius class (seed 003 §3).
 
-With radii the pair rule is ``d(i, j) < max(r_i, r_j)`` (`jaxrt._backend`).
+With radii the pair rule is ``d(i, j) < max(r_i, r_j)`` (`jaxrt.backends.contract`).
 A grid of cells of the largest radius finds every pair, but for the paper's
 log-normal radii (one particle in a hundred 330 times the smallest) it makes
 every small particle test the crowd of a 27-cell block sized for the
@@ -342,7 +342,7 @@ def _sizes(j, own, reverse):
 
 def measure(position, geometry: Geometry, query: Query, metric_sq: MetricSq,
             classes: int | None) -> dict[str, int]:
-    """Exact sizes (see `jaxrt.cell_list.Cell.measure`): ``row``, ``edges``,
+    """Exact sizes (see `jaxrt.backends.cell.search.Cell.measure`): ``row``, ``edges``,
     ``classes``, ``window<c>`` per class, ``reverse``, ``reverse_row`` and
     ``own_row``. Eager.
 

@@ -26,7 +26,7 @@ For OrderedSparse both passes keep only the candidates ``j < i`` (caller's
 indices): its edges come out as half rows, left-packed, which become edges
 with no rank along full rows (`_lower_only`).
 
-On CUDA, passes 3 and 4 are one kernel instead (`jaxrt._cell_kernel`,
+On CUDA, passes 3 and 4 are one kernel instead (`jaxrt.backends.cell.kernel`,
 Pallas lowered to Triton, chosen where the program is lowered): each thread
 walks its particle's runs to their real ends with the same cheap test and
 appends sure pairs to the row and shell pairs to a small buffer, whose
@@ -46,7 +46,7 @@ fractional coordinates scaled by its heights; a metric that is not a
 quadratic form), ``Query.decide_by_metric`` makes the metric the test on
 every slot instead, on the portable path: slower, and exact as long as
 the metric is never shorter than the grid's distance, which the front
-checks (`jaxrt._space`).
+checks (`jaxrt.lists.metric`).
 
 Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
@@ -128,8 +128,8 @@ def _grid(cart: jax.Array, geometry: Geometry, query: Query,
     axis). No pair within the cutoff crosses the slab, so every such pair's
     minimum image along the axis is its plain difference in ``x'``, which
     the cells and stencil find as on a free axis. `_runs` and every copy of
-    it (`_run_images`, `jaxrt._cell_kernel._run_reader`,
-    `jaxrt.radius_classes._stencil`) still wrap the axis as periodic, but
+    it (`_run_images`, `jaxrt.backends.cell.kernel._run_reader`,
+    `jaxrt.backends.cell.radius_classes._stencil`) still wrap the axis as periodic, but
     a stencil of reach ``r`` from an occupied cell wraps only into the last
     ``r`` cells, which are empty: its wrapped runs are empty, and every
     nonempty run has image 0 along the axis (the plain difference), which
@@ -1016,7 +1016,7 @@ class Cell:
 
     Attributes:
       kernel: the candidate pass (passes 3 and 4 of the module docstring).
-        ``"auto"``: the `jaxrt._cell_kernel` kernel on CUDA (chosen where
+        ``"auto"``: the `jaxrt.backends.cell.kernel` kernel on CUDA (chosen where
         the program is lowered) and the windows of array programs
         elsewhere, or wherever the kernel cannot serve the list (a metric
         that decides every pair, buffers past its int32 offsets).
@@ -1025,7 +1025,7 @@ class Cell:
         the kernel in Pallas' interpreter (tests on CPUs). All four find
         the same pairs.
       radius_classes: with per-particle radii (``radii=``), how many radius
-        classes get a grid each (`jaxrt.radius_classes`): None, as many as
+        classes get a grid each (`jaxrt.backends.cell.radius_classes`): None, as many as
         the radii at ``allocate`` need; 1, one grid of cells of the largest
         radius (the plain scheme, for comparison).
 
@@ -1062,7 +1062,7 @@ class Cell:
             raise ValueError(
                 f"Cell(kernel={self.kernel!r}) has no per-particle radii: "
                 "lists with radii= run on the radius classes of "
-                "jaxrt.radius_classes; use Cell(kernel='auto') or 'xla'.")
+                "jaxrt.backends.cell.radius_classes; use Cell(kernel='auto') or 'xla'.")
 
     def _engine(self, n: int, row_width: int, shell: int, query: Query,
                 platform: str | None) -> str:

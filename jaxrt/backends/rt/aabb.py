@@ -1,6 +1,6 @@
 """Custom AABB method: Algis & Bramas (2024), §4.4 ("Custom AABB"), with the
 particle sorting of §5 ("Custom sorted AABB") and the periodic gamma rays of
-Meneses et al. (seed 003), §3.3 (the geometry is in `jaxrt.rt.periodic`).
+Meneses et al. (seed 003), §3.3 (the geometry is in `jaxrt.backends.rt.periodic`).
 
 Each particle owns an axis-aligned box of half-width ``cutoff`` (plus a pad
 that absorbs float32 rounding) in a `wp.Bvh`. From each particle an
@@ -24,7 +24,7 @@ are exact. Every kernel is generic over the position type (``wp.vec3`` or
 ``wp.vec3d``) and instantiated for both when this module loads, so the
 module compiles once.
 
-Pure Warp: nothing here knows of JAX (`jaxrt.rt.ffi` wraps it).
+Pure Warp: nothing here knows of JAX (`jaxrt.backends.rt.ffi` wraps it).
 
 One module past 800 lines on purpose: one method's Warp kernels and the
 host side that builds and refits their tree.
@@ -41,7 +41,7 @@ import warp as wp
 from jaxrt.backends.rt import periodic as gamma
 from jaxrt.backends.rt import policy as _policy
 from jaxrt.backends.rt import seed_energy
-# The one cutoff rule of the ray-traced methods (also `jaxrt.rt.ffi`'s
+# The one cutoff rule of the ray-traced methods (also `jaxrt.backends.rt.ffi`'s
 # ``aabb.check_cutoff``).
 from jaxrt.backends.rt.periodic import check_cutoff
 
@@ -186,7 +186,7 @@ def displacement(xi: Any, xj: Any, box: Any, periodic: wp.vec3i):
     """jax-md's ``periodic_displacement(side, Ra - Rb)`` on periodic axes
     (``Ra - Rb`` on free ones), operation for operation (``jnp.mod`` is
     fmod plus a sign fix). Also the ORCS kernels' pair vector
-    (`jaxrt.rt.orcs`)."""
+    (`jaxrt.backends.rt.orcs`)."""
     d = xi - xj
     for a in range(3):
         if periodic[a] != 0:
@@ -390,7 +390,7 @@ def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                    extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
                    params: wp.array(dtype=Any), energy: wp.array(dtype=Any),
                    count: wp.array(dtype=wp.int32)):
-    """Seed 001 §4.4's fused mode (`jaxrt.rt.seed_energy`): the rays of
+    """Seed 001 §4.4's fused mode (`jaxrt.backends.rt.seed_energy`): the rays of
     `_query_kernel` with ``cluster_size`` 1 and ``mask_self``, whose
     intersection program adds ``U`` of every accepted pair to the ray's
     payload instead of storing ``j``; one atomic add per ray into
@@ -523,7 +523,7 @@ BUILDERS = ("sah", "median", "lbvh", "cubql")
 
 
 # Drift bound of a refit, in cutoffs: below 0.25 so that the gamma rays of
-# drifted items still cover their pairs (`jaxrt.rt.periodic`).
+# drifted items still cover their pairs (`jaxrt.backends.rt.periodic`).
 MAX_DRIFT_FRACTION = 0.25
 
 
@@ -663,7 +663,7 @@ class AabbSearch:
 
     def update(self, points: wp.array, side: wp.array, periodic: tuple[bool, bool, bool],
                cutoff: float, reach: wp.array | None = None) -> str:
-        """Fit the BVH to ``points``: build, refit or rebuild (`jaxrt.rt.policy`).
+        """Fit the BVH to ``points``: build, refit or rebuild (`jaxrt.backends.rt.policy`).
 
         Args:
           points: ``vector`` ``(N,)`` Cartesian positions.
@@ -831,7 +831,7 @@ class AabbSearch:
     def energy(self, side: wp.array, params: wp.array, *, energy: wp.array,
                count: wp.array) -> None:
         """Seed 001's fused mode on the tree of the last `update`: the LJ
-        energy of `jaxrt.rt.seed_energy` summed during the traversal, no
+        energy of `jaxrt.backends.rt.seed_energy` summed during the traversal, no
         list (self pairs dropped).
 
         Args:
@@ -937,7 +937,7 @@ class AabbMethod:
              side: tuple[float, float, float] | None,
              periodic: tuple[bool, bool, bool], mask_self: bool,
              out_idx: wp.array2d, out_count: wp.array) -> None:
-        """See `jaxrt.rt._method.RTMethod.find`."""
+        """See `jaxrt.backends.rt.method.RTMethod.find`."""
         search, side_array = self._fresh_search(points, cutoff, side, periodic)
         search.query_dense(side_array, mask_self=mask_self, rows=out_idx,
                            count=out_count)
@@ -946,7 +946,7 @@ class AabbMethod:
                side: tuple[float, float, float] | None,
                periodic: tuple[bool, bool, bool], params: wp.array,
                out_energy: wp.array, out_count: wp.array) -> None:
-        """The fused mode (`jaxrt.rt.seed_energy`) on a fresh tree; see
-        `jaxrt.rt.spheres.SpheresMethod.energy` for the arguments."""
+        """The fused mode (`jaxrt.backends.rt.seed_energy`) on a fresh tree; see
+        `jaxrt.backends.rt.spheres.SpheresMethod.energy` for the arguments."""
         search, side_array = self._fresh_search(points, cutoff, side, periodic)
         search.energy(side_array, params, energy=out_energy, count=out_count)

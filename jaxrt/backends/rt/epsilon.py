@@ -5,8 +5,8 @@ resolution (`sphere_resolution`), the padding of the float32 BVH geometry
 (`bvh_padding`, `geometry_point`), the survey of the points' scale that sets
 both (`survey`), and the separation check (`pair_below`,
 `closest_pair_below`, `ParticlesTooCloseError`). ``find``'s argument checks
-live with the protocol (`jaxrt.rt._method`), the periodic images with the
-gamma rays (`jaxrt.rt.periodic`).
+live with the protocol (`jaxrt.backends.rt.method`), the periodic images with the
+gamma rays (`jaxrt.backends.rt.periodic`).
 
 Seed 001 (Algis & Bramas), §4.2, §4.3 and Appendix 7: the sphere method
 gives each particle a sphere of radius ``r = C·√2/√3 + ε`` and casts three
@@ -42,7 +42,7 @@ What the contract promises
 * Double squares: no separation limit. The seed drops self hits with
   ``dist > ε``, which also drops real pairs closer than ε; jaxrt drops self
   hits by index instead, and decides the ray–square hits exactly (see
-  `jaxrt.rt.squares`), so coincident particles are found too.
+  `jaxrt.backends.rt.squares`), so coincident particles are found too.
 * `closest_pair_below` answers the same question for any points, for a
   caller that wants to check before choosing a method.
 """

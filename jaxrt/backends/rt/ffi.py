@@ -4,19 +4,19 @@ Warp's JAX interop (``wp.jax_callable``, XLA FFI; CPU and CUDA).
 Two ways in:
 
 * `Bvh` (``backend="bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
-  custom AABB method of `jaxrt.rt.aabb` with a BVH kept across calls
-  (refit or rebuilt, see `jaxrt.rt.policy`), Dense rows
+  custom AABB method of `jaxrt.backends.rt.aabb` with a BVH kept across calls
+  (refit or rebuilt, see `jaxrt.backends.rt.policy`), Dense rows
   written directly and Sparse / OrderedSparse edges by count, scan and
   fill.
 * `Spheres`, `Squares`, and `method_backend` for any other
-  `jaxrt.rt._method.RTMethod`: a backend through Dense rows and
+  `jaxrt.backends.rt.method.RTMethod`: a backend through Dense rows and
   `jaxrt.backends.format_dense_rows`.
 
-* `FusedEnergy`: seed 001's fused mode (`jaxrt.rt.seed_energy`), the LJ
+* `FusedEnergy`: seed 001's fused mode (`jaxrt.backends.rt.seed_energy`), the LJ
   energy summed during the traversal of the custom AABB, spheres or
   squares method, no list.
 * `orcs_forces`, `orcs_perse`: the list-free ORCS kernels of
-  `jaxrt.rt.orcs` (used by `jaxrt.energy.fused`), on trees kept per call
+  `jaxrt.backends.rt.orcs` (used by `jaxrt.energy.listfree.lj`), on trees kept per call
   site exactly as `Bvh`'s (same slots, `TreeOwner` and policy).
 
 The backends are frozen options; ``bind`` (called by `jaxrt.neighbor_list`)
@@ -34,7 +34,7 @@ How the Warp calls behave under JAX:
   programs through Python, not its C++ fast path: ~0.1 ms more per call
   on a CPU host, on top of the callback's own.
 * Persistence: every traced call site gets its own *slot*, and each slot
-  keeps one `jaxrt.rt.aabb.AabbSearch`. A compiled loop body calls the
+  keeps one `jaxrt.backends.rt.aabb.AabbSearch`. A compiled loop body calls the
   same slot every step, so its BVH is refit or rebuilt in place. Slots
   belong to the `TreeOwner` of the list factory whose trace made them and
   are freed with it (so as many lists as the caller keeps alive keep their
@@ -153,7 +153,7 @@ class TreeOwner:
     def keep_history(self) -> list:
         """From now on, every tree of this owner appends ``(action,
         t_action, t_query)`` per call to the returned list
-        (`jaxrt.rt.aabb.AabbSearch.history`); for benchmarks."""
+        (`jaxrt.backends.rt.aabb.AabbSearch.history`); for benchmarks."""
         self.history = []
         for s in self.slots:
             if s in _SLOTS:
@@ -273,7 +273,7 @@ _ORCS_CALLABLES: dict = {}
 
 
 def _orcs_callables(vector):
-    """(forces, perse) jax callables of `jaxrt.rt.orcs` for positions of
+    """(forces, perse) jax callables of `jaxrt.backends.rt.orcs` for positions of
     type ``vector``; the tree is the slot's, kept and refit or rebuilt as
     the list backend's (`Bvh`'s policy)."""
     if vector in _ORCS_CALLABLES:
@@ -315,14 +315,14 @@ def _orcs_callables(vector):
 
 def orcs_forces(owner: TreeOwner, points, side, reach, params, *,
                 cutoff: float, periodic, has_radii: bool):
-    """ORCS-forces (`jaxrt.rt.orcs.forces`) on the trees of ``owner``.
+    """ORCS-forces (`jaxrt.backends.rt.orcs.forces`) on the trees of ``owner``.
 
     Args:
       owner: the `TreeOwner` of the calling energy function.
       points: float ``(N, 3)`` Cartesian positions (float32 or float64).
       side: float ``(1, 3)`` box sides (1 on free axes).
       reach: float ``(N,)`` radii, or ``(1,)`` placeholder.
-      params: float ``(orcs.N_PARAMS,)``, `jaxrt.rt.orcs`'s layout.
+      params: float ``(orcs.N_PARAMS,)``, `jaxrt.backends.rt.orcs`'s layout.
       cutoff: static, the largest radius (or the cutoff): boxes and gamma
         rays reach this far.
       periodic: 3 static bools.
@@ -347,7 +347,7 @@ def orcs_forces(owner: TreeOwner, points, side, reach, params, *,
 
 def orcs_perse(owner: TreeOwner, points, velocities, side, params, *,
                cutoff: float, periodic):
-    """One ORCS-persé leapfrog step (`jaxrt.rt.orcs.perse_step`).
+    """One ORCS-persé leapfrog step (`jaxrt.backends.rt.orcs.perse_step`).
 
     Returns ``(positions (N, 3), velocities (N, 3), energy (N,), count
     int32 (N,), error int32 (1,))``: x(t + dt), v(t + dt/2), half the pair
@@ -479,7 +479,7 @@ def _sequential_vmap(call: Callable, owner: "TreeOwner | None") -> Callable:
 
 @dataclasses.dataclass(frozen=True)
 class Bvh:
-    """Options of the custom AABB BVH backend (`jaxrt.rt.aabb`), kept
+    """Options of the custom AABB BVH backend (`jaxrt.backends.rt.aabb`), kept
     across calls by the list factory that owns it (`TreeOwner`).
 
     None of the options changes the list, only the speed
@@ -487,14 +487,14 @@ class Bvh:
 
     Attributes:
       sort: Morton-sort particles at each build (the seed's sorted AABB).
-      cluster_size: particles per BVH box (`jaxrt.rt.aabb.AabbSearch`); 1 is
+      cluster_size: particles per BVH box (`jaxrt.backends.rt.aabb.AabbSearch`); 1 is
         the seed's box per particle.
       leaf_size: boxes per BVH leaf.
       builder: Warp's BVH constructor (``"lbvh"``, ``"sah"``, ``"median"``;
         ``"cubql"`` on CUDA), or None for Warp's choice per device.
       policy: when to rebuild rather than refit: ``"drift"`` (refit while
         safe), ``"rebuild"``, ``"fixed"``, ``"avg"``, ``"gradient"``, or a
-        value of `jaxrt.rt.policy` (e.g. ``policy.Fixed(k=50)``); each tree
+        value of `jaxrt.backends.rt.policy` (e.g. ``policy.Fixed(k=50)``); each tree
         keeps its own policy state.
       drift_fraction: how far (in cutoffs, below 0.25) a particle may drift
         from where the tree was built before every policy must rebuild.
@@ -529,7 +529,7 @@ class Bvh:
         return "bvh" if self.sort else "bvh-unsorted"
 
     def search_structure(self, n: int, vector, device) -> aabb.AabbSearch:
-        """A fresh `jaxrt.rt.aabb.AabbSearch` with these options."""
+        """A fresh `jaxrt.backends.rt.aabb.AabbSearch` with these options."""
         return aabb.AabbSearch(n, vector, device, sort=self.sort,
                                policy=self.policy,
                                drift_fraction=self.drift_fraction,
@@ -720,13 +720,13 @@ class MethodBackend:
 
 @dataclasses.dataclass(frozen=True)
 class Spheres(MethodBackend):
-    """Seed 001 §4.2's spheres (`jaxrt.rt.spheres`) as a backend.
+    """Seed 001 §4.2's spheres (`jaxrt.backends.rt.spheres`) as a backend.
 
     Attributes:
       check_separation: raise when two particles are closer than the
-        method's resolution (`jaxrt.rt.spheres.SpheresMethod`).
+        method's resolution (`jaxrt.backends.rt.spheres.SpheresMethod`).
       epsilon_relative: the method's ε as a fraction of the data's scale
-        (default 2**-40; `jaxrt.rt.epsilon`).
+        (default 2**-40; `jaxrt.backends.rt.epsilon`).
     """
 
     check_separation: bool = True
@@ -743,7 +743,7 @@ class Spheres(MethodBackend):
 
 @dataclasses.dataclass(frozen=True)
 class Squares(MethodBackend):
-    """Seed 001 §4.3's double squares (`jaxrt.rt.squares`) as a backend."""
+    """Seed 001 §4.3's double squares (`jaxrt.backends.rt.squares`) as a backend."""
 
     name: ClassVar[str] = "squares"
 
@@ -776,7 +776,7 @@ _FUSED_CALLABLES: dict = {}
 
 
 def _fused_callable(options, vector):
-    """jax callable of the fused energy (`jaxrt.rt.seed_energy`) of
+    """jax callable of the fused energy (`jaxrt.backends.rt.seed_energy`) of
     ``options`` (`Bvh`, `Spheres` or `Squares`) for positions of type
     ``vector``. The custom AABB keeps its tree in a slot (refit or rebuilt
     as `Bvh`'s lists); spheres and squares build a scene per call, as their
@@ -827,7 +827,7 @@ _FUSED_NAMES = {"aabb": lambda: Bvh(), "bvh": lambda: Bvh(),
 class FusedEnergy:
     """Seed 001's fused mode as a JAX function: each particle's LJ energy
     summed during the traversal of a ray-traced method (Algis & Bramas 2024,
-    §4.2-4.4 and §5; `jaxrt.rt.seed_energy` defines the quantity), with no
+    §4.2-4.4 and §5; `jaxrt.backends.rt.seed_energy` defines the quantity), with no
     neighbour list::
 
         energy, count = FusedEnergy("aabb", cutoff=C, sigma=C / 2)(R)
@@ -839,12 +839,12 @@ class FusedEnergy:
     number of interacting pairs is ``count.sum()`` (ordered; half that
     unordered; sum it in int64 past 2**31).
 
-    jit, scan and vmap work as for the lists (`jaxrt.rt.ffi`'s docstring);
+    jit, scan and vmap work as for the lists (`jaxrt.backends.rt.ffi`'s docstring);
     the custom AABB keeps one tree per traced call site (owned by this
     object) and refits or rebuilds it as the ``"bvh"`` lists do. No
     gradient: the call is an FFI custom call without a JVP (use a list and
     `jaxrt.energy` for forces). The spheres method raises
-    `jaxrt.rt.epsilon.ParticlesTooCloseError` as its lists do (two
+    `jaxrt.backends.rt.epsilon.ParticlesTooCloseError` as its lists do (two
     particles closer than its resolution may be missing from the energy);
     the other two count coincident particles (clamped energy).
 
@@ -857,7 +857,7 @@ class FusedEnergy:
         needed on periodic axes.
       periodic: bool, or one bool per axis.
       sigma, epsilon, r_min: the pair's parameters
-        (`jaxrt.rt.seed_energy.lj_params`; ``r_min`` defaults to
+        (`jaxrt.backends.rt.seed_energy.lj_params`; ``r_min`` defaults to
         ``sigma / 10``).
     Raises:
       ValueError, TypeError: a bad argument, named in the message.

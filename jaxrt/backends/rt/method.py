@@ -2,7 +2,7 @@
 
 A method finds, for each particle ``i``, every ``j`` with
 ``|r_i - r_j|² < cutoff²`` (minimum image on periodic axes), with Warp
-kernels only: it knows nothing of JAX. `jaxrt.rt.ffi.method_backend` turns
+kernels only: it knows nothing of JAX. `jaxrt.backends.rt.ffi.method_backend` turns
 any `RTMethod` into a jaxrt backend (``jaxrt.backends.Backend``) in one line,
 so the seed's three methods (custom AABB, spheres, double squares) plug in
 the same way.
@@ -10,7 +10,7 @@ the same way.
 `FindArguments` and `check_find_arguments` are ``find``'s arguments checked
 and normalised, for methods to share (the sphere and double-square methods
 do); the cutoff's periodic limit is the one rule of all the ray-traced
-methods, `jaxrt.rt.periodic.check_cutoff`.
+methods, `jaxrt.backends.rt.periodic.check_cutoff`.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ class RTMethod(Protocol):
             Cartesian, not wrapped into the box; 2D/1D padded with zeros.
           cutoff: neighbours iff squared distance ``< cutoff**2`` (strict);
             below half the side on periodic axes
-            (`jaxrt.rt.periodic.check_cutoff` refuses the rest).
+            (`jaxrt.backends.rt.periodic.check_cutoff` refuses the rest).
           side: box side per axis, read on periodic axes; None when no axis
             is periodic.
           periodic: one bool per axis.
@@ -90,7 +90,7 @@ def check_find_arguments(method: str, points: wp.array, cutoff: float,
       out_idx: int32 ``(N, width)``; out_count: int32 ``(N,)``, same device.
     Raises:
       TypeError, ValueError: the message names the argument; a cutoff not
-        below half a periodic side gets `jaxrt.rt.periodic.check_cutoff`'s
+        below half a periodic side gets `jaxrt.backends.rt.periodic.check_cutoff`'s
         error, as from every ray-traced method.
     """
     n = _check_points(f"{method}.find", points)
@@ -112,7 +112,7 @@ def check_find_arguments(method: str, points: wp.array, cutoff: float,
 def check_energy_arguments(method: str, points: wp.array, cutoff: float, side,
                            periodic, params: wp.array, out_energy: wp.array,
                            out_count: wp.array) -> FindArguments:
-    """Validate the fused mode's ``energy`` arguments (`jaxrt.rt.seed_energy`)
+    """Validate the fused mode's ``energy`` arguments (`jaxrt.backends.rt.seed_energy`)
     as `check_find_arguments` does ``find``'s; ``mask_self`` is True.
 
     Args:

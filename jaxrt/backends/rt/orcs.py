@@ -2,9 +2,9 @@
 no neighbour list. Meneses et al., "Advancing RT Core-Accelerated
 Fixed-Radius Nearest Neighbor Search" (seed 003), §3.2.
 
-Both variants cast the custom AABB method's rays (`jaxrt.rt.aabb`: one
+Both variants cast the custom AABB method's rays (`jaxrt.backends.rt.aabb`: one
 infinitesimal ray per particle, one box per particle, the periodic gamma
-rays of §3.3 in `jaxrt.rt.periodic`) and evaluate the pair as soon as the
+rays of §3.3 in `jaxrt.backends.rt.periodic`) and evaluate the pair as soon as the
 exact distance test accepts it, instead of writing the neighbour index:
 
 * **ORCS-forces** (§3.2.2, Fig. 5; `forces`): each unordered pair is
@@ -35,14 +35,14 @@ potential stretched by ``s = R / r_cutoff`` (`lennard_jones_radii`).
 ``-dU/dr`` (switch included) is used; the tests check it against
 ``jax.grad`` of the list path.
 
-Precision as in `jaxrt.rt.aabb`: a float32 BVH whose boxes are padded past
+Precision as in `jaxrt.backends.rt.aabb`: a float32 BVH whose boxes are padded past
 rounding, and the distance test and the pair terms in the positions' own
 precision (float32 or float64; one generic kernel, overloaded for both).
 Two particles at the same position contribute no energy and no force.
 float32 atomics make float32 forces vary in their last bits from run to run
 on a GPU.
 
-Pure Warp: nothing here knows of JAX (`jaxrt.rt.ffi` wraps it).
+Pure Warp: nothing here knows of JAX (`jaxrt.backends.rt.ffi` wraps it).
 """
 from __future__ import annotations
 

@@ -9,20 +9,20 @@ faces it is near: up to 7 extra rays at a 3D corner (the seed's
 
 Each pair must be reported once. For a cutoff below half the box side only
 one image of ``j`` can be within reach of ``i``; to make that hold under
-rounding as well, the custom AABB method (`jaxrt.rt.aabb`) keeps a hit only
+rounding as well, the custom AABB method (`jaxrt.backends.rt.aabb`) keeps a hit only
 from the ray whose shift is the pair's *canonical image*, a deterministic
 function of the two box centres (`is_canonical_image`). That ray is always
 cast when the pair is in range (`ray_is_cast`), so no pair is lost and none
 is doubled.
 
 Items refitted rather than rebuilt may sit up to ``drift`` outside the box
-(they follow their nearest image, see `jaxrt.rt.aabb`); rays account for
+(they follow their nearest image, see `jaxrt.backends.rt.aabb`); rays account for
 that through ``face_reach``. With drift below a quarter of the cutoff and
 the cutoff below half the side, a pair at minimum-image displacement ``m``
 (``|m| < cutoff``) has centre difference ``m + kL`` with ``k`` in
 ``{-1, 0, 1}``, so the canonical rule picks ``k``, whose ray is cast.
 
-The seed-001 methods (`jaxrt.rt.spheres`, `jaxrt.rt.squares`) number and
+The seed-001 methods (`jaxrt.backends.rt.spheres`, `jaxrt.backends.rt.squares`) number and
 place their gamma rays the same way (`ray_shift`, `shifted`) but choose
 which to cast differently (`near_faces`, `crosses_near_faces`): in float64,
 split at half the side so that a particle casts at most one image per axis,

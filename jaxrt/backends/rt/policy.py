@@ -27,8 +27,8 @@ Policies (frozen values, options of `jaxrt.backends.Bvh`):
   ``−1 + sqrt(2 (t_r − t_u) / Δq)`` instead.
 
 The safety rule no policy may break: a refit never runs where it could miss
-a pair. The caller (`jaxrt.rt.aabb.AabbSearch`) reports ``moved_far`` (an
-item drifted beyond the bound that the gamma rays of `jaxrt.rt.periodic`
+a pair. The caller (`jaxrt.backends.rt.aabb.AabbSearch`) reports ``moved_far`` (an
+item drifted beyond the bound that the gamma rays of `jaxrt.backends.rt.periodic`
 and the padded boxes tolerate), and then every policy rebuilds.
 """
 from __future__ import annotations
@@ -156,11 +156,11 @@ def resolve(policy) -> "Drift | Rebuild | Fixed | Avg | Gradient":
         if policy not in POLICIES:
             raise ValueError(f"policy={policy!r} is not known; choose one of "
                              f"{sorted(POLICIES)} or a value such as "
-                             "jaxrt.rt.policy.Fixed(k=50).")
+                             "jaxrt.backends.rt.policy.Fixed(k=50).")
         return POLICIES[policy]()
     if not isinstance(policy, tuple(POLICIES.values())):
         raise TypeError(f"policy must be a name ({sorted(POLICIES)}) or a "
-                        "jaxrt.rt.policy value; got "
+                        "jaxrt.backends.rt.policy value; got "
                         f"{type(policy).__name__}.")
     return policy
 

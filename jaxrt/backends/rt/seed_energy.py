@@ -6,8 +6,8 @@ in the ray's payload and added once per ray into ``energy[i]`` with an
 ``atomicAdd``.
 
 The kernels that do it sit next to each method's list kernel:
-`jaxrt.rt.aabb` (``_energy_kernel``, §4.4), `jaxrt.rt.spheres` and
-`jaxrt.rt.squares` (their ray kernels' fused mode, §4.2 and §4.3). This
+`jaxrt.backends.rt.aabb` (``_energy_kernel``, §4.4), `jaxrt.backends.rt.spheres` and
+`jaxrt.backends.rt.squares` (their ray kernels' fused mode, §4.2 and §4.3). This
 module holds only what they share: the pair function and its parameters.
 
 The quantity is the one `benchmarks/seed_rt/worker.py` sums from each
@@ -29,7 +29,7 @@ coincident particles included, finite: they contribute ``U`` at
 non-finite particle casts no ray and is nobody's neighbour in every
 method, so it adds nothing.
 
-Pure Warp: nothing here knows of JAX (`jaxrt.rt.ffi` wraps it).
+Pure Warp: nothing here knows of JAX (`jaxrt.backends.rt.ffi` wraps it).
 """
 from __future__ import annotations
 

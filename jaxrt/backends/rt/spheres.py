@@ -11,7 +11,7 @@ intersection reports) runs Algorithm 1: keep the source iff it is closer
 than C and this ray's axis is the one closest to the source's centre.
 Appendix 7: with ``r = l + ε`` the closest-axis ray always crosses the
 sphere of a source within C, unless the two particles are closer than
-about ε (the sphere then swallows the whole cross; `jaxrt.rt.epsilon`).
+about ε (the sphere then swallows the whole cross; `jaxrt.backends.rt.epsilon`).
 
 In Warp: the spheres' bounding boxes go in a `wp.Bvh` (float32, padded by
 `epsilon.bvh_padding`); ``wp.bvh_query_ray`` proposes candidates along each
@@ -31,7 +31,7 @@ Resolved ambiguities (each also noted where it is coded):
   row, without atomics.
 * Ties between axes (``|dx| = |dy|``, ...) go to the lowest axis, as a
   plain ``argmin`` of Algorithm 1's ``dist_axis_squared`` does.
-* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.rt.periodic`
+* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.backends.rt.periodic`
   says for the seed-001 methods (float64, at most one image per axis).
 """
 from __future__ import annotations
@@ -130,7 +130,7 @@ def _sphere_rays_kernel(
     """Algorithm 1 for every target's three rays (and their gamma images).
 
     List mode (``energy`` empty): row ``target`` of ``out_idx``. Fused mode
-    (``energy`` of N; `jaxrt.rt.seed_energy`; width 0, ``mask_self``): the
+    (``energy`` of N; `jaxrt.backends.rt.seed_energy`; width 0, ``mask_self``): the
     "computation kernel" Algorithm 1 calls adds ``U`` to the ray's payload,
     and each ray adds its payload to ``energy[target]`` atomically, as the
     seed's code does. Either way ``out_count`` gets the exact count.
@@ -215,7 +215,7 @@ class SpheresMethod:
         missed them). With False, ``find`` never reads back from the device
         for this; read `separation_flag` instead.
       epsilon_relative: ε as a fraction of the data's scale
-        (`jaxrt.rt.epsilon`; default 2**-40). A larger ε widens the blind
+        (`jaxrt.backends.rt.epsilon`; default 2**-40). A larger ε widens the blind
         zone (pairs closer than `sphere_resolution` may be missed, and the
         separation check reports them) and slightly enlarges the spheres.
 
@@ -260,7 +260,7 @@ class SpheresMethod:
             particle gets no neighbours (only itself when ``mask_self`` is
             False) and is nobody's neighbour.
           cutoff: C > 0, below ``side / 2`` on periodic axes
-            (`jaxrt.rt.periodic.cutoff_fits`, as for every RT method).
+            (`jaxrt.backends.rt.periodic.cutoff_fits`, as for every RT method).
           side: box side per axis, read on periodic axes only.
           periodic: three bools.
           mask_self: False lists ``i`` as its own neighbour.
@@ -284,7 +284,7 @@ class SpheresMethod:
                side: tuple[float, float, float] | None,
                periodic: tuple[bool, bool, bool], params: wp.array,
                out_energy: wp.array, out_count: wp.array) -> None:
-        """Seed 001's fused mode (`jaxrt.rt.seed_energy`): each particle's
+        """Seed 001's fused mode (`jaxrt.backends.rt.seed_energy`): each particle's
         LJ energy summed inside Algorithm 1, no list (self pairs dropped).
 
         Args:
@@ -314,7 +314,7 @@ class SpheresMethod:
 
         Args:
           points: ``(N,)`` wp.vec3 / wp.vec3d, N >= 1.
-          args: `jaxrt.rt._method.FindArguments` (checked).
+          args: `jaxrt.backends.rt.method.FindArguments` (checked).
         """
         device = points.device
         n = points.shape[0]

@@ -50,10 +50,10 @@ Resolved ambiguities (each also noted where it is coded):
   second elsewhere, as a watertight tracer gives a shared edge to one side.
 * Self hits are dropped by index, not by the seed's ``dist > ε``, so pairs
   closer than ε (coincident particles included) are found: this method has
-  no separation limit (`jaxrt.rt.epsilon`).
+  no separation limit (`jaxrt.backends.rt.epsilon`).
 * "Reported once" is per direction: target t finds s and s finds t, so
   each target's thread writes its own complete row, without atomics.
-* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.rt.periodic`
+* Periodic boxes: seed 003 §3.3's gamma rays, cast as `jaxrt.backends.rt.periodic`
   says for the seed-001 methods (float64, at most one image per axis).
 """
 from __future__ import annotations
@@ -171,7 +171,7 @@ def _square_rays_kernel(
     """Algorithm 2 for every target's four rays (and their gamma images).
 
     List mode (``energy`` empty): row ``target`` of ``out_idx``. Fused mode
-    (``energy`` of N; `jaxrt.rt.seed_energy`; width 0, ``mask_self``): the
+    (``energy`` of N; `jaxrt.backends.rt.seed_energy`; width 0, ``mask_self``): the
     computation Algorithm 2 calls adds ``U`` to the ray's payload, and each
     ray adds its payload to ``energy[target]`` atomically, as the seed's
     code does. Either way ``out_count`` gets the exact count.
@@ -281,7 +281,7 @@ class SquaresMethod:
             particle gets no neighbours (only itself when ``mask_self`` is
             False) and is nobody's neighbour.
           cutoff: C > 0, below ``side / 2`` on periodic axes
-            (`jaxrt.rt.periodic.cutoff_fits`, as for every RT method).
+            (`jaxrt.backends.rt.periodic.cutoff_fits`, as for every RT method).
           side: box side per axis, read on periodic axes only.
           periodic: three bools.
           mask_self: False lists ``i`` as its own neighbour.
@@ -302,10 +302,10 @@ class SquaresMethod:
                side: tuple[float, float, float] | None,
                periodic: tuple[bool, bool, bool], params: wp.array,
                out_energy: wp.array, out_count: wp.array) -> None:
-        """Seed 001's fused mode (`jaxrt.rt.seed_energy`): each particle's
+        """Seed 001's fused mode (`jaxrt.backends.rt.seed_energy`): each particle's
         LJ energy summed inside Algorithm 2, no list (self pairs dropped).
-        Arguments as `jaxrt.rt.spheres.SpheresMethod.energy`; coincident
-        particles are found and clamped (`jaxrt.rt.seed_energy`)."""
+        Arguments as `jaxrt.backends.rt.spheres.SpheresMethod.energy`; coincident
+        particles are found and clamped (`jaxrt.backends.rt.seed_energy`)."""
         args = check_energy_arguments(self.name, points, cutoff, side, periodic,
                                       params, out_energy, out_count)
         out_energy.zero_()
@@ -319,7 +319,7 @@ class SquaresMethod:
 
         Args:
           points: ``(N,)`` wp.vec3 / wp.vec3d, N >= 1.
-          args: `jaxrt.rt._method.FindArguments` (checked).
+          args: `jaxrt.backends.rt.method.FindArguments` (checked).
         """
         device = points.device
         n = points.shape[0]

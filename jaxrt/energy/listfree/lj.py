@@ -14,16 +14,16 @@ fit them on energies.
 
 Backends (``backend=``), one protocol (`_Backend.sums`):
 
-* ``"bvh"`` (or a `jaxrt.rt.ffi.Bvh` of options): ORCS-forces on a BVH
+* ``"bvh"`` (or a `jaxrt.backends.rt.ffi.Bvh` of options): ORCS-forces on a BVH
   kept per call site and refit or rebuilt by its policy, as the list
-  backend does (`jaxrt.rt.orcs`, `jaxrt.rt.ffi.orcs_forces`).
+  backend does (`jaxrt.backends.rt.orcs`, `jaxrt.backends.rt.ffi.orcs_forces`).
 * ``"brute"``: all pairs in pure JAX, in row blocks; the CPU reference and
   the template of the others.
 * ``"cell"`` (or a `jaxrt.backends.Cell` of options): jaxrt's sorted cell
-  grid (`jaxrt.cell_list`): every particle walks the runs of sorted
+  grid (`jaxrt.backends.cell.search`): every particle walks the runs of sorted
   particles that hold its stencil cells and sums its own terms; each pair
   is met from both sides (no scatter), and nothing of size N x k is
-  stored. On CUDA one Pallas kernel (`jaxrt._cell_kernel.pair_sums`, a
+  stored. On CUDA one Pallas kernel (`jaxrt.backends.cell.kernel.pair_sums`, a
   thread per particle), elsewhere array programs (`walk_runs`, one slot
   of every run per step of a loop as long as the longest run); ``Cell(
   kernel=...)`` picks one (`CellSums`).
@@ -159,7 +159,7 @@ _first_order_only = first_order_only(_HIGHER_ORDER)
 
 
 # ---------------------------------------------------------------------------
-# The pair terms, in JAX (the kernels' twin: `jaxrt.rt.orcs.lj_terms`).
+# The pair terms, in JAX (the kernels' twin: `jaxrt.backends.rt.orcs.lj_terms`).
 
 
 def lj_terms(d2, sigma, epsilon, r_onset, r_cutoff, sigma_base):
@@ -305,7 +305,7 @@ CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
 class CellSums(_Backend):
     """List-free sums over jaxrt's sorted cell grid (module docstring).
 
-    The grid and its runs are `jaxrt.cell_list`'s (cells ``cutoff / 4``
+    The grid and its runs are `jaxrt.backends.cell.search`'s (cells ``cutoff / 4``
     wide along x and ``cutoff`` across, coarsened for sparse clouds; small
     periodic boxes alias no cell twice), recomputed at every call, so no
     size is static: each particle walks its runs to their ends.
@@ -314,7 +314,7 @@ class CellSums(_Backend):
     array programs (one slot of every particle's runs per step of a loop
     as long as the longest run; pairs decided on the caller's unwrapped
     positions with `_min_image`, the arithmetic of ``backend="brute"``);
-    ``"pallas"``, one GPU kernel (`jaxrt._cell_kernel.pair_sums`: a thread
+    ``"pallas"``, one GPU kernel (`jaxrt.backends.cell.kernel.pair_sums`: a thread
     per particle, its sums in registers, on the grid's wrapped positions;
     on the axes of `run_image_axes` each run's periodic image is added
     once, elsewhere every candidate's difference is rounded to its
@@ -328,7 +328,7 @@ class CellSums(_Backend):
 
     kernel: str = "auto"
     name: str = "cell"
-    # The kernel's launch (`jaxrt._cell_kernel.pair_sums`): particles and
+    # The kernel's launch (`jaxrt.backends.cell.kernel.pair_sums`): particles and
     # warps per program, and the cluster layout's tile (0: a thread per
     # particle). benchmarks/roofline.py measures the choices.
     # ``unroll`` candidates per step of the thread walk (independent loads
@@ -447,7 +447,7 @@ class CellSums(_Backend):
                      derivatives: bool = True, count: bool = True,
                      run_source: str = "kernel", newton: bool = False,
                      **launch):
-        """`jaxrt._cell_kernel.pair_sums` with the LJ terms on the grid's
+        """`jaxrt.backends.cell.kernel.pair_sums` with the LJ terms on the grid's
         own wrapped positions and run images (`cell_runs`): per-particle
         sums, sorted order (``d_sigma`` and ``d_epsilon`` zero unless
         ``derivatives``, the count zero unless ``count``: each sum the
@@ -522,17 +522,17 @@ class RunImages:
     Attributes:
       position: float ``(N, dim)``, sorted order: the positions wrapped
         into ``[0, side]`` on periodic axes exactly as the grid binned them
-        (`jaxrt.cell_list._grid`'s ``mod``; a particle a hair below 0 may
+        (`jaxrt.backends.cell.grid.grid`'s ``mod``; a particle a hair below 0 may
         stand at ``side`` in its top cell). A run's image is only right for
         these: a position wrapped by another rounding could sit a box away
         from its cell.
       first, wrapped: int32 ``(N, R)``, sorted order: image codes of each
-        run's first and wrapped parts (`jaxrt.cell_list._run_images`);
+        run's first and wrapped parts (`jaxrt.backends.cell.grid.run_images`);
         None where no axis uses them.
       axes: static ``dim`` bools: the axes on which the codes are every
         pair's minimum image, for any positions (`run_image_axes`); the
         walk rounds candidates' differences on the other periodic axes.
-      cell_starts, cell, cells: the grid itself (`jaxrt._cell_kernel.
+      cell_starts, cell, cells: the grid itself (`jaxrt.backends.cell.kernel.
         CellGrid`: cell-start table, sorted cell coordinates, cells per
         axis), from which the kernel can find every run and its image.
       reach: static ``(along x, across)``, the stencil's reach in cells.
@@ -548,7 +548,7 @@ class RunImages:
     reach: tuple = ()
 
     def kernel_options(self, runs: str = "kernel") -> dict:
-        """`jaxrt._cell_kernel.pair_sums`' ``images``, ``image_axes`` and
+        """`jaxrt.backends.cell.kernel.pair_sums`' ``images``, ``image_axes`` and
         ``grid``: with ``runs="kernel"``, the grid (the kernel finds the
         runs), else the stored runs' images."""
         from jaxrt.backends.cell import kernel as _cell_kernel
@@ -562,7 +562,7 @@ class RunImages:
 
 
 def grid_query(params: Params):
-    """The `jaxrt.cell_list` query of the fused grid (cutoff: the bound)."""
+    """The `jaxrt.backends.cell.search` query of the fused grid (cutoff: the bound)."""
     from jaxrt.backends.contract import Query
     from jax_md.partition import NeighborListFormat
     return Query(cutoff=params.bound, periodic=tuple(params.periodic),
@@ -579,7 +579,7 @@ def run_image_axes(params: Params, n: int, *, across: int = 1
                    ) -> tuple[bool, ...]:
     """Static: the axes on which the kernel walk over `cell_runs`' grid of
     ``n`` particles adds each run's periodic image once instead of rounding
-    every candidate's difference (`jaxrt.cell_list._image_axes`): periodic
+    every candidate's difference (`jaxrt.backends.cell.grid.image_axes`): periodic
     axes with enough cells that no stencil cell repeats (3 across, 10
     along x, with ``across=1``) for any positions. Where any free axis is
     not padding (`Params.dim`) the grid's coarsening depends on the
@@ -595,7 +595,7 @@ def run_image_axes(params: Params, n: int, *, across: int = 1
 
 def cell_runs(R: Array, params: Params, *, across: int = 1
               ) -> tuple[Array, Runs, RunImages]:
-    """The sorted cell grid of `jaxrt.cell_list` (cells ``bound / 4`` along
+    """The sorted cell grid of `jaxrt.backends.cell.search` (cells ``bound / 4`` along
     x and ``bound / across`` across), recomputed from ``R``: every pair
     closer than ``params.bound`` is in both particles' runs. ``across``:
     finer cells across make ``(2 across + 1)^(dim - 1)`` shorter runs with
@@ -653,7 +653,7 @@ def cell_runs(R: Array, params: Params, *, across: int = 1
 
 
 def kernel_runs(runs: Runs) -> tuple[Array, Array, Array, Array]:
-    """`Runs` in the layout of `jaxrt._cell_kernel` (``cell_list._runs``'s):
+    """`Runs` in the layout of `jaxrt.backends.cell.kernel` (``grid.runs``'s):
     ``(start1, len1, start2, len2)``, the wrapped parts as runs of their
     own."""
     return (runs.start, runs.split, runs.wrapped + runs.split,
@@ -723,8 +723,8 @@ def walk_runs(runs: Runs, visit: Callable, acc, *, transposed: bool = False,
 
 
 class _Bvh(_Backend):
-    """ORCS on a kept BVH (`jaxrt.rt.ffi.orcs_forces`, `orcs_perse`); each
-    energy function owns its trees (`jaxrt.rt.ffi.TreeOwner`)."""
+    """ORCS on a kept BVH (`jaxrt.backends.rt.ffi.orcs_forces`, `orcs_perse`); each
+    energy function owns its trees (`jaxrt.backends.rt.ffi.TreeOwner`)."""
 
     name = "bvh"
 
@@ -1017,7 +1017,7 @@ def lennard_jones_fused(displacement: Callable, box, *, sigma: float = 1.0,
         ``max(r_i, r_j) / (r_cutoff sigma)``. Their largest bounds the
         radii the energy function may be given.
       backend: ``"bvh"``, ``"brute"``, ``"cell"``, or
-        `jaxrt.rt.ffi.Bvh` options (rebuild policy, builder, sorting).
+        `jaxrt.backends.rt.ffi.Bvh` options (rebuild policy, builder, sorting).
       periodic: bool or one per axis; None infers it from ``displacement``.
 
     Returns:

@@ -14,13 +14,13 @@ neighbour list::
 
 Backends (``backend=``):
 
-* ``"cell"``: `jaxrt.cell_list`'s sorted grid, recomputed at every call
-  (`jaxrt.energy.fused.cell_runs`): every particle walks the runs of sorted
+* ``"cell"``: `jaxrt.backends.cell.search`'s sorted grid, recomputed at every call
+  (`jaxrt.energy.listfree.lj.cell_runs`): every particle walks the runs of sorted
   particles that hold its stencil cells and sums its own terms. Each pair
   is met from both sides: no scatter, and nothing of size N x k is
   stored. On CUDA the walk is one Pallas kernel
-  (`jaxrt._cell_kernel.pair_sums`: a thread per particle, its sums in
-  registers), elsewhere array programs (`jaxrt.energy.fused.walk_runs`:
+  (`jaxrt.backends.cell.kernel.pair_sums`: a thread per particle, its sums in
+  registers), elsewhere array programs (`jaxrt.energy.listfree.lj.walk_runs`:
   one slot of every run per step of a loop as long as the longest run);
   ``jaxrt.backends.Cell(kernel=...)`` picks one, as for
   `jaxrt.energy.lennard_jones_fused`: ``"auto"`` (what ``"cell"`` is:
@@ -30,7 +30,7 @@ Backends (``backend=``):
   tests). The pair terms are one definition for both, so they agree to
   rounding (the kernel works on the grid's wrapped positions, adding each
   run's periodic image once where the box proves it right,
-  `jaxrt.energy.fused.run_image_axes`, and rounding to minimum images
+  `jaxrt.energy.listfree.lj.run_image_axes`, and rounding to minimum images
   elsewhere; the arrays take minimum images of the caller's).
   `acceleration_fused` sorts once and walks twice (densities, then
   forces); each VJP walks once more, the same way.
@@ -154,7 +154,7 @@ def _masked_sum(t: Array, keep: Array) -> Array:
 
 
 def _min_image_first(d: Array, grid: Params) -> Array:
-    """`jaxrt.energy.fused._min_image` with components first."""
+    """`jaxrt.energy.listfree.lj._min_image` with components first."""
     shape = (len(grid.side),) + (1,) * (d.ndim - 1)
     side = jnp.asarray(grid.side, d.dtype).reshape(shape)
     wrapped = jnp.mod(d + side * 0.5, side) - side * 0.5
@@ -231,7 +231,7 @@ class _PairSum:
 
     ``walk`` (backend ``"cell"``): ``"xla"``, the array walk
     (`walk_runs`); ``"pallas"``, the kernel
-    (`jaxrt._cell_kernel.pair_sums`: a thread per particle, its sums in
+    (`jaxrt.backends.cell.kernel.pair_sums`: a thread per particle, its sums in
     registers, on wrapped positions); ``"auto"``, the kernel where the
     program is lowered for CUDA, else the array walk; ``"interpret"``,
     the kernel in Pallas' interpreter (tests). The forward sums and the
@@ -247,7 +247,7 @@ class _PairSum:
     def cells(self, R: Array):
         """The sorted grid of R (None for brute), shared by the walks of
         one configuration: ``(order, runs, images)``, runs ``(R, N)``,
-        images the kernel's (`jaxrt.energy.fused.RunImages`, sorted order).
+        images the kernel's (`jaxrt.energy.listfree.lj.RunImages`, sorted order).
         With ``order`` None, the data are already in the sorted order (and
         the sums come back in it)."""
         if self.backend == "brute":
@@ -317,7 +317,7 @@ class _PairSum:
                 o.shape[1:-1] + (n_blocks * block,))[..., :n], acc, out)
 
     def _kernel(self, data, theta, cells, extra, terms, n_sums, interpret):
-        """`jaxrt._cell_kernel.pair_sums` over the grid's runs.
+        """`jaxrt.backends.cell.kernel.pair_sums` over the grid's runs.
 
         ``data``: as `make`'s; ``extra``: more float ``(N,)`` columns, in
         the caller's order; ``terms(scalars, mine, theirs, d, valid)``:
@@ -602,9 +602,9 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
 
 def _traversal(backend) -> tuple[str, str]:
     """``backend=`` -> ``(name, walk)`` of `_PairSum`, as
-    `jaxrt.energy.fused._backend` parses the LJ energy's: ``"cell"`` is
+    `jaxrt.energy.listfree.lj._backend` parses the LJ energy's: ``"cell"`` is
     ``Cell(kernel="auto")``; a `jaxrt.backends.Cell` picks the walk (its
-    own checks reject an unknown ``kernel``; `jaxrt.energy.fused.CellSums`'s,
+    own checks reject an unknown ``kernel``; `jaxrt.energy.listfree.lj.CellSums`'s,
     a kernel this JAX or device cannot run)."""
     from jaxrt.backends.cell import search as cell_list
     from jaxrt.energy.listfree.lj import CellSums

@@ -341,7 +341,7 @@ def _has_fused() -> bool:
 
 def pallas_here() -> bool:
     """Whether the cell list's Pallas kernel can run here: a CUDA GPU and a
-    JAX with Pallas' Triton backend (`jaxrt._cell_kernel`). Pallas'
+    JAX with Pallas' Triton backend (`jaxrt.backends.cell.kernel`). Pallas'
     interpreter runs anywhere but is far too slow for a sweep."""
     import jax
     from jaxrt.backends.cell import kernel as _cell_kernel

@@ -136,7 +136,7 @@ def pairs_missed(list_codes, reference_codes) -> int:
 # A search deciding in the positions' dtype computes each distance from
 # rounded inputs (positions plus periodic shifts), rounding each difference
 # and product once more: within 16 ulps of that scale, the bound
-# tests/test_pairs.py holds jaxrt.pairs' float32 distances to. A pair that
+# tests/pairs/test_pairs.py holds jaxrt.pairs' float32 distances to. A pair that
 # close to its cut may fall either side, as jax-md's metric decides;
 # a deeper miss is a wrong list.
 ROUNDING_ULPS = 16.0

@@ -285,7 +285,7 @@ def own_search(scene):
 
 def triangulation_rebuilds_of(nbrs) -> int | None:
     """Rebuilds from scratch of a Delaunay list's triangulation since its
-    ``allocate`` (`jaxrt.delaunay.stats`); None for other lists."""
+    ``allocate`` (`jaxrt.backends.delaunay.stats`); None for other lists."""
     from jaxrt.backends import delaunay
     if not isinstance(getattr(nbrs, "backend_state", None),
                       delaunay.Triangulation):
