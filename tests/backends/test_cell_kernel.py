@@ -211,7 +211,7 @@ def test_kernel_list_update_inside_grad(kernel):
                                   "2d free"])
 def test_ordered_sparse_rows_hold_only_lower_neighbours(backend, name):
     from jaxrt.backends import Geometry, MetricSq, Query
-    from jaxrt.lists.neighbors import _metric_sq_fn
+    from jaxrt.lists.neighbors import metric_sq_fn
 
     if backend is INTERPRETED:
         from jaxrt.backends.cell import kernel as _cell_kernel
@@ -230,7 +230,7 @@ def test_ordered_sparse_rows_hold_only_lower_neighbours(backend, name):
     query = Query(cutoff, (periodic,) * dim, True, partition.OrderedSparse)
     geometry = Geometry(jnp.full(dim, side, jnp.float32), jnp.ones(dim))
     sizes = backend.measure(jnp.asarray(R), geometry, query,
-                            MetricSq(_metric_sq_fn(disp, dim)))
+                            MetricSq(metric_sq_fn(disp, dim)))
     lower = np.zeros(len(R), int)
     for i, j in want:
         lower[i] += j < i

@@ -540,14 +540,14 @@ def test_cell_list_internal_buffer_overflow_is_flagged(kernel):
     walks runs to their ends: it has no window to overflow."""
     from jaxrt import backends
     from jaxrt.backends import Capacity, Geometry, MetricSq, Query
-    from jaxrt.lists.neighbors import _metric_sq_fn
+    from jaxrt.lists.neighbors import metric_sq_fn
 
     side = 6.0
     disp, _ = space.periodic(side)
     cell = backends.Cell(kernel=kernel)
     query = Query(1.0, (True,) * 3, True, partition.Dense)
     geometry = Geometry(jnp.full(3, side), jnp.ones(3))
-    metric = MetricSq(_metric_sq_fn(disp, 3))
+    metric = MetricSq(metric_sq_fn(disp, 3))
     # A unit lattice at cutoff 1: six pairs of every particle lie exactly
     # at the cutoff (the shell), none inside.
     # A crowd of 40 near one point: a stencil-row run longer than one

@@ -97,9 +97,9 @@ def test_missed_depth_tells_rounding_from_a_wrong_list():
     assert accuracy.missed_depth_ulps([], [1], pair, 1.5, side, free,
                                       np.float64) > 1e8
     row = {"pairs_missed": 1, "pairs_checked": 10, "missed_depth_ulps": 3.0}
-    assert "rounding" in accuracy._depth(row)
-    assert "wrong list" in accuracy._depth({**row, "missed_depth_ulps": 40})
-    assert accuracy._depth({"pairs_missed": 1}) == ""
+    assert "rounding" in accuracy.depth_note(row)
+    assert "wrong list" in accuracy.depth_note({**row, "missed_depth_ulps": 40})
+    assert accuracy.depth_note({"pairs_missed": 1}) == ""
 
 
 def test_exact_pairs_by_kdtree_equal_the_brute_force():
@@ -110,8 +110,8 @@ def test_exact_pairs_by_kdtree_equal_the_brute_force():
     b = accuracy.brute_pairs(r, 1.0, side, (True,) * 3)
     assert len(a) > 5_000 and np.array_equal(a, b)
     # The RDF's pair distances, both ways.
-    kd = np.sort(accuracy._pair_distances(r, side, 1.5, kd=True))
-    brute = np.sort(accuracy._pair_distances(r, side, 1.5, kd=False))
+    kd = np.sort(accuracy.pair_distances(r, side, 1.5, kd=True))
+    brute = np.sort(accuracy.pair_distances(r, side, 1.5, kd=False))
     np.testing.assert_allclose(kd, brute, rtol=0, atol=1e-12)
 
 
@@ -198,7 +198,7 @@ def test_knobs_by_dimension_and_availability():
     backend = next(k for k in accuracy.KNOBS if k.name == "backend")
     assert "delaunay" in {v.label for v in backend.selected(True, 2)}
     assert "delaunay" not in {v.label for v in backend.selected(True, 3)}
-    pallas = accuracy._pallas_here()
+    pallas = accuracy.pallas_here()
     assert ("cell-kernel" in in3) == pallas
     free = next(k for k in accuracy.KNOBS if k.name == "list-free")
     labels = {v.label for v in free.selected(quick=True, dim=3)}
@@ -207,7 +207,7 @@ def test_knobs_by_dimension_and_availability():
         assert not labels & {"fused-xla", "fused-pallas",
                               "fused-pallas-newton"}
     from jaxrt.backends import Cell
-    assert isinstance(accuracy._fused_takes(Cell(kernel="xla")), bool)
+    assert isinstance(accuracy.fused_takes(Cell(kernel="xla")), bool)
 
 
 def _tiny_step(scene, steps: int = 2):
@@ -250,12 +250,12 @@ def test_delaunay_values_run_in_float64_and_count_rebuilds(x64):
     assert sc.neighbors.capacity_multiplier == accuracy.DELAUNAY_CAPACITY
     # The default options, reached by both knobs, are one setting.
     same = _knob_value("delaunay-flips", "rounds 64, splits 32").apply(base)
-    assert accuracy._key(sc, None) == accuracy._key(same, None)
+    assert accuracy.row_key(sc, None) == accuracy.row_key(same, None)
     few = _knob_value("delaunay-flips", "rounds 1, splits 1").apply(base)
     assert few.neighbors.backend.max_flip_rounds == 1
     _, _, nbrs = _tiny_step(few)
-    assert accuracy._triangulation_rebuilds(nbrs) >= 0
-    assert accuracy._describe(few)["backend"] == "delaunay"
+    assert accuracy.triangulation_rebuilds_of(nbrs) >= 0
+    assert accuracy.describe(few)["backend"] == "delaunay"
 
 
 def test_pairs_value_runs_lj_on_jaxrt_pairs_with_the_lists_forces(x64):
@@ -266,7 +266,7 @@ def test_pairs_value_runs_lj_on_jaxrt_pairs_with_the_lists_forces(x64):
                                dtype="float64")
     sc = _knob_value("pairs", "jaxrt.pairs").apply(base)
     assert not sc.pair_effects and sc.effects[0].kind == "lj_pairs"
-    assert accuracy._describe(sc)["backend"] == "jaxrt.pairs (no list)"
+    assert accuracy.describe(sc)["backend"] == "jaxrt.pairs (no list)"
     # Lattice start: jiggle it, so that forces are not ~0.
     rng = np.random.default_rng(0)
     pos = base.particles.positions + rng.normal(0, 0.05, (n, 3))
@@ -278,7 +278,7 @@ def test_pairs_value_runs_lj_on_jaxrt_pairs_with_the_lists_forces(x64):
     a_pairs = compiled.init()[0].accel
     np.testing.assert_allclose(a_pairs, a_list, rtol=1e-9, atol=1e-9)
     # The effect's own pairs are checked as a list's are.
-    cutoff, codes = accuracy._own_search(sc)
+    cutoff, codes = accuracy.own_search(sc)
     want = accuracy.brute_pairs(pos, cutoff, sc.box.size, sc.box.periodic)
     got = codes(np.mod(pos, sc.box.size[0]))
     assert accuracy.pairs_missed(got, want) == 0 and len(got) == len(want)
@@ -296,14 +296,14 @@ def test_list_free_fused_values_apply(x64):
     base = accuracy.base_scene("lj-fluid", accuracy.Plan(n=216))
     fused = _knob_value("list-free", "fused").apply(base)
     assert fused.effects[0].backend == "cell"
-    assert accuracy._describe(fused)["backend"] == "fused cell (no list)"
+    assert accuracy.describe(fused)["backend"] == "fused cell (no list)"
     for k in ("xla", "pallas"):
         sc = _knob_value("list-free", f"fused-{k}").apply(base)
         assert sc.effects[0].backend == Cell(kernel=k)
-        assert accuracy._describe(sc)["backend"] == f"fused cell[{k}] (no list)"
+        assert accuracy.describe(sc)["backend"] == f"fused cell[{k}] (no list)"
     newton = _knob_value("list-free", "fused-pallas-newton").apply(base)
     assert newton.effects[0].backend.newton
-    assert (accuracy._describe(newton)["backend"]
+    assert (accuracy.describe(newton)["backend"]
             == "fused cell[auto+newton] (no list)")
     _tiny_step(fused, steps=1)
 
@@ -514,15 +514,15 @@ def test_bad_radii_raise_clear_errors():
                             neighbors=sim.Neighbors(backend="bvh"))
     # A backend without radii is refused where the list is built.
     spheres = dataclasses.replace(s, neighbors=sim.Neighbors(
-        backend="brute" if not accuracy._warp() else "spheres"))
-    if accuracy._warp():
+        backend="brute" if not accuracy.warp_here() else "spheres"))
+    if accuracy.warp_here():
         with pytest.raises(SceneError, match="neighbors.backend: 'spheres' "
                            "has no per-particle radii"):
             sim.compile_scene(spheres)
     # jaxrt.pairs searches one cutoff: the pairs knob refuses radii.
     with pytest.raises(SceneError, match=r"effects\[0\]\.radii: jaxrt.pairs "
                        "searches one cutoff"):
-        accuracy._lj_as(accuracy.LJPairs)(s)
+        accuracy.lj_as(accuracy.LJPairs)(s)
 
 
 def test_radii_knob_one_grid_misses_no_pair(x64):
@@ -545,7 +545,7 @@ def test_radii_knob_one_grid_misses_no_pair(x64):
     assert set(ref) == {"scene"}  # no plain LJ to compare stretched pairs to
     plan = accuracy.Plan(n=n, equilibrate=0, steps=20, chunk=10)
     sc = _knob_value("radii", "one grid").apply(s)
-    assert accuracy._describe(sc)["backend"] == "cell[radius_classes=1]"
+    assert accuracy.describe(sc)["backend"] == "cell[radius_classes=1]"
     m = accuracy.measure(sc, plan, ref_forces=ref)
     assert m.row["pairs_missed"] == 0 and m.row["pairs_checked"] > 0
     assert m.row["force_rms_rel"] < 1e-5  # float32 against float64
