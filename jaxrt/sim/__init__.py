@@ -3,8 +3,8 @@
 Modules, each depending only on those above it:
 
   spec      the `Scene` and its parts (frozen dataclasses), the `Effect`
-            protocol, `SceneError`; checks on construction; imports nothing
-            else from jaxrt
+            protocol, `SceneError`; checks on construction; imports only
+            `jaxrt.errors` from jaxrt
   effects   the effects (LJ, SPH density / pressure / viscosity, gravity,
             walls), one class each, and their `Registry` (``EFFECTS``)
   validate  the check that needs the installation (the neighbour backend)
@@ -12,7 +12,10 @@ Modules, each depending only on those above it:
   compile   `compile_scene`: a scene to jitted steps (`State`, `Trace`,
             `Compiled`)
   run       `run_chunk`: chunks of steps, redone on list overflow
-  builtin   the built-in scenes (`BUILTIN`, `builtin`)
+  builtin   the built-in scenes (`BUILTIN`, `builtin`), from the seeds'
+            distributions (`distributions`)
+  domains   a scene cut into slabs over devices (`decompose`; imported
+            on its own: ``from jaxrt.sim import domains``)
 
 A run::
 
