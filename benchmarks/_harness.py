@@ -40,12 +40,10 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import datetime
 import importlib
 import json
 import math
 import os
-import platform
 import queue
 import re
 import signal
@@ -56,9 +54,13 @@ import tempfile
 import threading
 import time
 import traceback
-from importlib import metadata
 from pathlib import Path
 from typing import Any, Callable, Iterable
+
+# Provenance is the library's (the accuracy sweep writes the same columns).
+from jaxrt.tools.provenance import (PROVENANCE, cpu_cores,  # noqa: F401
+                                    device_provenance, device_slug, git_sha,
+                                    host_provenance)
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -68,79 +70,8 @@ STATUSES = ("ok", "oom", "timeout", "crashed", "error", "skipped")
 """Values of a row's ``status`` column; ``failed`` holds the reason of any
 status but ``ok``."""
 
-PROVENANCE = ("device", "device_kind", "device_slug", "host", "jax", "jaxlib",
-              "jax_md", "warp", "python", "git_sha", "date")
-"""Provenance columns added to every row (the row's own N, k and dtype are
-columns of the row)."""
-
 ROW_COLUMNS = ("N", "k", "dtype", "status", "failed")
 """Columns every CSV has, empty where a row does not know them."""
-
-
-# ---------------------------------------------------------------------------
-# Provenance
-
-
-def git_sha() -> str:
-    """``$GIT_SHA`` (how the GPU runs pass it), else ``git rev-parse``."""
-    sha = os.environ.get("GIT_SHA", "").strip()
-    if sha:
-        return sha
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True,
-                              cwd=REPO, timeout=10).stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def _version(dist: str) -> str:
-    try:
-        return metadata.version(dist)
-    except metadata.PackageNotFoundError:
-        return "absent"
-
-
-def host_provenance() -> dict:
-    """What the driver knows without touching a device: versions (of the
-    installed distributions, which the worker imports), git sha, date."""
-    return {"host": platform.node(), "jax": _version("jax"),
-            "jaxlib": _version("jaxlib"), "jax_md": _version("jax-md"),
-            "warp": _version("warp-lang"),
-            "python": platform.python_version(), "git_sha": git_sha(),
-            "date": datetime.datetime.now(datetime.timezone.utc)
-            .isoformat(timespec="seconds")}
-
-
-def cpu_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
-def device_slug(platform_name: str, kind: str) -> str:
-    """Folder name under ``benchmarks/results/``: ``h200`` for an NVIDIA
-    H200, ``h100`` for an H100, ``cpu-2core`` for a CPU with 2 usable cores;
-    otherwise the device kind in lower case with dashes."""
-    if platform_name == "cpu":
-        return f"cpu-{cpu_cores()}core"
-    kind = kind.lower()
-    match = re.search(r"\b(gh200|gb200|b200|h200|h100|a100|a10g?|l40s?|l4|"
-                      r"v100|t4)\b", kind)
-    if match:
-        return match.group(1)
-    return re.sub(r"[^a-z0-9]+", "-", kind.replace("nvidia", "")).strip("-") \
-        or "unknown"
-
-
-def device_provenance() -> dict:
-    """The worker's device (imports JAX and starts its backend)."""
-    import jax
-    dev = jax.devices()[0]
-    return {"device": f"{dev.platform}:{dev.device_kind}",
-            "device_kind": dev.device_kind,
-            "device_slug": device_slug(dev.platform, dev.device_kind)}
 
 
 # ---------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """Warp's HashGrid as a peer of the "bvh" backend (`rt_neighbors.py`): a
 hand-written query kernel writing the same Dense rows, periodic images by
-the same gamma rays (`jaxrt.rt.periodic`). Imported only in workers."""
+the same gamma rays (`jaxrt.backends.rt.periodic`). Imported only in workers."""
 import warp as wp
 
-from jaxrt.rt import periodic as gamma
+from jaxrt.backends.rt import periodic as gamma
 
 
 @wp.kernel

@@ -3,7 +3,7 @@
 ``benchmarks/neighbors.py``'s scenes (uniform, sphere); per backend label
 and N, one cold ``allocate`` (seed 0, untimed), then ``--repeats`` more on
 new structures of the same scene and N (seeds 1, 2, ...), each split into
-the stages of `jaxrt.neighbors._Lists.allocate`, device-synchronised:
+the stages of `jaxrt.lists.neighbors._Lists.allocate`, device-synchronised:
 
   model     the metric's model and its checks (`_model_at_allocate`)
   measure   the backend's exact sizes (`_measure`: counting passes)
@@ -14,7 +14,7 @@ the stages of `jaxrt.neighbors._Lists.allocate`, device-synchronised:
 ``compiled`` says how many builds the row compiled (``_cache_size`` of the
 jitted build). Medians over the repeats; compiles included, as a training
 set's next structure pays them. A diagnostic of private stages: the names
-above follow `jaxrt/neighbors.py` and move with it.
+above follow `jaxrt/lists/neighbors.py` and move with it.
 
     python benchmarks/allocate_parts.py --sizes 16384 --backends cell bvh
     python benchmarks/allocate_parts.py --sizes 2000000 --scenes sphere \\
@@ -24,7 +24,10 @@ from __future__ import annotations
 
 import time
 
-import _harness
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 from neighbors import scene
 
 STAGES = ("model", "measure", "build", "trim")
@@ -39,7 +42,7 @@ def run_row(job: dict) -> dict:
     from jax_md import space
 
     import jaxrt
-    from jaxrt import neighbors
+    from jaxrt.lists import neighbors
 
     n, name = job["N"], job["scene"]
     _, side, cutoff, periodic = scene(name, n, 0)

@@ -1,4 +1,4 @@
-"""Scaling of the domain-decomposed LJ step (`jaxrt.domains`) over devices.
+"""Scaling of the domain-decomposed LJ step (`jaxrt.sim.domains`) over devices.
 
 The LJ system of ``md_step.py``: a simple-cubic lattice at density 0.8
 (melting), smooth cutoff 2.0-2.5, skin 0.3, dt 0.005, Maxwell-Boltzmann
@@ -7,7 +7,7 @@ device (`jax.shard_map` over a 1-D mesh, halos by `jax.lax.ppermute`,
 NCCL underneath on GPUs); each device builds its own Dense list with the
 ``--backend`` (default ``cell``) on owned + halo particles, the forces
 come from the owned particles' rows (``--forces rows``, default) or from
-``-jax.grad`` of the decomposed energy (``--forces grad``), and a step is `jaxrt.domains`'s
+``-jax.grad`` of the decomposed energy (``--forces grad``), and a step is `jaxrt.sim.domains`'s
 velocity Verlet step (halo refresh every step; migration, halos and lists
 again when a particle moved more than skin / 2, decided over all devices).
 ``--steps`` steps run in one jitted ``lax.scan``; ms per step, median of
@@ -47,8 +47,10 @@ import os
 import sys
 import warnings
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 COLUMNS = ["scaling", "N", "devices", "N_per_device", "k", "median_ms",
            "min_ms", "max_ms", "efficiency", "vs_plain", "rebuilds",
@@ -64,7 +66,7 @@ def lj_row(job: dict) -> dict:
     import jax
     import numpy as np
     from jax import lax
-    from jaxrt import domains
+    from jaxrt.sim import domains
     from jaxrt.energy import lennard_jones_pair_neighbor_list
     d = job["devices"]
     if len(jax.devices()) < d:

@@ -5,12 +5,12 @@ RT-REF (Meneses et al. §4): each step rebuilds the neighbour list (the
 update or rebuild plus a query; OrderedSparse, as the largest LN rows
 would make a Dense list N x 20 000 wide and r = 160's Sparse list passes
 Warp's 2**29 entries) and then the Lennard-Jones forces on it.
-Three policies of `jaxrt.rt.policy` run the same trajectory statistics:
+Three policies of `jaxrt.backends.rt.policy` run the same trajectory statistics:
 ``gradient`` (Eq. 8), ``avg`` and ``fixed`` (k = 200). Each step's cost is
 what the policy weighs, measured by the tree with CUDA events on a GPU (the
 host clock on a CPU): the update (refit or rebuild) plus the query.
 
-Scenes (`jaxrt.seed_distributions`, §4.1): Lattice, Disordered, Cluster in a
+Scenes (`jaxrt.sim.distributions`, §4.1): Lattice, Disordered, Cluster in a
 periodic box of 1000³, radii r = 1, r = 160, U[1, 160] and LN(1, 2) clipped
 to [1, 330] (clipping, not resampling: 31 % of the radii sit at 1; the
 histogram is written next to the figure).
@@ -21,7 +21,7 @@ axis, ξ ~ N(0, 1), with LJ forces ε = 1, pair cut ``max(r_i, r_j)`` and
 ``sigma_ij = max(r_i, r_j) / 2.5`` (`jaxrt.energy.lennard_jones_radii`,
 smooth switch from 0.8 of the cut). A lattice then oscillates about its
 sites; a disordered or clustered system relaxes and spreads, which is what
-makes refitted trees slow down. The refit safety rule of `jaxrt.rt.policy`
+makes refitted trees slow down. The refit safety rule of `jaxrt.backends.rt.policy`
 (a particle drifted 0.2 of the largest radius from where the tree was
 built: rebuild) binds every policy alike; it is why r = 1 scenes rebuild
 often whatever the policy.
@@ -44,8 +44,10 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 SCENES = ("lattice", "disordered", "cluster")
 RADII = ("r=160", "U[1,160]", "LN[1,330]", "r=1")  # largest first
@@ -63,7 +65,7 @@ COLUMNS = ["scene", "radii", "policy", "N", "k", "steps", "total_ms",
 
 def _scene(scene: str, radii: str, n: int, seed: int):
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     make = {"lattice": lambda: sd.lattice(n),
             "disordered": lambda: sd.disordered(n, seed),
             "cluster": lambda: sd.cluster(n, seed)}[scene]
@@ -81,7 +83,7 @@ def run_row(job: dict) -> dict:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt.rt import ffi
+    from jaxrt.backends.rt import ffi
 
     d = job["dynamics"]
     position, radii = _scene(job["scene"], job["radii"], job["N"], job["seed"])
@@ -269,7 +271,7 @@ def histogram(n: int, seed: int, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     r = sd.radii("LN[1,330]", n, seed + 1)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.hist(r, bins=np.logspace(0, np.log10(330), 60))

@@ -1,13 +1,13 @@
 """Where the list-free cell step's grid time goes (#18): each stage of
-`jaxrt.energy.fused.cell_runs` jitted and timed alone on roofline.py's LJ
+`jaxrt.energy.listfree.lj.cell_runs` jitted and timed alone on roofline.py's LJ
 system (jittered simple-cubic lattice, rho = 0.8, cutoff 2.5, float32),
 beside the alternatives that would replace a stage.
 
-Rows: ``grid+key`` (`cell_list._grid`, its coarsening while_loop, and the
+Rows: ``grid+key`` (`jaxrt.backends.cell.grid.grid`, its coarsening while_loop, and the
 cell keys), ``grid+key static`` (the same with the cells per axis known
-when tracing), the sort as `fused._sort_by_key` does it and three others,
+when tracing), the sort as `fused.sort_by_key` does it and three others,
 ``cell_starts`` (a scatter-add and a cumsum over the 4 N + 64 table) with
-its two pieces, ``runs`` (`cell_list._runs`: starts and both parts' run
+its two pieces, ``runs`` (`jaxrt.backends.cell.grid.runs`: starts and both parts' run
 ends), the run ends of 9 runs per particle as one slice each (before
 2026-12-02) or two gathers, ``cell_runs`` whole, and only what the kernel
 reads of it now that it finds its runs in the cell-start table (order,
@@ -24,8 +24,10 @@ import argparse
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 
 def main(argv=None) -> None:
@@ -42,9 +44,10 @@ def main(argv=None) -> None:
     import numpy as np
     from jax_md.partition import NeighborListFormat
     import roofline
-    from jaxrt import cell_list
-    from jaxrt._backend import Geometry, Query
-    from jaxrt.energy import fused
+    from jaxrt.backends.cell import grid as cell_grid
+    from jaxrt.backends.cell import search as cell_list
+    from jaxrt.backends.contract import Geometry, Query
+    from jaxrt.energy.listfree import lj as fused
 
     R, box, _ = roofline._system(args.n, jnp.float32)
     n = R.shape[0]
@@ -54,7 +57,7 @@ def main(argv=None) -> None:
                         scale=jnp.ones((3,), R.dtype))
     query = Query(cutoff=params.bound, periodic=(True,) * 3, mask_self=True,
                   format=NeighborListFormat.Dense)
-    reach, table = cell_list._REACH, cell_list._table_size(n)
+    reach, table = cell_grid.REACH, cell_grid.table_size(n)
     device = _harness.device_provenance()
     rows = []
 
@@ -67,9 +70,9 @@ def main(argv=None) -> None:
         print(f"{name:30s} {t.median_ms:8.3f} ms", flush=True)
 
     def grid(R):
-        _, cell, cells = cell_list._grid(geometry.grid_coordinates(R),
+        _, cell, cells = cell_grid.grid(geometry.grid_coordinates(R),
                                          geometry, query, reach)
-        return cell, cells, cell_list._key(cell, cells)
+        return cell, cells, cell_grid.key(cell, cells)
 
     stage("grid+key", grid, inputs)
     outs = [jax.jit(grid)(x) for x in inputs]
@@ -80,18 +83,18 @@ def main(argv=None) -> None:
         wrapped = jnp.mod(R, side)
         cell = jnp.clip(jnp.floor(wrapped / (side / cells)).astype(jnp.int32),
                         0, cells - 1)
-        return cell, cell_list._key(cell, jnp.asarray(cells))
+        return cell, cell_grid.key(cell, jnp.asarray(cells))
 
     stage("grid+key static", grid_static, inputs)
     keys = [o[2] for o in outs]
-    stage("sort: _sort_by_key", lambda k: fused._sort_by_key(k, table), keys)
+    stage("sort: sort_by_key", lambda k: fused.sort_by_key(k, table), keys)
     stage("sort: argsort", jnp.argsort, keys)
     stage("sort: uint32 keys only", lambda k: jnp.sort(k.astype(jnp.uint32)), keys)
     stage("sort: uint32 packed (lossy)", lambda k: jnp.sort(
         (k.astype(jnp.uint32) << 11) | (jnp.arange(n, dtype=jnp.uint32) & 2047)),
         keys)
-    srt = [jax.jit(lambda k: fused._sort_by_key(k, table))(k) for k in keys]
-    stage("cell_starts", cell_list._cell_starts, [s[1] for s in srt])
+    srt = [jax.jit(lambda k: fused.sort_by_key(k, table))(k) for k in keys]
+    stage("cell_starts", cell_grid.cell_starts, [s[1] for s in srt])
     stage("cell_starts: cumsum", lambda x: jnp.cumsum(x, dtype=jnp.int32),
           [jnp.ones((table,), jnp.int32)] * 2)
     stage("cell_starts: scatter-add", lambda k: jnp.zeros(
@@ -99,7 +102,7 @@ def main(argv=None) -> None:
     # The table as long as the cells (the fused grid's static table), and
     # the same table by binary searches instead of a scatter and a scan.
     static = int(np.prod(cells)) + 1
-    stage("cell_starts static table", lambda k: cell_list._cell_starts(
+    stage("cell_starts static table", lambda k: cell_grid.cell_starts(
         k, static), [s[1] for s in srt])
     for method in ("scan_unrolled", "sort"):
         stage(f"cell_starts static: searchsorted {method}",
@@ -109,10 +112,10 @@ def main(argv=None) -> None:
 
     def runs(a):
         (order, sorted_key), (cell, n_cells, _) = a
-        return cell_list._runs(sorted_key, cell[order], n_cells, query, reach)
+        return cell_grid.runs(sorted_key, cell[order], n_cells, query, reach)
 
     stage("runs", runs, list(zip(srt, outs)))
-    starts = [jax.jit(cell_list._cell_starts)(s[1]) for s in srt]
+    starts = [jax.jit(cell_grid.cell_starts)(s[1]) for s in srt]
     firsts = [jnp.asarray(np.random.default_rng(k).integers(0, table - 20, (n, 9)),
                           jnp.int32) for k in range(2)]
     extra = jnp.full((n, 9), 8, jnp.int32)

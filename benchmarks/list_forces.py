@@ -15,7 +15,7 @@ Rows (``stage``):
 * ``update <layout>``: `neighbor_list(...).update` of a list of that layout;
 * ``convert Sparse`` / ``convert OrderedSparse``: `_backend.dense_to_sparse`
   alone, on the Dense rows the update builds first (on CUDA the
-  left-packed rows of Sparse are copied by `jaxrt._edge_kernel`);
+  left-packed rows of Sparse are copied by `jaxrt.layouts.edge_kernel`);
   ``... xla``: XLA's scatters everywhere; ``... scan all``: the
   same as it was until 631d12d (one scan over all N x M entries; the two
   ways' edges are checked equal); ``convert OrderedSparse half rows
@@ -34,7 +34,7 @@ Rows (``stage``):
   its scatter written out, to compare with ``reduce scatter``, and
   ``... edges barrier``, the per-edge gradients written to memory before
   the scatters (no producer fused into them): the pair of rows that showed
-  XLA's fused scatters to be the edge layouts' cost (jaxrt._edges;
+  XLA's fused scatters to be the edge layouts' cost (jaxrt.layouts.edges;
   benchmarks/RESULTS.md, "What does a list's layout cost?");
 * ``reduce ...``: only the reduction of per-edge force vectors (E, 3) to
   per-particle forces on the OrderedSparse list's edges, four ways: two
@@ -56,8 +56,10 @@ import math
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 LAYOUTS = ("Dense", "Sparse", "OrderedSparse")
 # LLVM's NVPTX backend lowers an f32 atomic add to a compare-and-swap loop
@@ -160,7 +162,7 @@ def main(argv=None) -> None:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt import _backend
+    from jaxrt.backends import contract as _backend
     from jaxrt.energy import lennard_jones_pair_neighbor_list
     from jaxrt.energy.lj import lennard_jones_truncated
 

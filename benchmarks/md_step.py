@@ -43,8 +43,10 @@ import re
 import sys
 import warnings
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 FORMATS = ("Dense", "OrderedSparse")
 # Accepted in --only (jax-md's three layouts); the defaults are FORMATS.
@@ -72,7 +74,7 @@ def launched(label: str):
     """The fused cell backend of
     ``cell[BLOCKxWARPS[xTILE][uUNROLL][aACROSS][s][n]]`` or of the bare launch
     (the kernel, compiled: CUDA only)."""
-    from jaxrt.energy.fused import _Cell
+    from jaxrt.energy.listfree.lj import CellSums
     match = _LAUNCH.fullmatch(label) or re.fullmatch(LAUNCH, label)
     if match is None:
         raise ValueError(f"launch {label!r}: write BLOCKxWARPS[xTILE]"
@@ -80,7 +82,7 @@ def launched(label: str):
                          "32x1s or 32x1n")
     *numbers, stored, newton = match.groups()
     block, warps, tile, unroll, across = (int(v) if v else 0 for v in numbers)
-    return _Cell(kernel="pallas", block=block, warps=warps, tile=tile,
+    return CellSums(kernel="pallas", block=block, warps=warps, tile=tile,
                  unroll=unroll or 1, across=across or 1,
                  runs="stored" if stored else "kernel", newton=bool(newton))
 

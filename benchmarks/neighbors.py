@@ -20,11 +20,11 @@ median of three more on new structures of the same scene and N (seeds
 RSS (CPU); ``peak_above_baseline_mb`` (CPU) is that peak minus the peak
 reached after imports and input creation, before any list is built. For the
 ray-traced backends ``bvh_updates`` counts what the kept BVH did during the
-timed calls (`jaxrt.rt.ffi.update_counts`: build / rebuild / refit).
+timed calls (`jaxrt.backends.rt.ffi.update_counts`: build / rebuild / refit).
 
 Methods are backend labels (`_harness.parse_backend`): ``cell``,
 ``cell[xla]`` (the portable array programs), ``cell[pallas]`` (the GPU
-kernel, `jaxrt._cell_kernel`), ``cell[interpret]`` (that kernel in Pallas'
+kernel, `jaxrt.backends.cell.kernel`), ``cell[interpret]`` (that kernel in Pallas'
 interpreter), ``bvh``, ``bvh[unsorted]``, ... passed as
 ``backend=jaxrt.backends.Cell(kernel="xla")`` etc.; ``jax-md`` is
 ``jax_md.partition.neighbor_list``. Rows of ``cell`` that run the kernel
@@ -44,8 +44,10 @@ import resource
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 SPHERE_K = 30
 
@@ -116,7 +118,7 @@ def run_row(job: dict) -> dict:
         temp_mb = float("nan")
     counts = None
     if name.startswith("bvh"):
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
         before = ffi.update_counts.copy()
     timing = _harness.time_calls(lambda x: update(x, nbrs).idx, inputs,
                                  repeats=job["repeats"], warmup=job["warmup"])
@@ -135,7 +137,7 @@ def run_row(job: dict) -> dict:
         above_mb = float("nan")
     # allocate on new structures of the same scene and N (a training set's
     # next ones): each measures its own sizes, which differ a little; what
-    # it compiles for them is reused (`jaxrt.neighbors._compiled_capacity`)
+    # it compiles for them is reused (`jaxrt.lists.neighbors._compiled_capacity`)
     # or not (jax-md runs allocate op by op).
     reallocate_ms = []
     for seed in (1, 2, 3):

@@ -31,8 +31,10 @@ from __future__ import annotations
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 CUTOFF = 5.0
 LATTICE = 5.43

@@ -16,10 +16,6 @@ nothing itself (benchmarks/roofline.py does).
 from __future__ import annotations
 
 import argparse
-import os
-import sys
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 def main(argv=None) -> None:

@@ -1,13 +1,13 @@
 """Lists with per-particle radii: the cell list's radius classes against cells of the largest radius, and the BVH.
 
-Seed 003's scenes (`jaxrt.seed_distributions`: Lattice, Disordered,
+Seed 003's scenes (`jaxrt.sim.distributions`: Lattice, Disordered,
 Cluster in a periodic 1000³ box) with its radius kinds U[1, 160] and
 LN(1, 2) clipped to [1, 330]. Each row times one rebuild of the list
 (``update`` through ``jax.jit`` with no skin, so every call searches),
 median of ``--repeats`` after ``--warmup``, all rows of one run side by
 side on one device. Backends (`_harness.parse_backend` labels):
 
-  cell                       radius classes (`jaxrt.radius_classes`)
+  cell                       radius classes (`jaxrt.backends.cell.radius_classes`)
   cell[radius_classes=1]     one grid of cells of the largest radius
   bvh                        boxes of each particle's radius (§3)
 
@@ -23,8 +23,10 @@ from __future__ import annotations
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 BACKENDS = ("cell", "cell[radius_classes=1]", "bvh")
 COLUMNS = ["scene", "radii", "method", "N", "k", "median_ms", "min_ms",
@@ -38,7 +40,7 @@ def run_row(job: dict) -> dict:
     from jax_md import partition, space
 
     import jaxrt
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
 
     n, seed = job["N"], job["seed"]
     position = {"lattice": lambda: sd.lattice(n),

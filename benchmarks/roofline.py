@@ -18,9 +18,9 @@ Rows, each in its own worker (`_harness`), side by side in one run:
   at other launches (particles x warps per program, and the cluster
   layout's tile of candidates).
 * ``grid`` and ``walk``: the two halves of ``fused`` (``--parts``): the
-  cell grid it rebuilds at every call (`jaxrt.energy.fused.cell_runs`:
+  cell grid it rebuilds at every call (`jaxrt.energy.listfree.lj.cell_runs`:
   keys, sort, runs and their periodic images) and the kernel alone on that grid
-  (`jaxrt._cell_kernel.pair_sums` with the LJ terms, as ``fused`` calls
+  (`jaxrt.backends.cell.kernel.pair_sums` with the LJ terms, as ``fused`` calls
   it: energy and pair count, no parameter derivatives).
 
 For the two search rows the script also counts, on the device, what the
@@ -46,17 +46,19 @@ import dataclasses
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
-# Counted in `jaxrt._cell_kernel._sum_walk` with the LJ terms of
-# `jaxrt.energy.fused.lj_terms` (reciprocal, floor, compare and select as
+# Counted in `jaxrt.backends.cell.kernel._sum_walk` with the LJ terms of
+# `jaxrt.energy.listfree.lj.lj_terms` (reciprocal, floor, compare and select as
 # one each): distance 9, the smooth-switched LJ energy and force factor
 # 35, the accumulation 5. The md_step box is large enough that each run's
 # periodic image is added once per run (`fused.run_image_axes`): no
 # per-candidate minimum image (3 more per axis, 58 in all).
 FLOP_PER_CANDIDATE = 49
-# The list kernel (`jaxrt._cell_kernel._walk`): distance 18, the two
+# The list kernel (`jaxrt.backends.cell.kernel._walk`): distance 18, the two
 # threshold tests and the row and shell offsets 8.
 FLOP_PER_CANDIDATE_LIST = 26
 ROWS = ("copy", "fma", "rebuild", "fused", "grid", "walk")
@@ -78,16 +80,16 @@ def _system(n: int, dtype):
 
 def _grid(box):
     """The fused energy's static parameters for md_step's LJ system."""
-    from jaxrt.energy import fused
-    return fused._Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
+    from jaxrt.energy.listfree import lj as fused
+    return fused.Params(r_onset=2.0, r_cutoff=2.5, bound=2.5,
                          periodic=(True,) * 3, side=(box,) * 3)
 
 
 def _work(R, box, across: int = 1):
     """Candidates per particle and runs per particle of the cell grid the
-    fused energy walks (`jaxrt.energy.fused.cell_runs`)."""
+    fused energy walks (`jaxrt.energy.listfree.lj.cell_runs`)."""
     import numpy as np
-    from jaxrt.energy import fused
+    from jaxrt.energy.listfree import lj as fused
     _, runs, _ = fused.cell_runs(R, _grid(box), across=across)
     start1 = fused.kernel_runs(runs)[0]
     return (float(np.mean(np.sum(np.asarray(runs.length), axis=1))),
@@ -181,9 +183,9 @@ def _part_row(job, R, box, inputs, candidates, runs, backend, timing):
     """`grid` or `walk`: one half of the fused forces (module docstring)."""
     import jax
     import jax.numpy as jnp
-    from jaxrt.energy import fused
+    from jaxrt.energy.listfree import lj as fused
     params = _grid(box)
-    cell = backend or fused._Cell()
+    cell = backend or fused.CellSums()
     interpret = jax.default_backend() not in ("gpu", "cuda")  # CPU smoke
     n = R.shape[0]
     def walk(R):

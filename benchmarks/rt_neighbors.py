@@ -14,7 +14,7 @@ repeats the previous one:
   bvh jit Dense (rebuild)       jaxrt.neighbor_list(backend="bvh").update
                                 under jax.jit, unrelated inputs: every call
                                 rebuilds the BVH (``bvh_updates`` counts
-                                what it did: `jaxrt.rt.ffi.update_counts`)
+                                what it did: `jaxrt.backends.rt.ffi.update_counts`)
   bvh jit Dense (refit)         the same on inputs jittered by 1 % of the
                                 cutoff: the kept BVH is refit
   bvh[always-rebuild] jit Dense
@@ -26,7 +26,7 @@ repeats the previous one:
                                 one BVH box per g sorted particles
                                 (``--jit-clusters``)
   bvh update (rebuild) / (refit), bvh BVH rebuild only, bvh query Dense,
-  bvh[unsorted] ...             the Warp pieces (`jaxrt.rt.aabb.AabbSearch`,
+  bvh[unsorted] ...             the Warp pieces (`jaxrt.backends.rt.aabb.AabbSearch`,
                                 built from the `jaxrt.backends.Bvh` options)
                                 timed directly, synchronised
   bvh[leaf_size=l,cluster_size=g] update (rebuild) / query Dense
@@ -61,8 +61,10 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 INPUT_SETS = 3
 NOMINAL_K = {"uniform": 4 / 3 * math.pi * 2.5 ** 3, "sphere": 36.0}
@@ -227,7 +229,7 @@ def _jax_row(job, kind, sets, side, cutoff, periodic, reps):
     update = jax.jit(fns.update)
     updates = None
     if kind == "jit":
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
         before = ffi.update_counts.copy()
     timing = _harness.time_calls(lambda x: update(x, nbrs), inputs, **reps)
     if kind == "jit":
@@ -244,7 +246,7 @@ def _warp_row(job, kind, sets, side, cutoff, periodic, reps, warp_device):
     query) and, for queries, the counts on the first input set."""
     import warp as wp
 
-    from jaxrt.rt import aabb
+    from jaxrt.backends.rt import aabb
     n = sets[0].shape[0]
     width = int(1.3 * NOMINAL_K[job["scene"]]) + 16
     warp_sets = [wp.array(x, dtype=wp.vec3, device=warp_device) for x in sets]
@@ -268,7 +270,10 @@ def _warp_row(job, kind, sets, side, cutoff, periodic, reps, warp_device):
         return run
 
     if kind.startswith("hashgrid"):
-        import _warp_hashgrid
+        if __package__:
+            from benchmarks import _warp_hashgrid
+        else:  # run as a file
+            import _warp_hashgrid
         _warp_hashgrid.load(warp_device)
         dim = 128 if n > 10_000 else 32
         grid = wp.HashGrid(dim, dim, dim, device=warp_device)

@@ -20,10 +20,14 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
-import seed_rt  # noqa: E402
-from seed_rt import plan, report  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+    from benchmarks import seed_rt
+    from benchmarks.seed_rt import plan, report
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
+    import seed_rt
+    from seed_rt import plan, report
 
 COLUMNS = ["scene", "param", "p", "N", "tier", "cutoff", "method", "init_ms",
            "compute_ms", "search_ms", "total_ms", "build_ms", "query_ms",

@@ -12,7 +12,7 @@ goes through (in the worker; the wrappers cost a few microseconds each):
 * ``callback_us``, ``callbacks``: Warp's FFI callbacks (`wp.jax_callable`)
   per step, all inside them included;
 * ``arg_arrays_us``: Warp building its ``wp.array`` views of the buffers;
-* ``update_us`` / ``query_us``: `jaxrt.rt.aabb.AabbSearch.update` (extent,
+* ``update_us`` / ``query_us``: `jaxrt.backends.rt.aabb.AabbSearch.update` (extent,
   placement, drift read-back, boxes, refit or rebuild) and the query or
   ORCS launch after it;
 * ``readback_us``, ``readbacks``: device-to-host reads (``wp.array.numpy``:
@@ -36,8 +36,10 @@ import statistics
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 import table2  # noqa: E402
 
 METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL", "GPU-CELL-fused")
@@ -83,7 +85,8 @@ def _instrument(meter: _Meter) -> None:
         from warp._src.jax import ffi as warp_ffi
     except ImportError:  # no Warp: the cell methods only
         return
-    from jaxrt.rt import aabb, orcs
+    from jaxrt.backends.rt import aabb
+    from jaxrt.backends.rt import orcs
     meter.wrap(warp_ffi.FfiCallable, "ffi_callback", "callback")
     meter.wrap(warp_ffi.FfiCallable, "_build_arg_list", "arg_arrays")
     meter.wrap(aabb.AabbSearch, "update", "update")

@@ -15,7 +15,7 @@ Methods (Meneses et al. §4.2; all jaxrt, all one leapfrog step
   device (on a CPU-only machine that is the CPU).
 * ``GPU-CELL-fused``: `jaxrt.energy.lennard_jones_fused` with
   ``backend="cell"``: forces from jaxrt's cell grid with no list (on CUDA
-  one Pallas kernel, `jaxrt._cell_kernel`; elsewhere array programs), the
+  one Pallas kernel, `jaxrt.backends.cell.kernel`; elsewhere array programs), the
   step of ORCS-forces; any radii. Not in the paper (no ``paper_ms``): the
   list-free counterpart of GPU-CELL, against the list-free ORCS-forces.
 * ``CPU-CELL``: the same on JAX's CPU device (``--cpu-cores`` are what this
@@ -28,7 +28,7 @@ they were OrderedSparse at r > 1, and at k = 700 (r = 160, n = 50 000) the
 forces on those lists took 333 ms on the H200 against 1.65 ms on Dense
 (benchmarks/list_forces.py; jax-md's own energy the same): the list rows
 then measured the layout, not the search.
-Scenes and radii (`jaxrt.seed_distributions`, §4.1): Lattice, Disordered,
+Scenes and radii (`jaxrt.sim.distributions`, §4.1): Lattice, Disordered,
 Cluster in a box of 1000³ with walls (free axes; nothing leaves the box in
 these steps) or periodic; r = 1, r = 160, U[1, 160], LN(1, 2) clipped to
 [1, 330]. With radii, pair ij is cut at max(r_i, r_j) and sigma_ij =
@@ -85,9 +85,12 @@ import os
 import sys
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _energy  # noqa: E402
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _energy
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _energy
+    import _harness
 
 SCENES = ("lattice", "disordered", "cluster")
 RADII = ("r=1", "r=160", "U[1,160]", "LN[1,330]")
@@ -152,7 +155,7 @@ PAPER_CLAIMS = ("persé ~1.3x RT-REF at r = 1; ORCS-forces up to ~1.6x "
 
 def _scene(scene: str, radii: str, n: int, seed: int):
     import numpy as np
-    from jaxrt import seed_distributions as sd
+    from jaxrt.sim import distributions as sd
     make = {"lattice": lambda: sd.lattice(n),
             "disordered": lambda: sd.disordered(n, seed),
             "cluster": lambda: sd.cluster(n, seed)}[scene]
@@ -392,7 +395,7 @@ def main(argv=None) -> None:
     parser.add_argument("--methods", nargs="+", default=METHODS,
                         choices=METHODS)
     parser.add_argument("--policy", default="gradient",
-                        help="BVH policy of the RT methods (jaxrt.rt.policy)")
+                        help="BVH policy of the RT methods (jaxrt.backends.rt.policy)")
     parser.add_argument("--list-format", default="Dense",
                         choices=("Dense", "Sparse", "OrderedSparse"),
                         help="layout of RT-REF's, GPU-CELL's and CPU-CELL's "

@@ -23,8 +23,10 @@ import random
 import sys
 from pathlib import Path
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 METHODS = ("RT-REF", "ORCS-forces", "ORCS-persé", "GPU-CELL",
            "GPU-CELL-fused", "CPU-CELL")

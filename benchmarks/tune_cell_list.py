@@ -1,6 +1,6 @@
 """Sweep the cell list's stencil reach on a uniform periodic scene.
 
-The reach is the module constant `jaxrt.cell_list._REACH` = (reach along x,
+The reach is the module constant `jaxrt.backends.cell.search._REACH` = (reach along x,
 reach across): cells are cutoff / reach wide along those axes. Each row
 (N, reach) runs in its own worker process (`_harness`), which sets the
 constant (and `_RUN_SPAN`, derived from it at import) before building the
@@ -19,8 +19,10 @@ import hashlib
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _harness  # noqa: E402
+if __package__:  # run as -m, or imported: the package's modules
+    from benchmarks import _harness
+else:  # run as a file: its folder is sys.path[0]
+    import _harness
 
 
 def run_row(job: dict) -> dict:
@@ -30,7 +32,7 @@ def run_row(job: dict) -> dict:
     from jax_md import space
 
     import jaxrt
-    import jaxrt.cell_list as cl
+    import jaxrt.backends.cell.search as cl
 
     n, reach = job["N"], tuple(int(v) for v in job["reach"].split(","))
     cl._REACH = reach

@@ -1,3 +1,3 @@
-from jaxrt.cli import main
+from jaxrt.tools.cli import main
 
 raise SystemExit(main())

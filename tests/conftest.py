@@ -52,7 +52,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 # On GPUs XLA rounds float32 matrix products to TF32 by default, so jax-md's
 # periodic_general metric (a matrix product) is only good to ~1e-3 there and
 # the float64 oracles would disagree with it near the cutoff. jaxrt copes
-# (`jaxrt._space`'s slack); the oracles need the metric exact.
+# (`jaxrt.lists.metric`'s slack); the oracles need the metric exact.
 import jax  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
@@ -83,8 +83,9 @@ def pytest_configure(config):
     import sys
     if os.environ.get("PYTEST_XDIST_WORKER"):
         return  # the controller did it
-    modules = ("jaxrt.rt.aabb", "jaxrt.rt.epsilon", "jaxrt.rt.spheres",
-               "jaxrt.rt.squares", "jaxrt.rt.orcs")
+    modules = ("jaxrt.backends.rt.aabb", "jaxrt.backends.rt.epsilon",
+               "jaxrt.backends.rt.spheres", "jaxrt.backends.rt.squares",
+               "jaxrt.backends.rt.orcs")
     code = ("import importlib, warp as wp\n"
             f"for m in {modules!r}:\n"
             "    importlib.import_module(m)\n"
@@ -133,85 +134,85 @@ LONG_CASES = {
     # test_cell_kernel.py: the kernel in Pallas' interpreter keeps
     # [random], [lattice at cutoff] and [coincident] (faces and 2D on the
     # portable path: test_neighbors).
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[faces]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[2d]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[random free]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[lattice at cutoff, free]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[box of 2.01 cutoffs]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[box of 3.01 cutoffs]",
-    "tests/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[2d free]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[faces]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[2d]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[random free]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[lattice at cutoff, free]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[box of 2.01 cutoffs]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[box of 3.01 cutoffs]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[2d free]",
     # list and vmap/scan in the interpreter: test_energy_lj's grad through
     # a scan with updates [jaxrt:cell] and test_neighbors' vmap keep them.
-    "tests/test_cell_kernel.py::test_kernel_list_update_inside_grad",
-    "tests/test_cell_kernel.py::test_kernel_under_vmap_and_scan",
+    "tests/backends/test_cell_kernel.py::test_kernel_list_update_inside_grad",
+    "tests/backends/test_cell_kernel.py::test_kernel_under_vmap_and_scan",
     # test_neighbors.py: [xla] keeps the internal buffers' overflow bits,
     # test_cell_kernel's overflow test keeps the kernel's.
-    "tests/test_neighbors.py::test_cell_list_internal_buffer_overflow_is_flagged[interpret]",
-    "tests/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.Sparse]",
-    "tests/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.OrderedSparse]",
-    "tests/test_neighbors.py::test_cell_list_allocated_on_a_lattice_survives_melting",
-    "tests/test_neighbors.py::test_small_periodic_boxes[3.0]",  # [2.01]
+    "tests/lists/test_neighbors.py::test_cell_list_internal_buffer_overflow_is_flagged[interpret]",
+    "tests/lists/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.Sparse]",
+    "tests/lists/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_neighbors.py::test_cell_list_allocated_on_a_lattice_survives_melting",
+    "tests/lists/test_neighbors.py::test_small_periodic_boxes[3.0]",  # [2.01]
     # jax-md's own cases (test_jax_md_acceptance: custom mask, mask_self
     # False, dim=2) and the hypothesis scenes (dim 2 and 3) keep these.
-    "tests/test_neighbors.py::test_mask_self_false_keeps_self_pairs_and_custom_mask",
-    "tests/test_neighbors.py::test_two_dimensions",
+    "tests/lists/test_neighbors.py::test_mask_self_false_keeps_self_pairs_and_custom_mask",
+    "tests/lists/test_neighbors.py::test_two_dimensions",
     # jax-md's test_general_unit_cell (acceptance) and test_bvh's
     # fractional coordinates keep it; test_energy_lj's per-particle
     # energies and forces against jax-md (every backend and layout) keep
     # the LJ check.
-    "tests/test_neighbors.py::test_fractional_coordinates_orthorhombic",
-    "tests/test_neighbors.py::test_lennard_jones_energy_and_forces_equal_jax_md",
+    "tests/lists/test_neighbors.py::test_fractional_coordinates_orthorhombic",
+    "tests/lists/test_neighbors.py::test_lennard_jones_energy_and_forces_equal_jax_md",
     # NVE with a jaxrt list: test_scene's builtin LJ and
     # tests/stability/test_nve_drift keep it.
-    "tests/test_neighbors.py::test_nve_in_fori_loop_with_jaxrt_list",
+    "tests/lists/test_neighbors.py::test_nve_in_fori_loop_with_jaxrt_list",
     # test_never_wrong.py: [cell-0] keeps a pair across a face; every face
     # and corner: test_neighbors' and stability's faces-and-corners cases.
-    "tests/test_never_wrong.py::test_two_particles_across_each_face[cell-1]",
-    "tests/test_never_wrong.py::test_two_particles_across_each_face[cell-2]",
+    "tests/lists/test_never_wrong.py::test_two_particles_across_each_face[cell-1]",
+    "tests/lists/test_never_wrong.py::test_two_particles_across_each_face[cell-2]",
     # tests/stability/test_far_from_origin keeps positions far away.
-    "tests/test_never_wrong.py::test_positions_near_a_million_in_free_space",
+    "tests/lists/test_never_wrong.py::test_positions_near_a_million_in_free_space",
     # One layout or value of each keeps the property.
-    "tests/test_never_wrong.py::test_all_particles_at_one_point[NeighborListFormat.OrderedSparse]",
-    "tests/test_never_wrong.py::test_one_particle_and_an_empty_list[cell-NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_all_particles_at_one_point[NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_one_particle_and_an_empty_list[cell-NeighborListFormat.OrderedSparse]",
-    "tests/test_never_wrong.py::test_box_sides_just_below_a_power_of_two_stay_orthorhombic[cell-3.999996]",
-    "tests/test_never_wrong.py::test_box_sides_just_below_a_power_of_two_stay_orthorhombic[cell-7.99]",
-    "tests/test_never_wrong.py::test_triclinic_boxes_in_every_layout[False-NeighborListFormat.Sparse-cell]",
-    "tests/test_never_wrong.py::test_triclinic_boxes_in_every_layout[False-NeighborListFormat.OrderedSparse-cell]",
-    "tests/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[twice-<lambda>-False-NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[half-<lambda>-False-NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic-metric-False-NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic periodic-metric-True-NeighborListFormat.Sparse]",
-    "tests/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[soft core-soft_core-False-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_all_particles_at_one_point[NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_one_particle_and_an_empty_list[cell-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_all_particles_at_one_point[NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_one_particle_and_an_empty_list[cell-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_box_sides_just_below_a_power_of_two_stay_orthorhombic[cell-3.999996]",
+    "tests/lists/test_never_wrong.py::test_box_sides_just_below_a_power_of_two_stay_orthorhombic[cell-7.99]",
+    "tests/lists/test_never_wrong.py::test_triclinic_boxes_in_every_layout[False-NeighborListFormat.Sparse-cell]",
+    "tests/lists/test_never_wrong.py::test_triclinic_boxes_in_every_layout[False-NeighborListFormat.OrderedSparse-cell]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[twice-<lambda>-False-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[half-<lambda>-False-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic-metric-False-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic periodic-metric-True-NeighborListFormat.Sparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[soft core-soft_core-False-NeighborListFormat.Sparse]",
     # test_energy_lj.py: [jaxrt:cell] keeps grad through a scan with
     # updates; test_bvh's front update in a scan keeps bvh's list there.
-    "tests/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:brute]",
-    "tests/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:bvh]",
-    "tests/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:bvh-unsorted]",
-    "tests/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:spheres]",
-    "tests/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:squares]",
+    "tests/energy/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:brute]",
+    "tests/energy/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:bvh]",
+    "tests/energy/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:bvh-unsorted]",
+    "tests/energy/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:spheres]",
+    "tests/energy/test_energy_lj.py::test_grad_through_scan_with_update_for_every_backend[jaxrt:squares]",
     # test_fused.py: [cell-2.05], [kernel-2.05], [fine-2.6], [fine-xla-*]
     # keep each pair once in small boxes; the kernel's images keep 3D
     # float32 periodic and float64 slab.
-    "tests/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-2.6]",
-    "tests/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-3.4]",
-    "tests/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-7.0]",
-    "tests/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[tiles-3.4]",
-    "tests/test_fused.py::test_run_images_on_faces_and_corners[3-float64-tiles-periodic]",
-    "tests/test_fused.py::test_run_images_on_faces_and_corners[2-float64-kernel-periodic]",
+    "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-2.6]",
+    "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-3.4]",
+    "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[cell-7.0]",
+    "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[tiles-3.4]",
+    "tests/energy/test_fused.py::test_run_images_on_faces_and_corners[3-float64-tiles-periodic]",
+    "tests/energy/test_fused.py::test_run_images_on_faces_and_corners[2-float64-kernel-periodic]",
     # test_delaunay.py: [True-Dense] keeps it.
-    "tests/test_delaunay.py::test_random_scene_and_a_jitted_move_are_exact[False-NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_delaunay.py::test_random_scene_and_a_jitted_move_are_exact[False-NeighborListFormat.OrderedSparse]",
     # test_scene.py: test_lj_only_has_no_sph and the wall box keep "a
     # scene simulates only the effects it calls for".
-    "tests/test_scene.py::test_equal_radii_no_radius_handling",
+    "tests/sim/test_scene.py::test_equal_radii_no_radius_handling",
     # mixed boundaries: test_neighbors' and test_cell_kernel's lists.
-    "tests/test_scene.py::test_mixed_boundaries_wrap_periodic_axis_only",
+    "tests/sim/test_scene.py::test_mixed_boundaries_wrap_periodic_axis_only",
     # test_accuracy.py: test_radii_sweep_rows_have_their_own_reference
     # keeps the radii knob's rows.
-    "tests/test_accuracy.py::test_radii_knob_one_grid_misses_no_pair",
+    "tests/tools/test_accuracy.py::test_radii_knob_one_grid_misses_no_pair",
     # test_cli.py: [mixed-3d] keeps the trajectory read by ASE.
-    "tests/test_cli.py::test_trajectory_reads_in_ase[2d]",
+    "tests/tools/test_cli.py::test_trajectory_reads_in_ase[2d]",
 }
 
 

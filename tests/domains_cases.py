@@ -1,4 +1,4 @@
-"""Library-level cases of `jaxrt.domains`, run by tests/test_domains.py in
+"""Library-level cases of `jaxrt.sim.domains`, run by tests/sim/test_domains.py in
 a subprocess with 4 fake CPU devices (the count must be set before JAX
 starts). Each case prints ``CASE <name> ok``; any failure raises.
 
@@ -16,8 +16,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrt import domains, sim  # noqa: E402
-from jaxrt.domains import Decomposition, DomainError, decompose  # noqa: E402
+from jaxrt import sim  # noqa: E402
+from jaxrt.sim import domains
+from jaxrt.sim.domains import Decomposition, DomainError, decompose  # noqa: E402
 from jaxrt.energy import lennard_jones_pair_neighbor_list  # noqa: E402
 
 BACKEND = "brute"  # quick to compile; the CLI test runs the cell list

@@ -1,11 +1,11 @@
-"""Debug of a GPU-only failure (tests/test_pairs.py::
+"""Debug of a GPU-only failure (tests/pairs/test_pairs.py::
 test_vmap_over_padded_batch_of_different_systems, H200, 2bf10b5): where do
 jaxrt.pairs and ASE differ, and does an XLA flag change it?
 
     PYTHONPATH=$PWD python3 benchmarks/debug/debug_pairs_gpu.py           # every flag set, in subprocesses
     PYTHONPATH=$PWD python3 benchmarks/debug/debug_pairs_gpu.py float64   # this process's XLA_FLAGS only
 
-Needs ASE (the systems and the oracle are tests/test_pairs.py's). On the
+Needs ASE (the systems and the oracle are tests/pairs/test_pairs.py's). On the
 H200 at 2bf10b5 (results/h200/debug_pairs_2bf10b5/) every variant matched
 ASE except level 0's vmapped brute force.
 """
@@ -22,7 +22,7 @@ def one(dtype):
     sys.path.insert(0, "tests")
     import jaxrt
     import importlib
-    P = importlib.import_module("jaxrt.pairs")
+    P = importlib.import_module("jaxrt.pairs.search")
     from test_pairs import si2, triclinic, fe_bcc_rattled, cu_primitive, as_set, ase_set
     systems = [si2(), triclinic(3, 6), fe_bcc_rattled(), cu_primitive()]
     cutoff = 4.5

@@ -6,7 +6,7 @@ parts: `seed_rt.plan` (which configurations, in which order), `seed_rt.worker`
 (speed-ups, headline table, plots).
 
 Scenes (float32, free space with walls as in the seed;
-`jaxrt.seed_distributions`):
+`jaxrt.sim.distributions`):
   uniform  §5.2: ``N = p·β³`` particles uniform in the unit box, cutoff
            ``C = 1/β``; β ∈ {2, 4, 8, 16, 32}, p ∈ {1, 2, 4, 8, 16, 32}.
   sphere   §5.3 / Code 2: ``N = p·α³`` particles uniform on the unit sphere,
@@ -26,7 +26,7 @@ layout, ``dr_threshold = 0`` so every ``update`` searches again,
   jax-md         ``jax_md.partition.neighbor_list`` (its dense cell list)
   aabb-sorted-fused, aabb-unsorted-fused, spheres-fused, squares-fused
                  seed 001's fused mode (`jaxrt.rt.FusedEnergy`,
-                 `jaxrt.rt.seed_energy`): the same methods, whose
+                 `jaxrt.backends.rt.seed_energy`): the same methods, whose
                  intersection program sums the LJ energy during the
                  traversal (one atomic add per ray into energy[i]); no list.
   Speed-ups in the tables and on the plots are over "jax-md", the grid
@@ -42,7 +42,7 @@ be checked against each other (they agree to float32 rounding).
 
 What ``update`` redoes in the compute step: spheres, squares, cell and
 jax-md rebuild their structure (BVH / grid) on every call. The two aabb
-methods keep one BVH per compiled call site (`jaxrt.rt.ffi`) and *refit* it,
+methods keep one BVH per compiled call site (`jaxrt.backends.rt.ffi`) and *refit* it,
 because the inputs differ by 1e-3·C, below the rebuild threshold (0.2·C);
 their compute step is refit + rays, closer to the seed's compute step (which
 excludes the build) than the grid methods' update is.

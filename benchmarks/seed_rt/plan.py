@@ -29,7 +29,7 @@ WARP_METHODS = ("aabb-unsorted", "aabb-sorted", "spheres", "squares", *FUSED)
 RUN_ORDER = ["aabb-sorted-fused", "aabb-unsorted-fused", "squares-fused",
              "spheres-fused", "aabb-sorted", "aabb-unsorted", "squares", "spheres",
              "cell", "jax-md"]
-# Dense-list entries each list method can index (jaxrt.rt.ffi.MAX_LIST_ENTRIES
+# Dense-list entries each list method can index (jaxrt.backends.rt.ffi.MAX_LIST_ENTRIES
 # for the Warp kernels' 32-bit byte offsets, int32 indices otherwise): a
 # configuration whose mean row alone (times capacity_multiplier 1.25)
 # passes it is refused at allocate, so the plan skips it and says why.
@@ -75,7 +75,7 @@ def scene_cells(scene: str, param: int, p: int) -> float:
     """Cells of jax-md's dense grid (cell side = cutoff)."""
     if scene == "uniform":
         return float(param) ** 3
-    # jaxrt.seed_distributions.sphere_surface_cutoff, without importing jaxrt (and JAX,
+    # jaxrt.sim.distributions.sphere_surface_cutoff, without importing jaxrt (and JAX,
     # Warp) into the driver just for the plan
     c = math.acos(1.0 - 2.0 * 9.0 * p / n_of(param, p))
     return float(int((2 + 2 * c) / c)) ** 3

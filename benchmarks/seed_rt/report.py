@@ -6,8 +6,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import _harness
-from seed_rt.plan import METHODS, SCENES, n_of
+if __package__ == "benchmarks.seed_rt":  # the package's module
+    from benchmarks import _harness
+    from benchmarks.seed_rt.plan import METHODS, SCENES, n_of
+else:  # seed_rt_study.py run as a file: benchmarks/ is sys.path[0]
+    import _harness
+    from seed_rt.plan import METHODS, SCENES, n_of
 
 COLORS = {"aabb-unsorted": "#ff7f0e", "aabb-sorted": "#d62728",
           "spheres": "#2ca02c", "squares": "#1f77b4", "cell": "#9467bd",

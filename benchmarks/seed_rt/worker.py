@@ -6,8 +6,12 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
-import _harness
-from seed_rt.plan import FUSED, METHODS, WARP_METHODS
+if __package__ == "benchmarks.seed_rt":  # the package's module
+    from benchmarks import _harness
+    from benchmarks.seed_rt.plan import FUSED, METHODS, WARP_METHODS
+else:  # a worker of seed_rt_study.py run as a file
+    import _harness
+    from seed_rt.plan import FUSED, METHODS, WARP_METHODS
 
 INPUT_SETS = 3
 
@@ -19,7 +23,7 @@ def make_scene(scene: str, param: int, p: int):
     box that just holds it, side ``2 + 2C``, the points shifted by ``1 + C``.
     Every method gets that box (jax-md's grid is sized by it)."""
     import numpy as np
-    from jaxrt import seed_distributions as scenes
+    from jaxrt.sim import distributions as scenes
     if scene == "uniform":
         pos, cutoff = scenes.uniform(param, p, seed=0)
         box = 1.0
@@ -39,7 +43,7 @@ def lj_energy(R, idx, sigma, epsilon=1.0):
     """Per-particle LJ energy summed over each Dense row (padding idx = N):
     ``E_i = sum_j 4 eps [(sigma^2/r2)^6 - (sigma^2/r2)^3]`` with r2 clamped
     at ``(sigma/10)^2``; the quantity the fused kernels sum during the
-    traversal (`jaxrt.rt.seed_energy`, same arithmetic), so the list and
+    traversal (`jaxrt.backends.rt.seed_energy`, same arithmetic), so the list and
     fused rows of a configuration can be compared (``energy_sum``)."""
     import jax.numpy as jnp
     n = R.shape[0]
@@ -70,13 +74,13 @@ def scene_inputs(scene: str, param: int, p: int):
 
 def release_memory() -> None:
     """Drop what jaxrt keeps between calls, before the next method runs:
-    the kept BVHs (`jaxrt.rt.ffi.forget_trees`) and the last scene of the
+    the kept BVHs (`jaxrt.backends.rt.ffi.forget_trees`) and the last scene of the
     spheres / squares methods (their ``_scene``, held by the method objects
-    that `jaxrt.rt.ffi` keeps per options value, for the lists and the
+    that `jaxrt.backends.rt.ffi` keeps per options value, for the lists and the
     fused mode; an internal, looked up defensively)."""
     import gc
     try:
-        from jaxrt.rt import ffi
+        from jaxrt.backends.rt import ffi
     except ImportError:  # no Warp: nothing kept
         gc.collect()
         return
@@ -126,11 +130,12 @@ def warp_split(method: str, inputs, cutoff: float, box: float, job: dict,
     import time
 
     import warp as wp
-    from jaxrt.rt import aabb, seed_energy
-    from jaxrt.rt import policy as rt_policy
-    from jaxrt.rt._method import FindArguments
-    from jaxrt.rt.spheres import SpheresMethod
-    from jaxrt.rt.squares import SquaresMethod
+    from jaxrt.backends.rt import aabb
+    from jaxrt.backends.rt import seed_energy
+    from jaxrt.backends.rt import policy as rt_policy
+    from jaxrt.backends.rt.method import FindArguments
+    from jaxrt.backends.rt.spheres import SpheresMethod
+    from jaxrt.backends.rt.squares import SquaresMethod
 
     points = [wp.from_jax(x, dtype=wp.vec3) for x in inputs]
     device = points[0].device
@@ -228,7 +233,7 @@ def _fused_job(row, method, inputs, cutoff, box, sigma, job) -> None:
     call (custom AABB: refit of the kept tree + rays, as the list aabb's
     compute; spheres / squares: build + rays, as theirs)."""
     import jax
-    from jaxrt.rt import FusedEnergy
+    from jaxrt.backends.rt import FusedEnergy
 
     fused = FusedEnergy(_harness.backend(METHODS[method]), cutoff=cutoff, sigma=sigma)
     call = jax.jit(fused)

@@ -7,18 +7,20 @@ parameters, and works on Dense, Sparse and OrderedSparse lists from
 LJ (`jaxrt.energy.lj`): `lennard_jones`, `lennard_jones_truncated`,
 `lennard_jones_radii` (per-particle radii, seed 003),
 `lennard_jones_pair_neighbor_list`, `lennard_jones_neighbor_list`.
-Without a list (`jaxrt.energy.fused`, seed 003 ORCS): `lennard_jones_fused`
+Without a list (`jaxrt.energy.listfree.lj`, seed 003 ORCS): `lennard_jones_fused`
 (energy, first derivatives from one traversal), `lennard_jones_perse_step`
 (ORCS-persé leapfrog step).
 SPH (`jaxrt.energy.sph`): kernels `CubicSpline`, `QuinticSpline`,
 `WendlandC2`, `WendlandC4` (or `kernel(name, h, dim=)`), `density`, `Tait`,
 `acceleration` -> `Acceleration`.
-Without a list (`jaxrt.energy.sph_fused`): `density_fused`,
+Without a list (`jaxrt.energy.listfree.sph`): `density_fused`,
 `acceleration_fused` (the same results, a walk over the cell grid; first
 derivatives from a second walk).
 """
-from jaxrt.energy import fused, lj, sph, sph_fused
-from jaxrt.energy.fused import (
+from jaxrt.energy import lj, sph
+from jaxrt.energy.listfree import lj as fused
+from jaxrt.energy.listfree import sph as sph_fused
+from jaxrt.energy.listfree.lj import (
     FusedInputError,
     FusedSums,
     HigherOrderError,
@@ -46,7 +48,7 @@ from jaxrt.energy.sph import (
     density,
     kernel,
 )
-from jaxrt.energy.sph_fused import acceleration_fused, density_fused
+from jaxrt.energy.listfree.sph import acceleration_fused, density_fused
 
 __all__ = [
     "KERNELS",

@@ -55,11 +55,11 @@ import numpy as np
 from jax_md import energy as jmd_energy
 from jax_md import partition, smap, space
 
-from jaxrt.energy._checks import concrete
-from jaxrt._edges import edge_sum, materialized_metric
-from jaxrt.energy._keywords import (SIMULATE_KEYWORDS, displacement_keywords,
+from jaxrt.energy.checks import concrete
+from jaxrt.layouts.edges import edge_sum, materialized_metric
+from jaxrt.energy.keywords import (SIMULATE_KEYWORDS, displacement_keywords,
                                     reject_unknown)
-from jaxrt.energy._rows import dense_pair_energy
+from jaxrt.energy.rows import dense_pair_energy
 
 Array = jax.Array
 
@@ -331,7 +331,7 @@ def lennard_jones_pair_neighbor_list(
         between its particles) instead of the total.
       gradient: how the total energy on a *Dense* list is differentiated
         with respect to positions. ``"rows"`` (default): each particle's
-        force is summed from its own row, no scatter (`jaxrt.energy._rows`;
+        force is summed from its own row, no scatter (`jaxrt.energy.rows`;
         several times faster on a GPU; needs the list to hold both
         directions of every pair, as every jaxrt and jax-md list does).
         ``"autodiff"``: plain reverse mode through the gather (use it with a
@@ -363,17 +363,8 @@ def lennard_jones_pair_neighbor_list(
     ``r_onset >= r_cutoff`` gives NaN gradients with respect to the cutoffs.
     Shape errors always raise.
     """
-    if truncation not in TRUNCATIONS:
-        raise ValueError(_truncation_error(truncation))
-    if gradient not in GRADIENTS:
-        raise ValueError(f"gradient={gradient!r} is not known; choose one of "
-                         f"{GRADIENTS}.")
-    _check_species(species)
-    _check_parameter("sigma", sigma, species)
-    _check_parameter("epsilon", epsilon, species)
-    _check_cutoffs(r_onset, r_cutoff, truncation)
-    if radii is not None:
-        _check_radii(radii)
+    _check_factory(truncation, gradient, species, sigma, epsilon, r_onset,
+                   r_cutoff, radii)
     metric = space.canonicalize_displacement_or_metric(displacement_or_metric)
     metric_keywords = displacement_keywords(displacement_or_metric)
     defaults = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
@@ -393,24 +384,10 @@ def lennard_jones_pair_neighbor_list(
                          if k in metric_keywords}
         given = dict(sigma=sigma, epsilon=epsilon, r_onset=r_onset,
                      r_cutoff=r_cutoff)
-        p = {k: defaults[k] if v is None else v for k, v in given.items()}
-        if species is None:
-            species = default_species
-        elif default_species is None:
-            raise ValueError(
-                "species was given to the energy function but not to the "
-                "factory: pass species (and (S, S) sigma / epsilon) to "
-                "lennard_jones_pair_neighbor_list.")
-        else:
-            _check_species(species)
         n = R.shape[0]
-        _check_overrides(p, species, n)
-        if radii is None:
-            radii = default_radii
-        elif default_radii is None:
-            raise ValueError(
-                "radii was given to the energy function but not to the "
-                "factory: pass radii to lennard_jones_pair_neighbor_list.")
+        p, species, radii = _call_parameters(
+            given, defaults, species, default_species, radii, default_radii,
+            n)
         pairs, pair_params, combine = _PAIRS, {}, ()
         if radii is not None:
             _check_radii(radii, n)
@@ -432,36 +409,91 @@ def lennard_jones_pair_neighbor_list(
                  **pair_params},
                 species, metric_kwargs, combine)
 
-        pair = functools.partial(pairs[truncation], r_onset=p["r_onset"],
-                                 r_cutoff=p["r_cutoff"])
-        # jax-md's smap combines per-particle parameters given as (fn, value).
-        pair_params = {k: (dict(combine)[k], v) for k, v in pair_params.items()}
-        ordered = neighbor.format is partition.OrderedSparse
-        if not per_particle:
-            reduce_axis = None
-        elif ordered:
-            reduce_axis = ()  # jax-md refuses; reduced below
-        else:
-            reduce_axis = (1,)
-        # ignore_unused_parameters: metric_kwargs (e.g. box=) reach the
-        # displacement only, never the pair function.
-        # Edge layouts: the gathered ends written out first (_edges).
-        edge_metric = (materialized_metric(metric)
-                       if partition.is_sparse(neighbor.format) else metric)
-        mapped = smap.pair_neighbor_list(
-            pair, edge_metric, species=species, reduce_axis=reduce_axis,
-            ignore_unused_parameters=True, sigma=p["sigma"],
-            epsilon=p["epsilon"], **pair_params)
-        out = mapped(R, neighbor, **metric_kwargs)
-        if per_particle and ordered:
-            # Each unordered pair appears once: give half to each end. The
-            # padding index n falls outside segment_sum's range and is
-            # dropped (its energies are zero anyway).
-            out = (edge_sum(out, neighbor.idx[0], n)
-                   + edge_sum(out, neighbor.idx[1], n)) / 2
+        out = _mapped_energy(pairs[truncation], metric, R, neighbor, p,
+                             pair_params, combine, species, per_particle,
+                             metric_kwargs)
         return out + poison.astype(out.dtype)
 
     return energy_fn
+
+
+def _check_factory(truncation, gradient, species, sigma, epsilon, r_onset,
+                   r_cutoff, radii) -> None:
+    """`lennard_jones_pair_neighbor_list`'s arguments, checked."""
+    if truncation not in TRUNCATIONS:
+        raise ValueError(_truncation_error(truncation))
+    if gradient not in GRADIENTS:
+        raise ValueError(f"gradient={gradient!r} is not known; choose one of "
+                         f"{GRADIENTS}.")
+    _check_species(species)
+    _check_parameter("sigma", sigma, species)
+    _check_parameter("epsilon", epsilon, species)
+    _check_cutoffs(r_onset, r_cutoff, truncation)
+    if radii is not None:
+        _check_radii(radii)
+
+
+def _call_parameters(given: dict, defaults: dict, species, default_species,
+                     radii, default_radii, n: int):
+    """An energy function's parameters: those ``given`` to the call (None:
+    not given) over the factory's ``defaults``, and its species and radii,
+    checked. Returns ``(params, species, radii)``."""
+    p = {k: defaults[k] if v is None else v for k, v in given.items()}
+    if species is None:
+        species = default_species
+    elif default_species is None:
+        raise ValueError(
+            "species was given to the energy function but not to the "
+            "factory: pass species (and (S, S) sigma / epsilon) to "
+            "lennard_jones_pair_neighbor_list.")
+    else:
+        _check_species(species)
+    _check_overrides(p, species, n)
+    if radii is None:
+        radii = default_radii
+    elif default_radii is None:
+        raise ValueError(
+            "radii was given to the energy function but not to the "
+            "factory: pass radii to lennard_jones_pair_neighbor_list.")
+    return p, species, radii
+
+
+def _mapped_energy(pair_fn: Callable, metric: Callable, R: Array,
+                   neighbor: partition.NeighborList, p: dict,
+                   pair_params: dict, combine, species, per_particle: bool,
+                   metric_kwargs: dict) -> Array:
+    """The energy through jax-md's ``smap.pair_neighbor_list`` on any
+    layout: a scalar, or float ``(N,)`` with ``per_particle``."""
+    n = R.shape[0]
+    pair = functools.partial(pair_fn, r_onset=p["r_onset"],
+                             r_cutoff=p["r_cutoff"])
+    # jax-md's smap combines per-particle parameters given as (fn, value).
+    pair_params = {k: (dict(combine)[k], v) for k, v in pair_params.items()}
+    ordered = neighbor.format is partition.OrderedSparse
+    if not per_particle:
+        reduce_axis = None
+    elif ordered:
+        reduce_axis = ()  # jax-md refuses; reduced below
+    else:
+        reduce_axis = (1,)
+    # ignore_unused_parameters: metric_kwargs (e.g. box=) reach the
+    # displacement only, never the pair function.
+    # Edge layouts: the gathered ends written out first
+    # (`jaxrt.layouts.edges`).
+    edge_metric = (materialized_metric(metric)
+                   if partition.is_sparse(neighbor.format) else metric)
+    mapped = smap.pair_neighbor_list(
+        pair, edge_metric, species=species, reduce_axis=reduce_axis,
+        ignore_unused_parameters=True, sigma=p["sigma"],
+        epsilon=p["epsilon"], **pair_params)
+    out = mapped(R, neighbor, **metric_kwargs)
+    if per_particle and ordered:
+        # Each unordered pair appears once: give half to each end. The
+        # padding index n falls outside segment_sum's range and is
+        # dropped (its energies are zero anyway).
+        out = (edge_sum(out, neighbor.idx[0], n)
+               + edge_sum(out, neighbor.idx[1], n)) / 2
+    return out
 
 
 def lennard_jones_neighbor_list(
@@ -516,7 +548,7 @@ def lennard_jones_neighbor_list(
       ``(neighbor_fn, energy_fn)`` as in jax-md.
     """
     if neighbor_list_fn is None:
-        from jaxrt.neighbors import neighbor_list as neighbor_list_fn
+        from jaxrt.lists.neighbors import neighbor_list as neighbor_list_fn
     s = concrete(sigma)
     if s is None:
         raise ValueError("sigma must be concrete (not traced) here: it sets "

@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax_md import partition
 
-from jaxrt.energy._checks import check_positive, concrete
-from jaxrt._edges import edge_sum, materialized_in_reverse
-from jaxrt.energy._keywords import reject_unknown
+from jaxrt.energy.checks import check_positive, concrete
+from jaxrt.layouts.edges import edge_sum, materialized_in_reverse
+from jaxrt.energy.keywords import reject_unknown
 
 Array = jax.Array
 
@@ -268,7 +268,7 @@ class Tait:
           ``P(rho)``, shape of ``rho``; NaN where ``rho < 0`` (only reachable
           under ``jit``; eagerly a negative density raises).
         """
-        _check_density(rho)
+        check_density(rho)
         b = self.rho0 * self.c0 ** 2 / self.gamma
         p = b * ((rho / self.rho0) ** self.gamma - 1)
         return jnp.where(rho >= 0, p, jnp.nan)
@@ -279,12 +279,12 @@ class Tait:
         Args:
           rho: float, any shape: densities >= 0.
         """
-        _check_density(rho)
+        check_density(rho)
         c = self.c0 * (rho / self.rho0) ** ((self.gamma - 1) / 2)
         return jnp.where(rho >= 0, c, jnp.nan)
 
 
-def _check_density(rho) -> None:
+def check_density(rho) -> None:
     v = concrete(rho)
     if v is not None and np.any(v < 0):
         raise ValueError(
@@ -297,13 +297,13 @@ def _check_density(rho) -> None:
 # Pair sums over any layout
 
 
-class _Pairs(NamedTuple):
+class ListPairs(NamedTuple):
     centre: Array  # int, (N, cap) for Dense, (E,) for Sparse
     other: Array
     valid: Array   # bool, same shape: a real pair, not padding, not i == i
 
 
-def _pairs(neighbor: partition.NeighborList, n: int) -> _Pairs:
+def list_pairs(neighbor: partition.NeighborList, n: int) -> ListPairs:
     idx = neighbor.idx
     if partition.is_sparse(neighbor.format):
         # jax-md's smap treats idx[0] as the particle a pair belongs to.
@@ -313,10 +313,10 @@ def _pairs(neighbor: partition.NeighborList, n: int) -> _Pairs:
             jnp.arange(n, dtype=idx.dtype)[:, None], idx.shape)
         other = idx
     valid = (centre < n) & (other < n) & (centre != other)
-    return _Pairs(centre, other, valid)
+    return ListPairs(centre, other, valid)
 
 
-def _sum_pairs(to_centre: Array, to_other: Array, pairs: _Pairs,
+def sum_pairs(to_centre: Array, to_other: Array, pairs: ListPairs,
                neighbor: partition.NeighborList, n: int) -> Array:
     """Add per-pair contributions onto particles.
 
@@ -358,7 +358,7 @@ def _safe_norm(dr: Array) -> tuple[Array, Array]:
     return jnp.where(nonzero, r, 0), unit
 
 
-def _per_particle(name: str, value, n: int):
+def per_particle(name: str, value, n: int):
     shape = np.shape(value)
     if shape not in ((), (n,)):
         raise ValueError(f"{name} has shape {shape}; pass a scalar or one "
@@ -377,7 +377,7 @@ def _column(x):
 
 
 def _displacement_vectors(displacement: Callable, R: Array,
-                          pairs: _Pairs) -> Array:
+                          pairs: ListPairs) -> Array:
     ends = R[pairs.centre.reshape(-1)], R[pairs.other.reshape(-1)]
     if pairs.centre.ndim == 1:  # an edge layout (_edges)
         ends = materialized_in_reverse(ends)
@@ -385,7 +385,7 @@ def _displacement_vectors(displacement: Callable, R: Array,
         pairs.centre.shape + (R.shape[-1],))
 
 
-def _check_displacement(displacement: Callable, dim: int) -> None:
+def check_displacement(displacement: Callable, dim: int) -> None:
     probe = jax.ShapeDtypeStruct((dim,), jnp.float32)
     shape = jax.eval_shape(displacement, probe, probe).shape
     if shape != (dim,):
@@ -396,7 +396,7 @@ def _check_displacement(displacement: Callable, dim: int) -> None:
             "metric.")
 
 
-def _check_kernel_dim(kernel: Kernel, R: Array) -> None:
+def check_kernel_dim(kernel: Kernel, R: Array) -> None:
     if R.ndim != 2 or R.shape[1] != kernel.dim:
         raise ValueError(f"R has shape {R.shape} but the kernel has "
                          f"dim={kernel.dim}: pass (N, {kernel.dim}) positions "
@@ -423,7 +423,7 @@ def density(displacement: Callable, kernel: Kernel, *,
       when given, replace the factory's (may be traced and differentiated).
       The result has the dtype of ``R`` promoted with ``h`` and ``mass``.
     """
-    _check_displacement(displacement, kernel.dim)
+    check_displacement(displacement, kernel.dim)
     default_mass = mass
 
     def density_fn(R: Array, neighbor: partition.NeighborList, *,
@@ -433,14 +433,14 @@ def density(displacement: Callable, kernel: Kernel, *,
         # own TypeError names neither the fix nor the alternatives).
         reject_unknown("density_fn", unknown, ("h", "mass"))
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
-        _check_kernel_dim(k, R)
+        check_kernel_dim(k, R)
         n = R.shape[0]
-        m = _per_particle("mass", default_mass if mass is None else mass, n)
-        pairs = _pairs(neighbor, n)
+        m = per_particle("mass", default_mass if mass is None else mass, n)
+        pairs = list_pairs(neighbor, n)
         r, _ = _safe_norm(_displacement_vectors(displacement, R, pairs))
         w = k.w(r)
         w0 = k.w(jnp.zeros((), R.dtype))
-        rho = _sum_pairs(_gather(m, pairs.other) * w,
+        rho = sum_pairs(_gather(m, pairs.other) * w,
                          _gather(m, pairs.centre) * w, pairs, neighbor, n)
         return rho + m * w0
 
@@ -503,7 +503,7 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
         v = concrete(value)
         if v is not None and (v.ndim or v < 0):
             raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
-    _check_displacement(displacement, kernel.dim)
+    check_displacement(displacement, kernel.dim)
     defaults = dict(mass=mass, eos=eos, alpha=alpha, beta=beta)
     density_fn = density(displacement, kernel, mass=mass)
 
@@ -515,12 +515,12 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
         reject_unknown("accel_fn", unknown, ("rho", "pressure", "h", "mass",
                                              "eos", "alpha", "beta"))
         k = kernel if h is None else dataclasses.replace(kernel, h=h)
-        _check_kernel_dim(k, R)
+        check_kernel_dim(k, R)
         if V.shape != R.shape:
             raise ValueError(f"V has shape {V.shape} but R has {R.shape}; "
                              "pass one velocity per particle.")
         n = R.shape[0]
-        m = _per_particle("mass", defaults["mass"] if mass is None else mass,
+        m = per_particle("mass", defaults["mass"] if mass is None else mass,
                           n)
         state = defaults["eos"] if eos is None else eos
         a = defaults["alpha"] if alpha is None else alpha
@@ -528,14 +528,14 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
         if rho is None:
             rho = density_fn(R, neighbor, h=k.h, mass=m)
         else:
-            _check_density(rho)
-        rho = _per_particle("rho", rho, n)
+            check_density(rho)
+        rho = per_particle("rho", rho, n)
         if pressure is None:
             pressure = state.pressure(rho)
-        pressure = _per_particle("pressure", pressure, n)
+        pressure = per_particle("pressure", pressure, n)
         c = state.sound_speed(rho)
 
-        pairs = _pairs(neighbor, n)
+        pairs = list_pairs(neighbor, n)
         dr = _displacement_vectors(displacement, R, pairs)
         r, unit = _safe_norm(dr)
         grad_w = k.grad_w(r)[..., None] * unit  # grad_i W_ij
@@ -557,8 +557,8 @@ def acceleration(displacement: Callable, kernel: Kernel, eos: Tait, *,
         # grad_j W_ji = -grad_i W_ij: the other particle gets the opposite
         # sign (only used for OrderedSparse).
         mi, mj = _column(mi), _column(mj)
-        acc_p = _sum_pairs(-mj * p_pair, mi * p_pair, pairs, neighbor, n)
-        acc_v = _sum_pairs(-mj * v_pair, mi * v_pair, pairs, neighbor, n)
+        acc_p = sum_pairs(-mj * p_pair, mi * p_pair, pairs, neighbor, n)
+        acc_v = sum_pairs(-mj * v_pair, mi * v_pair, pairs, neighbor, n)
         return Acceleration(acc_p, acc_v, rho)
 
     return accel_fn

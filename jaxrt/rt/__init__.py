@@ -1,29 +1,11 @@
-"""Ray-traced neighbour search on Warp BVHs (needs ``warp-lang``).
+"""`jaxrt.backends.rt` under its former name: the same public names (the
+modules themselves are under `jaxrt.backends.rt`). They load on first use,
+Warp with them."""
+from jaxrt import lazy as _lazy
 
-The backends (`jaxrt.rt.ffi`, re-exported by `jaxrt.backends`):
-
-* `Bvh` (``"bvh"``): custom AABB boxes in a Morton-sorted BVH kept across
-  calls (Algis & Bramas 2024, §4.4 and §5; periodic gamma rays of Meneses
-  et al., §3.3); ``Bvh(sort=False)`` is ``"bvh-unsorted"``. See
-  `jaxrt.rt.aabb`, `jaxrt.rt.periodic`, `jaxrt.rt.ffi`.
-* `Spheres`, `Squares`: seed 001's other methods (`jaxrt.rt.spheres`,
-  `jaxrt.rt.squares`).
-* `FusedEnergy`: seed 001's fused mode for those three methods, the LJ
-  energy summed during the traversal, no list (`jaxrt.rt.seed_energy`).
-
-Other pure-Warp methods follow `jaxrt.rt._method.RTMethod` and become
-backends through `jaxrt.rt.ffi.method_backend`.
-"""
-import warp as _wp  # noqa: F401  (ImportError here: Warp absent, no RT backends)
-
-from jaxrt.rt._method import RTMethod
-from jaxrt.rt import policy
-from jaxrt.rt.aabb import AabbMethod
-from jaxrt.rt.ffi import (Bvh, FusedEnergy, MethodBackend, Spheres, Squares,
-                          method_backend)
-from jaxrt.rt.spheres import SpheresMethod
-from jaxrt.rt.squares import SquaresMethod
-
-__all__ = ["AabbMethod", "Bvh", "FusedEnergy", "MethodBackend", "RTMethod", "policy",
-           "Spheres", "SpheresMethod", "Squares", "SquaresMethod",
-           "method_backend"]
+_NAMES = {name: f"jaxrt.backends.rt:{name}" for name in (
+    "AabbMethod", "Bvh", "FusedEnergy", "MethodBackend", "RTMethod",
+    "Spheres", "SpheresMethod", "Squares", "SquaresMethod", "method_backend",
+    "policy")}
+__all__ = sorted(_NAMES)
+__getattr__, __dir__ = _lazy.exports(__name__, _NAMES)

@@ -3,8 +3,8 @@
 Modules, each depending only on those above it:
 
   spec      the `Scene` and its parts (frozen dataclasses), the `Effect`
-            protocol, `SceneError`; checks on construction; imports nothing
-            else from jaxrt
+            protocol, `SceneError`; checks on construction; imports only
+            `jaxrt.errors` from jaxrt
   effects   the effects (LJ, SPH density / pressure / viscosity, gravity,
             walls), one class each, and their `Registry` (``EFFECTS``)
   validate  the check that needs the installation (the neighbour backend)
@@ -12,7 +12,10 @@ Modules, each depending only on those above it:
   compile   `compile_scene`: a scene to jitted steps (`State`, `Trace`,
             `Compiled`)
   run       `run_chunk`: chunks of steps, redone on list overflow
-  builtin   the built-in scenes (`BUILTIN`, `builtin`)
+  builtin   the built-in scenes (`BUILTIN`, `builtin`), from the seeds'
+            distributions (`distributions`)
+  domains   a scene cut into slabs over devices (`decompose`; imported
+            on its own: ``from jaxrt.sim import domains``)
 
 A run::
 
@@ -23,11 +26,11 @@ A run::
     state, nbrs = jaxrt.sim.run_chunk(compiled, state, nbrs, steps=100,
                                       stats=stats)
 """
-from jaxrt._lazy import lazy_package
+from jaxrt import lazy as _lazy
 
 # The modules above, by the names each exports; each is imported when one
 # of its names is first read, so that the spec, the TOML reader and the
-# list of built-in scenes load without JAX (`jaxrt._lazy`).
+# list of built-in scenes load without JAX (`jaxrt.lazy`).
 _MODULES = {
     "spec": ("BOUNDARIES", "Box", "Context", "Effect", "Integrator",
              "Neighbors", "Particles", "Scene", "SceneError", "Term",
@@ -46,6 +49,7 @@ _MODULES = {
 
 __all__ = [name for names in _MODULES.values() for name in names]
 
-lazy_package(__name__, {name: f"{__name__}.{module}"
-                        for module, names in _MODULES.items()
-                        for name in names}, shadowed=("builtin",))
+__getattr__, __dir__ = _lazy.exports(
+    __name__, {name: f"{__name__}.{module}:{name}"
+               for module, names in _MODULES.items() for name in names})
+_lazy.keep_functions(__name__, ("builtin",))

@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from jaxrt import seed_distributions
+from jaxrt.sim import distributions as seed_distributions
 from jaxrt.sim.spec import (Box, Integrator, Neighbors, Scene, SceneError,
                             make_particles)
 
@@ -57,7 +57,7 @@ def lj_polydisperse(*, n: int = 1000, density: float = 0.45,
     from 2.0 to 2.5 before stretching): a particle of radius 2.5 is the
     plain fluid's, one of 6.0 has sigma 2.4 with everyone. The default, a
     few large particles in a fluid of small ones, spans two radius classes
-    (`jaxrt.radius_classes`: reaches 2.8 and 6.3 with the skin 0.3).
+    (`jaxrt.backends.cell.radius_classes`: reaches 2.8 and 6.3 with the skin 0.3).
 
     Placement, so that no pair starts inside its core: the species other
     than the smallest at random positions (``seed``), each pair at least
@@ -171,7 +171,7 @@ def sphere_surface(*, alpha: int = 8, p: int = 2, backend: str = "auto",
                    seed: int = 0) -> Scene:
     """SPH gas shell from seed 001's sphere surface, relaxing in free space.
 
-    Particles of `jaxrt.seed_distributions.sphere_surface` (``alpha``,
+    Particles of `jaxrt.sim.distributions.sphere_surface` (``alpha``,
     ``p``), no gravity: the shell relaxes under pressure. Kernel support =
     the seed's cutoff.
     """

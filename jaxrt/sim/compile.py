@@ -42,7 +42,8 @@ import numpy as np
 from jax import lax
 from jax_md import partition
 
-from jaxrt import neighbors as _neighbors
+from jaxrt import backends
+from jaxrt.lists import neighbors as _neighbors
 from jaxrt.sim.spec import Box, Context, Scene, SceneError
 from jaxrt.sim.validate import check_backend
 
@@ -249,10 +250,9 @@ def _check_radii_backend(scene: Scene) -> None:
     backend = scene.neighbors.backend
     if isinstance(backend, str):
         if backend == "auto":
-            return  # auto picks one with radii (jaxrt.neighbors)
-        from jaxrt import backends
+            return  # auto picks one with radii (jaxrt.lists.neighbors)
         backend = backends.resolve(backend)
-    if not getattr(backend, "supports_radii", False):
+    if not backends.capabilities(backend).supports_radii:
         raise SceneError.at("neighbors.backend", f"{backend.name!r} has no "
                             "per-particle radii, which the scene's lj.radii "
                             "need; use 'cell', 'bvh', 'brute' or 'auto'.")

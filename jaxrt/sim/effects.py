@@ -20,7 +20,7 @@ from typing import Any, ClassVar, Iterator
 
 import numpy as np
 
-from jaxrt._lazy import lazy_module
+from jaxrt.lazy import lazy_module
 from jaxrt.sim.spec import Context, SceneError, Term, check_reach
 
 # Imported on first use: the TOML reader checks an effect's keys, and the
@@ -163,7 +163,7 @@ def check_cutoff_radii(effect, scene, where: str) -> None:
 @dataclasses.dataclass(frozen=True)
 class LJFields:
     """The fields of the Lennard-Jones effect (`LJ`) and of the effects that
-    stand in for it with another search (`jaxrt.accuracy`'s `LJFused`,
+    stand in for it with another search (`jaxrt.tools.accuracy`'s `LJFused`,
     `LJPairs`): the potential, its cutoff and the cutoff radii."""
 
     r_cutoff: float
@@ -283,7 +283,7 @@ class SPHDensity:
     ``list_free``: no neighbour list, a walk over the cell grid at every
     step (`jaxrt.energy.density_fused`); sph_pressure and
     sph_viscosity must say the same. ``walk`` (with ``list_free`` only),
-    the walk's program for all three (`jaxrt.energy.sph_fused.WALKS`):
+    the walk's program for all three (`jaxrt.energy.listfree.sph.WALKS`):
     ``"auto"``, the Pallas kernel on CUDA and array programs elsewhere;
     ``"xla"``, the arrays; ``"pallas"``, the kernel (CUDA only; the scene
     fails to compile elsewhere); ``"interpret"``, the kernel in Pallas'
@@ -313,7 +313,7 @@ class SPHDensity:
                                 f"one of {list(_sph.KERNELS)}.")
         if scene.particles.dim not in (2, 3):
             raise SceneError.at(f"{where}", "SPH needs 2D or 3D positions.")
-        from jaxrt.energy.sph_fused import WALKS
+        from jaxrt.energy.listfree.sph import WALKS
         if self.walk not in WALKS:
             raise SceneError.at(f"{where}.walk", f"one of {list(WALKS)}.")
         if self.walk != "auto" and not self.list_free:
@@ -585,7 +585,7 @@ class Boids:
 
         def boids(R, V, nbrs, rho):
             n = R.shape[0]
-            pairs = _sph._pairs(nbrs, n)
+            pairs = _sph.list_pairs(nbrs, n)
             c = jnp.minimum(pairs.centre, n - 1)
             o = jnp.minimum(pairs.other, n - 1)
             # x_j - x_i, from i's point of view.
@@ -599,7 +599,7 @@ class Boids:
 
             def total(weight, to_centre, to_other):
                 w = weight[..., None]
-                return _sph._sum_pairs(jnp.where(w, to_centre, 0),
+                return _sph.sum_pairs(jnp.where(w, to_centre, 0),
                                        jnp.where(w, to_other, 0), pairs,
                                        nbrs, n)
             count = total(seen, one, one)[:, 0]

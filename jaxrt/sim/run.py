@@ -30,14 +30,14 @@ import dataclasses
 
 import numpy as np
 
-from jaxrt.errors import ErrorCode, check
+from jaxrt.errors import Error, ErrorCode, check
 from jaxrt.sim.compile import Compiled, State
 
 ENERGY_TOLERANCE = 0.5
 """Default ``energy_tolerance`` of `run_chunk` (module docstring)."""
 
 
-class BlowUpError(RuntimeError):
+class BlowUpError(Error, RuntimeError):
     """The simulation blew up (module docstring); the message names the
     step, what went wrong and the time step to lower.
 

@@ -8,7 +8,8 @@ Effects are any objects that follow the `Effect` protocol defined here; the
 package's own are in `jaxrt.sim.effects`. An effect hands the compiler its
 contribution as a `Term`, built from the `Context` the compiler gives it.
 
-This module imports nothing else from jaxrt: the TOML reader
+This module imports nothing else from jaxrt but `jaxrt.errors` (the base
+of `SceneError`): the TOML reader
 (`jaxrt.sim.toml`), the effects and the compiler (`jaxrt.sim.compile`)
 build on the spec, never the reverse.
 """
@@ -21,6 +22,8 @@ from typing import Any, Callable, ClassVar, Protocol
 
 import numpy as np
 
+from jaxrt.errors import Error
+
 BOUNDARIES = ("periodic", "wall", "free")
 FORMAT_NAMES = ("Dense", "Sparse", "OrderedSparse")
 """jax-md's list layouts, by name (`jaxrt.sim.compile.FORMATS` maps them)."""
@@ -28,7 +31,7 @@ INTEGRATORS = ("verlet", "langevin", "perse")
 DTYPES = ("float32", "float64")
 
 
-class SceneError(ValueError):
+class SceneError(Error, ValueError):
     """A scene that cannot run; the message names the field (and line)."""
 
     @classmethod

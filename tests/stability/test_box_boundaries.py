@@ -86,7 +86,7 @@ def test_faces_edges_and_corners(backend, dtype, request):
 def test_spheres_refuse_face_pairs_closer_than_2_epsilon(x64):
     """0 and prev(L) are ulp(L) = 8.9e-16 apart through the wrap in
     float64, below the sphere method's resolution 2ε = 2**-39 · 6 = 1.1e-11
-    (`jaxrt.rt.epsilon`): a clear error, never a silent miss."""
+    (`jaxrt.backends.rt.epsilon`): a clear error, never a silent miss."""
     R = jnp.asarray(boundary_scene(np.float64, spheres=True))
     disp, _ = space.periodic(SIDE)
     with pytest.raises(Exception, match="closer than"):

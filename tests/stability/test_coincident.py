@@ -71,7 +71,7 @@ def test_coincident_pairs_are_listed_as_the_metric_decides(backend, dtype,
 
 @pytest.mark.skipif("spheres" not in BACKENDS_3D, reason="needs Warp")
 def test_spheres_raise_on_coincident_particles_never_a_silent_miss():
-    """The sphere method cannot see pairs closer than 2ε (`jaxrt.rt.epsilon`)
+    """The sphere method cannot see pairs closer than 2ε (`jaxrt.backends.rt.epsilon`)
     and documents an error: it must come at allocate and under jit, naming
     the pair, never a list that silently lacks it."""
     R = jnp.asarray(scene(np.float32))

@@ -73,7 +73,7 @@ def rt_fails(backend, dtype, periodic, cutoff):
     """The combinations where RT_ARITHMETIC shows (measured: in free space
     with cutoff 1.1 the float32 roundings happen to agree on a CPU). The
     CUDA build of squares once failed in float64 too (H200, 6752a97): its
-    kernels contracted multiply-adds, which jaxrt.rt.squares now forbids
+    kernels contracted multiply-adds, which jaxrt.backends.rt.squares now forbids
     (``fuse_fp``), as aabb and spheres do."""
     if backend not in ("spheres", "squares"):
         return None

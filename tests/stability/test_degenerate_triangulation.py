@@ -5,7 +5,7 @@ every in-circle test a tie; collinear points make orientations zero. A
 predicate that decides ties by rounding flips edges forever (no
 convergence), inverts a triangle, or leaves the triangulation
 non-Delaunay so that the BFS misses a neighbour. jaxrt's predicates leave
-ties undecided (Shewchuk's static bounds, `jaxrt.delaunay`) and the BFS is
+ties undecided (Shewchuk's static bounds, `jaxrt.backends.delaunay`) and the BFS is
 exact on any DT of cocircular points.
 
 Bounds: set equality (integers) with jax-md's all-pairs list (the metric
@@ -40,7 +40,7 @@ def check(nbrs, R, cutoff, side, periodic, disp):
     """The list (Sparse) against jax-md's all-pairs list, which decides
     with the same metric; where no pair is within rounding of the cutoff,
     also against the float64 oracle."""
-    assert not int(np.asarray(nbrs.error.code)) & ErrorCode.DELAUNAY_FAILED
+    assert not int(np.asarray(nbrs.error.code)) & ErrorCode.SEARCH_FAILED
     assert not nbrs.did_buffer_overflow
     got = list_pairs(nbrs)
     want = jax_md_pairs(disp, side if periodic else 1.0, cutoff, R, Sparse)

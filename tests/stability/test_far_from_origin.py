@@ -38,7 +38,7 @@ def test_free_space_far_from_the_origin(backend, dtype, request):
     for sign in (1.0, -1.0):
         R = jnp.asarray(sign * offset + local, dtype)
         if backend == "spheres" and dtype is np.float64:
-            # ε = 2**-40 · 1e12 = 0.91 (`jaxrt.rt.epsilon`): the spheres'
+            # ε = 2**-40 · 1e12 = 0.91 (`jaxrt.backends.rt.epsilon`): the spheres'
             # documented resolution 2ε exceeds the spacing; a clear error.
             with pytest.raises(Exception, match="closer than 1.82"):
                 jaxrt.neighbor_list(disp, None, 1.5, backend=backend
@@ -67,7 +67,7 @@ def test_periodic_positions_many_boxes_away(backend, dtype, request):
     list's cheap test on wrapped positions must leave every pair within
     that rounding of the cutoff to the metric (found here: its tolerance
     counted ulps of the wrapped coordinates only, and two pairs flipped;
-    fixed in `jaxrt.cell_list._tolerance`)."""
+    fixed in `jaxrt.backends.cell.search._tolerance`)."""
     if dtype is np.float64:
         request.getfixturevalue("x64")
     side = 10.0

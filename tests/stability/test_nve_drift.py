@@ -36,7 +36,7 @@ from jax_md import energy as jmd_energy
 from jax_md import partition, simulate, space
 
 import jaxrt
-from jaxrt import seed_distributions
+from jaxrt.sim import distributions as seed_distributions
 from stability_common import BACKENDS_3D, grid
 
 N, DENSITY, DT = 256, 0.8, 0.005

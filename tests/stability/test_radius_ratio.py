@@ -12,7 +12,7 @@ Bounds: set equality with the float64 oracle `brute_pairs_radii`
 (integers); the big-small pairs (a big particle's row holds ~100 small
 ones) are asserted present so the ratio is exercised. Kept small: the
 cell backend's radius classes crashed XLA's CPU compiler in long xdist
-runs (tests/test_radii.py), so one scene, float32, Sparse.
+runs (tests/lists/test_radii.py), so one scene, float32, Sparse.
 """
 from __future__ import annotations
 

@@ -2,14 +2,14 @@
 
 Danger: a kept BVH that is refit (boxes recomputed, topology kept) while
 particles wander far from where it was built: the padded boxes and the
-gamma rays tolerate a bounded drift (`jaxrt.rt.policy`'s safety rule:
+gamma rays tolerate a bounded drift (`jaxrt.backends.rt.policy`'s safety rule:
 ``moved_far`` forces a rebuild); a drift past that bound that is not
 caught, or a refit that leaves a stale box, misses pairs silently.
 
 Bounds: every step's list equals the float64 oracle's (set equality,
 integers), over a random walk whose total displacement is several
 cutoffs (so the drift bound is crossed and rebuilds happen), and the
-steps were mostly refits (counted by `jaxrt.rt.ffi.update_counts`), so
+steps were mostly refits (counted by `jaxrt.backends.rt.ffi.update_counts`), so
 the case cannot pass by rebuilding every time.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ pytestmark = pytest.mark.skipif("bvh" not in WARP, reason="needs Warp")
 
 def walk(steps, n=120, side=6.0, cutoff=1.0, step_size=0.02, seed=21,
          policy="drift"):
-    from jaxrt.rt import ffi
+    from jaxrt.backends.rt import ffi
     disp, shift = space.periodic(side)
     R0 = jax.random.uniform(jax.random.PRNGKey(seed), (n, 3)) * side
     kicks = jax.random.normal(jax.random.PRNGKey(seed + 1), (steps, n, 3))

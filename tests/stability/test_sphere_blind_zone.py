@@ -1,7 +1,7 @@
 """The sphere method's ε blind zone, through `jaxrt.neighbor_list`.
 
 Danger: seed 001's sphere method misses pairs closer than ε (Appendix 7;
-on the cube diagonal the blind zone reaches √3·ε, `jaxrt.rt.epsilon`).
+on the cube diagonal the blind zone reaches √3·ε, `jaxrt.backends.rt.epsilon`).
 jaxrt's contract: every pair at least 2ε apart is found; anything closer
 raises `ParticlesTooCloseError` (at allocate, and from a jitted update as
 the FFI call's error), never a list that silently lacks the pair.

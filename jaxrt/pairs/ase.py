@@ -1,0 +1,127 @@
+"""ASE in and out of `jaxrt.pairs`.
+
+* `pairs_from_ase(atoms, cutoff)`: the `jaxrt.Pairs` of an ``ase.Atoms``
+  (its positions, its cell completed as ASE completes it, its ``pbc``).
+* `pairs_to_ase(result, ...)`: a result as ASE's arrays, ``"ijS"`` (and
+  ``"d"``, ``"D"``), sorted as ASE sorts them (by ``i``; here by ``(i, j,
+  S)`` too, so the order is reproducible).
+* `neighbor_list(quantities, atoms, cutoff)`: a drop-in for
+  ``ase.neighborlist.neighbor_list`` with one scalar cutoff: switching is
+  ``from jaxrt.pairs.ase import neighbor_list``.
+
+ASE's positions are float64, and so is the search here (run under
+``jax.enable_x64``), so the pairs are ASE's to the last bit of the decision
+``|R[j] - R[i] + S @ cell| < cutoff``. ASE itself is not imported: an
+``Atoms`` is read through ``positions``, ``pbc``, ``cell`` and
+``get_cell(complete=True)``.
+"""
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+# Names, not the module: the package binds jaxrt.pairs to the function.
+from jaxrt.pairs.search import Pairs, pairs
+
+_QUANTITIES = "ijdDS"
+
+
+def _atoms_arrays(atoms):
+    """float64 ``(N, 3)`` positions, ``(3, 3)`` complete cell or None (free
+    space on every axis), the pbc tuple."""
+    pbc = tuple(bool(p) for p in atoms.pbc)
+    positions = np.asarray(atoms.positions, np.float64)
+    cell = np.array(atoms.get_cell(complete=True).array, np.float64) \
+        if any(pbc) else None
+    return positions, cell, pbc
+
+
+def pairs_from_ase(atoms, cutoff: float, *, capacity=None,
+                   backend: str = "auto") -> Pairs:
+    """`jaxrt.pairs` of an ``ase.Atoms`` in float64 (module docstring).
+
+    Args:
+      atoms: ``ase.Atoms``.
+      cutoff: Python float > 0, one for every pair (ASE's per-atom or
+        per-species cutoffs are not supported: `neighbor_list` says so).
+      capacity, backend: as `jaxrt.pairs`.
+    Returns:
+      `jaxrt.Pairs` (int32 arrays).
+    """
+    positions, cell, pbc = _atoms_arrays(atoms)
+    with jax.enable_x64(True):
+        return pairs(positions, cutoff, cell=cell, pbc=pbc,
+                            capacity=capacity, backend=backend)
+
+
+def pairs_to_ase(result, quantities: str = "ijS", *, positions=None,
+                 cell=None):
+    """A `jaxrt.Pairs` of one system as ASE's ``neighbor_list`` arrays.
+
+    Args:
+      result: `jaxrt.Pairs` (not a batch; raises if it overflowed).
+      quantities: characters of ``"ijdDS"`` (ASE's meanings).
+      positions, cell: needed for ``"d"`` and ``"D"``.
+    Returns:
+      numpy arrays in the order of ``quantities`` (one array alone when it
+      is one character): ``i``, ``j`` int64 ``(P,)``, ``S`` int64 ``(P, 3)``,
+      ``D`` float ``(P, 3)``, ``d`` float ``(P,)``, sorted by ``(i, j, S)``.
+    """
+    bad = [q for q in quantities if q not in _QUANTITIES]
+    if bad or not quantities:
+        raise ValueError(f"pairs_to_ase: quantities must be characters of "
+                         f"{_QUANTITIES!r}, got {quantities!r}.")
+    if np.ndim(result.count) != 0:
+        raise ValueError("pairs_to_ase: one system's pairs, not a batch: "
+                         "index the batch first.")
+    result.check()
+    count = int(result.count)
+    i = np.asarray(result.i[:count], np.int64)
+    j = np.asarray(result.j[:count], np.int64)
+    s = np.asarray(result.shift[:count], np.int64)
+    order = np.lexsort((s[:, 2], s[:, 1], s[:, 0], j, i))
+    i, j, s = i[order], j[order], s[order]
+    vectors = None
+    if "d" in quantities or "D" in quantities:
+        if positions is None:
+            raise ValueError("pairs_to_ase: 'd' and 'D' need positions= (and "
+                             "cell= for a periodic system).")
+        r = np.asarray(positions, np.float64)
+        vectors = r[j] - r[i]
+        if cell is not None:
+            h = np.asarray(cell, np.float64)
+            vectors = vectors + s @ (np.diag(h) if h.ndim == 1 else h)
+    out = {"i": i, "j": j, "S": s, "D": vectors,
+           "d": None if vectors is None else np.sqrt(
+               np.sum(vectors * vectors, axis=1))}
+    values = tuple(out[q] for q in quantities)
+    return values[0] if len(values) == 1 else values
+
+
+def neighbor_list(quantities: str, atoms, cutoff, self_interaction=False,
+                  max_nbins=None):
+    """Drop-in for ``ase.neighborlist.neighbor_list`` (one scalar cutoff).
+
+    Args:
+      quantities: characters of ``"ijdDS"``.
+      atoms: ``ase.Atoms``.
+      cutoff: one number (ASE's dict or per-atom cutoffs raise).
+      self_interaction: only False (ASE's default) is supported.
+      max_nbins: ASE's bin limit; accepted and unused (jaxrt's grid sizes
+        itself), so that calls written for ASE run unchanged.
+    Returns:
+      What ASE returns: the arrays of ``quantities`` (`pairs_to_ase`).
+    """
+    del max_nbins  # documented: ASE's memory knob, nothing to do here
+    if isinstance(cutoff, dict) or np.ndim(cutoff) != 0:
+        raise NotImplementedError(
+            "jaxrt.pairs.ase.neighbor_list: one scalar cutoff only; ASE's "
+            "per-atom and per-species cutoffs are not supported (filter "
+            "the pairs of the largest cutoff by species).")
+    if self_interaction:
+        raise NotImplementedError(
+            "jaxrt.pairs.ase.neighbor_list: self_interaction=True is not "
+            "supported (jaxrt.pairs never lists (i, i, 0)).")
+    result = pairs_from_ase(atoms, float(cutoff))
+    positions, cell, _ = _atoms_arrays(atoms)
+    return pairs_to_ase(result, quantities, positions=positions, cell=cell)

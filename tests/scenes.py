@@ -1,0 +1,37 @@
+"""Scenes shared by test files in different folders (importable as
+``scenes``: pyproject's ``pythonpath`` holds ``tests``)."""
+import numpy as np
+
+
+def lattice(n_per_side, spacing, dim=3):
+    """float32 ``(n_per_side**dim, dim)``: a cubic lattice from the origin."""
+    g = np.arange(n_per_side, dtype=np.float32) * spacing
+    return np.stack(np.meshgrid(*[g] * dim, indexing="ij"), -1).reshape(-1, dim)
+
+
+def fluid(n_side=6, dim=3, density=0.8, seed=0, jitter=0.15):
+    """A jittered lattice in ``[0, side)``: (R float64 (N, dim), side)."""
+    side = (n_side ** dim / density) ** (1 / dim)
+    a = side / n_side
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * dim, indexing="ij"),
+                 -1).reshape(-1, dim) * a
+    rng = np.random.default_rng(seed)
+    return (g + rng.uniform(-jitter, jitter, g.shape) * a) % side, side
+
+
+# A small 2D LJ scene in TOML.
+GOOD = """
+[box]
+size = [6.0, 6.0]
+boundary = "periodic"
+
+[particles]
+positions = [[1.0, 1.0], [2.0, 1.5], [3.0, 4.0]]
+
+[[effects]]
+kind = "lj"
+r_cutoff = 2.5
+
+[integrator]
+dt = 0.001
+"""
