@@ -84,7 +84,7 @@ BENCHMARKS = [
      "Lists with per-particle radii on seed 003's scenes: the cell list by "
      "radius classes, one grid of the largest radius, and the BVH."),
     ("accuracy", "What accuracy costs in time (`jaxrt accuracy`)",
-     "jaxrt/accuracy.py",
+     "jaxrt/tools/accuracy",
      "One knob changed at a time from a scene's own setting: time per step "
      "against the force error (`force_rms_rel`), the NVE drift per particle "
      "per 10⁴ steps, the pairs missed against a float64 brute force and the "
@@ -111,7 +111,7 @@ BENCHMARKS = [
      "Update time per step of the `delaunay` backend against `cell` and "
      "jax-md (Boids and random motion), flips and rebuilds per step."),
     ("domains", "Domain decomposition", "benchmarks/domains.py",
-     "Strong and weak scaling of `jaxrt.domains` (fake CPU devices: a "
+     "Strong and weak scaling of `jaxrt.sim.domains` (fake CPU devices: a "
      "check, not a speed-up)."),
 ]
 # Scripts whose output is not a table of this page.

@@ -20,7 +20,7 @@ from jax_md import energy, partition, space
 
 import jaxrt
 from jaxrt import backends
-from jaxrt.neighbors import SmallBoxWarning
+from jaxrt.lists.neighbors import SmallBoxWarning
 from oracle import (assert_layout, brute_pairs, brute_pairs_general,
                     expected_pairs, list_pairs)
 
@@ -124,7 +124,7 @@ def _cases():
 def test_small_box_list_is_the_displacements(name, backend, fmt):
     disp, box, cutoff, R, fractional, numpy_oracle = _scene(name)
     if backend is INTERPRETED:
-        from jaxrt import _cell_kernel
+        from jaxrt.backends.cell import kernel as _cell_kernel
         if not _cell_kernel.fits(1, 1, 1):
             pytest.skip("this JAX has no Pallas Triton backend")
     with pytest.warns(SmallBoxWarning, match="jaxrt.pairs"):

@@ -178,7 +178,7 @@ def test_scene_file_typo_is_rejected_before_jax(tmp_path, typo, line,
     path = tmp_path / "typo.toml"
     assert typo[0] in cli.EXAMPLE_SCENE
     path.write_text(cli.EXAMPLE_SCENE.replace(typo[0], typo[1], 1))
-    p = _python("-c", "import sys; from jaxrt.cli import main; "
+    p = _python("-c", "import sys; from jaxrt.tools.cli import main; "
                 "code = main(['run', sys.argv[1]]); "
                 f"print(code, [m for m in {HEAVY!r} if m in sys.modules])",
                 str(path))
@@ -192,7 +192,7 @@ def test_bad_arguments_are_rejected_before_jax(tmp_path):
                           (["run", "no-such-scene"], "jaxrt run --help"),
                           (["run", "dam-break", "--n", "10"], "--n"),
                           (["demo", "--chunk", "-1"], "--chunk")):
-        p = _python("-c", "import sys; from jaxrt.cli import main; "
+        p = _python("-c", "import sys; from jaxrt.tools.cli import main; "
                     "code = main(sys.argv[1:]); "
                     f"print(code, [m for m in {HEAVY!r} if m in sys.modules])",
                     *argv)
@@ -223,8 +223,8 @@ def test_lazy_package_keeps_every_public_name():
         assert getattr(sim, name) is not None
     assert callable(jaxrt.pairs) and jaxrt.pairs.__module__ == "jaxrt.pairs"
     assert callable(sim.builtin) and sim.builtin.__module__.endswith("builtin")
-    assert jaxrt.neighbor_list.__module__ == "jaxrt.neighbors"
-    assert jaxrt.ase_neighbor_list.__module__ == "jaxrt.ase_bridge"
+    assert jaxrt.neighbor_list.__module__ == "jaxrt.lists.neighbors"
+    assert jaxrt.ase_neighbor_list.__module__ == "jaxrt.pairs.ase"
     assert "cell" in jaxrt.available_backends()
     assert jaxrt.energy.lennard_jones_fused is not None  # a submodule
     with pytest.raises(AttributeError, match="no_such_name"):
