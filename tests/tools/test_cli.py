@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from jaxrt.tools import cli
+from jaxrt.tools import cli, outputs
 
 
 def test_demo_small(tmp_path, capsys):
@@ -245,13 +245,13 @@ def test_plots_have_labelled_axes_with_units(name, length, energy, speed):
     n, dim = scene.particles.n, scene.particles.dim
     rng = np.random.default_rng(0)
     ke, u = rng.uniform(1, 2, 10), -rng.uniform(1, 2, 10)
-    fig = cli.energy_figure(scene, ke, u)
+    fig = outputs.energy_figure(scene, ke, u)
     ax = fig.axes[0]
     assert ax.get_xlabel().startswith("time t (") and energy in ax.get_ylabel()
     assert scene.name in ax.get_title()
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
         "kinetic", "potential", "total"]
-    fig = cli.final_figure(scene, scene.particles.positions,
+    fig = outputs.final_figure(scene, scene.particles.positions,
                            rng.normal(size=(n, dim)), 40)
     ax, bar = fig.axes
     assert ax.get_xlabel() == f"x ({length})"
