@@ -964,7 +964,7 @@ def _check_unknown_keywords(unknown: dict) -> None:
         f"{', '.join(_ARGUMENTS)}.", stacklevel=3)
 
 
-def lists_small_boxes(backend) -> bool:
+def _lists_small_boxes(backend) -> bool:
     """Whether ``backend`` lists periodic boxes less than twice the cutoff
     across (its ``small_boxes`` capability, `jaxrt.backends.Backend`)."""
     return capabilities(backend).small_boxes
@@ -974,7 +974,7 @@ def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray,
                   backend) -> str | None:
     """A cutoff of half a periodic height or more (a small box): the
     warning's text (`SmallBoxWarning`) where ``backend`` lists such boxes
-    (`lists_small_boxes`), else raise; None where the box is not small.
+    (`_lists_small_boxes`), else raise; None where the box is not small.
 
     In a small box an index-only list holds each pair once, through the
     image the caller's displacement picks, which is jax-md's list; the
@@ -989,11 +989,10 @@ def _check_cutoff(cutoff: float, grid: _space.Space, height: np.ndarray,
     a = small[0]
     where = (f"r_cutoff + dr_threshold = {cutoff:g} is not below half the "
              f"periodic box's height on axis {a} (L/2 = {span[a] / 2:g})")
-    if not lists_small_boxes(backend):
+    if not _lists_small_boxes(backend):
         raise ValueError(
-            f"{where}, which backend={backend.name!r} needs (it finds each "
-            "pair through its nearest image and cannot tell which image the "
-            "displacement picks when several are within the cutoff). Use "
+            f"{where}, which backend={backend.name!r} needs (its search "
+            "assumes at most one image of a pair within the cutoff). Use "
             "backend='cell' or backend='brute', which list each pair once "
             "through the image displacement_or_metric picks (jax-md's "
             "list), a larger box (replicate the cell), or a smaller "
@@ -1010,7 +1009,7 @@ def _box_limit(backend, cutoff: float) -> float:
     must stay (else `ErrorCode.BOX_TOO_SMALL`): the list's where
     ``backend`` refuses small boxes; 0 where it lists any box (only a box
     of no height, or a non-finite one, is then flagged)."""
-    return 0.0 if lists_small_boxes(backend) else cutoff
+    return 0.0 if _lists_small_boxes(backend) else cutoff
 
 
 def _shorter_metric_error(position, metric, g, grid, i, j, dev, box

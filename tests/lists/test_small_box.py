@@ -22,7 +22,7 @@ import jaxrt
 from jaxrt import backends
 from jaxrt.lists.neighbors import SmallBoxWarning
 from oracle import (assert_layout, brute_pairs, brute_pairs_general,
-                    expected_pairs, list_pairs)
+                    brute_pairs_radii, expected_pairs, list_pairs)
 
 FORMATS = [partition.Dense, partition.Sparse, partition.OrderedSparse]
 PORTABLE = backends.Cell(kernel="xla")
@@ -187,7 +187,8 @@ def test_bvh_refuses_a_small_box_naming_cell():
     side = 4.0
     disp, _ = space.periodic(side)
     R = jax.random.uniform(jax.random.PRNGKey(2), (20, 3)) * side
-    with pytest.raises(ValueError, match=r"backend='bvh' needs.*backend='cell'"):
+    with pytest.raises(ValueError,
+                       match=r"backend='bvh' needs.*backend='cell'"):
         jaxrt.neighbor_list(disp, side, 2.5, backend="bvh").allocate(R)
 
 
@@ -245,3 +246,21 @@ def test_lennard_jones_small_box_energy_equals_all_pairs(fmt):
     bound = len(R) ** 2 * float(jnp.finfo(jnp.float32).eps) * magnitude
     assert abs(float(energy_fn(R, nbrs)) - float(exact)) <= bound
     assert magnitude > 0  # the scene has pairs in range
+
+
+def test_per_particle_radii_in_a_small_box():
+    """The cell list's radius classes in a box less than twice the largest
+    radius across: each pair within max(r_i, r_j) through its minimum
+    image, once."""
+    rng = np.random.default_rng(5)
+    side = 3.0
+    R = rng.uniform(0, side, (40, 3)).astype(np.float32)
+    radii = rng.uniform(0.1, 2.0, 40).astype(np.float32)
+    disp, _ = space.periodic(side)
+    with pytest.warns(SmallBoxWarning):
+        nbrs = jaxrt.neighbor_list(disp, side, 2.0, backend=PORTABLE,
+                                   radii=radii, format=partition.Sparse
+                                   ).allocate(jnp.asarray(R))
+    assert not nbrs.did_buffer_overflow
+    assert_layout(nbrs)
+    assert list_pairs(nbrs) == brute_pairs_radii(R, radii, side, True)

@@ -54,14 +54,16 @@ image under the caller's wrap (each axis's difference into half a period
 either way) is within the cutoff lies within ``reach`` cells of the
 particle, counted around the periodic axis; an axis with fewer cells than
 the stencil spans has each cell once in it (`_runs` drops an offset that
-names a cell an earlier one named, and a periodic x row of at most
-``2 reach + 1`` cells is one whole run; the kernel's run reader does the
-same), so every candidate is met once. The cheap test rounds each axis's
+names a cell an earlier one named, and a periodic x row of at most ``2
+reach + 1`` cells is one whole run; the kernel's run reader does the same),
+so every candidate is met once. A small axis has one cell across (and at
+most 7 along x: one whole run), so there every particle is a candidate,
+whatever image the caller's metric picks. The cheap test rounds each axis's
 difference to its nearest image, which in an orthorhombic box has the
-length of the caller's image (ties at half a side are the same length);
-in a triclinic box the metric decides every candidate anyway. So the list
-is every pair the caller's metric puts within the cutoff, once: jax-md's
-list for such a box.
+length of the caller's image (ties at half a side are the same length); in
+a triclinic box the metric decides every candidate anyway. So the list is
+every pair the caller's metric puts within the cutoff, once: jax-md's list
+for such a box.
 
 Memory is O(N·k): the sorted keys, a cell-start table of at most 4 N, and
 ``(N, 9 · W / 32)`` words; no buffer is sized by the volume, and there is no
