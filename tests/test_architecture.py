@@ -15,6 +15,7 @@ from __future__ import annotations
 import ast
 import importlib
 import pathlib
+import os
 import subprocess
 import sys
 
@@ -214,8 +215,10 @@ def test_the_cycle_finder_finds_a_cycle():
 def _fresh(code: str) -> str:
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT,
                          capture_output=True, text=True, timeout=600,
-                         env={"PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu",
-                              "PATH": "/usr/bin:/bin"})
+                         env={**os.environ, "JAX_PLATFORMS": "cpu",
+                              "PYTHONPATH": os.pathsep.join(
+                                  [str(ROOT), os.environ.get("PYTHONPATH",
+                                                             "")])})
     assert out.returncode == 0, out.stderr
     return out.stdout
 

@@ -1,4 +1,4 @@
-"""Compacted periodic axes (`jaxrt.backends.cell.grid.grid`): a cloud that leaves an
+"""Compacted periodic axes (`jaxrt.backends.cell.cell_grid.grid`): a cloud that leaves an
 empty slab at least a cutoff wide across a periodic axis is gridded there
 as on a free axis, over its own span, instead of over the whole box.
 
@@ -20,6 +20,7 @@ from jax_md import partition, space
 import jaxrt
 from jaxrt import backends
 from jaxrt.backends.cell import search as cell_list
+from jaxrt.backends.cell import grid as cell_grid
 from jaxrt.backends.contract import Geometry, Query
 from jaxrt.energy import lennard_jones_fused
 from jaxrt.energy.listfree.lj import CellSums
@@ -63,22 +64,22 @@ def query(cutoff, periodic):
 
 
 def grid(R, side, cutoff, periodic, coarsen=True):
-    """`grid.grid` of the list path: (positions, cells, cells per
+    """`jaxrt.backends.cell.grid.grid` of the list path: (positions, cells, cells per
     axis), as numpy."""
     dim = R.shape[1]
     side = jnp.broadcast_to(jnp.asarray(side, R.dtype), (dim,))
     geometry = Geometry(side=side, scale=jnp.ones((dim,), R.dtype))
     wrapped, cell, cells = (np.asarray(x) for x in jax.jit(
-        lambda R: grid.grid(R, geometry, query(cutoff, periodic),
+        lambda R: cell_grid.grid(R, geometry, query(cutoff, periodic),
                                   coarsen=coarsen))(R))
     # Every key inside the cell-start table.
-    assert np.prod(cells, dtype=np.int64) <= grid.table_size(len(R)) - 1
+    assert np.prod(cells, dtype=np.int64) <= cell_grid.table_size(len(R)) - 1
     assert np.all((cell >= 0) & (cell < cells))
     return wrapped, cell, cells
 
 
 def longest_run(R, side, cutoff, periodic):
-    """The most candidates of one stencil row (`grid.runs`)."""
+    """The most candidates of one stencil row (`cell_grid.runs`)."""
     dim = R.shape[1]
     side = jnp.broadcast_to(jnp.asarray(side, R.dtype), (dim,))
     geometry = Geometry(side=side, scale=jnp.ones((dim,), R.dtype))

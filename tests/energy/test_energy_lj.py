@@ -569,6 +569,11 @@ def test_edge_layout_gradients_scatter_materialized_edges(fmt):
     assert "scatter" in text["ours"] and "scatter" in text["jax-md"]
     assert "optimization_barrier" not in text["jax-md"]  # positive control
     assert "optimization_barrier" in text["ours"]
-    np.testing.assert_allclose(jax.grad(ours)(R, nbrs),
-                               jax.grad(theirs)(R, nbrs), rtol=1e-5,
-                               atol=1e-6)
+    got, want = jax.grad(ours)(R, nbrs), jax.grad(theirs)(R, nbrs)
+    # The same pair terms summed in other orders (XLA:GPU fuses them
+    # differently per program): each of a particle's ~50 terms may round
+    # the partial sum by one ulp of the largest term, so the bound is a few
+    # dozen ulps of the largest force, not of each component.
+    eps = np.finfo(np.asarray(want).dtype).eps
+    np.testing.assert_allclose(got, want, rtol=1e-5,
+                               atol=64 * eps * float(np.abs(want).max()))

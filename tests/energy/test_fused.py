@@ -25,6 +25,7 @@ from jax_md import partition, space
 from scenes import fluid
 
 import jaxrt
+from jaxrt.backends.cell import grid as cell_grid
 from jaxrt.energy.listfree.lj import CellSums
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           lennard_jones_fused, lennard_jones_neighbor_list,
@@ -535,7 +536,7 @@ def _traced_grid_cells():
     @jax.jit
     def cells(side, R):
         geometry = Geometry(side=side, scale=jnp.ones(3, side.dtype))
-        return grid.grid(R, geometry, query)[2]
+        return cell_grid.grid(R, geometry, query)[2]
 
     return query, cells
 
@@ -581,12 +582,12 @@ def test_static_cells_bound_the_traced_grid(dtype):
     with jax.enable_x64(dtype == "float64"):
         for n in (12, 200, 2000, 20000):
             R = jnp.zeros((n, 3), dtype)
-            budget = grid.table_size(n) - 1
+            budget = cell_grid.table_size(n) - 1
             for _ in range(30):
                 k = rng.integers(2, 60, 3) / np.array([4, 1, 1])
                 side = tuple(float(x) for x in 2.5 * (1 + 2.0 ** -10) * k
                              * (1 + rng.uniform(-1e-6, 1e-6, 3)))
-                table = grid.static_cells(n, side, query)
+                table = cell_grid.static_cells(n, side, query)
                 got = np.asarray(cells(jnp.asarray(side, dtype), R))
                 uncoarsened = np.floor(np.array(side) * np.array([4, 1, 1])
                                        / (2.5 * (1 + 2.0 ** -10)))
@@ -599,7 +600,7 @@ def test_static_cells_bound_the_traced_grid(dtype):
     assert given > 30  # the rule is not just "never"
     free = fused.grid_query(fused.Params(2.0, 2.5, 2.5, (True, False, True),
                                            (10.0,) * 3))
-    assert grid.static_cells(100, (10.0,) * 3, free) is None
+    assert cell_grid.static_cells(100, (10.0,) * 3, free) is None
 
 
 def faces_and_corners(dim, dtype):
