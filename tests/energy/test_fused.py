@@ -396,7 +396,9 @@ def test_sums_count_pairs(x64):
     assert int(s.count) == int(np.sum(r2 < 2.5 ** 2)) // 2
     assert int(s.error) == 0
     close(s.energy, fused(R), 0)
-    close(-s.forces, jax.grad(fused)(R), 0)
+    # The same sums through the custom VJP: XLA:GPU's default level may
+    # fuse the backward's scaling differently (one ulp seen on the H200).
+    close(-s.forces, jax.grad(fused)(R), 4 * np.finfo(np.float64).eps)
 
 
 @SLOW

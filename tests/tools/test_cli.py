@@ -221,7 +221,7 @@ def test_lazy_package_keeps_every_public_name():
         assert getattr(jaxrt, name) is not None
     for name in sim.__all__:
         assert getattr(sim, name) is not None
-    assert callable(jaxrt.pairs) and jaxrt.pairs.__module__ == "jaxrt.pairs"
+    assert callable(jaxrt.pairs) and jaxrt.pairs.__module__ == "jaxrt.pairs.search"
     assert callable(sim.builtin) and sim.builtin.__module__.endswith("builtin")
     assert jaxrt.neighbor_list.__module__ == "jaxrt.lists.neighbors"
     assert jaxrt.ase_neighbor_list.__module__ == "jaxrt.pairs.ase"
