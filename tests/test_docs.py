@@ -36,4 +36,4 @@ def test_api_reference_builds_with_no_broken_reference(tmp_path):
     done = _run("docs/build.py", "-o", str(tmp_path), timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     assert (tmp_path / "jaxrt.html").exists()
-    assert (tmp_path / "jaxrt" / "neighbors.html").exists()
+    assert (tmp_path / "jaxrt" / "lists" / "neighbors.html").exists()
