@@ -101,7 +101,10 @@ def brute_pairs_general(fractional, box, cutoff, mask_self=True):
     f = np.asarray(fractional, np.float64)
     b = np.asarray(box, np.float64)
     d = f[:, None, :] - f[None, :, :]
-    d = d - np.round(d)
+    # jax-md's wrap, not d - round(d): at exactly half a period the two
+    # disagree (round halves to even), and in a sheared box the two images
+    # of such a pair have different lengths.
+    d = np.mod(d + 0.5, 1.0) - 0.5
     cart = np.einsum("ab,ijb->ija", b, d)
     keep = np.sum(cart * cart, axis=-1) < float(cutoff) ** 2
     if mask_self:

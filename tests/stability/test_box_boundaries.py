@@ -119,21 +119,6 @@ def test_fractional_coordinates_on_the_unit_cell_faces(backend):
     assert list_pairs(nbrs) == want
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG: cell refuses a crystal in a sheared box with fractional "
-    "coordinates (ValueError 'displacement_or_metric puts particles ... "
-    "closer than ... box and periodicity imply'): at a fractional "
-    "difference of exactly 1/2, jax-md's periodic_general wraps to -1/2 "
-    "(mod(d + 1/2, 1) - 1/2) and jaxrt's model (`_space.Space.wrap`, "
-    "d - round(d), half to even) to +1/2; in a sheared box the two images "
-    "differ in length and the allocate check reads the difference as a "
-    "metric shorter than the grid allows. Such a pair is never a neighbour "
-    "(either image is at least half a box height away, above the cutoff), "
-    "so the refusal is a false alarm; brute lists the crystal."))
-@pytest.mark.xfail(strict=False, reason=(
-    "fails since the small-box change: the metric model now wraps half a "
-    "period as jax-md does, and pairs at exactly half a fractional period "
-    "differ from the oracle's convention; to be reconciled (closing note)"))
 def test_crystal_with_half_box_fractional_differences_in_a_sheared_box():
     g = np.arange(4) / 4
     frac = np.array(list(itertools.product(g, repeat=3)), np.float32)
