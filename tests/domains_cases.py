@@ -197,6 +197,27 @@ def case_overflow():
         raise AssertionError("no error")
 
 
+def case_nonfinite():
+    """A NaN position is named as such, not as a list overflow whose fix
+    (distribute again) cannot help."""
+    R, V = streaming_lattice([0, 1], lambda j: 0 * j)
+    dom = lj_domains(12.0, capacity=20, halo_capacity=40)
+    st = dom.distribute(R, V, dtype=jnp.float64)
+    first = int(jnp.argmax(st.gid[0] >= 0))
+    bad = st.position.at[0, first, 0].set(jnp.nan)
+    st = jax.jit(dom.update)(st._replace(position=bad))
+    bits = dom.errors(st)
+    assert bits & domains.Overflow.NONFINITE, bits
+    assert not bits & domains.Overflow.LIST, bits
+    try:
+        dom.check(st)
+    except DomainError as e:
+        assert "NaN or infinite" in str(e), e
+        assert "overflowed" not in str(e), e
+    else:
+        raise AssertionError("no error")
+
+
 CASES = {k[5:]: v for k, v in dict(globals()).items()
          if k.startswith("case_")}
 

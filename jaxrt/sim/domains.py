@@ -107,6 +107,7 @@ class Overflow(Bits):
     MIGRATION = 1 << 2   # more crossing a face than migrate_capacity
     TOO_FAR = 1 << 3     # a particle moved further than one slab
     LIST = 1 << 4        # a device's neighbour list overflowed
+    NONFINITE = 1 << 5   # a position is NaN or infinite
 
 
 _FIX = {
@@ -119,6 +120,9 @@ _FIX = {
                       "blown up)",
     Overflow.LIST: "a device's neighbour list overflowed: distribute again "
                    "(it reallocates) or raise capacity_multiplier",
+    Overflow.NONFINITE: "a particle's position is NaN or infinite (the "
+                        "run blew up): lower the time step or check the "
+                        "initial positions; distributing again cannot help",
 }
 
 
@@ -190,7 +194,7 @@ class DomainState(NamedTuple):
             b: f"{b.name} on device(s) "
                f"{np.flatnonzero(per & int(b)).tolist()}: {_FIX[b]}"
             for b in Overflow}, DomainError, "domain decomposition "
-            "overflowed (results since then are wrong): ")
+            "failed (results since then are wrong): ")
 
     @property
     def capacity(self) -> int:
@@ -519,7 +523,12 @@ class Domains:
         # Force the rebuild: a reference far from every position.
         far = Rloc.at[:, self.axis].add(10 * self.halo_width + 1.0)
         nbrs = self.neighbor_fn.update(Rloc, nbrs.set(reference_position=far))
-        err |= jnp.where(nbrs.did_buffer_overflow > 0, int(Overflow.LIST), 0)
+        # A NaN position sets the list's overflow bit too; report the
+        # cause, since reallocating (LIST's fix) cannot cure it.
+        nonfinite = ~jnp.all(jnp.isfinite(jnp.where(valid[:, None], R, 0)))
+        err |= jnp.where(nonfinite, int(Overflow.NONFINITE), 0)
+        err |= jnp.where((nbrs.did_buffer_overflow > 0) & ~nonfinite,
+                         int(Overflow.LIST), 0)
         halo_gid = self._halo_gid(gid, send)
         return (R, V, A, gid, send, shift, halo_gid, nbrs, rebuilds + 1,
                 error | err)
@@ -552,7 +561,13 @@ class Domains:
             return DomainState(*self._rebuild_local(
                 s.position, s.velocity, s.accel, s.gid, s.send, s.nbrs,
                 s.rebuilds, s.error))
-        return lax.cond(stale, rebuild, lambda s: s, s)
+        s = lax.cond(stale, rebuild, lambda s: s, s)
+        # NaN moves nobody past the skin (comparisons are false), so the
+        # rebuild's own check may never run: look at every update.
+        bad = ~jnp.all(jnp.isfinite(
+            jnp.where((s.gid >= 0)[:, None], s.position, 0)))
+        return s._replace(error=s.error | jnp.where(
+            bad, int(Overflow.NONFINITE), 0).astype(s.error.dtype))
 
     def _per_device(self, fn, state: DomainState):
         spec = self._spec()

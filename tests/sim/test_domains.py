@@ -50,8 +50,8 @@ def _library_cases(*cases):
 
 def test_library_cases():
     """Energies, forces and jax.grad equal the single device's (float64);
-    the README's jitted user step; overflow flagged."""
-    _library_cases("forces", "overflow")
+    the README's jitted user step; overflow flagged; a NaN position named as such."""
+    _library_cases("forces", "overflow", "nonfinite")
 
 
 @pytest.mark.slow
