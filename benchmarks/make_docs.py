@@ -104,8 +104,12 @@ BENCHMARKS = [
      "wall and periodic, beside the paper's numbers (`paper_ms`); the "
      "`_energy` runs add the GPU's energy per step."),
     ("figure8", "Seed 003's Figure 8: BVH policies", "benchmarks/figure8.py",
-     "An RT-REF run under the gradient, avg and fixed rebuild policies; "
-     "`vs_*` are the gradient policy's time over the others'."),
+     "An RT-REF run under the gradient, avg and fixed rebuild policies "
+     "(update + query per step); `vs_*` are the gradient policy's time over "
+     "the others'; `forced_rebuilds` counts rebuilds no policy asked for; "
+     "`dq_us` is Eq. 8's Δq, the query's growth per refit, measured against "
+     "a tree rebuilt at every sample (runs before the refits became exact "
+     "lack these columns)."),
     ("delaunay", "Seed 004: Delaunay against grids (2D, float64)",
      "benchmarks/delaunay.py",
      "Update time per step of the `delaunay` backend against `cell` and "
@@ -121,6 +125,8 @@ OTHER_SCRIPTS = [
     ("benchmarks/run_pending_h200.sh PART", "one part of the GPU work per "
      "device call (its header lists the parts)"),
     ("benchmarks/run_table2_h200.sh", "seed 003's Table 2 in parts"),
+    ("benchmarks/run_figure8_h200.sh PART", "seed 003's Figure 8 in three "
+     "parts, and their merge"),
     ("benchmarks/table2_energy_plot.py", "seed 003's energy figures from a "
      "`table2.py --energy` run"),
     ("benchmarks/step_overhead.py", "where a step's host time goes (dispatch, "

@@ -1,6 +1,6 @@
 """BVH rebuild policies (`jaxrt.backends.rt.policy`, seed 003 §3.1): the decisions
-given injected times, the safety rule, and lists that stay exact while a
-policy refits."""
+given injected times, the drift signal (read by the drift policy alone),
+and lists that stay exact while a policy refits."""
 from __future__ import annotations
 
 import math
@@ -19,15 +19,16 @@ from jaxrt.backends.rt import ffi  # noqa: E402
 from jaxrt.backends.rt import policy
 
 
-def drive(value, steps, times, moved_far=()):
+def drive(value, steps, times, drifted=()):
     """Run ``value``'s decisions for ``steps`` calls, the first of them a
     build, feeding ``times(action, refits_since_rebuild)`` -> (t_action,
-    t_query). Returns the calls that (re)built."""
+    t_query); a particle drifted past the bound at the calls in
+    ``drifted``. Returns the calls that (re)built."""
     state = value.start()
     built, refits = [], 0
     for step in range(steps):
         action = policy.choose(state, has_tree=step > 0,
-                               moved_far=step in moved_far)
+                               drifted=step in drifted)
         refits = refits + 1 if action == "refit" else 0
         if action != "refit":
             built.append(step)
@@ -44,15 +45,20 @@ def test_fixed_rebuilds_every_k_calls():
     assert drive(policy.Fixed(k=1), 4, constant) == [0, 1, 2, 3]
 
 
-def test_rebuild_and_drift():
+def test_rebuild_refit_and_drift():
     assert drive(policy.Rebuild(), 5, constant) == [0, 1, 2, 3, 4]
+    assert drive(policy.Refit(), 50, constant, drifted={5, 9}) == [0]
     assert drive(policy.Drift(), 50, constant) == [0]
+    assert drive(policy.Drift(), 12, constant, drifted={5, 9}) == [0, 5, 9]
 
 
-@pytest.mark.parametrize("value", [policy.Drift(), policy.Fixed(k=100),
-                                   policy.Avg(), policy.Gradient()])
-def test_every_policy_rebuilds_when_a_particle_drifted_too_far(value):
-    assert drive(value, 12, constant, moved_far={5, 9}) == [0, 5, 9]
+@pytest.mark.parametrize("value", [policy.Fixed(k=100), policy.Avg(),
+                                   policy.Gradient(), policy.Refit()])
+def test_only_the_drift_policy_rebuilds_for_drift(value):
+    """A refit is exact however far particles moved, so a drift forces
+    nothing: the other policies decide from their clocks alone."""
+    assert not value.needs_drift and policy.Drift.needs_drift
+    assert drive(value, 12, constant, drifted={5, 9}) == [0]
 
 
 def growing(action, refits):
@@ -113,6 +119,7 @@ def test_bad_policies_are_refused_clearly():
         jaxrt.backends.Bvh(drift_fraction=0.3)
     assert jaxrt.backends.Bvh(policy="fixed") == jaxrt.backends.Bvh(
         policy=policy.Fixed(k=200))
+    assert jaxrt.backends.Bvh(policy="refit").policy == policy.Refit()
 
 
 @pytest.mark.parametrize("value", [policy.Fixed(k=5), policy.Gradient(),
@@ -133,12 +140,14 @@ def test_lists_stay_exact_while_a_policy_refits(value):
         return (R, nbrs), (R, nbrs.idx)
 
     before = ffi.update_counts.copy()
+    reasons = ffi.rebuild_reasons.copy()
     (_, last), (Rs, idxs) = jax.jit(lambda R, nbrs: jax.lax.scan(
         step, (R, nbrs), None, length=30))(R0, nbrs)
     jax.block_until_ready(idxs)
     done = ffi.update_counts - before
     assert not last.did_buffer_overflow
     assert done["refit"] + done["rebuild"] == 30, done
+    assert set(ffi.rebuild_reasons - reasons) <= {"policy"}
     if isinstance(value, policy.Fixed):
         # allocate built; then 4 refits and a rebuild, six times
         assert done == {"refit": 24, "rebuild": 6}, done

@@ -1,16 +1,17 @@
 """BVH refits over many steps: no missed pair.
 
 Danger: a kept BVH that is refit (boxes recomputed, topology kept) while
-particles wander far from where it was built: the padded boxes and the
-gamma rays tolerate a bounded drift (`jaxrt.backends.rt.policy`'s safety rule:
-``moved_far`` forces a rebuild); a drift past that bound that is not
-caught, or a refit that leaves a stale box, misses pairs silently.
+particles wander far from where it was built: items outside the band that
+the padded boxes and the gamma rays cover, or a stale box, miss pairs
+silently. A refit must be exact however far particles moved
+(`jaxrt.backends.rt.aabb`); only the policy decides when to rebuild.
 
 Bounds: every step's list equals the float64 oracle's (set equality,
 integers), over a random walk whose total displacement is several
-cutoffs (so the drift bound is crossed and rebuilds happen), and the
-steps were mostly refits (counted by `jaxrt.backends.rt.ffi.update_counts`), so
-the case cannot pass by rebuilding every time.
+cutoffs (so the drift policy's bound is crossed and it rebuilds; the
+never-rebuild policy refits throughout), and the steps were mostly refits
+(counted by `jaxrt.backends.rt.ffi.update_counts`), so the case cannot pass by
+rebuilding every time.
 """
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ def test_refits_over_200_steps_never_miss_a_pair():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("policy", ["drift", "gradient", "avg"])
+@pytest.mark.parametrize("policy", ["drift", "gradient", "avg", "refit"])
 def test_refits_over_2000_steps_never_miss_a_pair(policy):
     done = walk(2000, policy=policy)
     assert done["refit"] + done["rebuild"] == 2000

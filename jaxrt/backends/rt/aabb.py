@@ -112,10 +112,23 @@ def _morton_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
     values[k] = i
 
 
+@wp.func
+def within_band(u: Any, box: Any, periodic: wp.vec3i, band: wp.float32):
+    """Is ``u`` within ``band`` of the box ``[0, box)`` on every periodic
+    axis (free axes are not bounded)?"""
+    inside = True
+    for a in range(3):
+        if periodic[a] != 0:
+            v = wp.float32(u[a])
+            if not (v >= -band and v < wp.float32(box[a]) + band):
+                inside = False
+    return inside
+
+
 @wp.kernel
 def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
                   periodic: wp.vec3i, order: wp.array(dtype=wp.int32),
-                  has_reference: wp.int32, drift_limit: wp.float32,
+                  has_reference: wp.int32, band: wp.float32,
                   reference: wp.array(dtype=wp.vec3),
                   item_points: wp.array(dtype=Any),
                   item_coords: wp.array(dtype=Any),
@@ -124,8 +137,12 @@ def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
 
     Without a reference (a (re)build) the item sits at its wrapped position
     and that position becomes the reference. With one (a refit), it sits at
-    the image nearest its reference, so crossing a periodic face is not a
-    jump; moved_far[0] = 1 if it drifted more than drift_limit.
+    the image nearest its reference while that image lies within ``band``
+    of the box, so a particle that steps across a periodic face does not
+    jump; farther out it is wrapped (its ancestors' boxes then span the
+    box: slower queries, never a missed pair). moved_far[0] = 1 if an item
+    drifted more than ``band`` from its reference (the drift policy's
+    signal).
     """
     k = wp.tid()
     i = order[k]
@@ -133,10 +150,12 @@ def _place_kernel(points: wp.array(dtype=Any), side: wp.array(dtype=Any),
     box = side[0]
     u = gamma.wrap_point(x, box, periodic)
     if has_reference != 0:
-        u = gamma.nearest_image(u, reference[k], box, periodic)
-        drift = wp.vec3(u) - reference[k]
-        if wp.max(wp.abs(drift)) > drift_limit:
+        v = gamma.nearest_image(u, reference[k], box, periodic)
+        drift = wp.vec3(v) - reference[k]
+        if wp.max(wp.abs(drift)) > band:
             moved_far[0] = 1
+        if within_band(v, box, periodic, band):
+            u = v
     else:
         reference[k] = wp.vec3(u)
     item_points[k] = x
@@ -292,7 +311,7 @@ def _query_radii_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                         order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
                         periodic: wp.vec3i, reach: wp.array(dtype=Any),
                         half_width: wp.float32, extent: wp.array(dtype=wp.float32),
-                        drift_limit: wp.float32, mask_self: wp.int32,
+                        band: wp.float32, mask_self: wp.int32,
                         lower_only: wp.int32, mode: wp.int32, cluster_size: wp.int32,
                         rows: wp.array2d(dtype=wp.int32),
                         row_offset: wp.array(dtype=wp.int32),
@@ -309,7 +328,7 @@ def _query_radii_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     xi = item_points[k]
     ui = item_coords[k]
     box = side[0]
-    face_reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic)) + drift_limit
+    face_reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic)) + band
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     for ray in range(gamma.RAYS_PER_PARTICLE):
         shift = gamma.ray_shift(ray)
@@ -330,7 +349,7 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                   item_coords: wp.array(dtype=Any),
                   order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
                   periodic: wp.vec3i, cutoff_sq: Any, half_width: wp.float32,
-                  extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
+                  extent: wp.array(dtype=wp.float32), band: wp.float32,
                   mask_self: wp.int32, lower_only: wp.int32, mode: wp.int32,
                   cluster_size: wp.int32,
                   rows: wp.array2d(dtype=wp.int32),
@@ -349,8 +368,8 @@ def _query_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     ui = item_coords[k]
     box = side[0]
     reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
-    # Items may sit up to drift_limit outside the box since the last build.
-    face_reach = reach + drift_limit
+    # Refit items may sit up to band outside the box.
+    face_reach = reach + band
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     base = int(0)
     if mode == MODE_FILL:
@@ -387,7 +406,7 @@ def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                    item_coords: wp.array(dtype=Any),
                    order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
                    periodic: wp.vec3i, cutoff_sq: Any, half_width: wp.float32,
-                   extent: wp.array(dtype=wp.float32), drift_limit: wp.float32,
+                   extent: wp.array(dtype=wp.float32), band: wp.float32,
                    params: wp.array(dtype=Any), energy: wp.array(dtype=Any),
                    count: wp.array(dtype=wp.int32)):
     """Seed 001 §4.4's fused mode (`jaxrt.backends.rt.seed_energy`): the rays of
@@ -402,7 +421,7 @@ def _energy_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     ui = item_coords[k]
     box = side[0]
     reach = box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
-    face_reach = reach + drift_limit
+    face_reach = reach + band
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     n = int(0)
     for ray in range(gamma.RAYS_PER_PARTICLE):
@@ -522,8 +541,9 @@ def load(device) -> None:
 BUILDERS = ("sah", "median", "lbvh", "cubql")
 
 
-# Drift bound of a refit, in cutoffs: below 0.25 so that the gamma rays of
-# drifted items still cover their pairs (`jaxrt.backends.rt.periodic`).
+# The band outside the box in which a refit leaves items (and the drift
+# policy's bound), in cutoffs: below 0.25 so that each pair's canonical
+# image stays unique (`jaxrt.backends.rt.periodic`).
 MAX_DRIFT_FRACTION = 0.25
 
 
@@ -588,7 +608,9 @@ class AabbSearch:
       order: int32 ``(N,)``, the particle held by each item.
       item_points: ``vector`` ``(N,)``, positions as given, item order.
       item_coords: ``vector`` ``(N,)``, positions the boxes are centred on
-        (wrapped on periodic axes), item order.
+        (wrapped on periodic axes at a build; after a refit, the image
+        nearest ``reference`` if within `band` of the box, else wrapped),
+        item order.
       reference: ``wp.vec3`` ``(N,)``, ``item_coords`` at the last build.
       lowers, uppers: ``wp.vec3`` ``(ceil(N / cluster_size),)``, the boxes.
       cluster_size: particles per box. 1 is the seed's method (a box per
@@ -600,9 +622,12 @@ class AabbSearch:
         changes the result, only the speed (`benchmarks/rt_neighbors.py`
         sweeps them).
       last_update: "build", "rebuild" or "refit": what the last `update` did.
+      last_reason: why it (re)built (`jaxrt.backends.rt.policy.REASONS`:
+        "new", "setup", "policy"); "" after a refit.
       history: None, or a list to which every call appends ``(action,
-        t_action, t_query)`` (seconds, NaN where the policy times nothing),
-        one call late (`flush_history` adds the last); for benchmarks.
+        reason, t_action, t_query)`` (seconds, NaN where the policy times
+        nothing), one call late (`flush_history` adds the last); for
+        benchmarks.
     """
 
     def __init__(self, n: int, vector, device, *, sort: bool,
@@ -649,6 +674,7 @@ class AabbSearch:
             self.no_reach = wp.empty(1, dtype=self.scalar)
         self.bvh = None
         self.last_update = None
+        self.last_reason = ""
         self._cutoff = None
         self._periodic = None
         self._reach = None
@@ -670,7 +696,7 @@ class AabbSearch:
           side: ``vector`` ``(1,)``, box sides (read on periodic axes).
           periodic: one bool per axis.
           cutoff: box half-width (the search radius); with ``reach``, the
-            largest radius (it sets the gamma rays' reach and the drift).
+            largest radius (it sets the gamma rays' reach and the band).
           reach: None, or position-precision scalars ``(N,)`` in caller
             order: per-particle radii (seed 003 §3), each item's box
             half-width; a pair is listed when ``d < max(r_i, r_j)``.
@@ -682,9 +708,11 @@ class AabbSearch:
                              f"{points.shape[0]} {points.dtype.__name__}.")
         flags = wp.vec3i(*(int(bool(p)) for p in periodic))
         half_width = float(np.float32(cutoff))
-        drift_limit = self.drift_limit(cutoff)
-        # A tree built for another cutoff or periodicity has wrong boxes
-        # (radii may change from call to call: a refit resizes the boxes).
+        band = self.band(cutoff)
+        # A refit recomputes every box, so it would be exact here too; a
+        # tree built for another cutoff or periodicity is rebuilt because
+        # its topology fits another problem (radii may change from call to
+        # call: a refit resizes the boxes).
         setup = (cutoff, tuple(periodic), reach is None)
         same_setup = (self._cutoff, self._periodic, self._reach is None) == setup
         if self.history is not None and self._timer is None:
@@ -694,24 +722,34 @@ class AabbSearch:
                      else self._timer.collect())
             self.state.record(self.last_update, *times)
             if self.history is not None:
-                self.history.append((self.last_update, *times))
+                self.history.append((self.last_update, self.last_reason,
+                                     *times))
         with wp.ScopedDevice(self.device):
             started = None if self._timer is None else self._timer.start()
             self.extent.zero_()
             wp.launch(overload(_extent_kernel, self.scalar), self.n,
                       inputs=[points, self.extent])
-            moved_far = True
-            # Only a policy that may refit needs the drift, and reading it
-            # back stalls the host until the GPU has caught up.
-            if self.bvh is not None and same_setup and drift_limit > 0:
-                self.moved_far.zero_()
-                self._place(points, side, flags, True, drift_limit)
-                moved_far = bool(self.moved_far.numpy()[0])
-            action = _policy.choose(self.state,
-                                    has_tree=self.bvh is not None and same_setup,
-                                    moved_far=moved_far)
+            placed = False
+            if self.bvh is None:
+                action, reason = "build", "new"
+            elif not same_setup:
+                action, reason = "rebuild", "setup"
+            else:
+                drifted = False
+                # Only the drift policy reads the drift back: the read
+                # stalls the host until the device has caught up.
+                if self.policy.needs_drift:
+                    self.moved_far.zero_()
+                    self._place(points, side, flags, True, band)
+                    placed = True
+                    drifted = bool(self.moved_far.numpy()[0])
+                action = _policy.choose(self.state, has_tree=True,
+                                        drifted=drifted)
+                reason = "policy" if action == "rebuild" else ""
             self._reach = reach
             if action == "refit":
+                if not placed:
+                    self._place(points, side, flags, True, band)
                 self._item_reach()
                 self._boxes(side, flags, half_width)
                 self.bvh.refit()
@@ -724,7 +762,7 @@ class AabbSearch:
                     wp.utils.radix_sort_pairs(self.keys, self.values, self.n,
                                               end_bit=30)
                     wp.copy(self.order, self.values, count=self.n)
-                self._place(points, side, flags, False, drift_limit)
+                self._place(points, side, flags, False, band)
                 self._item_reach()
                 self._boxes(side, flags, half_width)
                 if self.bvh is None:
@@ -733,11 +771,10 @@ class AabbSearch:
                                       leaf_size=self.leaf_size)
                 else:
                     self.bvh.rebuild(self.constructor)
-                    action = "rebuild"
             if started is not None:
                 self._timer.stop("action", started)
         self._cutoff, self._periodic = cutoff, tuple(periodic)
-        self.last_update = action
+        self.last_update, self.last_reason = action, reason
         return action
 
     def flush_history(self) -> None:
@@ -745,17 +782,20 @@ class AabbSearch:
         if self.history is not None and self.last_update is not None:
             times = ((math.nan, math.nan) if self._timer is None
                      else self._timer.collect())
-            self.history.append((self.last_update, *times))
+            self.history.append((self.last_update, self.last_reason, *times))
 
-    def drift_limit(self, cutoff: float) -> float:
-        """How far an item may drift from its build-time position before
-        a refit is unsafe (0 for a policy that never refits)."""
+    def band(self, cutoff: float) -> float:
+        """How far outside the box a refit may leave an item (following
+        the image of it nearest its build-time position) before it wraps
+        it: the drift bound, ``drift_fraction`` of the cutoff (0 for a
+        policy that never refits). The gamma rays reach this much farther
+        (`jaxrt.backends.rt.periodic`)."""
         return self.drift_fraction * cutoff if self.may_refit else 0.0
 
-    def _place(self, points, side, flags, has_reference, drift_limit):
+    def _place(self, points, side, flags, has_reference, band):
         wp.launch(overload(_place_kernel, self.scalar), self.n,
                   inputs=[points, side, flags, self.order,
-                          int(has_reference), drift_limit, self.reference,
+                          int(has_reference), band, self.reference,
                           self.item_points, self.item_coords, self.moved_far])
 
     def _item_reach(self):
@@ -799,7 +839,7 @@ class AabbSearch:
                           inputs=[wp.uint64(self.bvh.id), self.item_points,
                                   self.item_coords, self.order, side, flags,
                                   self._reach, float(np.float32(self._cutoff)),
-                                  self.extent, self.drift_limit(self._cutoff),
+                                  self.extent, self.band(self._cutoff),
                                   int(mask_self), int(lower_only), int(mode),
                                   self.cluster_size,
                                   empty2 if rows is None else rows,
@@ -814,7 +854,7 @@ class AabbSearch:
                                   self.order, side, flags,
                                   self.scalar(float(self._cutoff) ** 2),
                                   float(np.float32(self._cutoff)), self.extent,
-                                  self.drift_limit(self._cutoff),
+                                  self.band(self._cutoff),
                                   int(mask_self), int(lower_only), int(mode),
                                   self.cluster_size,
                                   empty2 if rows is None else rows,
@@ -875,7 +915,7 @@ class AabbSearch:
                               self.item_coords, self.order, side, flags,
                               self.scalar(float(self._cutoff) ** 2),
                               float(np.float32(self._cutoff)), self.extent,
-                              self.drift_limit(self._cutoff), params, energy,
+                              self.band(self._cutoff), params, energy,
                               count])
             if started is not None:
                 self._timer.stop("query", started)

@@ -45,7 +45,7 @@ How the Warp calls behave under JAX:
   the other, each through its own call site (own slot, own BVH), so no
   system sees another's particles. Beyond `MAX_UNROLLED_SYSTEMS` systems
   one call site is looped with ``lax.map`` (one BVH, rebuilt per system).
-* Graph capture is off (``graph_mode=NONE``): the refit/rebuild decision
+* Graph capture is off (``graph_mode=NONE``): the drift policy's decision
   reads one flag back to the host, and building a new ``wp.Bvh`` inside a
   CUDA graph crashed.
 * float64 positions (``jax_enable_x64``) run the float64 kernels: exact
@@ -112,8 +112,10 @@ class _Slot:
 
 _SLOTS: dict[int, _Slot] = {}
 _SLOT_IDS = itertools.count()
-# What the kept trees did, for tests and benchmarks: {"build": .., ...}.
+# What the kept trees did, for tests and benchmarks: {"build": .., ...},
+# and why they built or rebuilt (`jaxrt.backends.rt.policy.REASONS`).
 update_counts: collections.Counter = collections.Counter()
+rebuild_reasons: collections.Counter = collections.Counter()
 
 
 def _release(slots: list[int]) -> None:
@@ -151,7 +153,7 @@ class TreeOwner:
         return slot
 
     def keep_history(self) -> list:
-        """From now on, every tree of this owner appends ``(action,
+        """From now on, every tree of this owner appends ``(action, reason,
         t_action, t_query)`` per call to the returned list
         (`jaxrt.backends.rt.aabb.AabbSearch.history`); for benchmarks."""
         self.history = []
@@ -230,6 +232,8 @@ def _fit(slot, points, side, cutoff, periodic, reach, has_radii
     action = tree.update(points, side, _axes(periodic), float(cutoff),
                          reach if int(has_radii) else None)
     update_counts[action] += 1
+    if action != "refit":
+        rebuild_reasons[tree.last_reason] += 1
     return tree
 
 
@@ -492,12 +496,15 @@ class Bvh:
       leaf_size: boxes per BVH leaf.
       builder: Warp's BVH constructor (``"lbvh"``, ``"sah"``, ``"median"``;
         ``"cubql"`` on CUDA), or None for Warp's choice per device.
-      policy: when to rebuild rather than refit: ``"drift"`` (refit while
-        safe), ``"rebuild"``, ``"fixed"``, ``"avg"``, ``"gradient"``, or a
-        value of `jaxrt.backends.rt.policy` (e.g. ``policy.Fixed(k=50)``); each tree
-        keeps its own policy state.
-      drift_fraction: how far (in cutoffs, below 0.25) a particle may drift
-        from where the tree was built before every policy must rebuild.
+      policy: when to rebuild rather than refit: ``"drift"`` (once a
+        particle drifted ``drift_fraction`` cutoffs), ``"rebuild"``,
+        ``"refit"`` (never), ``"fixed"``, ``"avg"``, ``"gradient"``, or a
+        value of `jaxrt.backends.rt.policy` (e.g. ``policy.Fixed(k=50)``);
+        each tree keeps its own policy state. Every refit is exact: only
+        the policy rebuilds a tree.
+      drift_fraction: in cutoffs, below 0.25: the drift policy's bound, and
+        how far outside a periodic box a refit leaves a particle (beyond,
+        it wraps it, which slows the queries of that tree).
     """
 
     sort: bool = True

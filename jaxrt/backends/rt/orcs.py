@@ -142,7 +142,7 @@ def _forces_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                    periodic: wp.vec3i, has_radii: wp.int32,
                    radii: wp.array(dtype=Any), params: wp.array(dtype=Any),
                    half_width: wp.float32, extent: wp.array(dtype=wp.float32),
-                   drift_limit: wp.float32,
+                   band: wp.float32,
                    forces: wp.array(dtype=Any), energy: wp.array(dtype=Any),
                    d_sigma: wp.array(dtype=Any), d_epsilon: wp.array(dtype=Any),
                    count: wp.array(dtype=wp.int32), error: wp.array(dtype=wp.int32)):
@@ -162,9 +162,9 @@ def _forces_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
         r = radii[i]
         if not (r >= type(r)(0.0) and r <= params[RADIUS_BOUND]):
             wp.atomic_or(error, 0, ERROR_RADII)
-    # Gamma rays reach the largest radius (§3.3), plus the refit drift.
+    # Gamma rays reach the largest radius (§3.3), plus the refit band.
     reach = aabb.box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
-    face_reach = reach + drift_limit
+    face_reach = reach + band
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     f_i = xi - xi
     e_i = sigma - sigma
@@ -212,7 +212,7 @@ def _perse_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
                   order: wp.array(dtype=wp.int32), side: wp.array(dtype=Any),
                   periodic: wp.vec3i, params: wp.array(dtype=Any),
                   half_width: wp.float32, extent: wp.array(dtype=wp.float32),
-                  drift_limit: wp.float32, velocities: wp.array(dtype=Any),
+                  band: wp.float32, velocities: wp.array(dtype=Any),
                   positions_out: wp.array(dtype=Any),
                   velocities_out: wp.array(dtype=Any),
                   energy: wp.array(dtype=Any), count: wp.array(dtype=wp.int32),
@@ -231,7 +231,7 @@ def _perse_kernel(bvh: wp.uint64, item_points: wp.array(dtype=Any),
     if not is_finite3(xi):
         wp.atomic_or(error, 0, ERROR_NONFINITE)
     reach = aabb.box_reach(half_width, extent[0], gamma.largest_side(box, periodic))
-    face_reach = reach + drift_limit
+    face_reach = reach + band
     any_periodic = periodic[0] != 0 or periodic[1] != 0 or periodic[2] != 0
     cut2 = r_cutoff * r_cutoff
     f_i = xi - xi
@@ -297,7 +297,7 @@ def _launch_args(search: "aabb.AabbSearch"):
     return ([wp.uint64(search.bvh.id), search.item_points, search.item_coords,
              search.order], flags,
             [float(np.float32(search._cutoff)), search.extent,
-             search.drift_limit(search._cutoff)])
+             search.band(search._cutoff)])
 
 
 def forces(search: "aabb.AabbSearch", side: wp.array, params: wp.array, *,

@@ -15,12 +15,15 @@ function of the two box centres (`is_canonical_image`). That ray is always
 cast when the pair is in range (`ray_is_cast`), so no pair is lost and none
 is doubled.
 
-Items refitted rather than rebuilt may sit up to ``drift`` outside the box
-(they follow their nearest image, see `jaxrt.backends.rt.aabb`); rays account for
-that through ``face_reach``. With drift below a quarter of the cutoff and
-the cutoff below half the side, a pair at minimum-image displacement ``m``
-(``|m| < cutoff``) has centre difference ``m + kL`` with ``k`` in
-``{-1, 0, 1}``, so the canonical rule picks ``k``, whose ray is cast.
+Items refitted rather than rebuilt may sit up to a ``band`` outside the box
+(they follow the image nearest where the last build put them while it lies
+within the band, and are wrapped beyond it, see `jaxrt.backends.rt.aabb`);
+rays account for that through ``face_reach``. Only where the items sit
+matters, not how far they moved: with every centre within the band of the
+box, the band below a quarter of the cutoff and the cutoff below half the
+side, a pair at minimum-image displacement ``m`` (``|m| < cutoff``) has
+centre difference ``m + kL`` with ``k`` in ``{-1, 0, 1}``, so the canonical
+rule picks ``k``, whose ray is cast.
 
 The seed-001 methods (`jaxrt.backends.rt.spheres`, `jaxrt.backends.rt.squares`) number and
 place their gamma rays the same way (`ray_shift`, `shifted`) but choose
@@ -165,7 +168,7 @@ def shifted(u: Any, shift: wp.vec3i, box: Any):
 # Which gamma rays are cast: two rules, side by side.
 #
 # The AABB method (`ray_is_cast`) tests in float32 against ``face_reach``
-# (its box reach plus the drift of refitted items), may cast both a +1 and a
+# (its box reach plus the band of refitted items), may cast both a +1 and a
 # -1 ray on one axis, and keeps each pair from one ray only through
 # `is_canonical_image`. The seed-001 methods (`near_faces`,
 # `crosses_near_faces`) test in float64 against ``cutoff + ε``, split at half

@@ -1,18 +1,25 @@
 """When a kept BVH is rebuilt rather than refit: Meneses et al. (seed 003),
 §3.1, and the baselines it compares against.
 
-A refit keeps the tree's topology and recomputes its boxes: cheap, always
-exact, but queries slow down as particles wander from where the tree was
-built. A rebuild costs more and restores the query speed. A policy decides
-between them at every search call; it knows nothing of Warp or JAX, only
-the times it is told (`PolicyState.record`), so its decisions can be tested
-with any clock.
+A refit keeps the tree's topology and recomputes every box from the current
+positions: cheap and always exact, but queries slow down as particles wander
+from where the tree was built (a particle that leaves the box across a
+periodic face is wrapped to the other side, and its ancestors' boxes grow to
+span the box). A rebuild costs more and restores the query speed. A policy
+decides between them at every search call; it knows nothing of Warp or JAX,
+only the times it is told (`PolicyState.record`), so its decisions can be
+tested with any clock.
 
 Policies (frozen values, options of `jaxrt.backends.Bvh`):
 
-* `Drift` (``"drift"``, the default): refit while it is safe, rebuild only
-  when the safety rule below demands it.
+* `Drift` (``"drift"``, the default): rebuild once a particle has drifted
+  more than ``drift_fraction`` of the cutoff from where the last build put
+  it (the caller measures the drift, `PolicyState.wants_rebuild`'s
+  ``drifted``), refit otherwise. A rule of thumb with no clock: the tree
+  never degrades far, and no particle is ever wrapped by a refit.
 * `Rebuild` (``"rebuild"``): rebuild on every call.
+* `Refit` (``"refit"``): never rebuild after the first build (the tree
+  degrades without bound; for measuring that degradation).
 * `Fixed` (``"fixed"``): rebuild every ``k`` calls (one rebuild and
   ``k - 1`` refits per period; the paper's fixed-200).
 * `Avg` (``"avg"``): rebuild once the mean cost of the calls since the last
@@ -26,10 +33,11 @@ Policies (frozen values, options of `jaxrt.backends.Bvh`):
   query growth, ``Δq k (k + 1) / 2``, would give
   ``−1 + sqrt(2 (t_r − t_u) / Δq)`` instead.
 
-The safety rule no policy may break: a refit never runs where it could miss
-a pair. The caller (`jaxrt.backends.rt.aabb.AabbSearch`) reports ``moved_far`` (an
-item drifted beyond the bound that the gamma rays of `jaxrt.backends.rt.periodic`
-and the padded boxes tolerate), and then every policy rebuilds.
+No rule but the policy rebuilds a tree that exists: a refit is exact
+whatever the particles did (`jaxrt.backends.rt.aabb.AabbSearch`). The caller
+builds a new tree only where none fits (the first call, another N, dtype or
+device), and rebuilds one whose cutoff, periodic axes or radii-or-not
+changed; it records why (`REASONS`).
 """
 from __future__ import annotations
 
@@ -38,28 +46,30 @@ import math
 from typing import ClassVar, Protocol
 
 ACTIONS = ("build", "rebuild", "refit")
+# Why a tree was built or rebuilt: "new" (no tree fitted these particles),
+# "setup" (the cutoff, periodic axes or radii-or-not changed), "policy".
+REASONS = ("new", "setup", "policy")
 
 
 class PolicyState(Protocol):
     """The mutable state of one policy for one tree."""
 
-    def wants_rebuild(self) -> bool:
-        """Rebuild now rather than refit (when a refit would be safe)?"""
+    def wants_rebuild(self, drifted: bool = False) -> bool:
+        """Rebuild now rather than refit? ``drifted``: a particle moved more
+        than the drift bound since the last build (measured only for a
+        policy whose ``needs_drift`` is set)."""
 
     def record(self, action: str, t_action: float, t_query: float) -> None:
         """One call done: ``action`` (`ACTIONS`) took ``t_action`` and the
         queries on the result ``t_query`` (seconds; NaN where not timed)."""
 
 
-def choose(state: PolicyState, *, has_tree: bool, moved_far: bool) -> str:
-    """The one place that decides how the BVH follows the particles:
-    ``"build"`` (no tree yet), ``"rebuild"`` (the safety rule, or the
-    policy) or ``"refit"``."""
+def choose(state: PolicyState, *, has_tree: bool, drifted: bool = False) -> str:
+    """How the BVH follows the particles: ``"build"`` (no tree yet), else
+    ``"rebuild"`` or ``"refit"`` as the policy's state decides."""
     if not has_tree:
         return "build"
-    if moved_far or state.wants_rebuild():
-        return "rebuild"
-    return "refit"
+    return "rebuild" if state.wants_rebuild(drifted) else "refit"
 
 
 # ---------------------------------------------------------------------------
@@ -68,13 +78,15 @@ def choose(state: PolicyState, *, has_tree: bool, moved_far: bool) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class Drift:
-    """Refit while safe; rebuild only when an item drifted too far."""
+    """Rebuild once a particle drifted past the bound (``drift_fraction``
+    of the cutoff, an option of the tree) since the last build."""
 
     name: ClassVar[str] = "drift"
     needs_timing: ClassVar[bool] = False
+    needs_drift: ClassVar[bool] = True
 
     def start(self) -> PolicyState:
-        return _Never()
+        return _DriftState()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,9 +95,22 @@ class Rebuild:
 
     name: ClassVar[str] = "rebuild"
     needs_timing: ClassVar[bool] = False
+    needs_drift: ClassVar[bool] = False
 
     def start(self) -> PolicyState:
         return _Always()
+
+
+@dataclasses.dataclass(frozen=True)
+class Refit:
+    """Never rebuild: build once, refit on every later call."""
+
+    name: ClassVar[str] = "refit"
+    needs_timing: ClassVar[bool] = False
+    needs_drift: ClassVar[bool] = False
+
+    def start(self) -> PolicyState:
+        return _Never()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +120,7 @@ class Fixed:
     k: int = 200
     name: ClassVar[str] = "fixed"
     needs_timing: ClassVar[bool] = False
+    needs_drift: ClassVar[bool] = False
 
     def __post_init__(self):
         if not isinstance(self.k, int) or self.k < 1:
@@ -111,6 +137,7 @@ class Avg:
 
     name: ClassVar[str] = "avg"
     needs_timing: ClassVar[bool] = True
+    needs_drift: ClassVar[bool] = False
 
     def start(self) -> PolicyState:
         return _AvgState()
@@ -132,6 +159,7 @@ class Gradient:
     k_max: int = 10_000
     name: ClassVar[str] = "gradient"
     needs_timing: ClassVar[bool] = True
+    needs_drift: ClassVar[bool] = False
 
     def __post_init__(self):
         if not 0.0 < self.alpha <= 1.0:
@@ -147,10 +175,10 @@ class Gradient:
         return _GradientState(self)
 
 
-POLICIES = {p.name: p for p in (Drift, Rebuild, Fixed, Avg, Gradient)}
+POLICIES = {p.name: p for p in (Drift, Rebuild, Refit, Fixed, Avg, Gradient)}
 
 
-def resolve(policy) -> "Drift | Rebuild | Fixed | Avg | Gradient":
+def resolve(policy) -> "Drift | Rebuild | Refit | Fixed | Avg | Gradient":
     """A policy value from a name (`POLICIES`) or a value."""
     if isinstance(policy, str):
         if policy not in POLICIES:
@@ -170,7 +198,7 @@ def resolve(policy) -> "Drift | Rebuild | Fixed | Avg | Gradient":
 
 
 class _Never:
-    def wants_rebuild(self) -> bool:
+    def wants_rebuild(self, drifted: bool = False) -> bool:
         return False
 
     def record(self, action, t_action, t_query) -> None:
@@ -178,8 +206,13 @@ class _Never:
 
 
 class _Always(_Never):
-    def wants_rebuild(self) -> bool:
+    def wants_rebuild(self, drifted: bool = False) -> bool:
         return True
+
+
+class _DriftState(_Never):
+    def wants_rebuild(self, drifted: bool = False) -> bool:
+        return bool(drifted)
 
 
 class _FixedState(_Never):
@@ -187,7 +220,7 @@ class _FixedState(_Never):
         self.k = k
         self.refits = 0
 
-    def wants_rebuild(self) -> bool:
+    def wants_rebuild(self, drifted: bool = False) -> bool:
         return self.refits >= self.k - 1
 
     def record(self, action, t_action, t_query) -> None:
@@ -200,7 +233,7 @@ class _AvgState(_Never):
         self.rebuild_total = 0.0              # rebuild + query, summed
         self.rebuilds = 0
 
-    def wants_rebuild(self) -> bool:
+    def wants_rebuild(self, drifted: bool = False) -> bool:
         if not self.since_rebuild or not self.rebuilds:
             return False
         mean_refit = sum(self.since_rebuild) / len(self.since_rebuild)
@@ -244,7 +277,7 @@ class _GradientState(_Never):
                                                    - self.t_refit) / dq))
         return min(max(k, 0.0), float(o.k_max))
 
-    def wants_rebuild(self) -> bool:
+    def wants_rebuild(self, drifted: bool = False) -> bool:
         return self.refits >= self.k_opt()
 
     def _average(self, old: float | None, new: float) -> float:
