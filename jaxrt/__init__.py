@@ -26,6 +26,7 @@ _NAMES = {
     "Error": "jaxrt.errors:Error",
     "ErrorCode": "jaxrt.errors:ErrorCode",
     "ListTooLargeError": "jaxrt.errors:ListTooLargeError",
+    "Float32Warning": "jaxrt.pairs.search:Float32Warning",
     "NeighborListError": "jaxrt.errors:NeighborListError",
     "OrderedSparse": "jaxrt.lists.neighbors:OrderedSparse",
     "PairSizes": "jaxrt.pairs.search:PairSizes",
