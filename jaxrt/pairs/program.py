@@ -425,7 +425,7 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
             binned.real, cut, species, binned.graph, n_graph)
         both = jnp.concatenate([self_rows, jnp.broadcast_to(
             pad, (capacity + rows.shape[0], 5))])
-        rows = jax.lax.dynamic_update_slice(both, rows, (n_self, 0))
+        rows = jax.lax.dynamic_update_slice(both, rows, (n_self, jnp.int32(0)))
         total, per_system = total + n_self, per_system + self_system
     else:
         rows = jnp.concatenate([rows, jnp.broadcast_to(

@@ -279,8 +279,8 @@ def test_ase_drop_in_returns_what_ase_returns(x64):
     i, j, s = jaxrt.pairs_to_ase(result)
     assert {(a, b, *c) for a, b, c in zip(i.tolist(), j.tolist(),
                                           s.tolist())} == ase_set(si2(), 5.0)
-    with pytest.raises(NotImplementedError, match="scalar cutoff"):
-        jaxrt.ase_neighbor_list("ij", si2(), {("Si", "Si"): 3.0})
+    with pytest.raises(NotImplementedError, match="per-atom radii"):
+        jaxrt.ase_neighbor_list("ij", si2(), [3.0, 3.0])
 
 
 # --- jit, vmap, overflow -------------------------------------------------------
