@@ -5,6 +5,8 @@
 * `pairs_to_ase(result, ...)`: a result as ASE's arrays, ``"ijS"`` (and
   ``"d"``, ``"D"``), sorted as ASE sorts them (by ``i``; here by ``(i, j,
   S)`` too, so the order is reproducible).
+* `batch_from_ase(atoms_list)`: a flat batch of ``ase.Atoms`` for
+  `jaxrt.pairs_batch`, padded as jraph's ``pad_with_graphs`` pads.
 * `neighbor_list(quantities, atoms, cutoff)`: a drop-in for
   ``ase.neighborlist.neighbor_list`` (one cutoff, or ASE's dict by
   element; ``self_interaction``): switching is ``from jaxrt.pairs.ase
@@ -19,8 +21,12 @@ is read through ``positions``, ``numbers``, ``pbc``, ``cell`` and
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import numpy as np
+
+from jaxrt.pairs.checks import bucket
 
 # Names, not the module: the package binds jaxrt.pairs to the function.
 from jaxrt.pairs.search import Pairs, pairs
@@ -143,3 +149,75 @@ def neighbor_list(quantities: str, atoms, cutoff, self_interaction=False,
                             self_interaction=bool(self_interaction))
     positions, cell, _ = _atoms_arrays(atoms)
     return pairs_to_ase(result, quantities, positions=positions, cell=cell)
+
+
+class FlatBatch(NamedTuple):
+    """Systems concatenated for `jaxrt.pairs_batch` (numpy arrays).
+
+    Attributes:
+      positions: float64 ``(N, 3)``; numbers: int32 ``(N,)`` atomic numbers
+        (0 for padding atoms).
+      n_node: int32 ``(G,)``; cell: float64 ``(G, 3, 3)`` (as ASE holds
+        it: zero rows stay, `jaxrt.pairs_batch` completes them); pbc: bool
+        ``(G, 3)``; graph_mask: bool ``(G,)`` (False: padding).
+    """
+
+    positions: np.ndarray
+    numbers: np.ndarray
+    n_node: np.ndarray
+    cell: np.ndarray
+    pbc: np.ndarray
+    graph_mask: np.ndarray
+
+    @property
+    def kwargs(self) -> dict:
+        """``cell``, ``pbc`` and ``graph_mask`` for `jaxrt.pairs_batch`."""
+        return {"cell": self.cell, "pbc": self.pbc,
+                "graph_mask": self.graph_mask}
+
+
+def batch_from_ase(atoms_list, *, n_node=None, n_graph=None,
+                   pad: bool = True) -> FlatBatch:
+    """A flat batch of ``ase.Atoms``, padded as jraph's ``pad_with_graphs``:
+    after the systems, one padding system holding every padding atom (at
+    least one) and empty padding systems up to ``n_graph``.
+
+    Args:
+      atoms_list: ``ase.Atoms`` (molecules, slabs and bulk may mix).
+      n_node: total atoms after padding; None: the size bucket above the
+        atoms plus one (1, 2, 3, 4, 6, 8, 12, 16, ...).
+      n_graph: total systems after padding (more than the systems); None:
+        the size bucket above them plus one.
+      pad: False: no padding system (``n_node`` and ``n_graph`` unused).
+    Returns:
+      `FlatBatch`.
+    """
+    atoms_list = list(atoms_list)
+    count = sum(len(a) for a in atoms_list)
+    g = len(atoms_list)
+    total = count if not pad else bucket(count + 1) if n_node is None \
+        else int(n_node)
+    graphs = g if not pad else bucket(g + 1) if n_graph is None \
+        else int(n_graph)
+    if pad and (total <= count or graphs <= g):
+        raise ValueError(f"batch_from_ase: n_node={n_node} and "
+                         f"n_graph={n_graph} must exceed the batch's {count} "
+                         f"atoms and {g} systems (one padding system holds "
+                         f"at least one padding atom).")
+    positions = np.zeros((total, 3))
+    numbers = np.zeros((total,), np.int32)
+    sizes = np.zeros((graphs,), np.int32)
+    cell = np.zeros((graphs, 3, 3))
+    pbc = np.zeros((graphs, 3), bool)
+    start = 0
+    for k, atoms in enumerate(atoms_list):
+        positions[start:start + len(atoms)] = atoms.positions
+        numbers[start:start + len(atoms)] = atoms.numbers
+        sizes[k] = len(atoms)
+        cell[k] = atoms.cell.array
+        pbc[k] = atoms.pbc
+        start += len(atoms)
+    if pad:
+        sizes[g] = total - count
+    return FlatBatch(positions, numbers, sizes, cell, pbc,
+                     np.arange(graphs) < g)

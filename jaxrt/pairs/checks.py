@@ -10,8 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.backends.contract import compile_size
-
 # "auto" takes the brute force up to this many candidates (N² · images).
 BRUTE_CANDIDATES = 2 ** 20
 # Candidates read per step of the loop, at most (slots of every run at once).
@@ -34,9 +32,15 @@ def is_concrete(x) -> bool:
 
 
 def bucket(n: int) -> int:
-    """``n`` rounded up to a shared size (1, 2, 3, 4, 6, 8, 12, 16, ...: at
-    most 1.5x), so that many sizes share a few compiled programs."""
-    return compile_size(max(int(n), 1))
+    """``n`` rounded up to a shared size (1, 2, 3, 4, 6, 8, 12, 16, 24, ...:
+    two an octave, at most 1.5x; the ladder of the lists' ``allocate``,
+    `jaxrt.backends.contract.compile_size`, which imports jax-md), so that
+    many sizes share a few compiled programs."""
+    size = max(int(n), 1)
+    if size <= 4:
+        return size
+    power = 1 << (size - 1).bit_length()
+    return 3 * power // 4 if 3 * power // 4 >= size else power
 
 
 def positions_array(positions, who: str, stacklevel: int = 4):
@@ -297,10 +301,12 @@ def check_sort(sort):
     return sort == "i"
 
 
-def plan(n: int, pbc, max_shift, backend: str, candidates=None):
+def plan(n: int, pbc, max_shift, backend: str, candidates=None,
+         longest=None):
     """``(brute, reach, chunk)`` static options of the program.
     ``candidates``: the brute force's atom pairs (``N²`` for one system,
-    ``sum n_g²`` for a batch)."""
+    ``sum n_g²`` for a batch); ``longest``: the most atoms of one system
+    (the brute force reads that many slots at most)."""
     if backend not in BACKENDS:
         raise ValueError(f"jaxrt.pairs: backend={backend!r}: choose one of "
                          f"{BACKENDS}.")
@@ -310,7 +316,8 @@ def plan(n: int, pbc, max_shift, backend: str, candidates=None):
         backend == "auto" and candidates * images <= BRUTE_CANDIDATES)
     if brute:
         reach = max_shift
-        chunk = max(1, min(n, CHUNK_CANDIDATES // max(n * images, 1)))
+        chunk = max(1, min(n if longest is None else longest,
+                           CHUNK_CANDIDATES // max(n * images, 1)))
     else:
         reach = tuple(r if p else 1 for r, p in zip(max_shift, pbc))
         k = math.prod(2 * r + 1 for r in reach)

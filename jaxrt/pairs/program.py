@@ -73,6 +73,13 @@ def shift_vectors(s, h):
             + s[..., 2:3] * h[..., 2, :])
 
 
+def safe_norm(d):
+    """``|d|`` over the last axis, with a zero (finite) gradient at 0."""
+    d2 = jnp.sum(d * d, axis=-1)
+    positive = d2 > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1)), 0)
+
+
 def inverse(h):
     """``inv(h)`` and ``det(h)`` of ``(..., 3, 3)`` matrices, written out by
     cofactors: no solver call for a 3x3, a fraction of its compile time."""

@@ -46,6 +46,7 @@ from jaxrt.layouts.edges import materialized
 from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, PairsError, raise_if
 from jaxrt.pairs.checks import BRUTE_CANDIDATES, Float32Warning
+from jaxrt.pairs.program import safe_norm as _safe_norm
 from jaxrt.pairs.program import search, shift_vectors
 
 __all__ = ["BRUTE_CANDIDATES", "ErrorBit", "Float32Warning", "PairSizes",
@@ -166,12 +167,6 @@ def _distances(result: Pairs, positions, cell):
     return _safe_norm(_vectors(result, positions, cell))
 
 
-def _safe_norm(d):
-    d2 = jnp.sum(d * d, axis=-1)
-    positive = d2 > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1)), 0)
-
-
 # ---------------------------------------------------------------------------
 # The front: arguments checked, static sizes decided
 
@@ -191,6 +186,11 @@ class PairSizes:
     @property
     def kwargs(self) -> dict:
         return {"capacity": self.capacity, "max_shift": self.max_shift}
+
+    def merge(self, other: "PairSizes") -> "PairSizes":
+        """Sizes that fit both (the larger of each)."""
+        return PairSizes(max(self.capacity, other.capacity), tuple(
+            max(a, b) for a, b in zip(self.max_shift, other.max_shift)))
 
 
 def _inputs(positions, cutoff, cell, pbc, mask, species, traced_ok=False):
@@ -352,7 +352,7 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
         raise_if(int(error), total, capacity)
         return _host_result(out, total, error)
     guess = _guess(positions[:n][real[:n]], concrete_cell, pbc, radius,
-                   options)
+                   options, size)
     out, total, _, error = jax.device_get(call(capacity=guess))
     raise_if(int(error) & ~int(ErrorBit.CAPACITY))
     count = int(total)
@@ -363,13 +363,15 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
         int(error) & ~int(ErrorBit.CAPACITY)))
 
 
-def _guess(r, cell, pbc, radius, options) -> int:
-    """A capacity bucket above the pairs expected."""
+def _guess(r, cell, pbc, radius, options, size: int) -> int:
+    """A capacity bucket above the pairs expected of ``size`` atoms at the
+    density of ``r`` (so that the systems of one atom bucket and density
+    share it)."""
     full = checks.estimate(np.asarray(r, np.float64), cell, pbc, radius)
     expected = (full + 1) // 2 if options["half"] else full
     if options["self_interaction"]:
         expected += len(r)
-    return checks.bucket(expected)
+    return checks.bucket(expected * size / max(len(r), 1))
 
 
 def _host_result(out, total, error) -> Pairs:
