@@ -252,8 +252,9 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
       max_shift: static reach, as `jaxrt.pairs` (needed with traced cells).
       species, half, self_interaction, backend: as `jaxrt.pairs`.
     Returns:
-      `BatchPairs`. An eager call raises `jaxrt.PairsError` on an
-      incomplete list; under ``jit`` ``overflow`` is set.
+      `BatchPairs` (numpy arrays from an eager call, as `jaxrt.pairs`). An
+      eager call raises `jaxrt.PairsError` on an incomplete list; under
+      ``jit`` ``overflow`` is set.
     """
     positions = checks.positions_array(positions, "jaxrt.pairs_batch")
     if positions.ndim != 2:
@@ -391,7 +392,7 @@ def _eager(positions, n_node, cells, pbc, periodic, graph_mask, radius, cut,
     if capacity is not None:
         out = call(capacity)
         raise_if(int(out.error), out.count, capacity)
-        return _on_device(out, capacity, n, g, int(out.error))
+        return _on_host(out, capacity, n, g, int(out.error))
     out = call(guess)
     raise_if(int(out.error) & ~int(ErrorBit.CAPACITY))
     count = int(out.count)
@@ -403,23 +404,23 @@ def _eager(positions, n_node, cells, pbc, periodic, graph_mask, radius, cut,
                                     side="right")
         if pad_graph < len(n_edge):
             n_edge[pad_graph] -= out.capacity - count
-    return _on_device(dataclasses.replace(out, n_edge=n_edge), count, n, g,
+    return _on_host(dataclasses.replace(out, n_edge=n_edge), count, n, g,
                       int(out.error) & ~int(ErrorBit.CAPACITY))
 
 
-def _on_device(out: BatchPairs, length: int, n: int, g: int,
-               error: int) -> BatchPairs:
+def _on_host(out: BatchPairs, length: int, n: int, g: int,
+             error: int) -> BatchPairs:
     """A host result cut to ``length`` edges and the caller's ``g``
-    systems, padding indices past the caller's ``n`` atoms set to ``n``,
-    moved to the device in one call."""
-    i = np.where(out.i[:length] < n, out.i[:length], n)
-    j = np.where(out.j[:length] < n, out.j[:length], n)
-    i, j, s, n_edge, n_node, total, error = jax.device_put((
-        i, j, np.ascontiguousarray(out.shift[:length]),
-        np.array(out.n_edge[:g]), np.array(out.n_node[:g]),
-        np.int32(out.count), np.int32(error)))
-    return BatchPairs(i=i, j=j, shift=s, n_edge=n_edge, n_node=n_node,
-                      count=total, overflow=error != 0, error=error)
+    systems, padding indices past the caller's ``n`` atoms set to ``n``
+    (numpy arrays, as an eager `jaxrt.pairs` returns)."""
+    error = np.array(error, np.int32)
+    return BatchPairs(
+        i=np.where(out.i[:length] < n, out.i[:length], n).astype(np.int32),
+        j=np.where(out.j[:length] < n, out.j[:length], n).astype(np.int32),
+        shift=np.ascontiguousarray(out.shift[:length]),
+        n_edge=np.array(out.n_edge[:g]), n_node=np.array(out.n_node[:g]),
+        count=np.array(out.count, np.int32), overflow=error != 0,
+        error=error)
 
 
 def pairs_batch_sizes(positions, n_node, cutoff, *, cell=None, pbc=None,

@@ -12,6 +12,9 @@ import numpy as np
 
 # "auto" takes the brute force up to this many candidates (N² · images).
 BRUTE_CANDIDATES = 2 ** 20
+# An eager call of one system up to this many candidates (N² · images)
+# takes the small program (`program.search_small`).
+SMALL_CANDIDATES = 2 ** 14
 # Candidates read per step of the loop, at most (slots of every run at once).
 CHUNK_CANDIDATES = 2 ** 22
 # Slots of each run read per step on the cell grid (the fullest cell of a
@@ -230,18 +233,33 @@ def plain(array):
     return np.asarray(getattr(array, "array", array))
 
 
+def inverse3(h: np.ndarray):
+    """``(inv(h), det(h))`` of one float64 ``(3, 3)`` by cofactors in
+    Python floats (a numpy call costs more than the arithmetic)."""
+    (a, b, c), (d, e, f), (g, i, k) = h.tolist()
+    co = [e * k - f * i, f * g - d * k, d * i - e * g]
+    det = a * co[0] + b * co[1] + c * co[2]
+    if det == 0 or not math.isfinite(det):
+        return None, det
+    inv = np.array([[co[0], c * i - b * k, b * f - c * e],
+                    [co[1], a * k - c * g, c * d - a * f],
+                    [co[2], b * g - a * i, a * e - b * d]]) / det
+    return inv, det
+
+
 def concrete_cell(cell, pbc, who: str = "jaxrt.pairs") -> np.ndarray:
     """A concrete cell (matrix or sides) checked and completed: float64
     ``(3, 3)``."""
     h = as_cell_matrix(plain(cell).astype(np.float64))
-    if not np.all(np.isfinite(h)):
+    if not np.isfinite(h).all():
         raise ValueError(f"{who}: cell has NaN or infinite entries.")
-    h = complete(h, pbc)
-    scale = max(float(np.max(np.abs(h))), 1e-300)
-    if abs(np.linalg.det(h)) <= 1e-12 * scale ** 3:
-        raise ValueError(f"{who}: cell is singular (det = "
-                         f"{np.linalg.det(h):.3g}): its rows must be three "
-                         f"independent lattice vectors.")
+    if not h.any(axis=1).all():
+        h = complete(h, pbc)
+    scale = max(float(np.abs(h).max()), 1e-300)
+    det = inverse3(h)[1]
+    if not abs(det) > 1e-12 * scale ** 3:
+        raise ValueError(f"{who}: cell is singular (det = {det:.3g}): its "
+                         f"rows must be three independent lattice vectors.")
     return h
 
 
@@ -262,11 +280,18 @@ def check_cell(cell, pbc, dtype):
 
 
 def shift_for_cell(h: np.ndarray, cutoff: float, pbc) -> tuple[int, ...]:
-    """The reach a concrete cell needs: ``ceil(cutoff / h_k)`` per periodic
-    axis (with a margin over the program's own rounding of the heights)."""
-    heights = 1 / np.linalg.norm(np.linalg.inv(h), axis=-2)
-    need = np.ceil(cutoff / heights * (1 + _REACH_MARGIN)).astype(int)
-    need = need.reshape(-1, 3).max(axis=0) if need.ndim > 1 else need
+    """The reach concrete cells need: ``ceil(cutoff / h_k)`` per periodic
+    axis (with a margin over the program's own rounding of the heights);
+    ``h`` ``(3, 3)`` or ``(B, 3, 3)`` (the largest of each axis)."""
+    if h.ndim == 2:  # one cell: Python floats (numpy calls cost more)
+        columns = zip(*inverse3(h)[0].tolist())
+        need = [math.ceil(cutoff * math.sqrt(sum(v * v for v in c))
+                          * (1 + _REACH_MARGIN)) for c in columns]
+    else:
+        hinv = np.linalg.inv(h)
+        heights = 1 / np.sqrt(np.sum(hinv * hinv, axis=-2))
+        need = np.ceil(cutoff / heights * (1 + _REACH_MARGIN)).astype(
+            int).reshape(-1, 3).max(axis=0).tolist()
     return tuple(int(max(n, 1)) if p else 0 for n, p in zip(need, pbc))
 
 
@@ -301,6 +326,12 @@ def check_sort(sort):
     return sort == "i"
 
 
+def is_small(n: int, max_shift) -> bool:
+    """Whether an eager call of one system takes `program.search_small`
+    (every candidate at once: cheaper to dispatch than the loop)."""
+    return n * n * math.prod(2 * r + 1 for r in max_shift) <= SMALL_CANDIDATES
+
+
 def plan(n: int, pbc, max_shift, backend: str, candidates=None,
          longest=None):
     """``(brute, reach, chunk)`` static options of the program.
@@ -332,11 +363,13 @@ def estimate(r: np.ndarray, cell: np.ndarray, pbc, cutoff: float) -> int:
     n = len(r)
     if n < 2:
         return 1
-    hinv = np.linalg.inv(cell)
-    f = r @ hinv
-    heights = 1 / np.linalg.norm(hinv, axis=0)
-    span = [1.0 if p else np.ptp(f[:, k]) + 2 * cutoff / heights[k]
-            for k, p in enumerate(pbc)]
-    volume = abs(np.linalg.det(cell)) * np.prod(span)
-    k = n / volume * 4 / 3 * np.pi * cutoff ** 3
+    hinv, det = inverse3(cell)
+    volume = abs(det)
+    if not all(pbc):
+        f = r @ hinv
+        heights = 1 / np.sqrt(np.sum(hinv * hinv, axis=0))
+        for k, p in enumerate(pbc):
+            if not p:
+                volume *= np.ptp(f[:, k]) + 2 * cutoff / heights[k]
+    k = n / volume * 4 / 3 * math.pi * cutoff ** 3
     return int(1.25 * n * k) + 16

@@ -227,16 +227,45 @@ class _Binned(NamedTuple):
     w: jax.Array          # float (N, 3) whole cells each atom was moved by
 
 
+def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
+    """The atoms sorted by cell: each target cell's run (first sorted slot
+    and length, int32 ``(N, K)``), ``order`` (slot -> atom) and ``rank``
+    (atom -> slot)."""
+    n = coord.shape[0]
+    table = table_size(n, n_graph, False)
+
+    def key_of(c, cells_c, base_c):
+        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
+            cells_c[..., 0] + c[..., 0]
+
+    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
+    sorted_key, order = jax.lax.sort(
+        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    starts = jnp.searchsorted(sorted_key, jnp.arange(table + 1,
+                                                     dtype=jnp.int32))
+    tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
+                                    base_a[:, None]), 0)
+    start = starts[tkey]
+    length = jnp.where(inside, starts[tkey + 1] - start, 0)
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(
+        jnp.arange(n, dtype=jnp.int32))
+    return start, length, order, rank
+
+
 def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
-         n_graph) -> _Binned:
-    """Steps 1-4 of the module docstring."""
+         n_graph, completed) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
     n, dtype = positions.shape[0], positions.dtype
     r = jax.lax.stop_gradient(positions)
-    h, zero_periodic = complete_cells(jax.lax.stop_gradient(cells), pbc)
+    h = jax.lax.stop_gradient(cells)
+    if completed:
+        zero_periodic = jnp.zeros((n_graph,), bool)
+    else:
+        h, zero_periodic = complete_cells(h, pbc)
     hinv, det = inverse(h)
     bad_cell = zero_periodic | ~(jnp.isfinite(det) & (jnp.abs(det) > 0)
                                  & jnp.all(jnp.isfinite(hinv), axis=(1, 2)))
-    graph = jnp.clip(graph, 0, n_graph - 1)
+    unclipped, graph = graph, jnp.clip(graph, 0, n_graph - 1)
     finite = jnp.all(jnp.isfinite(r), axis=1)
     count = jax.ops.segment_sum(mask.astype(jnp.int32), graph, n_graph)
     error = jnp.where(jnp.any(mask & ~finite),
@@ -262,17 +291,6 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     cells_a, base_a = grid_cells[graph], base[graph]
     coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
         jnp.int32), 0, cells_a - 1)
-    table = table_size(n, n_graph, brute)
-
-    def key_of(c, cells_c, base_c):
-        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
-            cells_c[..., 0] + c[..., 0]
-
-    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
-    sorted_key, order = jax.lax.sort(
-        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
-    starts = jnp.searchsorted(sorted_key, jnp.arange(table + 1,
-                                                     dtype=jnp.int32))
     # The half stencil's target cells and their images (docstring, 4.).
     target = coord[:, None, :] + jnp.asarray(offsets(reach))[None]
     cells_k = cells_a[:, None, :]
@@ -280,19 +298,28 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     target = target - image * cells_k
     inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
         real[:, None]
-    tkey = jnp.where(inside, key_of(target, cells_k, base_a[:, None]), 0)
-    start = starts[tkey]
-    length = jnp.where(inside, starts[tkey + 1] - start, 0)
+    if brute:
+        # One cell per system: a system's run is its atoms as given (they
+        # are contiguous; padding atoms in it are skipped by the loop), so
+        # nothing is sorted.
+        order = rank = jnp.arange(n, dtype=jnp.int32)
+        system = jnp.clip(unclipped, 0, n_graph)
+        sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
+                                    n_graph + 1)
+        first = _exclusive_prefix(sizes)
+        start = jnp.broadcast_to(first[system][:, None], inside.shape)
+        length = jnp.where(inside, sizes[system][:, None], 0)
+    else:
+        start, length, order, rank = _runs(coord, target, inside, cells_a,
+                                           base_a, real, n_graph)
     # Shifts of the caller's positions: S = S' + w[i] - w[j].
     image = image + w.astype(jnp.int32)[:, None, :]
-    rank = jnp.zeros((n,), jnp.int32).at[order].set(
-        jnp.arange(n, dtype=jnp.int32))
     return _Binned(error, real, graph, h[graph], start, length, image, order,
                    rank, w)
 
 
 def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
-                stored):
+                stored, brute):
     """Step 5: the loop over candidates. Returns the pairs found (int32),
     per atom (int32 ``(N,)``) and the rows ``(i, p, S)`` stored (``p`` the
     partner's sorted slot), padded with ``i = N``."""
@@ -326,6 +353,8 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             limit = cut.at[species[:, None, None], row[..., 6].astype(
                 jnp.int32)].get(mode="fill", fill_value=0)
         once = ~own[None, :, None] | (p > b.rank[:, None, None])
+        if brute:  # runs hold padding atoms (not sorted out)
+            valid = valid & b.real[p]
         keep = (valid & (dist < limit) & once).reshape(n, k_offsets * chunk)
         ranks = _row_ranks(keep)
         row_count = ranks[:, -1]
@@ -338,10 +367,12 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
         return (total + jnp.sum(row_count, dtype=jnp.int32),
                 per_atom + row_count, out)
 
-    steps = (jnp.max(b.length, initial=0) + chunk - 1) // chunk
     out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32), (stored, 5))
-    return jax.lax.fori_loop(0, steps, step, (
-        jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+    start = (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out)
+    if chunk >= n:  # no run is longer: one step, no loop
+        return step(0, start)
+    steps = (jnp.max(b.length, initial=0) + chunk - 1) // chunk
+    return jax.lax.fori_loop(0, steps, step, start)
 
 
 def _pair_rows(found, per_atom, out, order, graph, *, half, n_graph):
@@ -390,11 +421,11 @@ def _self_rows(real, cut, species, graph, n_graph):
 
 @functools.partial(jax.jit, static_argnames=(
     "periodic", "reach", "capacity", "brute", "chunk", "half", "sort",
-    "self_interaction", "n_graph"))
+    "self_interaction", "n_graph", "completed"))
 def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
            periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
            brute: bool, chunk: int, half: bool, sort: bool,
-           self_interaction: bool, n_graph: int):
+           self_interaction: bool, n_graph: int, completed: bool = False):
     """The pairs of a flat batch (module docstring).
 
     Args:
@@ -409,6 +440,8 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
       reach: static ``r_k`` per axis (0 on the static free axes of the
         brute force).
       capacity: static rows; 0 counts only.
+      completed: static; the cells have no zero rows to complete (checked
+        on the host).
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -418,11 +451,12 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     radius = cut if species is None else jnp.max(cut)
     pbc = jnp.asarray(pbc, bool) & np.array(periodic)
     binned = _bin(positions, graph, mask, cells.astype(dtype), pbc, radius,
-                  reach=reach, brute=brute, n_graph=n_graph)
+                  reach=reach, brute=brute, n_graph=n_graph,
+                  completed=completed)
     stored = capacity if half else (capacity + 1) // 2
     found, per_atom, out = _candidates(positions, binned, cut, species,
                                        reach=reach, chunk=chunk,
-                                       stored=stored)
+                                       stored=stored, brute=brute)
     rows, total, per_system = _pair_rows(found, per_atom, out, binned.order,
                                          binned.graph, half=half,
                                          n_graph=n_graph)
@@ -448,3 +482,72 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     error = binned.error | jnp.where(total > capacity,
                                      int(ErrorBit.CAPACITY), 0)
     return rows, total, per_system, error.astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "periodic", "reach", "capacity", "half", "self_interaction"))
+def search_small(positions, mask, h, hinv, cutoff, species, *,
+                 periodic: tuple[bool, ...], reach: tuple[int, ...],
+                 capacity: int, half: bool, self_interaction: bool):
+    """The pairs of one small system, every candidate ``(i, j, S)`` at once
+    (no grid, no loop, no sort: a handful of XLA operations, for eager calls
+    whose cost is the program's dispatch). The same decisions as `search`
+    (each ``d`` computed as there; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit
+    for bit), in ``i``-major order (sorted by ``i``).
+
+    Args:
+      positions: float ``(N, 3)``; mask: bool ``(N,)`` real atoms.
+      h, hinv: ``(3, 3)`` the completed cell (checked on the host) and its
+        inverse, the positions' dtype.
+      cutoff, species: as `search`.
+      periodic, reach: static; the cell needs no shift past ``reach``
+        (checked on the host).
+    Returns:
+      int32 ``(capacity + 1, 5)``: the rows ``(i, j, S)`` padded with
+      ``(N, N, 0)``, then ``(count, error bits, 0, 0, 0)``.
+    """
+    n, dtype = positions.shape[0], positions.dtype
+    cut = jnp.asarray(cutoff, dtype)
+    r = jax.lax.stop_gradient(positions)
+    finite = jnp.all(jnp.isfinite(r), axis=1)
+    error = jnp.where(jnp.any(mask & ~finite),
+                      int(ErrorBit.NONFINITE_POSITION), 0)
+    real = mask & finite
+    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv, axis=1)
+    w = jnp.where(np.array(periodic), jnp.floor(f), 0).astype(jnp.int32)
+    every = np.array(list(itertools.product(
+        *(range(-k, k + 1) for k in reach))), np.int32)  # (M, 3)
+    # S = o + w[i] - w[j] for every (i, j, o): i-major.
+    s = (jnp.asarray(every)[None, None] + w[:, None, None, :]
+         - w[None, :, None, :])
+    d = (r[None, :, None, :] - r[:, None, None, :]) + shift_vectors(
+        s.astype(dtype), h)
+    dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                    + d[..., 2] * d[..., 2])
+    if species is None:
+        limit = cut
+    else:
+        limit = cut.at[species[:, None, None], species[None, :, None]].get(
+            mode="fill", fill_value=0)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    same = atoms[:, None, None] == atoms[None, :, None]
+    own = same & jnp.asarray(~every.any(axis=1))[None, None]
+    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
+    if half:
+        keep = keep & ((atoms[:, None, None] < atoms[None, :, None])
+                       | (same & _lex_positive(s)) | own)
+    if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
+        keep = keep & ~own
+    flat = keep.reshape(-1)
+    total = jnp.sum(flat, dtype=jnp.int32)
+    at = jnp.where(flat, jnp.cumsum(flat, dtype=jnp.int32) - 1, capacity)
+    shape = s.shape[:3]
+    rows = jnp.concatenate([
+        jnp.broadcast_to(atoms[:, None, None], shape)[..., None],
+        jnp.broadcast_to(atoms[None, :, None], shape)[..., None], s], axis=-1)
+    out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                           (capacity, 5)).at[at].set(rows.reshape(-1, 5),
+                                                     mode="drop")
+    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
+    tail = jnp.stack([total, error.astype(jnp.int32)] + [jnp.int32(0)] * 3)
+    return jnp.concatenate([out, tail[None]])

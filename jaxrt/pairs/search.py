@@ -47,7 +47,7 @@ from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, PairsError, raise_if
 from jaxrt.pairs.checks import BRUTE_CANDIDATES, Float32Warning
 from jaxrt.pairs.program import safe_norm as _safe_norm
-from jaxrt.pairs.program import search, shift_vectors
+from jaxrt.pairs.program import search, search_small, shift_vectors
 
 __all__ = ["BRUTE_CANDIDATES", "ErrorBit", "Float32Warning", "PairSizes",
            "Pairs", "PairsError", "pairs", "pairs_sizes"]
@@ -70,10 +70,9 @@ class Pairs:
       overflow: bool scalar, the list is incomplete (`error` says why).
       error: int32 scalar, `ErrorBit` bits, 0 for a complete list.
 
-    Entries are in search order, each pair of a full list next to its
-    reverse ``(j, i, -S)``, or sorted by ``i`` (``sort="i"``: then
-    ``jax.ops.segment_sum(..., indices_are_sorted=True)`` over ``i`` is
-    valid, padding included); self pairs, when asked for, come first.
+    Entries are in the search's order (not specified), or sorted by ``i``
+    (``sort="i"``, stable: then ``jax.ops.segment_sum(...,
+    indices_are_sorted=True)`` over ``i`` is valid, padding included).
     """
 
     i: jax.Array
@@ -277,8 +276,10 @@ def pairs(positions, cutoff, *, cell=None, pbc=None, capacity=None, mask=None,
         option; with cutoffs by species, where the atom's own is > 0).
 
     Returns:
-      `Pairs`. Outside ``jit`` an incomplete list raises `PairsError`;
-      under ``jit`` its ``overflow`` is set (``check()`` raises).
+      `Pairs`: of numpy arrays from an eager call (concrete inputs: the
+      host cut them to size), of JAX arrays under ``jit`` / ``vmap``.
+      Outside ``jit`` an incomplete list raises `PairsError`; under ``jit``
+      its ``overflow`` is set (``check()`` raises).
     """
     traced_ok = capacity is not None and max_shift is not None
     positions, (radius, cut, species), pbc, mask = _inputs(
@@ -343,10 +344,16 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
             species = np.concatenate([species, np.zeros((size - n,),
                                                         np.int32)])
     brute, reach, chunk = checks.plan(size, pbc, shift, backend)
+    if brute and checks.is_small(size, shift):
+        return _eager_small(positions, real, h, concrete_cell, cut, species,
+                            pbc, shift, capacity, n, guess_args=(
+                                positions[:n][real[:n]], radius, options,
+                                size), options=options)
     call = functools.partial(
         search, positions, np.zeros((size,), np.int32), real, h[None],
         np.array(pbc)[None], cut, species, np.int32(n), periodic=pbc,
-        reach=reach, brute=brute, chunk=chunk, n_graph=1, **options)
+        reach=reach, brute=brute, chunk=chunk, n_graph=1, completed=True,
+        **options)
     if capacity is not None:
         out, total, _, error = jax.device_get(call(capacity=capacity))
         raise_if(int(error), total, capacity)
@@ -363,6 +370,30 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
         int(error) & ~int(ErrorBit.CAPACITY)))
 
 
+def _eager_small(positions, real, h, concrete_cell, cut, species, pbc,
+                 shift, capacity, n, guess_args, options) -> Pairs:
+    """`_eager` for a small system: `search_small`, one array back."""
+    hinv = checks.inverse3(concrete_cell)[0].astype(positions.dtype)
+    call = functools.partial(
+        search_small, positions, real, h, hinv, cut, species, periodic=pbc,
+        reach=shift, half=options["half"],
+        self_interaction=options["self_interaction"])
+    exact = capacity is None
+    if exact:
+        r, radius, options, size = guess_args
+        capacity = _guess(r, concrete_cell, pbc, radius, options, size)
+    out = np.asarray(call(capacity=capacity))
+    total, error = int(out[-1, 0]), int(out[-1, 1])
+    if not exact:
+        raise_if(error, total, capacity)
+        return _host_result(np.where(out[:-1] < n, out[:-1], [n, n, 0, 0, 0]),
+                            total, error)
+    raise_if(error & ~int(ErrorBit.CAPACITY))
+    if total > capacity:
+        out = np.asarray(call(capacity=checks.bucket(total)))
+    return _host_result(out[:total], total, 0)
+
+
 def _guess(r, cell, pbc, radius, options, size: int) -> int:
     """A capacity bucket above the pairs expected of ``size`` atoms at the
     density of ``r`` (so that the systems of one atom bucket and density
@@ -375,12 +406,15 @@ def _guess(r, cell, pbc, radius, options, size: int) -> int:
 
 
 def _host_result(out, total, error) -> Pairs:
-    """`Pairs` of host arrays, moved to the device in one call."""
-    out = np.ascontiguousarray(out)
-    i, j, s, count, err = jax.device_put(
-        (out[:, 0], out[:, 1], out[:, 2:], np.int32(total), np.int32(error)))
-    return Pairs(i=i, j=j, shift=s, count=count, overflow=err != 0,
-                 error=err)
+    """`Pairs` of numpy arrays (where the eager call cut them: moving them
+    back to the device would cost more than the search of a small
+    system; ``jit`` and ``jnp`` take them as they are)."""
+    error = np.array(error, np.int32)
+    return Pairs(i=np.ascontiguousarray(out[:, 0]),
+                 j=np.ascontiguousarray(out[:, 1]),
+                 shift=np.ascontiguousarray(out[:, 2:]),
+                 count=np.array(total, np.int32), overflow=error != 0,
+                 error=error)
 
 
 def pairs_sizes(positions, cutoff, *, cell=None, pbc=None, mask=None,
