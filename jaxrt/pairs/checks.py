@@ -10,17 +10,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-# "auto" takes the brute force up to this many candidates (N² · images).
-BRUTE_CANDIDATES = 2 ** 20
+# "auto" takes the brute force up to this many candidates (N² · images):
+# on 2 CPU cores (benchmarks/pairs.py) it and the grid cost the same near
+# 16 atoms in a cell taller than the cutoff (27 images), the grid 3x less
+# at 64.
+BRUTE_CANDIDATES = 2 ** 13
 # An eager call of one system up to this many candidates (N² · images)
 # takes the small program (`program.search_small`).
 SMALL_CANDIDATES = 2 ** 14
 # Candidates read per step of the loop, at most (slots of every run at once).
 CHUNK_CANDIDATES = 2 ** 22
 # Slots of each run read per step on the cell grid (the fullest cell of a
-# dense solid at a 5 Å cutoff holds ~12 atoms; 4 measured as fast as 2
-# and faster than 8 on the CPU).
-CELL_CHUNK = 4
+# dense solid at a 5 Å cutoff holds ~12 atoms): on 2 CPU cores 1 was the
+# fastest from 1 728 atoms to 32 768 (2 and 4 up to 1.4x slower).
+CELL_CHUNK = 1
 BACKENDS = ("auto", "brute", "cell")
 # Reach beyond the cell's own rounding of the heights (program.CELL_MARGIN).
 _REACH_MARGIN = 2.0 ** -10

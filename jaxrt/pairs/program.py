@@ -24,26 +24,32 @@ How it searches (the search of one system is the same with one graph):
    cells span the system's atoms. A system has at most ``4 n + 64`` cells
    (coarsened past that); cells of all systems are numbered in one table,
    atoms sorted by cell.
-4. **Stencil.** Atom ``i`` in cell ``a`` reads the cells ``a + o`` for
-   the offsets ``o >= 0`` (lexicographic; ``|o_k| <= r_k``) of its own
-   system; on a periodic axis ``a + o`` is the cell ``(a + o) mod c`` of
-   the image ``floor((a + o) / c)``, so each candidate ``(j, S)`` is read
-   once. Within ``o = 0`` only ``j`` sorted after ``i`` is read.
+4. **Stencil.** Atom ``i`` in cell ``a`` reads the cells ``a + o`` of
+   its own system, ``|o_k| <= r_k``; on a periodic axis ``a + o`` is the
+   cell ``(a + o) mod c`` of the image ``floor((a + o) / c)``, so each
+   candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
+   read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
+   after ``i``); sorted by ``i``, all of it.
 5. **Decide and store.** Candidates are read ``chunk`` slots of every run
    at a time in a loop until the fullest cell is read. Each is decided as
    ASE decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
    cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
-   matrix), and kept pairs are written at the running count, so the count
-   is exact past the capacity. A kept pair stands for ``(i, j, S)`` and
-   ``(j, i, -S)`` (one decision: ``|-d| = |d|`` bit for bit); a full list
-   writes both, a half list the representative with ``i < j``, or ``i ==
-   j`` and ``S`` lexicographically positive.
-6. **Assemble.** Self pairs ``(i, i, 0)`` first when asked for, then the
-   pairs; sorted by ``i`` (stable) when asked for; padding rows ``(pad,
-   pad, 0)`` at the end.
+   matrix), and kept candidates are written at the running count, so the
+   count is exact past the capacity. From the half stencil a kept pair
+   stands for ``(i, j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| =
+   |d|`` bit for bit): a full list writes both, a half list the
+   representative, ``i < j``, or ``i == j`` and ``S`` lexicographically
+   positive. From the full stencil each atom finds its own pairs (only
+   representatives for a half list) and ranks them.
+6. **Assemble.** Unsorted: self pairs ``(i, i, 0)`` first when asked for,
+   then the pairs. Sorted: each atom's self pair and pairs at the atom's
+   offset in the list (a counting sort: no sort runs). Padding rows
+   ``(pad, pad, 0)`` at the end.
 
 ``brute=True`` is the same program with one cell per system: every atom
-of a system is a candidate of every atom of it, in every image.
+of a system is a candidate of every atom of it, in every image (unsorted,
+in one step when the chunk covers the atoms). `search_small` decides every
+candidate of one small system at once, for eager calls.
 """
 from __future__ import annotations
 
@@ -130,11 +136,14 @@ def complete_cells(h, pbc):
     return jnp.stack(out, axis=1), jnp.any(zero & pbc, axis=-1)
 
 
-def offsets(reach: tuple[int, ...]) -> np.ndarray:
-    """int32 ``(K, 3)``: the half stencil, every offset with ``|o_k| <=
-    r_k`` that is zero or lexicographically positive."""
+def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
+    """int32 ``(K, 3)``: the stencil, every offset with ``|o_k| <= r_k``;
+    the half stencil (not ``full``) keeps those that are zero or
+    lexicographically positive."""
     every = np.array(list(itertools.product(
         *(range(-r, r + 1) for r in reach))), np.int32)
+    if full:
+        return every
     first = np.array([next((v for v in o if v != 0), 0) for o in every])
     return every[first >= 0]
 
@@ -151,15 +160,34 @@ def _exclusive_prefix(x):
     return inclusive - x
 
 
+def _triangular_dot(x, strict: bool = False):
+    """Inclusive (or, ``strict``, exclusive) prefix sums along the last
+    axis of float32 ``x`` as one product with a triangular matrix: exact
+    for sums below 2^24, and one small dot compiles and runs faster than a
+    scan on a CPU."""
+    m = x.shape[-1]
+    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32), k=int(strict)))
+    return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
+
+
+_RANK_BLOCK = 32
+
+
 def _row_ranks(keep):
     """int32 ``(R, M)``: the inclusive count of True along each row of bool
-    ``(R, M)`` ``keep``, by a product with a triangular matrix (exact in
-    float32: M is small; one small dot compiles in a fraction of a scan's
-    time)."""
-    m = keep.shape[-1]
-    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32)))
-    ranks = jnp.dot(keep.astype(jnp.float32), upper,
-                    precision=jax.lax.Precision.HIGHEST)
+    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
+    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
+    ``M²``."""
+    rows, m = keep.shape
+    x = keep.astype(jnp.float32)
+    if m <= 2 * _RANK_BLOCK:
+        return _triangular_dot(x).astype(jnp.int32)
+    blocks = -(-m // _RANK_BLOCK)
+    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
+        rows, blocks, _RANK_BLOCK)
+    inner = _triangular_dot(x)
+    before = _triangular_dot(inner[..., -1], strict=True)
+    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
     return ranks.astype(jnp.int32)
 
 
@@ -241,19 +269,23 @@ def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
     key = jnp.where(real, key_of(coord, cells_a, base_a), table)
     sorted_key, order = jax.lax.sort(
         (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
-    starts = jnp.searchsorted(sorted_key, jnp.arange(table + 1,
-                                                     dtype=jnp.int32))
+    # Each cell's run: its first sorted slot and its length, by two
+    # scatters (an empty cell's start is never read).
+    slots = jnp.arange(n, dtype=jnp.int32)
+    first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
+        slots, mode="drop")
+    sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
     tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
                                     base_a[:, None]), 0)
-    start = starts[tkey]
-    length = jnp.where(inside, starts[tkey + 1] - start, 0)
+    start = first[tkey]
+    length = jnp.where(inside, sizes[tkey], 0)
     rank = jnp.zeros((n,), jnp.int32).at[order].set(
         jnp.arange(n, dtype=jnp.int32))
     return start, length, order, rank
 
 
 def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
-         n_graph, completed) -> _Binned:
+         n_graph, completed, full) -> _Binned:
     """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
     n, dtype = positions.shape[0], positions.dtype
     r = jax.lax.stop_gradient(positions)
@@ -292,7 +324,7 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
         jnp.int32), 0, cells_a - 1)
     # The half stencil's target cells and their images (docstring, 4.).
-    target = coord[:, None, :] + jnp.asarray(offsets(reach))[None]
+    target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
     cells_k = cells_a[:, None, :]
     image = jnp.where(pbc_a[:, None, :], jnp.floor_divide(target, cells_k), 0)
     target = target - image * cells_k
@@ -319,13 +351,16 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
 
 
 def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
-                stored, brute):
+                stored, brute, full, half):
     """Step 5: the loop over candidates. Returns the pairs found (int32),
-    per atom (int32 ``(N,)``) and the rows ``(i, p, S)`` stored (``p`` the
-    partner's sorted slot), padded with ``i = N``."""
+    per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
+    (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
+    with ``i = N``: from the half stencil each pair is found once; from the
+    ``full`` stencil each atom finds all its own pairs (its representatives
+    only, with ``half``) and a third column ranks them among the atom's."""
     n, dtype = positions.shape[0], positions.dtype
     b = binned
-    own = jnp.asarray(~offsets(reach).any(axis=1))  # (K,): the offset 0
+    own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
     k_offsets = own.shape[0]
     columns = [positions[b.order], b.w[b.order]]
     if species is not None:
@@ -335,6 +370,10 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     table = jnp.concatenate(columns, axis=1)
     atoms = jnp.arange(n, dtype=jnp.int32)
     h_k = b.h_atom[:, None, None]
+    width = 3 if full else 2
+    # (i, k) of each candidate as one int: atom i's offset k.
+    code = (atoms[:, None] * k_offsets + jnp.arange(
+        k_offsets, dtype=jnp.int32))[:, :, None]
 
     def step(t, carry):
         total, per_atom, out = carry
@@ -352,22 +391,36 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
         else:
             limit = cut.at[species[:, None, None], row[..., 6].astype(
                 jnp.int32)].get(mode="fill", fill_value=0)
-        once = ~own[None, :, None] | (p > b.rank[:, None, None])
+        rank_i = b.rank[:, None, None]
+        if not full:  # within the own cell, from the atom sorted first
+            once = ~own[None, :, None] | (p > rank_i)
+        else:  # all but (i, i, 0)
+            once = ~(own[None, :, None] & (p == rank_i))
+            if half:
+                j = b.order[p]
+                i = atoms[:, None, None]
+                once = once & ((i < j) | ((i == j) & _lex_positive(s)))
         if brute:  # runs hold padding atoms (not sorted out)
             valid = valid & b.real[p]
         keep = (valid & (dist < limit) & once).reshape(n, k_offsets * chunk)
         ranks = _row_ranks(keep)
         row_count = ranks[:, -1]
         if stored > 0:
+            # Two or three ints per candidate (the scatter's cost is per
+            # candidate read, kept or not); S is rebuilt after the loop.
             at = total + _exclusive_prefix(row_count)[:, None] + ranks - 1
-            i = jnp.broadcast_to(atoms[:, None, None], p.shape)[..., None]
-            rows = jnp.concatenate([i, p[..., None], s], axis=-1)
+            columns = [jnp.broadcast_to(code, p.shape).reshape(n, -1),
+                       p.reshape(n, -1)]
+            if full:
+                columns.append(per_atom[:, None] + ranks - 1)
+            rows = jnp.stack(columns, axis=-1)
             out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
-                rows.reshape(-1, 5), mode="drop")
+                rows.reshape(-1, width), mode="drop")
         return (total + jnp.sum(row_count, dtype=jnp.int32),
                 per_atom + row_count, out)
 
-    out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32), (stored, 5))
+    pad = jnp.array([n * k_offsets, 0, 0][:width], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, width))
     start = (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out)
     if chunk >= n:  # no run is longer: one step, no loop
         return step(0, start)
@@ -375,16 +428,51 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     return jax.lax.fori_loop(0, steps, step, start)
 
 
-def _pair_rows(found, per_atom, out, order, graph, *, half, n_graph):
+def _stored_pairs(out, binned: _Binned):
+    """The stored candidates as ``i``, ``j`` (``N`` where padded) and
+    ``S`` (int32)."""
+    n, k_offsets = binned.image.shape[:2]
+    i = out[:, 0] // k_offsets
+    kept = i < n
+    at = jnp.where(kept, i, 0)
+    j = jnp.where(kept, binned.order[jnp.where(kept, out[:, 1], 0)], n)
+    s = binned.image[at, out[:, 0] % k_offsets] - binned.w[
+        jnp.where(kept, j, 0)].astype(jnp.int32)
+    return jnp.where(kept, i, n), j, jnp.where(kept[:, None], s, 0)
+
+
+def _placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
+    """The full stencil's rows placed by atom (a counting sort): atom
+    ``i``'s self pair (``selfs``), then its pairs in their rank order, at
+    its offset in the list. Returns int32 ``(capacity, 5)`` rows padded
+    with ``(N, N, 0)``, their count and the count per system."""
+    n = binned.order.shape[0]
+    i, j, s = _stored_pairs(out, binned)
+    kept = i < n
+    own = jnp.zeros((n,), jnp.int32) if selfs is None else \
+        selfs.astype(jnp.int32)
+    degree = per_atom + own
+    first = _exclusive_prefix(degree)
+    at = jnp.where(kept, first[jnp.where(kept, i, 0)] + own[
+        jnp.where(kept, i, 0)] + out[:, 2], capacity)
+    rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                              (capacity, 5)).at[at].set(rows, mode="drop")
+    if selfs is not None:
+        atoms = jnp.arange(n, dtype=jnp.int32)
+        placed = placed.at[jnp.where(selfs, first, capacity)].set(
+            jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+            mode="drop")
+    return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
+        degree, binned.graph, n_graph)
+
+
+def _pair_rows(found, per_atom, out, binned, *, half, n_graph):
     """The stored rows as pairs ``(i, j, S)``: both directions of each (a
     full list) or its representative (a half list). Returns the rows, their
     count and the count per system (exact past the capacity)."""
-    n = order.shape[0]
-    kept = out[:, 0] < n
-    i = out[:, 0]
-    j = jnp.where(kept, order[jnp.where(kept, out[:, 1], 0)], n)
-    s = out[:, 2:]
-    per_system = jax.ops.segment_sum(per_atom, graph, n_graph)
+    i, j, s = _stored_pairs(out, binned)
+    per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
     if half:
         # The representative: i < j, or i == j and S > 0.
         swap = (j < i) | ((j == i) & ~_lex_positive(s))
@@ -399,16 +487,19 @@ def _pair_rows(found, per_atom, out, order, graph, *, half, n_graph):
     return rows, 2 * found, 2 * per_system
 
 
-def _self_rows(real, cut, species, graph, n_graph):
-    """Step 6's self pairs ``(i, i, 0)`` of the real atoms whose own cutoff
-    is positive (ASE keeps ``0 < rc``), packed first: int32 ``(N, 5)``,
-    their count and count per system."""
-    n = real.shape[0]
+def _self_mask(real, cut, species):
+    """bool ``(N,)``: the atoms with a self pair ``(i, i, 0)``, the real
+    ones whose own cutoff is positive (ASE keeps ``0 < rc``)."""
     if species is None:
-        selfs = real & (cut > 0)
-    else:
-        selfs = real & (cut.at[species, species].get(
-            mode="fill", fill_value=0) > 0)
+        return real & (cut > 0)
+    return real & (cut.at[species, species].get(mode="fill",
+                                                 fill_value=0) > 0)
+
+
+def _self_rows(selfs, graph, n_graph):
+    """Step 6's self pairs ``(i, i, 0)`` of ``selfs``, packed first: int32
+    ``(N, 5)``, their count and count per system."""
+    n = selfs.shape[0]
     atoms = jnp.arange(n, dtype=jnp.int32)
     at = _exclusive_prefix(selfs.astype(jnp.int32))
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
@@ -452,29 +543,37 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     pbc = jnp.asarray(pbc, bool) & np.array(periodic)
     binned = _bin(positions, graph, mask, cells.astype(dtype), pbc, radius,
                   reach=reach, brute=brute, n_graph=n_graph,
-                  completed=completed)
-    stored = capacity if half else (capacity + 1) // 2
-    found, per_atom, out = _candidates(positions, binned, cut, species,
-                                       reach=reach, chunk=chunk,
-                                       stored=stored, brute=brute)
-    rows, total, per_system = _pair_rows(found, per_atom, out, binned.order,
-                                         binned.graph, half=half,
-                                         n_graph=n_graph)
+                  completed=completed, full=sort)
+    selfs = _self_mask(binned.real, cut, species) if self_interaction \
+        else None
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
-    if self_interaction:
-        self_rows, n_self, self_system = _self_rows(
-            binned.real, cut, species, binned.graph, n_graph)
-        both = jnp.concatenate([self_rows, jnp.broadcast_to(
-            pad, (capacity + rows.shape[0], 5))])
-        rows = jax.lax.dynamic_update_slice(both, rows, (n_self, jnp.int32(0)))
-        total, per_system = total + n_self, per_system + self_system
-    else:
-        rows = jnp.concatenate([rows, jnp.broadcast_to(
-            pad, (max(capacity - rows.shape[0], 0), 5))])
-    rows = rows[:capacity]
     if sort:
-        rows = jnp.stack(jax.lax.sort(tuple(rows.T), num_keys=1,
-                                      is_stable=True), axis=1)
+        # Each atom finds its own pairs, placed by atom: sorted, no sort.
+        _, per_atom, out = _candidates(
+            positions, binned, cut, species, reach=reach, chunk=chunk,
+            stored=capacity, brute=brute, full=True, half=half)
+        rows, total, per_system = _placed_rows(
+            per_atom, out, binned, selfs, capacity=capacity,
+            n_graph=n_graph)
+    else:
+        stored = capacity if half else (capacity + 1) // 2
+        found, per_atom, out = _candidates(
+            positions, binned, cut, species, reach=reach, chunk=chunk,
+            stored=stored, brute=brute, full=False, half=half)
+        rows, total, per_system = _pair_rows(
+            found, per_atom, out, binned, half=half, n_graph=n_graph)
+        if self_interaction:
+            self_rows, n_self, self_system = _self_rows(
+                selfs, binned.graph, n_graph)
+            both = jnp.concatenate([self_rows, jnp.broadcast_to(
+                pad, (capacity + rows.shape[0], 5))])
+            rows = jax.lax.dynamic_update_slice(both, rows,
+                                                (n_self, jnp.int32(0)))
+            total, per_system = total + n_self, per_system + self_system
+        else:
+            rows = jnp.concatenate([rows, jnp.broadcast_to(
+                pad, (max(capacity - rows.shape[0], 0), 5))])
+        rows = rows[:capacity]
     padding = rows[:, 0] >= n
     fill = jnp.concatenate([jnp.broadcast_to(pad_index, (2,)).astype(
         jnp.int32), jnp.zeros((3,), jnp.int32)])

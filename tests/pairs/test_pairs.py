@@ -529,7 +529,7 @@ def test_gradients_finite_at_coincident_atoms_and_padding(x64):
 def test_auto_switches_from_brute_force_to_the_cell_grid():
     plan = checks_module.plan
     # 2 atoms, 5^3 images: brute; 216 atoms in a cell taller than the
-    # cutoff (27 images): N^2 * 27 = 1.3e6 > 2^20, the grid.
+    # cutoff (27 images): N^2 * 27 = 1.3e6 > BRUTE_CANDIDATES, the grid.
     assert plan(2, (True,) * 3, (2, 2, 2), "auto")[0]
     assert not plan(216, (True,) * 3, (1, 1, 1), "auto")[0]
     assert plan(216, (True,) * 3, (1, 1, 1), "brute")[0]
