@@ -80,6 +80,13 @@ BENCHMARKS = [
      "benchmarks/pairs.py",
      "Pairs with lattice shifts of silicon (cutoff 5 Å, float64 on the "
      "CPU), jitted and eager, against the libraries it replaces."),
+    ("graphs", "Graphs for ML potentials: `jaxrt.pairs` and `pairs_batch` "
+     "against vesin", "benchmarks/graphs.py",
+     "The issue's structures and flat batches (float64, cutoff 5 Å, the "
+     "methods interleaved in one process): jitted with static sizes, eager, "
+     "vesin, matscipy where installed, ASE on small systems; "
+     "`graphs_compiles`: programs compiled and time over a data set of 50 "
+     "atom counts."),
     ("radii", "Per-particle radii", "benchmarks/radii.py",
      "Lists with per-particle radii on seed 003's scenes: the cell list by "
      "radius classes, one grid of the largest radius, and the BVH."),

@@ -12,7 +12,10 @@ Public API:
   Scene                    a simulation of only the effects it names (jaxrt.sim)
   pairs, Pairs, pairs_sizes, PairsError   pairs with lattice shifts (i, j, S)
                            in any cell, jit/vmap/grad-able (jaxrt.pairs)
-  pairs_from_ase, pairs_to_ase, ase_neighbor_list   ASE in and out
+  pairs_batch, BatchPairs, pairs_batch_sizes   flat batches of systems
+                           in jraph's layout (n_node, n_edge, padding graph)
+  pairs_from_ase, pairs_to_ase, ase_neighbor_list, batch_from_ase
+                           ASE in and out
 
 Every name loads on first use (`jaxrt.lazy`): ``import jaxrt`` imports
 neither JAX, jax-md, Warp nor `jaxrt.sim`.
@@ -22,10 +25,12 @@ from jaxrt import lazy as _lazy
 __version__ = "0.1.0"
 
 _NAMES = {
+    "BatchPairs": "jaxrt.pairs.batch:BatchPairs",
     "Dense": "jaxrt.lists.neighbors:Dense",
     "Error": "jaxrt.errors:Error",
     "ErrorCode": "jaxrt.errors:ErrorCode",
     "ListTooLargeError": "jaxrt.errors:ListTooLargeError",
+    "Float32Warning": "jaxrt.pairs.search:Float32Warning",
     "NeighborListError": "jaxrt.errors:NeighborListError",
     "OrderedSparse": "jaxrt.lists.neighbors:OrderedSparse",
     "PairSizes": "jaxrt.pairs.search:PairSizes",
@@ -36,10 +41,13 @@ _NAMES = {
     "ase_neighbor_list": "jaxrt.pairs.ase:neighbor_list",
     "available_backends": "jaxrt.backends:available",
     "backends": "jaxrt.backends",
+    "batch_from_ase": "jaxrt.pairs.ase:batch_from_ase",
     "check": "jaxrt.errors:check",
     "energy": "jaxrt.energy",
     "neighbor_list": "jaxrt.lists.neighbors:neighbor_list",
     "pairs": "jaxrt.pairs.search:pairs",
+    "pairs_batch": "jaxrt.pairs.batch:pairs_batch",
+    "pairs_batch_sizes": "jaxrt.pairs.batch:pairs_batch_sizes",
     "pairs_from_ase": "jaxrt.pairs.ase:pairs_from_ase",
     "pairs_sizes": "jaxrt.pairs.search:pairs_sizes",
     "pairs_to_ase": "jaxrt.pairs.ase:pairs_to_ase",

@@ -45,7 +45,6 @@ LONG_MODULES = {
                                 "module of their own",
     "jaxrt.energy.listfree.sph": "one energy's walks, kernel and checks",
     "jaxrt.sim.domains": "one decomposition: sharding, halos, migration",
-    "jaxrt.pairs.search": "one search and its front (checks, static sizes)",
 }
 
 

@@ -31,6 +31,7 @@ import jaxrt  # noqa: E402
 from oracle import brute_pairs_shifts  # noqa: E402
 
 pairs_module = importlib.import_module("jaxrt.pairs.search")
+checks_module = importlib.import_module("jaxrt.pairs.checks")
 
 
 @pytest.fixture
@@ -226,7 +227,7 @@ def test_random_cells_under_jit_match_ase(backend, x64):
         cutoff = [2.5, 4.0, 6.0][k % 3]
         cell = atoms.cell.array
         pbc = tuple(bool(p) for p in atoms.pbc)
-        need = pairs_module._shift_for_cell(cell, cutoff, pbc)
+        need = checks_module.shift_for_cell(cell, cutoff, pbc)
         if max(need) > 4:
             continue  # too flat for the program's reach
         if pbc not in programs:
@@ -278,8 +279,8 @@ def test_ase_drop_in_returns_what_ase_returns(x64):
     i, j, s = jaxrt.pairs_to_ase(result)
     assert {(a, b, *c) for a, b, c in zip(i.tolist(), j.tolist(),
                                           s.tolist())} == ase_set(si2(), 5.0)
-    with pytest.raises(NotImplementedError, match="scalar cutoff"):
-        jaxrt.ase_neighbor_list("ij", si2(), {("Si", "Si"): 3.0})
+    with pytest.raises(NotImplementedError, match="per-atom radii"):
+        jaxrt.ase_neighbor_list("ij", si2(), [3.0, 3.0])
 
 
 # --- jit, vmap, overflow -------------------------------------------------------
@@ -526,9 +527,9 @@ def test_gradients_finite_at_coincident_atoms_and_padding(x64):
 
 
 def test_auto_switches_from_brute_force_to_the_cell_grid():
-    plan = pairs_module._plan
+    plan = checks_module.plan
     # 2 atoms, 5^3 images: brute; 216 atoms in a cell taller than the
-    # cutoff (27 images): N^2 * 27 = 1.3e6 > 2^20, the grid.
+    # cutoff (27 images): N^2 * 27 = 1.3e6 > BRUTE_CANDIDATES, the grid.
     assert plan(2, (True,) * 3, (2, 2, 2), "auto")[0]
     assert not plan(216, (True,) * 3, (1, 1, 1), "auto")[0]
     assert plan(216, (True,) * 3, (1, 1, 1), "brute")[0]
@@ -546,3 +547,61 @@ def test_graph_energy_example_trains(x64):
     assert sizes.max_shift == (2, 2, 2)  # the 2-atom cells' images
     (_, loss0, _, _), (_, loss, _, _) = history[0], history[-1]
     assert np.isfinite(loss) and loss < 0.5 * loss0, history
+
+
+# --- regressions ---------------------------------------------------------------
+
+def test_traced_cell_with_zero_rows_is_completed_under_jit(x64):
+    # ASE's molecules have an all-zero cell and vacuum=None slabs a zero
+    # third row; outside jit they are completed as ASE completes them, and
+    # under jit (a traced cell) the same pairs must come out, unflagged.
+    cases = [(molecule("CH3CH2OH"), 3.0),
+             (fcc111("Al", size=(2, 2, 3), vacuum=None), 6.0)]
+    for atoms, cutoff in cases:
+        cell = np.asarray(atoms.cell.array)
+        assert not cell.any(axis=1).all()  # a zero row
+        pbc = tuple(bool(p) for p in atoms.pbc)
+        want = ase_set(atoms, cutoff)
+        eager = jaxrt.pairs(atoms.positions, cutoff, cell=cell, pbc=pbc)
+        assert as_set(eager) == want
+        capacity = len(want) + 8
+        got = jax.jit(lambda r, c, pbc=pbc, cutoff=cutoff: jaxrt.pairs(
+            r, cutoff, cell=c, pbc=pbc, capacity=capacity, max_shift=3))(
+                atoms.positions, cell)
+        assert int(got.error) == 0, int(got.error)
+        assert as_set(got) == want | {("pad", len(atoms))}
+
+
+def test_vectors_and_distances_take_float32_positions_and_an_ase_cell():
+    atoms = si2()
+    pos = np.asarray(atoms.positions, np.float32)
+    result = jaxrt.pairs(pos, 5.0, cell=np.asarray(atoms.cell.array,
+                                                   np.float32))
+    i, j, s, d64 = ase_neighbor_list("ijSd", atoms, 5.0)
+    for cell in (atoms.cell, atoms.cell.array):  # an ase.Cell, float64 numpy
+        d = np.asarray(result.distances(pos, cell))
+        vec = np.asarray(result.vectors(pos, cell))
+        assert d.dtype == vec.dtype == np.float32
+        got = dict(zip(keys(result), d))
+        # float32: a few ulps of the ~10 Å involved (module docstring).
+        assert max(abs(got[(a, b, *c)] - x) for a, b, c, x in
+                   zip(i, j, s.tolist(), d64)) < 16 * 2.0 ** -23 * 16
+    shifts = np.asarray(result.shift_vectors(atoms.cell))
+    np.testing.assert_allclose(shifts, np.asarray(result.shift)
+                               @ atoms.cell.array, rtol=0, atol=1e-5)
+
+
+def test_float64_numpy_searched_in_float32_warns_naming_the_fix():
+    atoms = si2()
+    assert not jax.config.jax_enable_x64
+    with pytest.warns(jaxrt.Float32Warning, match="jax_enable_x64"):
+        jaxrt.pairs(atoms.positions, 5.0, cell=atoms.cell.array)
+    with pytest.warns(jaxrt.Float32Warning, match="float32"):
+        jaxrt.pairs_sizes(atoms.positions[None], 5.0, cell=atoms.cell.array)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxrt.pairs(atoms.positions.astype(np.float32), 5.0,
+                    cell=atoms.cell.array)  # float32 on purpose: no warning
+        with jax.enable_x64(True):
+            jaxrt.pairs(atoms.positions, 5.0, cell=atoms.cell.array)

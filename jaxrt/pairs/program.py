@@ -1,0 +1,652 @@
+"""The search program of `jaxrt.pairs` and `jaxrt.pairs_batch`: the pairs
+``(i, j, S)`` of one flat batch of systems, in one jitted program.
+
+A batch is flat (jraph's layout): the atoms of every system concatenated,
+``graph[a]`` naming each atom's system, one cell and one ``pbc`` per system
+(traced: molecules, slabs and bulk share a program); one system is the
+batch of one. Pairs never cross systems.
+
+How it searches (the search of one system is the same with one graph):
+
+1. **Cells.** Zero rows of a system's cell on its free axes are completed
+   (ASE's molecules and ``vacuum=None`` slabs have them) by unit vectors
+   orthogonal to the others; on a free axis the shift is always 0, so the
+   pairs do not depend on the completion, only the binning does.
+2. **Fractional coordinates.** ``f = R @ inv(cell)``, wrapped into
+   ``[0, 1)`` on periodic axes (``w = floor(f)``); shifts found between
+   wrapped atoms are turned back into shifts of the caller's positions,
+   ``S = S' - w[j] + w[i]``.
+3. **Grid.** Each system's axis ``k`` is cut into ``c_k`` cells at least
+   ``cutoff / (r_k h_k)`` wide (fractional), ``h_k`` the cell's height
+   across the axis and ``r_k`` the static stencil reach (on a periodic
+   axis ``r_k >= ceil(cutoff / h_k)``, the largest lattice shift between
+   wrapped atoms; a larger reach makes smaller cells). On a free axis the
+   cells span the system's atoms. A system has at most ``4 n + 64`` cells
+   (coarsened past that); cells of all systems are numbered in one table,
+   atoms sorted by cell.
+4. **Stencil.** Atom ``i`` in cell ``a`` reads the cells ``a + o`` of
+   its own system, ``|o_k| <= r_k``; on a periodic axis ``a + o`` is the
+   cell ``(a + o) mod c`` of the image ``floor((a + o) / c)``, so each
+   candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
+   read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
+   after ``i``); sorted by ``i``, all of it.
+5. **Decide and store.** Candidates are read ``chunk`` slots of every run
+   at a time in a loop until the fullest cell is read. Each is decided as
+   ASE decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
+   cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
+   matrix), and kept candidates are written at the running count, so the
+   count is exact past the capacity. From the half stencil a kept pair
+   stands for ``(i, j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| =
+   |d|`` bit for bit): a full list writes both, a half list the
+   representative, ``i < j``, or ``i == j`` and ``S`` lexicographically
+   positive. From the full stencil each atom finds its own pairs (only
+   representatives for a half list) and ranks them.
+6. **Assemble.** Unsorted: self pairs ``(i, i, 0)`` first when asked for,
+   then the pairs. Sorted: each atom's self pair and pairs at the atom's
+   offset in the list (a counting sort: no sort runs). Padding rows
+   ``(pad, pad, 0)`` at the end.
+
+``brute=True`` is the same program with one cell per system: every atom
+of a system is a candidate of every atom of it, in every image (unsorted,
+in one step when the chunk covers the atoms). `search_small` decides every
+candidate of one small system at once, for eager calls.
+"""
+from __future__ import annotations
+
+import functools
+import itertools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrt.pairs.bits import ErrorBit
+
+# Cells are this much (relatively) wider than their minimum, so that an atom
+# binned one cell off by rounding still has all its neighbours in reach.
+CELL_MARGIN = 2.0 ** -10
+# A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
+CELLS_PER_ATOM = 4
+CELLS_PER_SYSTEM = 64
+
+
+def shift_vectors(s, h):
+    """``s @ h`` written out (``s`` float ``(..., 3)``, ``h`` ``(..., 3, 3)``
+    broadcasting): elementwise in the dtype, as ASE's sum of three products
+    (a GPU matrix product may round float32 to TF32)."""
+    return (s[..., 0:1] * h[..., 0, :] + s[..., 1:2] * h[..., 1, :]
+            + s[..., 2:3] * h[..., 2, :])
+
+
+def safe_norm(d):
+    """``|d|`` over the last axis, with a zero (finite) gradient at 0."""
+    d2 = jnp.sum(d * d, axis=-1)
+    positive = d2 > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1)), 0)
+
+
+def inverse(h):
+    """``inv(h)`` and ``det(h)`` of ``(..., 3, 3)`` matrices, written out by
+    cofactors: no solver call for a 3x3, a fraction of its compile time."""
+    a, b, c = h[..., 0, :], h[..., 1, :], h[..., 2, :]
+    adj = jnp.stack([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)],
+                    axis=-1)  # columns: inv(h) = adj / det
+    det = jnp.sum(a * adj[..., :, 0], axis=-1)  # elementwise: no TF32 dot
+    return adj / det[..., None, None], det
+
+
+def heights(hinv):
+    """float ``(..., 3)``: a cell's height across each axis, ``1 / |b_k|``
+    with ``b_k`` column ``k`` of ``inv(cell)``."""
+    return 1 / jnp.sqrt(jnp.sum(hinv * hinv, axis=-2))
+
+
+def _unit(v):
+    n = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+    return v / jnp.where(n > 0, n, 1)
+
+
+def complete_cells(h, pbc):
+    """Cells ``(G, 3, 3)`` with their zero rows on free axes replaced (ASE's
+    ``complete_cell``: unit vectors orthogonal to the rows given), and bool
+    ``(G,)``: a zero row on a periodic axis (the cell is singular)."""
+    zero = ~jnp.any(h != 0, axis=-1)  # (G, 3)
+    missing = zero & ~pbc
+    count = jnp.sum(missing, axis=-1)
+    rows = [h[:, 0], h[:, 1], h[:, 2]]
+    # One row missing: the unit normal of the two others.
+    normal = [_unit(jnp.cross(rows[(k + 1) % 3], rows[(k + 2) % 3]))
+              for k in range(3)]
+    # Two missing: the present row u and two unit vectors orthogonal to it
+    # and to each other (from the Cartesian axis least along u).
+    present = jnp.sum(jnp.where(missing[..., None], 0, h), axis=1)
+    u = _unit(present)
+    axis = jax.nn.one_hot(jnp.argmin(jnp.abs(u), axis=-1), 3, dtype=h.dtype)
+    v1 = _unit(jnp.cross(u, axis))
+    v2 = jnp.cross(u, v1)
+    first_missing = jnp.argmax(missing, axis=-1)
+    eye = jnp.eye(3, dtype=h.dtype)
+    out = []
+    for k in range(3):
+        pair = jnp.where((first_missing == k)[:, None], v1, v2)
+        row = jnp.where((count == 1)[:, None], normal[k],
+                        jnp.where((count == 2)[:, None], pair, eye[k]))
+        out.append(jnp.where(missing[:, k, None], row, rows[k]))
+    return jnp.stack(out, axis=1), jnp.any(zero & pbc, axis=-1)
+
+
+def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
+    """int32 ``(K, 3)``: the stencil, every offset with ``|o_k| <= r_k``;
+    the half stencil (not ``full``) keeps those that are zero or
+    lexicographically positive."""
+    every = np.array(list(itertools.product(
+        *(range(-r, r + 1) for r in reach))), np.int32)
+    if full:
+        return every
+    first = np.array([next((v for v in o if v != 0), 0) for o in every])
+    return every[first >= 0]
+
+
+def _lex_positive(s):
+    """bool ``(...)``: ``s`` (int ``(..., 3)``) lexicographically > 0."""
+    return (s[..., 0] > 0) | ((s[..., 0] == 0) & (
+        (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
+
+
+def _exclusive_prefix(x):
+    """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
+    inclusive = jnp.cumsum(x, dtype=jnp.int32)
+    return inclusive - x
+
+
+def _triangular_dot(x, strict: bool = False):
+    """Inclusive (or, ``strict``, exclusive) prefix sums along the last
+    axis of float32 ``x`` as one product with a triangular matrix: exact
+    for sums below 2^24, and one small dot compiles and runs faster than a
+    scan on a CPU."""
+    m = x.shape[-1]
+    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32), k=int(strict)))
+    return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
+
+
+_RANK_BLOCK = 32
+
+
+def _row_ranks(keep):
+    """int32 ``(R, M)``: the inclusive count of True along each row of bool
+    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
+    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
+    ``M²``."""
+    rows, m = keep.shape
+    x = keep.astype(jnp.float32)
+    if m <= 2 * _RANK_BLOCK:
+        return _triangular_dot(x).astype(jnp.int32)
+    blocks = -(-m // _RANK_BLOCK)
+    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
+        rows, blocks, _RANK_BLOCK)
+    inner = _triangular_dot(x)
+    before = _triangular_dot(inner[..., -1], strict=True)
+    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
+    return ranks.astype(jnp.int32)
+
+
+def table_size(n: int, n_graph: int, brute: bool) -> int:
+    return n_graph if brute else CELLS_PER_ATOM * n + CELLS_PER_SYSTEM * n_graph
+
+
+def _grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
+          brute: bool, count):
+    """Each system's grid (module docstring, 3.).
+
+    Args:
+      fw: float ``(N, 3)`` wrapped fractional positions; graph: int32
+        ``(N,)``; real: bool ``(N,)``; pbc: bool ``(G, 3)``; h_height:
+        float ``(G, 3)``; count: int32 ``(G,)`` real atoms per system.
+    Returns:
+      int32 ``(G, 3)`` cells per axis, float ``(G, 3)`` origin and width,
+      int32 ``(G,)`` the first cell of each system in the table.
+    """
+    dtype = fw.dtype
+    g = n_graph
+    if brute:
+        cells = jnp.ones((g, 3), jnp.int32)
+        return (cells, jnp.zeros((g, 3), dtype), jnp.ones((g, 3), dtype),
+                jnp.arange(g, dtype=jnp.int32))
+    reach_arr = np.maximum(np.array(reach), 1)
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    lo = jax.ops.segment_min(jnp.where(real[:, None], fw, big), graph, g)
+    hi = jax.ops.segment_max(jnp.where(real[:, None], fw, -big), graph, g)
+    has = (count > 0)[:, None]
+    origin = jnp.where(pbc, 0, jnp.where(has, lo, 0))
+    extent = jnp.where(pbc, 1, jnp.where(has, jnp.maximum(hi - origin, 0), 0))
+    least = cutoff * (1 + CELL_MARGIN) / (reach_arr * h_height)
+    budget = CELLS_PER_ATOM * count + CELLS_PER_SYSTEM
+
+    def count_cells(coarsen):
+        size = least * coarsen[:, None]
+        per_axis = jnp.where(pbc, jnp.maximum(jnp.floor(1 / size), 1),
+                             jnp.floor(extent / size) + 1)
+        return jnp.where(has, per_axis, 1)
+
+    def over(coarsen):
+        return jnp.prod(count_cells(coarsen), axis=-1) > budget
+
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.any(over(c)),
+        lambda c: jnp.where(over(c), c * 1.25, c), jnp.ones((g,), dtype))
+    cells_f = count_cells(coarsen)
+    width = jnp.where(pbc, 1 / cells_f, least * coarsen[:, None])
+    cells = cells_f.astype(jnp.int32)
+    return cells, origin, width, _exclusive_prefix(jnp.prod(cells, axis=-1))
+
+
+class _Binned(NamedTuple):
+    """The atoms binned: what the loop and the assembly read."""
+    error: jax.Array      # int32 bits so far
+    real: jax.Array       # bool (N,)
+    graph: jax.Array      # int32 (N,)
+    h_atom: jax.Array     # (N, 3, 3) each atom's completed cell
+    start: jax.Array      # int32 (N, K) first sorted slot of each target run
+    length: jax.Array     # int32 (N, K) its length
+    image: jax.Array      # int32 (N, K, 3) S' + w[i] of each target
+    order: jax.Array      # int32 (N,) sorted slot -> atom
+    rank: jax.Array       # int32 (N,) atom -> sorted slot
+    w: jax.Array          # float (N, 3) whole cells each atom was moved by
+
+
+def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
+    """The atoms sorted by cell: each target cell's run (first sorted slot
+    and length, int32 ``(N, K)``), ``order`` (slot -> atom) and ``rank``
+    (atom -> slot)."""
+    n = coord.shape[0]
+    table = table_size(n, n_graph, False)
+
+    def key_of(c, cells_c, base_c):
+        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
+            cells_c[..., 0] + c[..., 0]
+
+    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
+    sorted_key, order = jax.lax.sort(
+        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    # Each cell's run: its first sorted slot and its length, by two
+    # scatters (an empty cell's start is never read).
+    slots = jnp.arange(n, dtype=jnp.int32)
+    first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
+        slots, mode="drop")
+    sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
+    tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
+                                    base_a[:, None]), 0)
+    start = first[tkey]
+    length = jnp.where(inside, sizes[tkey], 0)
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(
+        jnp.arange(n, dtype=jnp.int32))
+    return start, length, order, rank
+
+
+def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
+         n_graph, completed, full) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+    n, dtype = positions.shape[0], positions.dtype
+    r = jax.lax.stop_gradient(positions)
+    h = jax.lax.stop_gradient(cells)
+    if completed:
+        zero_periodic = jnp.zeros((n_graph,), bool)
+    else:
+        h, zero_periodic = complete_cells(h, pbc)
+    hinv, det = inverse(h)
+    bad_cell = zero_periodic | ~(jnp.isfinite(det) & (jnp.abs(det) > 0)
+                                 & jnp.all(jnp.isfinite(hinv), axis=(1, 2)))
+    unclipped, graph = graph, jnp.clip(graph, 0, n_graph - 1)
+    finite = jnp.all(jnp.isfinite(r), axis=1)
+    count = jax.ops.segment_sum(mask.astype(jnp.int32), graph, n_graph)
+    error = jnp.where(jnp.any(mask & ~finite),
+                      int(ErrorBit.NONFINITE_POSITION), 0)
+    error = error | jnp.where(jnp.any(bad_cell & (count > 0)),
+                              int(ErrorBit.SINGULAR_CELL), 0)
+    real = mask & finite
+    count = jax.ops.segment_sum(real.astype(jnp.int32), graph, n_graph)
+    hinv = jnp.where(bad_cell[:, None, None], jnp.eye(3, dtype=dtype), hinv)
+    h_height = heights(hinv)
+    pbc_a, hinv_a = pbc[graph], hinv[graph]
+    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv_a, axis=1)
+    w = jnp.where(pbc_a, jnp.floor(f), 0)
+    fw = f - w
+
+    grid_cells, origin, width, base = _grid(
+        fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
+    # The reach covers the cutoff unless the cell is too short for it.
+    short = jnp.any(pbc & (radius * grid_cells / h_height > np.array(reach)),
+                    axis=-1) & (count > 0) & ~bad_cell
+    error = error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
+
+    cells_a, base_a = grid_cells[graph], base[graph]
+    coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
+        jnp.int32), 0, cells_a - 1)
+    # The half stencil's target cells and their images (docstring, 4.).
+    target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
+    cells_k = cells_a[:, None, :]
+    image = jnp.where(pbc_a[:, None, :], jnp.floor_divide(target, cells_k), 0)
+    target = target - image * cells_k
+    inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
+        real[:, None]
+    if brute:
+        # One cell per system: a system's run is its atoms as given (they
+        # are contiguous; padding atoms in it are skipped by the loop), so
+        # nothing is sorted.
+        order = rank = jnp.arange(n, dtype=jnp.int32)
+        system = jnp.clip(unclipped, 0, n_graph)
+        sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
+                                    n_graph + 1)
+        first = _exclusive_prefix(sizes)
+        start = jnp.broadcast_to(first[system][:, None], inside.shape)
+        length = jnp.where(inside, sizes[system][:, None], 0)
+    else:
+        start, length, order, rank = _runs(coord, target, inside, cells_a,
+                                           base_a, real, n_graph)
+    # Shifts of the caller's positions: S = S' + w[i] - w[j].
+    image = image + w.astype(jnp.int32)[:, None, :]
+    return _Binned(error, real, graph, h[graph], start, length, image, order,
+                   rank, w)
+
+
+def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
+                stored, brute, full, half):
+    """Step 5: the loop over candidates. Returns the pairs found (int32),
+    per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
+    (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
+    with ``i = N``: from the half stencil each pair is found once; from the
+    ``full`` stencil each atom finds all its own pairs (its representatives
+    only, with ``half``) and a third column ranks them among the atom's."""
+    n, dtype = positions.shape[0], positions.dtype
+    b = binned
+    own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
+    k_offsets = own.shape[0]
+    columns = [positions[b.order], b.w[b.order]]
+    if species is not None:
+        columns.append(species[b.order][:, None].astype(dtype))
+    # One gather per candidate: the sorted atoms' positions, wraps (small
+    # whole numbers, exact in the dtype) and species side by side.
+    table = jnp.concatenate(columns, axis=1)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    h_k = b.h_atom[:, None, None]
+    width = 3 if full else 2
+    # (i, k) of each candidate as one int: atom i's offset k.
+    code = (atoms[:, None] * k_offsets + jnp.arange(
+        k_offsets, dtype=jnp.int32))[:, :, None]
+
+    def step(t, carry):
+        total, per_atom, out = carry
+        slot = t * chunk + jnp.arange(chunk, dtype=jnp.int32)
+        valid = slot[None, None, :] < b.length[:, :, None]  # (N, K, B)
+        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+        row = table[p]
+        s = b.image[:, :, None, :] - row[..., 3:6].astype(jnp.int32)
+        d = (row[..., :3] - positions[:, None, None, :]) + shift_vectors(
+            s.astype(dtype), h_k)
+        dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                        + d[..., 2] * d[..., 2])
+        if species is None:
+            limit = cut
+        else:
+            limit = cut.at[species[:, None, None], row[..., 6].astype(
+                jnp.int32)].get(mode="fill", fill_value=0)
+        rank_i = b.rank[:, None, None]
+        if not full:  # within the own cell, from the atom sorted first
+            once = ~own[None, :, None] | (p > rank_i)
+        else:  # all but (i, i, 0)
+            once = ~(own[None, :, None] & (p == rank_i))
+            if half:
+                j = b.order[p]
+                i = atoms[:, None, None]
+                once = once & ((i < j) | ((i == j) & _lex_positive(s)))
+        if brute:  # runs hold padding atoms (not sorted out)
+            valid = valid & b.real[p]
+        keep = (valid & (dist < limit) & once).reshape(n, k_offsets * chunk)
+        ranks = _row_ranks(keep)
+        row_count = ranks[:, -1]
+        if stored > 0:
+            # Two or three ints per candidate (the scatter's cost is per
+            # candidate read, kept or not); S is rebuilt after the loop.
+            at = total + _exclusive_prefix(row_count)[:, None] + ranks - 1
+            columns = [jnp.broadcast_to(code, p.shape).reshape(n, -1),
+                       p.reshape(n, -1)]
+            if full:
+                columns.append(per_atom[:, None] + ranks - 1)
+            rows = jnp.stack(columns, axis=-1)
+            out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
+                rows.reshape(-1, width), mode="drop")
+        return (total + jnp.sum(row_count, dtype=jnp.int32),
+                per_atom + row_count, out)
+
+    pad = jnp.array([n * k_offsets, 0, 0][:width], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, width))
+    start = (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out)
+    if chunk >= n:  # no run is longer: one step, no loop
+        return step(0, start)
+    steps = (jnp.max(b.length, initial=0) + chunk - 1) // chunk
+    return jax.lax.fori_loop(0, steps, step, start)
+
+
+def _stored_pairs(out, binned: _Binned):
+    """The stored candidates as ``i``, ``j`` (``N`` where padded) and
+    ``S`` (int32)."""
+    n, k_offsets = binned.image.shape[:2]
+    i = out[:, 0] // k_offsets
+    kept = i < n
+    at = jnp.where(kept, i, 0)
+    j = jnp.where(kept, binned.order[jnp.where(kept, out[:, 1], 0)], n)
+    s = binned.image[at, out[:, 0] % k_offsets] - binned.w[
+        jnp.where(kept, j, 0)].astype(jnp.int32)
+    return jnp.where(kept, i, n), j, jnp.where(kept[:, None], s, 0)
+
+
+def _placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
+    """The full stencil's rows placed by atom (a counting sort): atom
+    ``i``'s self pair (``selfs``), then its pairs in their rank order, at
+    its offset in the list. Returns int32 ``(capacity, 5)`` rows padded
+    with ``(N, N, 0)``, their count and the count per system."""
+    n = binned.order.shape[0]
+    i, j, s = _stored_pairs(out, binned)
+    kept = i < n
+    own = jnp.zeros((n,), jnp.int32) if selfs is None else \
+        selfs.astype(jnp.int32)
+    degree = per_atom + own
+    first = _exclusive_prefix(degree)
+    at = jnp.where(kept, first[jnp.where(kept, i, 0)] + own[
+        jnp.where(kept, i, 0)] + out[:, 2], capacity)
+    rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                              (capacity, 5)).at[at].set(rows, mode="drop")
+    if selfs is not None:
+        atoms = jnp.arange(n, dtype=jnp.int32)
+        placed = placed.at[jnp.where(selfs, first, capacity)].set(
+            jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+            mode="drop")
+    return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
+        degree, binned.graph, n_graph)
+
+
+def _pair_rows(found, per_atom, out, binned, *, half, n_graph):
+    """The stored rows as pairs ``(i, j, S)``: both directions of each (a
+    full list) or its representative (a half list). Returns the rows, their
+    count and the count per system (exact past the capacity)."""
+    i, j, s = _stored_pairs(out, binned)
+    per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
+    if half:
+        # The representative: i < j, or i == j and S > 0.
+        swap = (j < i) | ((j == i) & ~_lex_positive(s))
+        rows = jnp.concatenate([
+            jnp.stack([jnp.where(swap, j, i), jnp.where(swap, i, j)], axis=1),
+            jnp.where(swap[:, None], -s, s)], axis=1)
+        return rows, found, per_system
+    # Each pair next to its reverse (j, i, -S).
+    forward = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    reverse = jnp.concatenate([j[:, None], i[:, None], -s], axis=1)
+    rows = jnp.stack([forward, reverse], axis=1).reshape(-1, 5)
+    return rows, 2 * found, 2 * per_system
+
+
+def _self_mask(real, cut, species):
+    """bool ``(N,)``: the atoms with a self pair ``(i, i, 0)``, the real
+    ones whose own cutoff is positive (ASE keeps ``0 < rc``)."""
+    if species is None:
+        return real & (cut > 0)
+    return real & (cut.at[species, species].get(mode="fill",
+                                                 fill_value=0) > 0)
+
+
+def _self_rows(selfs, graph, n_graph):
+    """Step 6's self pairs ``(i, i, 0)`` of ``selfs``, packed first: int32
+    ``(N, 5)``, their count and count per system."""
+    n = selfs.shape[0]
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    at = _exclusive_prefix(selfs.astype(jnp.int32))
+    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    rows = jnp.broadcast_to(pad, (n, 5)).at[jnp.where(selfs, at, n)].set(
+        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+        mode="drop")
+    return rows, jnp.sum(selfs, dtype=jnp.int32), jax.ops.segment_sum(
+        selfs.astype(jnp.int32), graph, n_graph)
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "periodic", "reach", "capacity", "brute", "chunk", "half", "sort",
+    "self_interaction", "n_graph", "completed"))
+def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
+           periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
+           brute: bool, chunk: int, half: bool, sort: bool,
+           self_interaction: bool, n_graph: int, completed: bool = False):
+    """The pairs of a flat batch (module docstring).
+
+    Args:
+      positions: float ``(N, 3)``.
+      graph: int32 ``(N,)``, each atom's system in ``[0, n_graph)``.
+      mask: bool ``(N,)``, the real atoms (padding atoms have no pairs).
+      cells: ``(G, 3, 3)`` rows, the positions' dtype.
+      pbc: bool ``(G, 3)`` (traced); ANDed with the static ``periodic``.
+      cutoff: float scalar, or float ``(S, S)`` by species (traced).
+      species: int32 ``(N,)`` rows of the cutoff matrix, or None.
+      pad_index: int32 scalar, ``i`` and ``j`` of the padding rows.
+      reach: static ``r_k`` per axis (0 on the static free axes of the
+        brute force).
+      capacity: static rows; 0 counts only.
+      completed: static; the cells have no zero rows to complete (checked
+        on the host).
+    Returns:
+      int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
+      ``(G,)`` rows per system (exact), int32 error bits.
+    """
+    n, dtype = positions.shape[0], positions.dtype
+    cut = jnp.asarray(cutoff, dtype)
+    radius = cut if species is None else jnp.max(cut)
+    pbc = jnp.asarray(pbc, bool) & np.array(periodic)
+    binned = _bin(positions, graph, mask, cells.astype(dtype), pbc, radius,
+                  reach=reach, brute=brute, n_graph=n_graph,
+                  completed=completed, full=sort)
+    selfs = _self_mask(binned.real, cut, species) if self_interaction \
+        else None
+    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    if sort:
+        # Each atom finds its own pairs, placed by atom: sorted, no sort.
+        _, per_atom, out = _candidates(
+            positions, binned, cut, species, reach=reach, chunk=chunk,
+            stored=capacity, brute=brute, full=True, half=half)
+        rows, total, per_system = _placed_rows(
+            per_atom, out, binned, selfs, capacity=capacity,
+            n_graph=n_graph)
+    else:
+        stored = capacity if half else (capacity + 1) // 2
+        found, per_atom, out = _candidates(
+            positions, binned, cut, species, reach=reach, chunk=chunk,
+            stored=stored, brute=brute, full=False, half=half)
+        rows, total, per_system = _pair_rows(
+            found, per_atom, out, binned, half=half, n_graph=n_graph)
+        if self_interaction:
+            self_rows, n_self, self_system = _self_rows(
+                selfs, binned.graph, n_graph)
+            both = jnp.concatenate([self_rows, jnp.broadcast_to(
+                pad, (capacity + rows.shape[0], 5))])
+            rows = jax.lax.dynamic_update_slice(both, rows,
+                                                (n_self, jnp.int32(0)))
+            total, per_system = total + n_self, per_system + self_system
+        else:
+            rows = jnp.concatenate([rows, jnp.broadcast_to(
+                pad, (max(capacity - rows.shape[0], 0), 5))])
+        rows = rows[:capacity]
+    padding = rows[:, 0] >= n
+    fill = jnp.concatenate([jnp.broadcast_to(pad_index, (2,)).astype(
+        jnp.int32), jnp.zeros((3,), jnp.int32)])
+    rows = jnp.where(padding[:, None], fill, rows)
+    error = binned.error | jnp.where(total > capacity,
+                                     int(ErrorBit.CAPACITY), 0)
+    return rows, total, per_system, error.astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=(
+    "periodic", "reach", "capacity", "half", "self_interaction"))
+def search_small(positions, mask, h, hinv, cutoff, species, *,
+                 periodic: tuple[bool, ...], reach: tuple[int, ...],
+                 capacity: int, half: bool, self_interaction: bool):
+    """The pairs of one small system, every candidate ``(i, j, S)`` at once
+    (no grid, no loop, no sort: a handful of XLA operations, for eager calls
+    whose cost is the program's dispatch). The same decisions as `search`
+    (each ``d`` computed as there; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit
+    for bit), in ``i``-major order (sorted by ``i``).
+
+    Args:
+      positions: float ``(N, 3)``; mask: bool ``(N,)`` real atoms.
+      h, hinv: ``(3, 3)`` the completed cell (checked on the host) and its
+        inverse, the positions' dtype.
+      cutoff, species: as `search`.
+      periodic, reach: static; the cell needs no shift past ``reach``
+        (checked on the host).
+    Returns:
+      int32 ``(capacity + 1, 5)``: the rows ``(i, j, S)`` padded with
+      ``(N, N, 0)``, then ``(count, error bits, 0, 0, 0)``.
+    """
+    n, dtype = positions.shape[0], positions.dtype
+    cut = jnp.asarray(cutoff, dtype)
+    r = jax.lax.stop_gradient(positions)
+    finite = jnp.all(jnp.isfinite(r), axis=1)
+    error = jnp.where(jnp.any(mask & ~finite),
+                      int(ErrorBit.NONFINITE_POSITION), 0)
+    real = mask & finite
+    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv, axis=1)
+    w = jnp.where(np.array(periodic), jnp.floor(f), 0).astype(jnp.int32)
+    every = np.array(list(itertools.product(
+        *(range(-k, k + 1) for k in reach))), np.int32)  # (M, 3)
+    # S = o + w[i] - w[j] for every (i, j, o): i-major.
+    s = (jnp.asarray(every)[None, None] + w[:, None, None, :]
+         - w[None, :, None, :])
+    d = (r[None, :, None, :] - r[:, None, None, :]) + shift_vectors(
+        s.astype(dtype), h)
+    dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                    + d[..., 2] * d[..., 2])
+    if species is None:
+        limit = cut
+    else:
+        limit = cut.at[species[:, None, None], species[None, :, None]].get(
+            mode="fill", fill_value=0)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    same = atoms[:, None, None] == atoms[None, :, None]
+    own = same & jnp.asarray(~every.any(axis=1))[None, None]
+    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
+    if half:
+        keep = keep & ((atoms[:, None, None] < atoms[None, :, None])
+                       | (same & _lex_positive(s)) | own)
+    if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
+        keep = keep & ~own
+    flat = keep.reshape(-1)
+    total = jnp.sum(flat, dtype=jnp.int32)
+    at = jnp.where(flat, jnp.cumsum(flat, dtype=jnp.int32) - 1, capacity)
+    shape = s.shape[:3]
+    rows = jnp.concatenate([
+        jnp.broadcast_to(atoms[:, None, None], shape)[..., None],
+        jnp.broadcast_to(atoms[None, :, None], shape)[..., None], s], axis=-1)
+    out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                           (capacity, 5)).at[at].set(rows.reshape(-1, 5),
+                                                     mode="drop")
+    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
+    tail = jnp.stack([total, error.astype(jnp.int32)] + [jnp.int32(0)] * 3)
+    return jnp.concatenate([out, tail[None]])
