@@ -236,6 +236,27 @@ LONG_CASES = {
     # small boxes on every engine.
     "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[fine-2.6]",
     "tests/energy/test_fused.py::test_cell_small_periodic_boxes_count_each_pair_once[fine-xla-3.4]",
+    # test_neighbors.py: [0.5-Sparse] and [1.25-Dense] keep the trim of
+    # a wider build, for a padded and a tight capacity.
+    "tests/lists/test_neighbors.py::test_allocate_trims_its_wider_build_to_exactly_the_sized_list[0.5-NeighborListFormat.Dense]",
+    "tests/lists/test_neighbors.py::test_allocate_trims_its_wider_build_to_exactly_the_sized_list[0.5-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_neighbors.py::test_allocate_trims_its_wider_build_to_exactly_the_sized_list[1.25-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_neighbors.py::test_allocate_trims_its_wider_build_to_exactly_the_sized_list[1.25-NeighborListFormat.Sparse]",
+    # test_bvh.py: one case per format and periodicity is kept among
+    # [True-Dense], [False-Sparse] (random scenes), the same for clustered
+    # boxes, and [Dense] for faces and corners and the generic method.
+    "tests/backends/test_bvh.py::test_random_scene_matches_jax_md_brute_force_and_cell[False-NeighborListFormat.Dense]",
+    "tests/backends/test_bvh.py::test_random_scene_matches_jax_md_brute_force_and_cell[False-NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_random_scene_matches_jax_md_brute_force_and_cell[True-NeighborListFormat.Sparse]",
+    "tests/backends/test_bvh.py::test_random_scene_matches_jax_md_brute_force_and_cell[True-NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_clustered_boxes_give_the_same_lists[False-NeighborListFormat.Dense]",
+    "tests/backends/test_bvh.py::test_clustered_boxes_give_the_same_lists[False-NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_clustered_boxes_give_the_same_lists[True-NeighborListFormat.Sparse]",
+    "tests/backends/test_bvh.py::test_clustered_boxes_give_the_same_lists[True-NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_particles_on_faces_and_corners_periodic[NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_particles_on_faces_and_corners_periodic[NeighborListFormat.Sparse]",
+    "tests/backends/test_bvh.py::test_generic_method_backend_wraps_any_rt_method[NeighborListFormat.OrderedSparse]",
+    "tests/backends/test_bvh.py::test_generic_method_backend_wraps_any_rt_method[NeighborListFormat.Sparse]",
 }
 
 

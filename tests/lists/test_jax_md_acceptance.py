@@ -42,10 +42,9 @@ KNOWN_FAILING: dict[str, str] = {}
 # selected id is marked slow. An id here that jax-md no longer has is an
 # error.
 DEFAULT: set[str] = {
-    # periodic boxes less than twice the cutoff across, each layout
+    # a periodic box less than twice the cutoff across; every layout, 2D
+    # and 3D, is in tests/lists/test_small_box.py and the slow selection
     "energy_test.py::EnergyTest::test_lennard_jones_small_neighbor_list_energy_dim=2_dtype=float32_format=NeighborListFormat.Dense",
-    "energy_test.py::EnergyTest::test_lennard_jones_small_neighbor_list_energy_dim=3_dtype=float32_format=NeighborListFormat.OrderedSparse",
-    "energy_test.py::EnergyTest::test_morse_small_neighbor_list_energy_dim=3_dtype=float32_format=NeighborListFormat.Sparse",
 }
 
 
