@@ -257,6 +257,18 @@ LONG_CASES = {
     "tests/backends/test_bvh.py::test_particles_on_faces_and_corners_periodic[NeighborListFormat.Sparse]",
     "tests/backends/test_bvh.py::test_generic_method_backend_wraps_any_rt_method[NeighborListFormat.OrderedSparse]",
     "tests/backends/test_bvh.py::test_generic_method_backend_wraps_any_rt_method[NeighborListFormat.Sparse]",
+    # test_never_wrong.py: each metric keeps its Dense case; the layouts
+    # are kept by the Euclidean cases. test_neighbors.py: the periodic
+    # random scene keeps [Dense], the free one every layout. Triclinic
+    # periodic boxes keep [Dense] and [Sparse].
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[twice-<lambda>-False-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[half-<lambda>-False-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[soft core-soft_core-False-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic-metric-False-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_never_wrong.py::test_non_euclidean_metrics_match_jax_md[anisotropic periodic-metric-True-NeighborListFormat.OrderedSparse]",
+    "tests/lists/test_neighbors.py::test_random_scene_matches_jax_md_and_brute_force[True-NeighborListFormat.OrderedSparse-cell]",
+    "tests/lists/test_neighbors.py::test_random_scene_matches_jax_md_and_brute_force[True-NeighborListFormat.Sparse-cell]",
+    "tests/lists/test_never_wrong.py::test_triclinic_boxes_in_every_layout[True-NeighborListFormat.OrderedSparse-cell]",
 }
 
 
