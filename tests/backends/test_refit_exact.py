@@ -30,6 +30,10 @@ import warp as wp  # noqa: E402
 from jaxrt.backends.rt import aabb, ffi  # noqa: E402
 from jaxrt.backends.rt import policy as rt_policy  # noqa: E402
 
+# The tree's own tests run where its users' trees run: on the GPU when one
+# is visible (its LBVH builder), else on the CPU (the SAH builder).
+DEVICE = "cuda:0" if wp.is_cuda_available() else "cpu"
+
 
 def reflect(x, side):
     """Positions folded back into [0, side] by walls (moves below a side)."""
@@ -150,8 +154,8 @@ def test_refits_stay_exact_over_1500_steps(policy, periodic):
 
 def tree_pairs(tree, side_array, width):
     n = tree.n
-    rows = wp.empty((n, width), dtype=wp.int32, device="cpu")
-    count = wp.empty(n, dtype=wp.int32, device="cpu")
+    rows = wp.empty((n, width), dtype=wp.int32, device=DEVICE)
+    count = wp.empty(n, dtype=wp.int32, device=DEVICE)
     tree.query_dense(side_array, mask_self=True, rows=rows, count=count)
     rows, count = rows.numpy(), count.numpy()
     assert count.max(initial=0) <= width
@@ -169,11 +173,11 @@ def test_a_refit_after_teleporting_every_particle_is_exact(dtype, cluster_size):
     side = np.array([5.0, 4.5, 1.0])
     periodic = (True, True, False)
     vector = wp.vec3d if dtype == np.float64 else wp.vec3
-    tree = aabb.AabbSearch(n, vector, "cpu", sort=True,
+    tree = aabb.AabbSearch(n, vector, DEVICE, sort=True,
                            policy=rt_policy.Refit(),
                            cluster_size=cluster_size)
     band = tree.band(cutoff)
-    side_array = wp.array([side], dtype=vector, device="cpu")
+    side_array = wp.array([side], dtype=vector, device=DEVICE)
     rng = np.random.default_rng(7)
     position = rng.uniform(0, 1, (n, 3)) * [5.0, 4.5, 6.0]
     actions = []
@@ -184,7 +188,7 @@ def test_a_refit_after_teleporting_every_particle_is_exact(dtype, cluster_size):
             # face or a period away.
             position[:10, 0] = np.where(call % 2, -band * 1.0001, side[0] + band)
             position[10:15, 1] = side[1] * rng.integers(-2, 3, 5)
-        points = wp.array(position.astype(dtype), dtype=vector, device="cpu")
+        points = wp.array(position.astype(dtype), dtype=vector, device=DEVICE)
         actions.append(tree.update(points, side_array, periodic, cutoff))
         got = tree_pairs(tree, side_array, 64)
         assert got == brute_pairs(position.astype(dtype), cutoff, side,
@@ -199,15 +203,15 @@ def test_reasons_recorded_per_call():
     n = 60
     rng = np.random.default_rng(2)
     side = np.array([4.0, 4.0, 4.0])
-    side_array = wp.array([side], dtype=wp.vec3, device="cpu")
-    tree = aabb.AabbSearch(n, wp.vec3, "cpu", sort=True,
+    side_array = wp.array([side], dtype=wp.vec3, device=DEVICE)
+    tree = aabb.AabbSearch(n, wp.vec3, DEVICE, sort=True,
                            policy=rt_policy.Fixed(k=3))
     tree.history = []
     position = rng.uniform(0, 4, (n, 3))
     for cutoff in (1.0, 1.0, 1.0, 1.0, 1.2, 1.2):
         position = position + rng.normal(0, 0.1, (n, 3))
         points = wp.array(position.astype(np.float32), dtype=wp.vec3,
-                          device="cpu")
+                          device=DEVICE)
         tree.update(points, side_array, (True,) * 3, cutoff)
         tree_pairs(tree, side_array, 48)
     tree.flush_history()
