@@ -51,6 +51,7 @@ from __future__ import annotations
 import csv
 import math
 import tempfile
+import textwrap
 import time
 from pathlib import Path
 
@@ -496,8 +497,12 @@ def plot(rows: list[dict], traces: dict, path: Path) -> None:
                 note = next((str(r.get("failed") or "") for r in rows
                              if (r.get("scene"), r.get("radii")) == (scene, radii)
                              and r.get("failed")), "not run")
-                ax.text(0.5, 0.5, note[:140], ha="center", va="center",
-                        fontsize=7, wrap=True, transform=ax.transAxes)
+                # Wrapped to the panel (matplotlib's wrap= wraps to the figure).
+                ax.text(0.5, 0.5, textwrap.fill(note[:160], 32),
+                        ha="center", va="center", fontsize=7,
+                        transform=ax.transAxes)
+                ax.set_xticks([])
+                ax.set_yticks([])
             if b == 0:
                 ax.set_ylabel("update + query, ms / step")
             if a == len(SCENES) - 1:
