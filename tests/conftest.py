@@ -132,8 +132,7 @@ def pytest_unconfigure(config):
 # (~3 s on CI's cores), so a variant costs nearly what its sibling does.
 LONG_CASES = {
     # test_cell_kernel.py: the kernel in Pallas' interpreter keeps
-    # [random], [lattice at cutoff] and [coincident] (faces and 2D on the
-    # portable path: test_neighbors).
+    # [random] (faces and 2D on the portable path: test_neighbors).
     "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[faces]",
     "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[2d]",
     "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[random free]",
@@ -151,7 +150,7 @@ LONG_CASES = {
     "tests/lists/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.Sparse]",
     "tests/lists/test_neighbors.py::test_overflow_is_flagged_sticky_and_fixed_by_reallocation[NeighborListFormat.OrderedSparse]",
     "tests/lists/test_neighbors.py::test_cell_list_allocated_on_a_lattice_survives_melting",
-    "tests/lists/test_neighbors.py::test_small_periodic_boxes[3.0]",  # [2.01]
+    "tests/lists/test_neighbors.py::test_small_periodic_boxes[3.0]",  # test_small_box
     # jax-md's own cases (test_jax_md_acceptance: custom mask, mask_self
     # False, dim=2) and the hypothesis scenes (dim 2 and 3) keep these.
     "tests/lists/test_neighbors.py::test_mask_self_false_keeps_self_pairs_and_custom_mask",
@@ -269,6 +268,37 @@ LONG_CASES = {
     "tests/lists/test_neighbors.py::test_random_scene_matches_jax_md_and_brute_force[True-NeighborListFormat.OrderedSparse-cell]",
     "tests/lists/test_neighbors.py::test_random_scene_matches_jax_md_and_brute_force[True-NeighborListFormat.Sparse-cell]",
     "tests/lists/test_never_wrong.py::test_triclinic_boxes_in_every_layout[True-NeighborListFormat.OrderedSparse-cell]",
+    # Default-suite time, third pass: variants whose compiled programs no
+    # other default case shares (each names the case that keeps its
+    # property). Pallas' interpreter keeps [random] and the lattice at the
+    # cutoff in the OrderedSparse rows' test; the portable path keeps
+    # mixed boundaries (test_neighbors' per-axis box) and coincident
+    # points (test_neighbors, stability's coincident cases).
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[lattice at cutoff]",
+    "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[coincident]",
+    "tests/backends/test_cell_kernel.py::test_kernel_mixed_boundaries_and_per_axis_box",
+    "tests/backends/test_cell_kernel.py::test_ordered_sparse_rows_hold_only_lower_neighbours[random-xla]",
+    "tests/backends/test_cell_kernel.py::test_kernel_sparse_layouts_and_self_pairs[NeighborListFormat.Sparse-False]",
+    # [cell-periodic] and [kernel-periodic] keep the list path's float64
+    # forces; the kernel's slab images keep slabs.
+    "tests/energy/test_fused.py::test_energy_forces_match_list_path_float64[brute-slab]",
+    # One edge layout each: SPH keeps OrderedSparse, LJ keeps Sparse.
+    "tests/energy/test_energy_sph.py::test_edge_layout_sums_scatter_materialized_edges_in_reverse_only[NeighborListFormat.Sparse]",
+    "tests/energy/test_energy_lj.py::test_edge_layout_gradients_scatter_materialized_edges[NeighborListFormat.OrderedSparse]",
+    # SPH against the all-pairs oracle keeps [jaxrt:cell-Dense] and every
+    # other backend's layouts; the cell list's Sparse and OrderedSparse
+    # edges are kept by LJ's per-particle test and SPH's edge sums.
+    "tests/energy/test_energy_sph.py::test_density_and_forces_match_all_pairs_oracle[jaxrt:cell-NeighborListFormat.Sparse]",
+    "tests/energy/test_energy_sph.py::test_density_and_forces_match_all_pairs_oracle[jaxrt:cell-NeighborListFormat.OrderedSparse]",
+    # test_small_box keeps every small box, layout and backend.
+    "tests/lists/test_neighbors.py::test_small_periodic_boxes[2.01]",
+    # [eam] keeps jax-md's wrappers that drop fractional_coordinates.
+    "tests/lists/test_neighbors.py::test_fractional_positions_the_wrapper_does_not_announce[stillinger-weber]",
+    # test_never_wrong: the triclinic Sparse rows of the cell list are kept
+    # by test_small_box's [triclinic fractional-cell-Sparse].
+    "tests/lists/test_never_wrong.py::test_triclinic_boxes_in_every_layout[True-NeighborListFormat.Sparse-cell]",
+    # The tiny sweep keeps `jaxrt accuracy`; tests/pairs keep jaxrt.pairs.
+    "tests/tools/test_accuracy.py::test_pairs_value_runs_lj_on_jaxrt_pairs_with_the_lists_forces",
 }
 
 
