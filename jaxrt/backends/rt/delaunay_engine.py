@@ -117,7 +117,9 @@ def flip_round(m: Mesh, P: wp.array) -> int:
     wp.launch(k.flip_apply, dim=3 * t, device=m.device,
               inputs=[m.tri, m.twin, m.shift, s.want, s.claim, s.twin_new,
                       s.counter])
-    m.twin, s.twin_new = s.twin_new, m.twin
+    # Copied back, not swapped: the mesh's arrays may be a caller's
+    # buffers (an XLA call's outputs), which must end up holding the result.
+    wp.copy(m.twin, s.twin_new)
     return int(s.counter.numpy()[0])
 
 
@@ -151,15 +153,26 @@ def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
 @dataclasses.dataclass
 class Maintenance:
     """What one `maintain` did: ``ok`` (False: the caller must rebuild;
-    the mesh is then unchanged), ``flips``, ``splits`` (failed tries)."""
+    the mesh's positions are then unchanged, its triangles valid for part
+    of the move only), ``flips``, ``splits`` (failed tries)."""
 
     ok: bool
     flips: int
     splits: int
 
 
-def _copy(m: Mesh):
-    return wp.clone(m.tri), wp.clone(m.twin), wp.clone(m.shift)
+def _save(m: Mesh, kept=None):
+    """Copies of the mesh's connectivity (into ``kept`` if given)."""
+    if kept is None:
+        return wp.clone(m.tri), wp.clone(m.twin), wp.clone(m.shift)
+    for dst, src in zip(kept, (m.tri, m.twin, m.shift)):
+        wp.copy(dst, src)
+    return kept
+
+
+def _restore(m: Mesh, kept) -> None:
+    for dst, src in zip((m.tri, m.twin, m.shift), kept):
+        wp.copy(dst, src)
 
 
 def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
@@ -184,7 +197,7 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     s.done_part.zero_()
     s.fraction.fill_(1.0)
     whole, flips, splits = True, 0, 0
-    kept = _copy(m)
+    kept = _save(m)
     while True:
         wp.launch(k.move_part, dim=v, device=dev,
                   inputs=[m.position, s.delta, s.fraction, s.P])
@@ -196,11 +209,10 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
             wp.copy(s.done_part, s.fraction)
             s.fraction.fill_(1.0)
             whole = True
-            kept = _copy(m)
+            _save(m, kept)
             continue
         any_bad = bad_triangles(m, s.P)  # marks the vertices to split
-        m.tri, m.twin, m.shift = kept
-        kept = _copy(m)
+        _restore(m, kept)
         splits += 1
         if splits >= max_splits:
             return Maintenance(False, flips, splits)
@@ -292,3 +304,46 @@ def radius_search(m: Mesh, cutoff: float, *, width: int,
                       out.count, int(pair_capacity > 0), out.pairs,
                       out.pair_count])
     return out
+
+
+def load_host(m: Mesh, position, tri, twin, shift, safe) -> None:
+    """Overwrite the mesh with host arrays of the same shapes (a rebuild)."""
+    dev = m.device
+    for dst, src, dtype in ((m.position, position, wp.vec2d),
+                            (m.tri, tri, wp.int32), (m.twin, twin, wp.int32),
+                            (m.shift, shift, wp.vec2i)):
+        wp.copy(dst, wp.array(np.asarray(src), dtype=dtype, device=dev))
+    m.safe = np.asarray(safe, np.float64)
+
+
+@dataclasses.dataclass
+class Step:
+    """What one `step` did: ``rebuilt`` from scratch, ``failed`` (the
+    rebuild failed too: the list is not valid), ``flips``, ``splits``."""
+
+    rebuilt: bool
+    failed: bool
+    flips: int
+    splits: int
+
+
+def step(m: Mesh, target: wp.array, rebuild, *, local_repair: bool = True,
+         max_flip_rounds: int = 64, max_splits: int = 32) -> Step:
+    """Bring the mesh to ``target`` (vec2d ``(V,)``, frame vertices
+    included): local repair by `maintain`, or (``local_repair=False``, or
+    where repair fails) a rebuild from scratch by ``rebuild(points)``
+    (float64 ``(n, 2)`` -> ``(position, tri, twin, shift, safe, ok)``, as
+    `jaxrt.backends.delaunay.host_triangulate`) finished by flips."""
+    flips = splits = 0
+    if local_repair:
+        r = maintain(m, target, max_flip_rounds=max_flip_rounds,
+                     max_splits=max_splits)
+        if r.ok:
+            return Step(False, False, r.flips, r.splits)
+        flips, splits = r.flips, r.splits
+    out = rebuild(target.numpy()[:m.n])
+    if not out[-1]:
+        return Step(True, True, flips, splits)
+    load_host(m, *out[:-1])
+    f, done = flip_to_delaunay(m, max_rounds=max_flip_rounds)
+    return Step(True, not done, flips + f, splits)
