@@ -6,7 +6,12 @@ for slowly moving particles (2D Boids, float64). Here, per step of a
 trajectory, every method updates its list with dr_threshold = 0 (every
 step searches again, as the poster does each time step):
 
-  delaunay   jaxrt's backend="delaunay" (maintenance by flips, then BFS)
+  delaunay   jaxrt's backend="delaunay" (maintenance by flips, then BFS),
+             its XLA engine
+  delaunay[engine=warp]
+             the same backend on its Warp engine: flips with atomically
+             claimed triangles and the BFS as Warp kernels, one custom
+             call per step (`jaxrt.backends.rt.delaunay_kernels`)
   cell       jaxrt's cell list (the uniform grid; the poster's baseline is
              the GPU uniform grid of Green 2010)
   jax-md     jax_md.partition.neighbor_list (its cell list)
@@ -30,6 +35,7 @@ overflowed during the loops (the row is then not valid).
     python benchmarks/delaunay.py --sizes 10000                   # CPU
     python benchmarks/delaunay.py --sizes 10000 100000 1000000    # GPU
     python benchmarks/delaunay.py --quick                         # smoke
+    python benchmarks/delaunay.py --smoke       # tiny N, end to end on CPU
 """
 from __future__ import annotations
 
@@ -44,7 +50,7 @@ if __package__:  # run as -m, or imported: the package's modules
 else:  # run as a file: its folder is sys.path[0]
     import _harness
 
-METHODS = ("delaunay", "cell", "jax-md")
+METHODS = ("delaunay", "delaunay[engine=warp]", "cell", "jax-md")
 MOTIONS = ("boids", "random")
 CACHE = os.path.join(tempfile.gettempdir(), "jaxrt-delaunay-bench")
 
@@ -197,7 +203,13 @@ def main(argv=None) -> None:
                         help="smoke: N = 2000, k = 8, 2 repeats")
     _harness.add_common_args(parser, name="delaunay.csv", repeats=5,
                              warmup=1, timeout=900)
+    parser.add_argument("--smoke", action="store_true",
+                        help="end-to-end check: N = 400, k = 8, 3 steps, "
+                        "1 repeat")
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.sizes, args.neighbours, args.repeats = [400], [8], 1
+        args.steps, args.warmup = 3, 0
     if args.quick:
         args.sizes, args.neighbours, args.repeats = [2000], [8], 2
     for label in args.methods:
