@@ -214,40 +214,78 @@ def test_free_space_repair_and_a_point_leaving_the_frame_rebuilds():
     assert pairs_of(m, 1.0, points=pts) == brute(pts, 1.0)
 
 
-def test_warp_and_xla_engines_give_the_same_lists():
+@pytest.fixture
+def x64():
     jax = pytest.importorskip("jax")
-    from jax_md import partition, space
-    import jaxrt
     before = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", True)
-    try:
-        import jax.numpy as jnp
-        rng = np.random.default_rng(2)
-        R = jnp.asarray(lattice(14, 10.0 / 14) + 1e-3 * rng.normal(
-            size=(196, 2)))
-        disp, _ = space.periodic(10.0)
-        lists, updates = {}, {}
-        for name in ("xla", "warp"):
-            fns = jaxrt.neighbor_list(
-                disp, 10.0, 1.1, format=partition.Dense, periodic=True,
-                backend=jaxrt.backends.Delaunay(engine=name))
-            lists[name] = fns.allocate(R)
-            updates[name] = jax.jit(fns.update)
-        for step in range(3):
-            got = {}
-            for name in lists:
-                nbrs = lists[name]
-                assert not nbrs.did_buffer_overflow
-                idx = np.asarray(nbrs.idx)
-                i, k = np.nonzero(idx < 196)
-                got[name] = set(zip(i.tolist(), idx[i, k].tolist()))
-            assert got["xla"] == got["warp"] == brute(
-                np.asarray(R), 1.1, SIDE)
-            R = jnp.mod(R + 0.03 * jnp.asarray(rng.normal(size=R.shape)),
-                        10.0)
-            for name in lists:
-                lists[name] = updates[name](R, lists[name])
-        stats = jaxrt.backends.delaunay.stats(lists["warp"])
-        assert stats["flips_total"] > 0 and not stats["failed"]
-    finally:
-        jax.config.update("jax_enable_x64", before)
+    yield jax
+    jax.config.update("jax_enable_x64", before)
+
+
+def dense_pairs(nbrs, n):
+    idx = np.asarray(nbrs.idx)
+    i, k = np.nonzero(idx < n)
+    return set(zip(i.tolist(), idx[i, k].tolist()))
+
+
+def test_bad_engine_options_are_refused():
+    import jaxrt
+    with pytest.raises(ValueError, match="engine"):
+        jaxrt.backends.Delaunay(engine="cuda")
+    with pytest.raises(ValueError, match="local_repair"):
+        jaxrt.backends.Delaunay(local_repair=1)
+
+
+def test_warp_engine_without_local_repair_rebuilds_every_step(x64):
+    jax = x64
+    import jax.numpy as jnp
+    from jax_md import partition, space
+    import jaxrt
+    rng = np.random.default_rng(4)
+    R = jnp.asarray(rng.uniform(0, 10, (200, 2)))
+    fns = jaxrt.neighbor_list(
+        space.free()[0], 10.0, 1.2, format=partition.Dense, periodic=False,
+        backend=jaxrt.backends.Delaunay(engine="warp", local_repair=False))
+    nbrs = fns.allocate(R)
+    before = jaxrt.backends.delaunay.stats(nbrs)["rebuilds"]
+    update = jax.jit(fns.update)
+    for _ in range(3):
+        R = R + 0.05 * jnp.asarray(rng.normal(size=R.shape))
+        nbrs = update(R, nbrs)
+        assert not nbrs.did_buffer_overflow
+        assert dense_pairs(nbrs, 200) == brute(np.asarray(R), 1.2)
+    assert jaxrt.backends.delaunay.stats(nbrs)["rebuilds"] == before + 3
+
+
+@pytest.mark.slow  # compiles the XLA engine (about 20 s on 2 CPU cores)
+def test_warp_and_xla_engines_give_the_same_lists(x64):
+    jax = x64
+    from jax_md import partition, space
+    import jaxrt
+    import jax.numpy as jnp
+    rng = np.random.default_rng(2)
+    R = jnp.asarray(lattice(14, 10.0 / 14) + 1e-3 * rng.normal(
+        size=(196, 2)))
+    disp, _ = space.periodic(10.0)
+    lists, updates = {}, {}
+    for name in ("xla", "warp"):
+        fns = jaxrt.neighbor_list(
+            disp, 10.0, 1.1, format=partition.Dense, periodic=True,
+            backend=jaxrt.backends.Delaunay(engine=name))
+        lists[name] = fns.allocate(R)
+        updates[name] = jax.jit(fns.update)
+    for step in range(3):
+        got = {}
+        for name in lists:
+            assert not lists[name].did_buffer_overflow
+            got[name] = dense_pairs(lists[name], 196)
+        assert got["xla"] == got["warp"] == brute(
+            np.asarray(R), 1.1, SIDE)
+        R = jnp.mod(R + 0.03 * jnp.asarray(rng.normal(size=R.shape)),
+                    10.0)
+        for name in lists:
+            lists[name] = updates[name](R, lists[name])
+    stats = jaxrt.backends.delaunay.stats(lists["warp"])
+    assert stats["flips_total"] > 0 and not stats["failed"]
+    assert stats == jaxrt.backends.delaunay.stats(lists["xla"])
