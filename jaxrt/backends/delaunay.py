@@ -7,6 +7,15 @@ on the device from one ``update`` to the next by edge flips; the
 neighbours of each vertex are found by a breadth-first search (BFS) over
 the triangulation's edges that expands only vertices within the radius.
 
+Two engines run the same algorithm (``Delaunay(engine=...)``): ``"xla"``,
+the pure-JAX pieces below, and ``"warp"``, Warp kernels
+(`jaxrt.backends.rt.delaunay_kernels`: one thread per edge for the flips,
+triangles claimed by atomic min; one thread per vertex for the BFS) driven
+by `jaxrt.backends.rt.delaunay_engine` inside one XLA custom call per step
+(`jaxrt.backends.rt.ffi.delaunay_step`). Both keep the same
+`Triangulation` and make the same flips; rebuilds from scratch go to the
+host (Qhull) in both.
+
 Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
 
 * **Predicates** (§6 "Predicates"): `orient` and `incircle` in float64 with
