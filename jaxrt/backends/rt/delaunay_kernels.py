@@ -37,6 +37,10 @@ radius is then found exactly once, cocircular lattices included.
 """
 import warp as wp
 
+# No FMA contraction: the predicates' error bounds are for rounded products,
+# and the cutoff test matches jax-md's ``dx*dx + dy*dy`` bit for bit.
+wp.set_module_options({"fuse_fp": False})
+
 EPS = 2.0 ** -53
 CCW_BOUND = wp.constant(wp.float64((3.0 + 16.0 * EPS) * EPS))
 ICC_BOUND = wp.constant(wp.float64((10.0 + 96.0 * EPS) * EPS))
