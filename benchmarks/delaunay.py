@@ -6,7 +6,12 @@ for slowly moving particles (2D Boids, float64). Here, per step of a
 trajectory, every method updates its list with dr_threshold = 0 (every
 step searches again, as the poster does each time step):
 
-  delaunay   jaxrt's backend="delaunay" (maintenance by flips, then BFS)
+  delaunay   jaxrt's backend="delaunay" (maintenance by flips, then BFS),
+             its XLA engine
+  delaunay[engine=warp]
+             the same backend on its Warp engine: flips with atomically
+             claimed triangles and the BFS as Warp kernels, one custom
+             call per step (`jaxrt.backends.rt.delaunay_kernels`)
   cell       jaxrt's cell list (the uniform grid; the poster's baseline is
              the GPU uniform grid of Green 2010)
   jax-md     jax_md.partition.neighbor_list (its cell list)
@@ -24,12 +29,15 @@ repeated timing loops join smoothly; float64):
 Columns: ``update_ms`` (median per step over ``--repeats`` loops of
 2 ``--steps`` steps, compilation excluded), ``k`` the measured mean
 neighbours, for delaunay ``flips_per_step``, ``rebuilds`` (from scratch,
-during the timed loops) and ``splits_last``; ``overflow`` if any list
+during the timed loops) and ``splits_last``; for the Warp engine
+``maintain_ms`` and ``bfs_ms``, its two phases timed apart (median over
+10 steps, outside JAX); ``overflow`` if any list
 overflowed during the loops (the row is then not valid).
 
     python benchmarks/delaunay.py --sizes 10000                   # CPU
     python benchmarks/delaunay.py --sizes 10000 100000 1000000    # GPU
     python benchmarks/delaunay.py --quick                         # smoke
+    python benchmarks/delaunay.py --smoke       # tiny N, end to end on CPU
 """
 from __future__ import annotations
 
@@ -44,7 +52,7 @@ if __package__:  # run as -m, or imported: the package's modules
 else:  # run as a file: its folder is sys.path[0]
     import _harness
 
-METHODS = ("delaunay", "cell", "jax-md")
+METHODS = ("delaunay", "delaunay[engine=warp]", "cell", "jax-md")
 MOTIONS = ("boids", "random")
 CACHE = os.path.join(tempfile.gettempdir(), "jaxrt-delaunay-bench")
 
@@ -102,6 +110,39 @@ def _list_fns(method: str, side: float, cutoff: float):
                                periodic=True)
 
 
+def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
+    """The Warp engine's phases timed apart, outside JAX, on JAX's device:
+    median ms per step of the maintenance (flips, with the flip counter
+    read back each round) and of the adjacency and BFS."""
+    import numpy as np
+    import warp as wp
+    import jax
+    from jaxrt.backends.delaunay import host_triangulate
+    from jaxrt.backends.rt import delaunay_engine as engine
+    device = "cuda" if jax.default_backend() in ("gpu", "cuda") else "cpu"
+    L = np.array([side, side])
+    out = host_triangulate(traj[0], L, cutoff)
+    m = engine.mesh(*out[:4], n=traj.shape[1], side=L, device=device)
+    engine.flip_to_delaunay(m)
+    maintain, search = [], []
+    result = None
+    for R in traj[1:]:
+        target = wp.array(R, dtype=wp.vec2d, device=device)
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        engine.maintain(m, target)
+        wp.synchronize_device(device)
+        t1 = time.perf_counter()
+        result = engine.radius_search(m, cutoff, width=width, points=target,
+                                      out=result)
+        wp.synchronize_device(device)
+        t2 = time.perf_counter()
+        maintain.append(t1 - t0)
+        search.append(t2 - t1)
+    return {"maintain_ms": 1e3 * float(np.median(maintain)),
+            "bfs_ms": 1e3 * float(np.median(search))}
+
+
 def run_row(job: dict) -> dict:
     """One (motion, method, N, k) row, in a worker."""
     import jax
@@ -155,6 +196,11 @@ def run_row(job: dict) -> dict:
             / (loops * len(traj)))
         row["rebuilds"] = int(np.asarray(state.rebuilds) - before[1])
         row["splits_last"] = int(np.asarray(state.splits))
+    if "engine=warp" in job["method"]:
+        width = min(job["N"], 1 + int(np.max(np.sum(idx < job["N"], axis=1)))
+                    + 16)
+        row.update(warp_phases(traj[:min(len(traj), 11)], side, cutoff,
+                               width))
     return row
 
 
@@ -174,7 +220,7 @@ def add_ratios(rows: list[dict]) -> None:
 
 COLUMNS = ["motion", "method", "N", "k_target", "k", "update_ms", "min_ms",
            "max_ms", "vs_cell", "vs_jax_md", "flips_per_step", "rebuilds",
-           "splits_last", "overflow", "allocate_s"]
+           "splits_last", "maintain_ms", "bfs_ms", "overflow", "allocate_s"]
 
 
 def main(argv=None) -> None:
@@ -197,7 +243,13 @@ def main(argv=None) -> None:
                         help="smoke: N = 2000, k = 8, 2 repeats")
     _harness.add_common_args(parser, name="delaunay.csv", repeats=5,
                              warmup=1, timeout=900)
+    parser.add_argument("--smoke", action="store_true",
+                        help="end-to-end check: N = 400, k = 8, 3 steps, "
+                        "1 repeat")
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.sizes, args.neighbours, args.repeats = [400], [8], 1
+        args.steps, args.warmup = 3, 0
     if args.quick:
         args.sizes, args.neighbours, args.repeats = [2000], [8], 2
     for label in args.methods:

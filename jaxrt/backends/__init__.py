@@ -14,7 +14,8 @@ list does:
   ray-traced methods (`jaxrt.backends.rt.spheres`, `jaxrt.backends.rt.squares`).
 * `Delaunay` (``"delaunay"``): seed 004's 2D Delaunay triangulation kept by
   edge flips and searched by BFS (`jaxrt.backends.delaunay`); float64, its
-  triangulation travels with the list.
+  triangulation travels with the list; ``Delaunay(engine="warp")`` runs
+  the flips and the BFS as Warp kernels.
 
 A backend of one's own is any object following `Backend` (see
 `jaxrt.backends.contract`, re-exported here with the layout helpers a backend

@@ -7,6 +7,15 @@ on the device from one ``update`` to the next by edge flips; the
 neighbours of each vertex are found by a breadth-first search (BFS) over
 the triangulation's edges that expands only vertices within the radius.
 
+Two engines run the same algorithm (``Delaunay(engine=...)``): ``"xla"``,
+the pure-JAX pieces below, and ``"warp"``, Warp kernels
+(`jaxrt.backends.rt.delaunay_kernels`: one thread per edge for the flips,
+triangles claimed by atomic min; one thread per vertex for the BFS) driven
+by `jaxrt.backends.rt.delaunay_engine` inside one XLA custom call per step
+(`jaxrt.backends.rt.ffi.delaunay_step`). Both keep the same
+`Triangulation` and make the same flips; rebuilds from scratch go to the
+host (Qhull) in both.
+
 Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
 
 * **Predicates** (§6 "Predicates"): `orient` and `incircle` in float64 with
@@ -730,14 +739,31 @@ class Delaunay:
         displacement is split (halved).
       max_splits: failed tries (each followed by a split of the move) of
         one maintenance before the triangulation is rebuilt from scratch.
+      engine: ``"xla"`` (this module's JAX kernels) or ``"warp"`` (the
+        Warp kernels of `jaxrt.backends.rt.delaunay_kernels`, one XLA
+        custom call per step through `jaxrt.backends.rt.ffi.delaunay_step`;
+        needs ``warp-lang``; pairs decided by jax-md's periodic
+        displacement on the grid coordinates, not by the caller's metric;
+        no ``vmap``).
+      local_repair: keep the triangulation by flips from the last one
+        (True), or rebuild it from scratch at every search (False; the
+        reference the repair is checked against).
     """
 
     max_flip_rounds: int = 64
     max_splits: int = 32
+    engine: str = "xla"
+    local_repair: bool = True
     name: ClassVar[str] = "delaunay"
     stateful: ClassVar[bool] = True
 
     def __post_init__(self):
+        if self.engine not in ("xla", "warp"):
+            raise ValueError("Delaunay(engine=...) must be 'xla' or 'warp'; "
+                             f"got {self.engine!r}.")
+        if not isinstance(self.local_repair, bool):
+            raise ValueError("Delaunay(local_repair=...) must be a bool; got "
+                             f"{self.local_repair!r}.")
         for k in ("max_flip_rounds", "max_splits"):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) \
@@ -793,9 +819,17 @@ class Delaunay:
                 "(Qhull failed, or the points are degenerate, e.g. all "
                 "collinear); use backend='cell'.")
         L = jnp.asarray(side if periodic else np.zeros(2), jnp.float64)
-        tri, twin, shift, flips, done = _flip_jit(
-            tri, twin, shift, jnp.asarray(pos), L,
-            max_rounds=self.max_flip_rounds)
+        if self.engine == "warp":
+            from jaxrt.backends.rt import ffi
+            tri, twin, shift, flips, done = ffi.delaunay_flip(
+                pos, tri, twin, shift, np.asarray(L), periodic=periodic,
+                max_rounds=self.max_flip_rounds)
+            tri, twin, shift = (jnp.asarray(x) for x in (tri, twin, shift))
+            flips = jnp.int32(flips)
+        else:
+            tri, twin, shift, flips, done = _flip_jit(
+                tri, twin, shift, jnp.asarray(pos), L,
+                max_rounds=self.max_flip_rounds)
         if not bool(done):
             raise ValueError(
                 "backend='delaunay': the flips to Delaunay did not converge "
@@ -818,9 +852,13 @@ class Delaunay:
         while True:
             cap = Capacity(0, (("degree", degree), ("frontier", width),
                                ("row", width)))
-            found, count = _frontiers_jit(position, geometry, state,
-                                          metric_sq, query=query,
-                                          capacity=cap)
+            if self.engine == "warp":
+                found, count = _warp_frontiers(position, geometry, state,
+                                               query, width)
+            else:
+                found, count = _frontiers_jit(position, geometry, state,
+                                              metric_sq, query=query,
+                                              capacity=cap)
             top = int(jnp.max(count))
             if top <= width or width >= n:
                 break
@@ -840,7 +878,9 @@ class Delaunay:
                metric_sq, *, state):
         """Maintain the triangulation at ``position`` (rebuilding it where
         that fails) and search it. Returns ``(SearchResult, state)``."""
-        found, count, overflow, error, state = _search_rows(
+        rows_of = _search_rows_warp if self.engine == "warp" else \
+            _search_rows
+        found, count, overflow, error, state = rows_of(
             self, position, geometry, query, capacity, metric_sq, state)
         start = 1 if query.mask_self else 0
         rows = found[:, start:]
@@ -885,6 +925,8 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
     kept, failed = maintain(state, target, L, periodic=periodic,
                             max_flip_rounds=backend.max_flip_rounds,
                             max_splits=backend.max_splits)
+    if not backend.local_repair:
+        failed = jnp.bool_(True)
     rebuild = functools.partial(
         _device_rebuild, points=target[:n], L=L, periodic=periodic,
         cutoff=query.cutoff)
@@ -897,6 +939,48 @@ def _search_rows(backend: Delaunay, position, geometry: Geometry,
                                      | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
                       jnp.uint8(0))
     return found, count, overflow | bad, error, state
+
+
+def _warp_frontiers(position, geometry: Geometry, state: Triangulation,
+                    query: Query, width: int):
+    """`_frontiers` on the Warp engine (eager, at ``measure``)."""
+    from jaxrt.backends.rt import ffi
+    periodic = all(query.periodic)
+    n = position.shape[0]
+    return ffi.delaunay_counts(
+        np.asarray(geometry.grid_coordinates(position), np.float64), state,
+        np.asarray(geometry.side, np.float64), n=n, periodic=periodic,
+        cutoff=query.cutoff, width=width)
+
+
+def _search_rows_warp(backend: Delaunay, position, geometry: Geometry,
+                      query: Query, capacity: Capacity, metric_sq: MetricSq,
+                      state: Triangulation):
+    """`_search_rows` on the Warp engine: maintenance (or rebuild) and
+    BFS in one custom call."""
+    from jaxrt.backends.rt import ffi
+    del metric_sq  # the kernels decide pairs with jax-md's arithmetic
+    periodic = all(query.periodic)
+    n = position.shape[0]
+    width = min(max(capacity["frontier"], capacity["row"] + 1), n)
+    target, L = _targets(position, geometry, state, periodic)
+    pos, tri, twin, shift, safe, found, count, stats = ffi.delaunay_step(
+        target, target[:n], geometry.side.astype(target.dtype), state,
+        cutoff=query.cutoff, periodic=periodic, width=width,
+        local_repair=backend.local_repair,
+        max_flip_rounds=backend.max_flip_rounds,
+        max_splits=backend.max_splits)
+    failed = stats[1] > 0
+    state = state._replace(
+        position=pos, tri=tri, twin=twin, shift=shift, safe=safe,
+        rebuilds=state.rebuilds + stats[0], flips=stats[2],
+        flips_total=state.flips_total + stats[2], splits=stats[3],
+        failed=failed)
+    overflow = jnp.any(count > width)
+    error = jnp.where(failed, jnp.uint8(ErrorCode.SEARCH_FAILED
+                                        | ErrorCode.NEIGHBOR_LIST_OVERFLOW),
+                      jnp.uint8(0))
+    return found, count, overflow | failed, error, state
 
 
 _flip_jit = jax.jit(flip_to_delaunay, static_argnames="max_rounds")

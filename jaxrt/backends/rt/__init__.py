@@ -19,7 +19,9 @@ lists' (`aabb`, `spheres`, `squares`), seed 001's fused energies
 (`seed_energy`) and ORCS' forces (`orcs`, which
 `jaxrt.energy.lennard_jones_fused(backend="bvh")` calls). They know nothing
 of JAX: `jaxrt.backends.rt.ffi` is the one module that wraps them for JAX.
-Other pure-Warp methods follow `jaxrt.backends.rt.method.RTMethod` and
+Seed 004's Delaunay flips and BFS are Warp kernels here too
+(`delaunay_kernels`, driven by `delaunay_engine`; the backend is
+``jaxrt.backends.Delaunay(engine="warp")``). Other pure-Warp methods follow `jaxrt.backends.rt.method.RTMethod` and
 become backends through `jaxrt.backends.rt.ffi.method_backend`.
 
 The names load on first use (Warp with them); `halfbox`, the half-box rule,

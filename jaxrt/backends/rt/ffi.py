@@ -74,6 +74,8 @@ from jaxrt.backends import contract as _backend
 from jaxrt.backends.contract import (Capacity, Geometry, MetricSq, Query,
                                      SearchResult)
 from jaxrt.backends.rt import aabb
+from jaxrt.backends.rt import delaunay_engine
+from jaxrt.backends.rt import delaunay_kernels
 from jaxrt.backends.rt import orcs
 from jaxrt.backends.rt import periodic as gamma
 from jaxrt.backends.rt import seed_energy
@@ -950,3 +952,125 @@ class FusedEnergy:
                                     output_dims={"energy": (n,), "count": (n,)}))
 
         return _sequential_vmap(call, self.owner)(points, side, params)
+
+
+# ---------------------------------------------------------------------------
+# Seed 004's Delaunay engine on Warp (`jaxrt.backends.delaunay`,
+# ``Delaunay(engine="warp")``): maintenance and BFS in one call.
+
+_DELAUNAY_CALLABLES: dict = {}
+
+
+def _warp_device() -> str:
+    return "cuda" if jax.default_backend() in ("gpu", "cuda") else "cpu"
+
+
+def _delaunay_callable():
+    """The jax callable of one Delaunay step (`delaunay_step`)."""
+    if "step" in _DELAUNAY_CALLABLES:
+        return _DELAUNAY_CALLABLES["step"]
+
+    def step(target: wp.array(dtype=wp.vec2d), points: wp.array(dtype=wp.vec2d),
+             side: wp.array(dtype=wp.float64), cutoff: wp.float64,
+             periodic: wp.int32, local_repair: wp.int32,
+             max_flip_rounds: wp.int32, max_splits: wp.int32,
+             position: wp.array(dtype=wp.vec2d), tri: wp.array2d(dtype=wp.int32),
+             twin: wp.array2d(dtype=wp.int32), shift: wp.array2d(dtype=wp.vec2i),
+             safe: wp.array(dtype=wp.vec2d), found: wp.array2d(dtype=wp.int32),
+             count: wp.array(dtype=wp.int32), stats: wp.array(dtype=wp.int32)):
+        torus = bool(periodic)
+        L = side.numpy() if torus else None
+        m = delaunay_engine.Mesh(position, tri, twin, shift,
+                                 L if torus else np.zeros(2), safe.numpy(),
+                                 points.shape[0], torus)
+
+        def rebuild(p):
+            return delaunay_host(p, L, float(cutoff))
+
+        done = delaunay_engine.step(
+            m, target, rebuild, local_repair=bool(local_repair),
+            max_flip_rounds=int(max_flip_rounds), max_splits=int(max_splits))
+        if done.rebuilt and not torus:
+            wp.copy(safe, wp.array(m.safe, dtype=wp.vec2d, device=safe.device))
+        dummy = wp.zeros((1, 2), dtype=wp.int32, device=found.device)
+        out = delaunay_engine.Search(found, count, dummy,
+                                     wp.zeros(1, dtype=wp.int32,
+                                              device=found.device))
+        delaunay_engine.radius_search(m, float(cutoff), width=found.shape[1],
+                                      points=points, out=out)
+        numbers = np.array([done.rebuilt, done.failed, done.flips,
+                            done.splits], np.int32)
+        wp.copy(stats, wp.array(numbers, dtype=wp.int32, device=stats.device))
+
+    step.__module__ = delaunay_kernels.__name__  # see _aabb_callables
+    _DELAUNAY_CALLABLES["step"] = wp.jax_callable(
+        step, num_outputs=8,
+        in_out_argnames=["position", "tri", "twin", "shift", "safe"],
+        graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method=None)
+    return _DELAUNAY_CALLABLES["step"]
+
+
+def delaunay_host(points, side, cutoff: float):
+    """A triangulation from scratch on the host (Qhull): see
+    `jaxrt.backends.delaunay.host_triangulate`."""
+    from jaxrt.backends import delaunay
+    return delaunay.host_triangulate(points, side, cutoff)
+
+
+def delaunay_step(target, points, side, state, *, cutoff: float,
+                  periodic: bool, width: int, local_repair: bool = True,
+                  max_flip_rounds: int = 64, max_splits: int = 32):
+    """One step of the Warp Delaunay engine under JAX: move the
+    triangulation ``state`` (`jaxrt.backends.delaunay.Triangulation`) to
+    ``target`` (float64 ``(V, 2)``, grid coordinates, frame vertices last
+    in free space) by local repair (or rebuild it, see
+    `jaxrt.backends.rt.delaunay_engine.step`), then search it.
+
+    ``points``: float64 ``(N, 2)``, the positions that decide the pairs
+    (jax-md's periodic displacement on a torus); ``side``: float64
+    ``(2,)``. Returns ``(position, tri, twin, shift, safe, found, count,
+    stats)``: the new triangulation arrays, int32 ``(N, width)`` rows (the
+    vertex first, padded with N), int32 ``(N,)`` counts (the vertex
+    included; past ``width`` a lower bound) and int32 ``(4,)``: rebuilt,
+    failed, flips, splits.
+    """
+    call = _delaunay_callable()
+    n = points.shape[0]
+    args = jax.lax.stop_gradient((target, points, side))
+    outs = call(*args, float(cutoff), int(periodic), int(local_repair),
+                int(max_flip_rounds), int(max_splits), state.position,
+                state.tri, state.twin, state.shift, state.safe,
+                output_dims={"found": (n, max(width, 1)), "count": (n,),
+                             "stats": (4,)})
+    return tuple(outs)
+
+
+def _eager_mesh(position, tri, twin, shift, side, safe, n: int, periodic):
+    return delaunay_engine.mesh(np.asarray(position), np.asarray(tri),
+                                np.asarray(twin), np.asarray(shift), n=n,
+                                side=np.asarray(side) if periodic else None,
+                                safe=np.asarray(safe), device=_warp_device())
+
+
+def delaunay_flip(position, tri, twin, shift, side, *, periodic: bool,
+                  max_rounds: int):
+    """Eager (at ``allocate``): flip to Delaunay at ``position`` on JAX's
+    device. Returns numpy ``(tri, twin, shift)``, flips and done."""
+    n = position.shape[0] if periodic else position.shape[0] - 4
+    m = _eager_mesh(position, tri, twin, shift, side, np.zeros((2, 2)), n,
+                    periodic)
+    flips, done = delaunay_engine.flip_to_delaunay(m, max_rounds=max_rounds)
+    h = m.numpy()
+    return h["tri"], h["twin"], h["shift"], flips, done
+
+
+def delaunay_counts(points, state, side, *, n: int, periodic: bool,
+                    cutoff: float, width: int):
+    """Eager (``measure``): numpy BFS rows ``(N, width)`` and counts
+    ``(N,)`` of a triangulation as it is."""
+    m = _eager_mesh(state.position, state.tri, state.twin, state.shift, side,
+                    state.safe, n, periodic)
+    pts = wp.array(np.asarray(points, np.float64), dtype=wp.vec2d,
+                   device=m.device)
+    s = delaunay_engine.radius_search(m, cutoff, width=width, points=pts)
+    return s.found.numpy(), s.count.numpy()

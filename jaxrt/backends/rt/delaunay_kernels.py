@@ -1,0 +1,476 @@
+"""Warp kernels of seed 004's Delaunay search (2D, float64): edge flips
+with atomically claimed triangles, the validity check, the moves of
+maintenance, the adjacency and the radius BFS. Pure Warp: they know
+nothing of JAX (`jaxrt.backends.rt.ffi` wraps them; the host loop that
+drives them is `jaxrt.backends.rt.delaunay_engine`).
+
+The triangulation's layout is `jaxrt.backends.delaunay.Triangulation`'s:
+``tri`` int32 ``(T, 3)`` counter-clockwise vertex ids, ``twin`` int32
+``(T, 3)`` the half-edge ``3 u + m`` across the edge opposite local vertex
+``e`` of triangle ``t`` (half-edge ``3 t + e``; -1 on the frame's hull),
+``shift`` vec2i ``(T, 3)`` the image shift of each triangle vertex (vertex
+``v`` of triangle ``t`` sits at ``P[v] + shift * L``; ``L`` is zero in
+free space).
+
+Predicates are float64 with Shewchuk's static error bounds, as the XLA
+engine's (`jaxrt.backends.delaunay.orient`, ``incircle``): an undecided
+in-circle test (cocircular points) means "no flip", an undecided
+orientation means "not a valid triangle".
+
+A flip round is two launches. `flip_mark`: one thread per half-edge ``h``
+with ``h < twin[h]`` (each interior edge once) tests its two triangles;
+an edge wants a flip where one of them is inverted or the in-circle test
+fails, provided both new triangles are positive, and then claims both
+triangles by an atomic min of its id. `flip_apply`: the edges that won
+both their triangles flip; no two flips of one round touch one triangle.
+Twins are written to a second buffer (``twin_new``, a copy of ``twin``),
+and each winner finds the new id of an outer half-edge with `_remap`,
+which reads only the round's claims and the old twins: so a flip next to
+another flip of the same round links to the other's new half-edges
+without any ordering between the threads.
+
+The BFS (`radius_bfs`, one thread per vertex) is the XLA engine's: from
+``v``, a neighbour ``w`` of a found vertex ``x`` is taken when it is within
+the radius and ``x`` is w's parent (the neighbour of w closest to v, ties
+to the lower id); in a Delaunay triangulation every point within the
+radius is then found exactly once, cocircular lattices included.
+"""
+import warp as wp
+
+# No FMA contraction: the predicates' error bounds are for rounded products,
+# and the cutoff test matches jax-md's ``dx*dx + dy*dy`` bit for bit.
+wp.set_module_options({"fuse_fp": False})
+
+EPS = 2.0 ** -53
+CCW_BOUND = wp.constant(wp.float64((3.0 + 16.0 * EPS) * EPS))
+ICC_BOUND = wp.constant(wp.float64((10.0 + 96.0 * EPS) * EPS))
+UNCLAIMED = wp.constant(2 ** 31 - 1)
+"""Claim of a triangle no edge wants."""
+
+
+@wp.func
+def orient_sign(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d) -> int:
+    """1: ``(a, b, c)`` counter-clockwise for certain; -1 clockwise for
+    certain; 0 undecided."""
+    acx = a[0] - c[0]
+    acy = a[1] - c[1]
+    bcx = b[0] - c[0]
+    bcy = b[1] - c[1]
+    left = acx * bcy
+    right = acy * bcx
+    det = left - right
+    bound = CCW_BOUND * (wp.abs(left) + wp.abs(right))
+    if det > bound:
+        return 1
+    if det < -bound:
+        return -1
+    return 0
+
+
+@wp.func
+def incircle_sign(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d, d: wp.vec2d) -> int:
+    """1: ``d`` inside the circle through counter-clockwise ``a, b, c`` for
+    certain; -1 outside for certain; 0 undecided (cocircular)."""
+    adx = a[0] - d[0]
+    ady = a[1] - d[1]
+    bdx = b[0] - d[0]
+    bdy = b[1] - d[1]
+    cdx = c[0] - d[0]
+    cdy = c[1] - d[1]
+    bc = bdx * cdy
+    cb = cdx * bdy
+    ca = cdx * ady
+    ac = adx * cdy
+    ab = adx * bdy
+    ba = bdx * ady
+    alift = adx * adx + ady * ady
+    blift = bdx * bdx + bdy * bdy
+    clift = cdx * cdx + cdy * cdy
+    det = alift * (bc - cb) + blift * (ca - ac) + clift * (ab - ba)
+    permanent = ((wp.abs(bc) + wp.abs(cb)) * alift
+                 + (wp.abs(ca) + wp.abs(ac)) * blift
+                 + (wp.abs(ab) + wp.abs(ba)) * clift)
+    bound = ICC_BOUND * permanent
+    if det > bound:
+        return 1
+    if det < -bound:
+        return -1
+    return 0
+
+
+@wp.func
+def at(P: wp.array(dtype=wp.vec2d), v: int, s: wp.vec2i, L: wp.vec2d):
+    """Vertex ``v`` at image shift ``s``."""
+    return P[v] + wp.vec2d(wp.float64(s[0]) * L[0], wp.float64(s[1]) * L[1])
+
+
+@wp.func
+def _outside(x: int, t: int, u: int) -> bool:
+    """Half-edge ``x`` is a hull edge or lies in neither t nor u."""
+    return x < 0 or (x // 3 != t and x // 3 != u)
+
+
+@wp.kernel
+def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
+              shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
+              L: wp.vec2d, want: wp.array(dtype=wp.int32),
+              claim: wp.array(dtype=wp.int32)):
+    """One thread per half-edge: does its edge want a flip (``want[h]``),
+    and if so claim both its triangles (``claim``: atomic min of ``h``,
+    reset to `UNCLAIMED` before the launch)."""
+    h = wp.tid()
+    t = h // 3
+    e = h - 3 * t
+    want[h] = 0
+    tw = int(twin[t, e])
+    if tw <= h:  # hull edge (-1), or the twin's thread tests this edge
+        return
+    u = tw // 3
+    m = tw - 3 * u
+    e1 = (e + 1) % 3
+    e2 = (e + 2) % 3
+    m1 = (m + 1) % 3
+    m2 = (m + 2) % 3
+    # An edge whose two triangles share another edge (tiny tori) is left.
+    if u == t:
+        return
+    if not (_outside(int(twin[t, e1]), t, u) and _outside(int(twin[t, e2]), t, u)
+            and _outside(int(twin[u, m1]), t, u)
+            and _outside(int(twin[u, m2]), t, u)):
+        return
+    # t = (p, b, c), u = (q, c, b); q is put into t's frame.
+    s_q = shift[u, m] + shift[t, e1] - shift[u, m2]
+    p = at(P, int(tri[t, e]), shift[t, e], L)
+    b = at(P, int(tri[t, e1]), shift[t, e1], L)
+    c = at(P, int(tri[t, e2]), shift[t, e2], L)
+    q = at(P, int(tri[u, m]), s_q, L)
+    old_ok = orient_sign(p, b, c) == 1 and orient_sign(q, c, b) == 1
+    new_ok = orient_sign(p, b, q) == 1 and orient_sign(q, c, p) == 1
+    if new_ok and ((not old_ok) or incircle_sign(p, b, c, q) == 1):
+        want[h] = 1
+        wp.atomic_min(claim, t, h)
+        wp.atomic_min(claim, u, h)
+
+
+@wp.func
+def _won(h: int, twin: wp.array2d(dtype=wp.int32),
+         want: wp.array(dtype=wp.int32), claim: wp.array(dtype=wp.int32)):
+    if h == UNCLAIMED:
+        return False
+    if want[h] == 0:
+        return False
+    t = h // 3
+    u = int(twin[t, h - 3 * t]) // 3
+    return claim[t] == h and claim[u] == h
+
+
+@wp.func
+def _remap(y: int, twin: wp.array2d(dtype=wp.int32),
+           want: wp.array(dtype=wp.int32), claim: wp.array(dtype=wp.int32)):
+    """The id after this round's flips of old outer half-edge ``y``."""
+    h = int(claim[y // 3])
+    if not _won(h, twin, want, claim):
+        return y
+    t = h // 3
+    e = h - 3 * t
+    tw = int(twin[t, e])
+    u = tw // 3
+    m = tw - 3 * u
+    # New t = (p, b, q), new u = (q, c, p) (see flip_apply).
+    if y == 3 * t + (e + 1) % 3:
+        return 3 * u
+    if y == 3 * t + (e + 2) % 3:
+        return 3 * t + 2
+    if y == 3 * u + (m + 1) % 3:
+        return 3 * t
+    return 3 * u + 2  # 3 u + m2
+
+
+@wp.func
+def _link(twin_new: wp.array2d(dtype=wp.int32), slot: int, outer: int,
+          twin: wp.array2d(dtype=wp.int32), want: wp.array(dtype=wp.int32),
+          claim: wp.array(dtype=wp.int32)):
+    """Join new half-edge ``slot`` and old outer half-edge ``outer``."""
+    if outer < 0:
+        twin_new[slot // 3, slot % 3] = -1
+        return
+    o = _remap(outer, twin, want, claim)
+    twin_new[slot // 3, slot % 3] = o
+    twin_new[o // 3, o % 3] = slot
+
+
+@wp.kernel
+def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
+               shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
+               claim: wp.array(dtype=wp.int32),
+               twin_new: wp.array2d(dtype=wp.int32),
+               flips: wp.array(dtype=wp.int32)):
+    """One thread per half-edge: the edges that won both triangles flip.
+    ``tri`` and ``shift`` are rewritten in place (each triangle by its one
+    winner), the twins into ``twin_new`` (a copy of ``twin``)."""
+    h = wp.tid()
+    if not _won(h, twin, want, claim):
+        return
+    t = h // 3
+    e = h - 3 * t
+    tw = int(twin[t, e])
+    u = tw // 3
+    m = tw - 3 * u
+    e1 = (e + 1) % 3
+    e2 = (e + 2) % 3
+    m1 = (m + 1) % 3
+    m2 = (m + 2) % 3
+    i_p = tri[t, e]
+    i_b = tri[t, e1]
+    i_c = tri[t, e2]
+    i_q = tri[u, m]
+    s_p = shift[t, e]
+    s_b = shift[t, e1]
+    s_c = shift[t, e2]
+    s_q = shift[u, m] + s_b - shift[u, m2]
+    A = int(twin[t, e1])
+    B = int(twin[t, e2])
+    C = int(twin[u, m1])
+    D = int(twin[u, m2])
+    tri[t, 0] = i_p
+    tri[t, 1] = i_b
+    tri[t, 2] = i_q
+    tri[u, 0] = i_q
+    tri[u, 1] = i_c
+    tri[u, 2] = i_p
+    shift[t, 0] = s_p
+    shift[t, 1] = s_b
+    shift[t, 2] = s_q
+    shift[u, 0] = s_q
+    shift[u, 1] = s_c
+    shift[u, 2] = s_p
+    # New t = (p, b, q): edge 0 (b-q) was u's m1 (outside C), edge 2 (p-b)
+    # t's e2 (outside B). New u = (q, c, p): edge 0 (c-p) was t's e1
+    # (outside A), edge 2 (q-c) u's m2 (outside D). Edges 1: the diagonal.
+    _link(twin_new, 3 * t, C, twin, want, claim)
+    _link(twin_new, 3 * t + 2, B, twin, want, claim)
+    _link(twin_new, 3 * u, A, twin, want, claim)
+    _link(twin_new, 3 * u + 2, D, twin, want, claim)
+    twin_new[t, 1] = 3 * u + 1
+    twin_new[u, 1] = 3 * t + 1
+    wp.atomic_add(flips, 0, 1)
+
+
+@wp.kernel
+def check_triangles(tri: wp.array2d(dtype=wp.int32),
+                    shift: wp.array2d(dtype=wp.vec2i),
+                    P: wp.array(dtype=wp.vec2d), L: wp.vec2d,
+                    bad_vertex: wp.array(dtype=wp.int32),
+                    bad: wp.array(dtype=wp.int32)):
+    """One thread per triangle: count those not certainly positive
+    (``bad[0]``) and mark their vertices (``bad_vertex``)."""
+    t = wp.tid()
+    a = at(P, int(tri[t, 0]), shift[t, 0], L)
+    b = at(P, int(tri[t, 1]), shift[t, 1], L)
+    c = at(P, int(tri[t, 2]), shift[t, 2], L)
+    if orient_sign(a, b, c) != 1:
+        wp.atomic_add(bad, 0, 1)
+        for k in range(3):
+            bad_vertex[tri[t, k]] = 1
+
+
+@wp.kernel
+def move_delta(start: wp.array(dtype=wp.vec2d), target: wp.array(dtype=wp.vec2d),
+               L: wp.vec2d, periodic: int, delta: wp.array(dtype=wp.vec2d)):
+    """The move of each vertex, by minimum image on a torus (a move
+    between two calls is below half a side)."""
+    v = wp.tid()
+    d = target[v] - start[v]
+    if periodic != 0:
+        d = wp.vec2d(d[0] - L[0] * wp.round(d[0] / L[0]),
+                     d[1] - L[1] * wp.round(d[1] / L[1]))
+    delta[v] = d
+
+
+@wp.kernel
+def move_part(start: wp.array(dtype=wp.vec2d), delta: wp.array(dtype=wp.vec2d),
+              fraction: wp.array(dtype=wp.float64),
+              P: wp.array(dtype=wp.vec2d)):
+    """Positions after ``fraction`` of each vertex's move."""
+    v = wp.tid()
+    P[v] = start[v] + fraction[v] * delta[v]
+
+
+@wp.kernel
+def split_move(done_part: wp.array(dtype=wp.float64),
+               fraction: wp.array(dtype=wp.float64),
+               bad_vertex: wp.array(dtype=wp.int32), any_bad: int):
+    """After a failed try (poster Fig 5): the vertices of the triangles
+    left inverted go half their remaining way (all of them if none is
+    marked); the others retry their whole move."""
+    v = wp.tid()
+    if any_bad == 0 or bad_vertex[v] != 0:
+        s = done_part[v]
+        fraction[v] = s + (fraction[v] - s) * wp.float64(0.5)
+
+
+@wp.kernel
+def wrap(start: wp.array(dtype=wp.vec2d), delta: wp.array(dtype=wp.vec2d),
+         L: wp.vec2d, P: wp.array(dtype=wp.vec2d),
+         periods: wp.array(dtype=wp.vec2i)):
+    """Torus: the moved vertices wrapped into ``[0, L)`` and the whole
+    periods removed, which the triangles' shifts take up."""
+    v = wp.tid()
+    moved = start[v] + delta[v]
+    out = wp.vec2d()
+    k = wp.vec2i()
+    for a in range(2):
+        r = wp.mod(moved[a], L[a])
+        if r < wp.float64(0.0):
+            r = r + L[a]
+        if r >= L[a]:
+            r = wp.float64(0.0)
+        out[a] = r
+        k[a] = int(wp.round((moved[a] - r) / L[a]))
+    P[v] = out
+    periods[v] = k
+
+
+@wp.kernel
+def add_periods(tri: wp.array2d(dtype=wp.int32), periods: wp.array(dtype=wp.vec2i),
+                shift: wp.array2d(dtype=wp.vec2i)):
+    t, k = wp.tid()
+    shift[t, k] = shift[t, k] + periods[tri[t, k]]
+
+
+@wp.kernel
+def count_outside(P: wp.array(dtype=wp.vec2d), low: wp.vec2d, high: wp.vec2d,
+                  outside: wp.array(dtype=wp.int32)):
+    """Free space: count the particles out of the frame's safe box."""
+    v = wp.tid()
+    x = P[v]
+    if not (x[0] > low[0] and x[0] < high[0] and x[1] > low[1]
+            and x[1] < high[1]):
+        wp.atomic_add(outside, 0, 1)
+
+
+# ---------------------------------------------------------------------------
+# Adjacency and search
+
+
+@wp.kernel
+def degree_count(tri: wp.array2d(dtype=wp.int32), n: int,
+                 degree: wp.array(dtype=wp.int32)):
+    """Every interior edge v-w appears once as "w follows v" in a
+    counter-clockwise triangle: count it for v (particles only; frame
+    vertices, ids >= n, are never within the radius)."""
+    t, e = wp.tid()
+    v = int(tri[t, e])
+    w = int(tri[t, (e + 1) % 3])
+    if v < n and w < n:
+        wp.atomic_add(degree, v, 1)
+
+
+@wp.kernel
+def degree_fill(tri: wp.array2d(dtype=wp.int32), n: int,
+                start: wp.array(dtype=wp.int32), fill: wp.array(dtype=wp.int32),
+                neighbours: wp.array(dtype=wp.int32)):
+    t, e = wp.tid()
+    v = int(tri[t, e])
+    w = int(tri[t, (e + 1) % 3])
+    if v < n and w < n:
+        k = wp.atomic_add(fill, v, 1)
+        neighbours[start[v] + k] = w
+
+
+@wp.func
+def displacement(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
+    """jax-md's ``periodic_displacement(side, xi - xj)`` on a torus
+    (``xi - xj`` in free space), operation for operation (``jnp.mod`` is
+    fmod with a sign fix)."""
+    d = xi - xj
+    if periodic != 0:
+        for a in range(2):
+            half = L[a] * wp.float64(0.5)
+            r = wp.mod(d[a] + half, L[a])
+            if r != wp.float64(0.0) and r < wp.float64(0.0):
+                r = r + L[a]
+            d[a] = r - half
+    return d
+
+
+@wp.func
+def square_distance(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
+    d = displacement(xi, xj, L, periodic)
+    return d[0] * d[0] + d[1] * d[1]
+
+
+@wp.func
+def _parent(w: int, v: int, start: wp.array(dtype=wp.int32),
+            neighbours: wp.array(dtype=wp.int32), grid: wp.array(dtype=wp.vec2d),
+            L: wp.vec2d, periodic: int, n: int):
+    """The neighbour of w closest to v (ties to the lower id)."""
+    best = wp.float64(1.0e308)
+    parent = n
+    xv = grid[v]
+    for k in range(start[w], start[w + 1]):
+        y = neighbours[k]
+        d = square_distance(grid[y], xv, L, periodic)
+        if d < best or (d == best and y < parent):
+            best = d
+            parent = y
+    return parent
+
+
+@wp.kernel
+def radius_bfs(points: wp.array(dtype=wp.vec2d), grid: wp.array(dtype=wp.vec2d),
+               start: wp.array(dtype=wp.int32), neighbours: wp.array(dtype=wp.int32),
+               L: wp.vec2d, periodic: int, cutoff_sq: wp.float64, n: int,
+               found: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+               emit: int, pairs: wp.array2d(dtype=wp.int32),
+               pair_count: wp.array(dtype=wp.int32)):
+    """One thread per vertex v: its BFS (module docstring).
+
+    ``points``: the caller's positions, which decide every pair;
+    ``grid``: the triangulated positions, which decide the parents.
+    ``found[v]``: v first, then its neighbours in BFS order (padded with
+    ``n``); ``count[v]``: their number with v, a lower bound once it
+    exceeds the row width (overflow). With ``emit``, every pair (v, w) also
+    goes to ``pairs`` at an atomically counted slot; ``pair_count[0]``
+    counts past the capacity (overflow)."""
+    v = wp.tid()
+    width = found.shape[1]
+    capacity = pairs.shape[0]
+    for j in range(width):
+        found[v, j] = n
+    found[v, 0] = v
+    total = int(1)
+    j = int(0)
+    xv = points[v]
+    while j < total and j < width:
+        x = int(found[v, j])
+        j += 1
+        for k in range(start[x], start[x + 1]):
+            w = neighbours[k]
+            if w == v:
+                continue
+            # A repeated edge (a multi-edge of a tiny torus) is visited once.
+            repeated = bool(False)
+            for k2 in range(start[x], k):
+                if neighbours[k2] == w:
+                    repeated = True
+            if repeated:
+                continue
+            if not (square_distance(xv, points[w], L, periodic) < cutoff_sq):
+                continue
+            if _parent(w, v, start, neighbours, grid, L, periodic, n) != x:
+                continue
+            if total < width:
+                found[v, total] = w
+            total += 1
+            if emit != 0:
+                slot = wp.atomic_add(pair_count, 0, 1)
+                if slot < capacity:
+                    pairs[slot, 0] = v
+                    pairs[slot, 1] = w
+    count[v] = total
+
+
+def load(device) -> None:
+    """Compile/load the kernels on ``device`` now."""
+    wp.load_module(module=__name__, device=device)
