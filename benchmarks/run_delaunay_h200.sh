@@ -5,7 +5,7 @@
 #
 #   GIT_SHA=$(git rev-parse --short HEAD) bash benchmarks/run_delaunay_h200.sh MODE
 #
-# MODE: tests       the Warp engine's tests on the GPU box's CPU device
+# MODE: tests       the Warp engine's tests on the GPU
 #                   (tests/backends/test_delaunay_warp.py) and the XLA
 #                   engine's tests
 #       1e4, 1e5    N = 10^4 / 10^5, all four methods, both motions

@@ -1,6 +1,6 @@
 """The Warp Delaunay engine (`jaxrt.backends.rt.delaunay_kernels`,
-`jaxrt.backends.rt.delaunay_engine`) on Warp's CPU device, against float64
-oracles: the empty-circumcircle property after the flips (every vertex
+`jaxrt.backends.rt.delaunay_engine`) on the GPU where one is visible,
+else on Warp's CPU device, against float64 oracles: the empty-circumcircle property after the flips (every vertex
 against every triangle), the pair set of the radius BFS against a float64
 brute force (random, square lattices with cocircular points and ties at the
 cutoff, clusters, Boids-like and random moves; torus and free space),
@@ -15,6 +15,9 @@ wp = pytest.importorskip("warp")
 
 from jaxrt.backends.delaunay import FRAME, host_triangulate  # noqa: E402
 from jaxrt.backends.rt import delaunay_engine as engine  # noqa: E402
+
+# The engine runs where its users run it: on the GPU when one is visible.
+DEVICE = "cuda:0" if wp.is_cuda_available() else "cpu"
 
 wp.config.quiet = True
 EPS = 2.0 ** -53
@@ -34,7 +37,7 @@ def triangulate(points, cutoff, side=None):
     pos, tri, twin, shift, safe, ok = host_triangulate(points, side, cutoff)
     assert ok
     return engine.mesh(pos, tri, twin, shift, n=len(points), side=side,
-                       safe=safe)
+                       safe=safe, device=DEVICE)
 
 
 def assert_delaunay(m: engine.Mesh):
@@ -65,7 +68,8 @@ def assert_delaunay(m: engine.Mesh):
 
 
 def pairs_of(m, cutoff, points=None, width=64, capacity=100_000):
-    pts = None if points is None else wp.array(points, dtype=wp.vec2d)
+    pts = (None if points is None
+           else wp.array(points, dtype=wp.vec2d, device=DEVICE))
     s = engine.radius_search(m, cutoff, width=width, pair_capacity=capacity,
                              points=pts)
     assert not s.overflow()
@@ -102,7 +106,7 @@ def test_stretched_triangulation_is_flipped_to_delaunay():
                                                        1.0)
     assert ok
     pos = pos / stretch  # frame included: orientation is kept
-    m = engine.mesh(pos, tri, twin, shift, n=250, safe=safe)
+    m = engine.mesh(pos, tri, twin, shift, n=250, safe=safe, device=DEVICE)
     flips, done = engine.flip_to_delaunay(m, max_rounds=256)
     assert done and flips > 100
     assert_delaunay(m)
@@ -183,7 +187,7 @@ def test_local_repair_matches_brute_force_and_a_fresh_triangulation(motion):
             pts, vel = boids_move(pts, vel, SIDE, rng)
         else:
             pts = np.mod(pts + 0.05 * rng.normal(size=pts.shape), SIDE)
-        r = engine.maintain(m, wp.array(pts, dtype=wp.vec2d))
+        r = engine.maintain(m, wp.array(pts, dtype=wp.vec2d, device=DEVICE))
         assert r.ok
         repairs += r.flips
         assert_delaunay(m)
@@ -202,12 +206,14 @@ def test_free_space_repair_and_a_point_leaving_the_frame_rebuilds():
     frame = m.position.numpy()[-FRAME:]
     for _ in range(3):
         pts = pts + 0.05 * rng.normal(size=pts.shape)
-        target = wp.array(np.concatenate([pts, frame]), dtype=wp.vec2d)
+        target = wp.array(np.concatenate([pts, frame]), dtype=wp.vec2d,
+                      device=DEVICE)
         st = engine.step(m, target, lambda p: host_triangulate(p, None, 1.0))
         assert not st.rebuilt and not st.failed
         assert pairs_of(m, 1.0, points=pts) == brute(pts, 1.0)
     pts[0] = [1e3, 1e3]  # far outside the safe box
-    target = wp.array(np.concatenate([pts, frame]), dtype=wp.vec2d)
+    target = wp.array(np.concatenate([pts, frame]), dtype=wp.vec2d,
+                      device=DEVICE)
     st = engine.step(m, target, lambda p: host_triangulate(p, None, 1.0))
     assert st.rebuilt and not st.failed
     assert_delaunay(m)
