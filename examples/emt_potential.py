@@ -38,8 +38,8 @@ overflow flag (never silent: the capacity was sized on the data). At the
 end the force error on held-out structures is printed beside the error of
 predicting zero forces.
 
-    python examples/emt_potential.py            # --quick: under a minute, 2 CPU cores
-    python examples/emt_potential.py --full     # a few hundred structures
+    python examples/emt_potential.py          # (--quick) < 1 min, 2 CPU cores
+    python examples/emt_potential.py --full   # 300 structures, minutes
 """
 from __future__ import annotations
 
@@ -184,8 +184,8 @@ class Potential(nn.Module):
         for _ in range(self.layers):
             filt = nn.Dense(self.features)(
                 nn.silu(nn.Dense(self.features)(basis)))
-            # Padding edges have a zero basis, hence a zero filter bias
-            # would still leak; mask the messages themselves.
+            # Padding edges have a zero basis, but the filter's biases
+            # would still give them a message: mask the messages.
             msg = filt * nn.Dense(self.features, use_bias=False)(h)[
                 receivers] * edge_mask[:, None]
             agg = jax.ops.segment_sum(msg, senders, n + 1,
@@ -195,18 +195,24 @@ class Potential(nn.Module):
         return e + nn.Embed(len(ELEMENTS) + 1, 1)(species)[:, 0]
 
 
-def _node_graph(n_node, n):
-    return jnp.repeat(jnp.arange(n_node.shape[0]), n_node,
-                      total_repeat_length=n)
+def _atoms_of(batch: Batch):
+    """Each atom's system (int ``(N,)``, ``G`` past the systems) and
+    whether it is a real atom (bool ``(N,)``)."""
+    n, g = batch.positions.shape[0], batch.n_node.shape[0]
+    node_graph = jnp.repeat(jnp.arange(g), batch.n_node,
+                            total_repeat_length=n)
+    node_graph = jnp.where(jnp.arange(n) < jnp.sum(batch.n_node),
+                           node_graph, g)
+    real = (node_graph < g) & batch.graph_mask[jnp.minimum(node_graph,
+                                                            g - 1)]
+    return node_graph, real
 
 
 def energies_and_forces(model, params, batch: Batch, capacity: int,
                         max_shift):
     """Energies per system (G,), forces (N, 3), the graph's error bits."""
-    n, g = batch.positions.shape[0], batch.n_node.shape[0]
-    real_graph = batch.graph_mask
-    node_graph = _node_graph(batch.n_node, n)
-    real_atom = (node_graph < g) & real_graph[jnp.minimum(node_graph, g - 1)]
+    g = batch.n_node.shape[0]
+    node_graph, real_atom = _atoms_of(batch)
     graph = jaxrt.pairs_batch(
         jax.lax.stop_gradient(batch.positions), batch.n_node, CUTOFF,
         cell=batch.cell, pbc=batch.pbc, graph_mask=batch.graph_mask,
@@ -229,10 +235,7 @@ def make_loss(model, capacity, max_shift, force_weight=4.0):
     def loss(params, batch: Batch):
         energy, forces, error = energies_and_forces(model, params, batch,
                                                     capacity, max_shift)
-        n, g = batch.positions.shape[0], batch.n_node.shape[0]
-        node_graph = _node_graph(batch.n_node, n)
-        real_atom = (node_graph < g) & batch.graph_mask[
-            jnp.minimum(node_graph, g - 1)]
+        _, real_atom = _atoms_of(batch)
         atoms = jnp.maximum(batch.n_node, 1)
         e_err = jnp.where(batch.graph_mask,
                           ((energy - batch.energy) / atoms) ** 2, 0)
