@@ -38,7 +38,7 @@ overflow flag (never silent: the capacity was sized on the data). At the
 end the force error on held-out structures is printed beside the error of
 predicting zero forces.
 
-    python examples/emt_potential.py          # (--quick) < 1 min, 2 CPU cores
+    python examples/emt_potential.py          # (--quick) ~45 s, 2 CPU cores
     python examples/emt_potential.py --full   # 300 structures, minutes
 """
 from __future__ import annotations
