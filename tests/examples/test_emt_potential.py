@@ -8,18 +8,28 @@ import pathlib
 import sys
 
 import numpy as np
+import pytest
 from ase.neighborlist import neighbor_list
 
 _PATH = (pathlib.Path(__file__).resolve().parents[2] / "examples"
          / "emt_potential.py")
-_spec = importlib.util.spec_from_file_location("emt_potential", _PATH)
-example = importlib.util.module_from_spec(_spec)
-# flax's modules are dataclasses, which look their module up by name.
-sys.modules[_spec.name] = example
-_spec.loader.exec_module(example)
 
 
+def load_example():
+    """The example as a module (imported here, not at collection: flax)."""
+    spec = importlib.util.spec_from_file_location("emt_potential", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    # flax's modules are dataclasses, which look their module up by name.
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+# Compiling the model's training step dominates (about 20 s on 2 cores);
+# tests/pairs/test_batch.py keeps the flat batches against ASE by default.
+@pytest.mark.slow
 def test_emt_potential_trains_on_ase_graphs_with_one_program_per_bucket():
+    example = load_example()
     # 10 structures: 8 train (one batch), 2 held out (a cluster, a bulk).
     run = example.train(n_structures=10, epochs=10, batch_size=8,
                         learning_rate=1e-2, log=lambda *_: None)
