@@ -747,6 +747,11 @@ class _Lists:
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
+        # Eager ``update`` calls run the whole update as one jitted program,
+        # compiled once per list structure and shape and then reused: run
+        # op by op, its ``lax.cond`` closed over new functions at every call
+        # and recompiled the search each time.
+        self.eager_update = jax.jit(self.traced_update)
 
     def compiled_capacity(self, n: int, dtype, query: Query,
                           capacity: Capacity, sizes: dict[str, int],
@@ -854,7 +859,26 @@ class _Lists:
                **kwargs) -> NeighborList:
         """Rebuild ``neighbors`` at ``position`` if a particle moved more than
         half the skin since the last build, or whenever ``radii`` (float
-        ``(N,)``, may be traced) is given. jit/scan/vmap-able."""
+        ``(N,)``, may be traced) is given. jit/scan/vmap-able; called
+        eagerly, it runs one compiled program, reused by later calls with
+        lists of the same structure and shapes."""
+        self.check_kwargs(kwargs, allocating=False)
+        if not isinstance(neighbors, NeighborList):
+            raise TypeError("neighbors must be a NeighborList from allocate; "
+                            f"got {type(neighbors).__name__}.")
+        traced = any(isinstance(leaf, jax.core.Tracer) for leaf in
+                     jax.tree_util.tree_leaves((position, neighbors, radii,
+                                                kwargs)))
+        if traced:
+            return self.traced_update(position, neighbors, radii=radii,
+                                      **kwargs)
+        position = _check_position(position)
+        return self.eager_update(position, neighbors, radii=radii, **kwargs)
+
+    def traced_update(self, position, neighbors: NeighborList, *, radii=None,
+                      **kwargs) -> NeighborList:
+        """`update`'s body, traced (under the caller's ``jit`` or
+        `eager_update`'s)."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
