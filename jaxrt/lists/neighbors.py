@@ -110,14 +110,27 @@ def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
             "made for another dimension (space.periodic(side) with a side "
             f"per axis of another count) fails so: make it for {dim}-D "
             "positions.") from e
-    if out.shape == ():
-        return lambda ra, rb, **kw: displacement_or_metric(ra, rb, **kw) ** 2
-    if out.shape != (dim,):
+    if out.shape not in ((), (dim,)):
         raise TypeError(
             "displacement_or_metric must return a scalar distance or a "
             f"({dim},) displacement; it returned shape {out.shape}.")
-    return lambda ra, rb, **kw: space.square_distance(
-        displacement_or_metric(ra, rb, **kw))
+    return _SquaredMetric(displacement_or_metric, out.shape == ())
+
+
+@dataclasses.dataclass(frozen=True)
+class _SquaredMetric:
+    """``fn(Ra, Rb, **kw)`` -> squared distance, from a displacement or
+    (``scalar``) a metric. Equal for equal functions: it is static in the
+    jitted programs (`MetricSq.fn`), so a second `neighbor_list` of the
+    same displacement reuses their compiled programs."""
+
+    fn: Callable
+    scalar: bool
+
+    def __call__(self, ra, rb, **kw):
+        if self.scalar:
+            return self.fn(ra, rb, **kw) ** 2
+        return space.square_distance(self.fn(ra, rb, **kw))
 
 
 def _box_parts(box, dim: int):

@@ -79,3 +79,22 @@ def test_eager_update_still_flags_overflow():
     assert len(compiles) == 0, compiles
     assert bool(out.did_buffer_overflow)
     assert not bool(nbrs.update(position).did_buffer_overflow)
+
+
+def test_second_factory_reuses_the_cell_lists_programs():
+    """A second `neighbor_list` with the same displacement and arguments
+    compiles no new sort or search program at ``allocate`` (the squared
+    metric wrapping the displacement is equal across factories)."""
+    from jaxrt.backends.cell import search
+    position, side = _system(seed=1)
+    displacement, _ = space.periodic(side)
+    first = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    expected = first.allocate(position)
+    programs = (search._sorted_system, search._visit)
+    before = [p._cache_size() for p in programs]
+    second = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    got = second.allocate(position)
+    assert [p._cache_size() for p in programs] == before
+    np.testing.assert_array_equal(np.sort(np.asarray(got.idx), axis=1),
+                                  np.sort(np.asarray(expected.idx), axis=1))
+    assert _pairs(got) == _brute_force(position, side, 1.4)
