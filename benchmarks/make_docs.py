@@ -53,6 +53,15 @@ BENCHMARKS = [
      "benchmarks/rt_neighbors.py",
      "The `bvh` backend's list (rebuild and refit, eager and jitted) beside "
      "Warp's HashGrid build and query."),
+    ("cold_start", "A newcomer's first list, beside jax-md",
+     "benchmarks/cold_start.py",
+     "Process CPU and wall seconds of each phase of a first use, each "
+     "(library, N) in a fresh process: import, `neighbor_list` + "
+     "`allocate`, the first eager `update`, the median of 5 more eager "
+     "`update` calls, the first and the median later call of "
+     "`jax.jit(update)`, then (warm) a second `neighbor_list` + `allocate` "
+     "and its first `update`. Periodic uniform fluid (density 0.8), "
+     "r_cutoff 1.5, dr_threshold 0.5, Dense, default backend."),
     ("allocate_parts", "Where an `allocate` goes", "benchmarks/allocate_parts.py",
      "An `allocate` on a new structure split into the metric model, the "
      "counting (`measure`), the build and the trim to jax-md's shapes."),

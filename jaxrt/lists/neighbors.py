@@ -110,14 +110,27 @@ def _metric_sq_fn(displacement_or_metric: Callable, dim: int) -> Callable:
             "made for another dimension (space.periodic(side) with a side "
             f"per axis of another count) fails so: make it for {dim}-D "
             "positions.") from e
-    if out.shape == ():
-        return lambda ra, rb, **kw: displacement_or_metric(ra, rb, **kw) ** 2
-    if out.shape != (dim,):
+    if out.shape not in ((), (dim,)):
         raise TypeError(
             "displacement_or_metric must return a scalar distance or a "
             f"({dim},) displacement; it returned shape {out.shape}.")
-    return lambda ra, rb, **kw: space.square_distance(
-        displacement_or_metric(ra, rb, **kw))
+    return _SquaredMetric(displacement_or_metric, out.shape == ())
+
+
+@dataclasses.dataclass(frozen=True)
+class _SquaredMetric:
+    """``fn(Ra, Rb, **kw)`` -> squared distance, from a displacement or
+    (``scalar``) a metric. Equal for equal functions: it is static in the
+    jitted programs (`MetricSq.fn`), so a second `neighbor_list` of the
+    same displacement reuses their compiled programs."""
+
+    fn: Callable
+    scalar: bool
+
+    def __call__(self, ra, rb, **kw):
+        if self.scalar:
+            return self.fn(ra, rb, **kw) ** 2
+        return space.square_distance(self.fn(ra, rb, **kw))
 
 
 def _box_parts(box, dim: int):
@@ -747,6 +760,11 @@ class _Lists:
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
+        # Eager ``update`` calls run the whole update as one jitted program,
+        # compiled once per list structure and shape and then reused: run
+        # op by op, its ``lax.cond`` closed over new functions at every call
+        # and recompiled the search each time.
+        self.eager_update = jax.jit(self.traced_update)
 
     def compiled_capacity(self, n: int, dtype, query: Query,
                           capacity: Capacity, sizes: dict[str, int],
@@ -854,7 +872,26 @@ class _Lists:
                **kwargs) -> NeighborList:
         """Rebuild ``neighbors`` at ``position`` if a particle moved more than
         half the skin since the last build, or whenever ``radii`` (float
-        ``(N,)``, may be traced) is given. jit/scan/vmap-able."""
+        ``(N,)``, may be traced) is given. jit/scan/vmap-able; called
+        eagerly, it runs one compiled program, reused by later calls with
+        lists of the same structure and shapes."""
+        self.check_kwargs(kwargs, allocating=False)
+        if not isinstance(neighbors, NeighborList):
+            raise TypeError("neighbors must be a NeighborList from allocate; "
+                            f"got {type(neighbors).__name__}.")
+        traced = any(isinstance(leaf, jax.core.Tracer) for leaf in
+                     jax.tree_util.tree_leaves((position, neighbors, radii,
+                                                kwargs)))
+        if traced:
+            return self.traced_update(position, neighbors, radii=radii,
+                                      **kwargs)
+        position = _check_position(position)
+        return self.eager_update(position, neighbors, radii=radii, **kwargs)
+
+    def traced_update(self, position, neighbors: NeighborList, *, radii=None,
+                      **kwargs) -> NeighborList:
+        """`update`'s body, traced (under the caller's ``jit`` or
+        `eager_update`'s)."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "

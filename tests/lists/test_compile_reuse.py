@@ -1,0 +1,100 @@
+"""An eager ``update`` compiles its program once: later eager calls with
+lists of the same structure and shapes reuse it (they recompiled the whole
+search at every call, many times jax-md's eager update)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import monitoring
+from jax_md import space
+
+import jaxrt
+
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiles: list[str] = []
+_listening = []
+
+
+def _count_compiles():
+    if not _listening:
+        monitoring.register_event_duration_secs_listener(
+            lambda event, _secs, **_: _compiles.append(event)
+            if event == _COMPILE_EVENT else None)
+        _listening.append(True)
+    _compiles.clear()
+    return _compiles
+
+
+def _system(n=48, side=6.0, seed=0):
+    r = np.random.default_rng(seed).uniform(0, side, (n, 2))
+    return jnp.asarray(r, jnp.float32), side
+
+
+def _brute_force(position, side, cutoff):
+    """float64 minimum-image pairs ``{(i, j)}``, i != j."""
+    r = np.asarray(position, np.float64)
+    d = r[:, None] - r[None]
+    d -= side * np.round(d / side)
+    near = (d ** 2).sum(-1) < cutoff ** 2
+    np.fill_diagonal(near, False)
+    return {(int(i), int(j)) for i, j in zip(*np.nonzero(near))}
+
+
+def _pairs(nbrs):
+    idx = np.asarray(nbrs.idx)
+    n = idx.shape[0]
+    return {(i, int(j)) for i in range(n) for j in idx[i] if j < n}
+
+
+@pytest.mark.parametrize("backend", ["auto", "brute"])
+def test_second_eager_update_compiles_nothing(backend):
+    position, side = _system()
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend=backend)
+    nbrs = fns.allocate(position)
+    shift = jnp.asarray([0.05, -0.03], jnp.float32)
+    moved = [jax.block_until_ready(position + k * shift) for k in (1, 2, 3)]
+    first = nbrs.update(moved[0])
+    compiles = _count_compiles()
+    second = nbrs.update(moved[1])
+    again = first.update(moved[2])
+    assert len(compiles) == 0, compiles
+    # The reused program is still the search: exact lists, no error.
+    for moved, got in ((moved[1], second), (moved[2], again)):
+        assert not bool(got.did_buffer_overflow)
+        assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
+
+
+def test_eager_update_still_flags_overflow():
+    position, side = _system()
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.0, backend="brute")
+    nbrs = fns.allocate(position)
+    nbrs.update(position)
+    dense = jax.block_until_ready(position * 0.5)  # rows past the capacity
+    compiles = _count_compiles()
+    out = nbrs.update(dense)
+    assert len(compiles) == 0, compiles
+    assert bool(out.did_buffer_overflow)
+    assert not bool(nbrs.update(position).did_buffer_overflow)
+
+
+def test_second_factory_reuses_the_cell_lists_programs():
+    """A second `neighbor_list` with the same displacement and arguments
+    compiles no new sort or search program at ``allocate`` (the squared
+    metric wrapping the displacement is equal across factories)."""
+    from jaxrt.backends.cell import search
+    position, side = _system(seed=1)
+    displacement, _ = space.periodic(side)
+    first = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    expected = first.allocate(position)
+    programs = (search._sorted_system, search._visit)
+    before = [p._cache_size() for p in programs]
+    second = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    got = second.allocate(position)
+    assert [p._cache_size() for p in programs] == before
+    np.testing.assert_array_equal(np.sort(np.asarray(got.idx), axis=1),
+                                  np.sort(np.asarray(expected.idx), axis=1))
+    assert _pairs(got) == _brute_force(position, side, 1.4)
