@@ -68,21 +68,20 @@ def _child(library: str, n: int, fmt: str) -> None:
     lap("allocate")
     nbrs.update(moved[0]).idx.block_until_ready()
     lap("first_update")
-    eager = []
-    for r in moved[1:]:
-        nbrs.update(r).idx.block_until_ready()
-        lap("_")
-        eager.append(out.pop("_"))
-    out["eager_update"] = [statistics.median(c) for c in zip(*eager)]
+    def median_lap(name, call):
+        """The median (CPU, wall) seconds of ``call`` over the later moves."""
+        laps = []
+        for r in moved[1:]:
+            call(r).idx.block_until_ready()
+            lap("_")
+            laps.append(out.pop("_"))
+        out[name] = [statistics.median(c) for c in zip(*laps)]
+
+    median_lap("eager_update", nbrs.update)
     update = jax.jit(lambda r, nb: nb.update(r))
     update(moved[0], nbrs).idx.block_until_ready()
     lap("jit_first")
-    jitted = []
-    for r in moved[1:]:
-        update(r, nbrs).idx.block_until_ready()
-        lap("_")
-        jitted.append(out.pop("_"))
-    out["jit_update"] = [statistics.median(c) for c in zip(*jitted)]
+    median_lap("jit_update", lambda r: update(r, nbrs))
     fns = neighbor_list(displacement, side, 1.5, 0.5, format=layout)
     nbrs = fns.allocate(position)
     nbrs.idx.block_until_ready()

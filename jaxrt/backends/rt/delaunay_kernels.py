@@ -49,6 +49,17 @@ UNCLAIMED = wp.constant(2 ** 31 - 1)
 
 
 @wp.func
+def filtered_sign(det: wp.float64, bound: wp.float64) -> int:
+    """The sign of ``det`` where its rounding error bound ``bound`` cannot
+    flip it; 0 where it could (the predicate is undecided)."""
+    if det > bound:
+        return 1
+    if det < -bound:
+        return -1
+    return 0
+
+
+@wp.func
 def orient_sign(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d) -> int:
     """1: ``(a, b, c)`` counter-clockwise for certain; -1 clockwise for
     certain; 0 undecided."""
@@ -59,12 +70,7 @@ def orient_sign(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d) -> int:
     left = acx * bcy
     right = acy * bcx
     det = left - right
-    bound = CCW_BOUND * (wp.abs(left) + wp.abs(right))
-    if det > bound:
-        return 1
-    if det < -bound:
-        return -1
-    return 0
+    return filtered_sign(det, CCW_BOUND * (wp.abs(left) + wp.abs(right)))
 
 
 @wp.func
@@ -90,12 +96,7 @@ def incircle_sign(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d, d: wp.vec2d) -> int:
     permanent = ((wp.abs(bc) + wp.abs(cb)) * alift
                  + (wp.abs(ca) + wp.abs(ac)) * blift
                  + (wp.abs(ab) + wp.abs(ba)) * clift)
-    bound = ICC_BOUND * permanent
-    if det > bound:
-        return 1
-    if det < -bound:
-        return -1
-    return 0
+    return filtered_sign(det, ICC_BOUND * permanent)
 
 
 @wp.func
