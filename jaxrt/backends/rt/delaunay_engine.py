@@ -5,8 +5,12 @@ splitting), and searches it. Warp and NumPy only (no JAX); the triangulation
 from scratch is the caller's (``rebuild``, e.g.
 `jaxrt.backends.delaunay.host_triangulate`).
 
-Each flip round reads one counter back to the host (the number of flips)
-to decide whether to go on; everything else stays on the device.
+Flip rounds run in batches of ``ROUNDS_PER_READ`` launches with no host
+read in between: each round counts its flips on the device, a round after
+one that flipped nothing is a no-op (the device-side done flag), and only
+the triangles the previous round flipped are re-tested. The host reads one
+small status array per batch (the rounds' flips and the inverted triangles
+left), so a converged try costs one read whatever its number of rounds.
 """
 from __future__ import annotations
 
@@ -81,6 +85,13 @@ class _Scratch:
         self.claim = wp.zeros(t, dtype=wp.int32, device=dev)
         self.twin_new = wp.zeros((t, 3), dtype=wp.int32, device=dev)
         self.counter = wp.zeros(1, dtype=wp.int32, device=dev)
+        # status[0]: inverted triangles; status[1 + r]: flips of round r.
+        self.status = wp.zeros(2 + ROUNDS_PER_READ, dtype=wp.int32, device=dev)
+        self.dirty = wp.zeros((2, t), dtype=wp.int32, device=dev)
+        self.parity = 0  # the dirty row the next round reads
+        self.step = wp.zeros(v, dtype=wp.float64, device=dev)
+        self.kept = (wp.zeros_like(m.tri), wp.zeros_like(m.twin),
+                     wp.zeros_like(m.shift))  # the last valid connectivity
         self.bad_vertex = wp.zeros(v, dtype=wp.int32, device=dev)
         self.delta = wp.zeros(v, dtype=wp.vec2d, device=dev)
         self.P = wp.zeros(v, dtype=wp.vec2d, device=dev)
@@ -104,34 +115,49 @@ def scratch(m: Mesh) -> _Scratch:
     return _SCRATCH[key]
 
 
-def flip_round(m: Mesh, P: wp.array) -> int:
-    """One round of conflict-free flips at positions ``P``; returns the
-    number of flips (read back to the host)."""
+import os
+GROW = float(os.environ.get("GROW", "2"))
+ROUNDS_PER_READ = int(os.environ.get("RPR", "16"))
+"""Flip rounds launched between two host reads."""
+
+
+def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
+               fresh: bool) -> tuple[int, int, int]:
+    """Up to ``rounds`` (at most `ROUNDS_PER_READ`) flip rounds at ``P``,
+    then the validity check, with one host read at the end. ``fresh``: all
+    triangles are tested in the first round (after a move); otherwise only
+    those the last batch's final round flipped. Returns ``(flips, last,
+    bad)``: the flips, those of the last round run (0: converged), and the
+    triangles not certainly positive (their vertices marked in the
+    scratch's ``bad_vertex``)."""
     s = scratch(m)
     t = m.tri.shape[0]
-    s.claim.fill_(k.UNCLAIMED)
-    s.counter.zero_()
-    wp.launch(k.flip_mark, dim=3 * t, device=m.device,
-              inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim])
+    dev = m.device
+    s.status.zero_()
+    if fresh:
+        s.dirty.fill_(1)
     wp.copy(s.twin_new, m.twin)
-    wp.launch(k.flip_apply, dim=3 * t, device=m.device,
-              inputs=[m.tri, m.twin, m.shift, s.want, s.claim, s.twin_new,
-                      s.counter])
-    # Copied back, not swapped: the mesh's arrays may be a caller's
-    # buffers (an XLA call's outputs), which must end up holding the result.
-    wp.copy(m.twin, s.twin_new)
-    return int(s.counter.numpy()[0])
-
-
-def bad_triangles(m: Mesh, P: wp.array) -> int:
-    """Triangles not certainly positive at ``P`` (their vertices marked in
-    the scratch's ``bad_vertex``)."""
-    s = scratch(m)
+    for r in range(rounds):
+        wp.launch(k.reset_claims, dim=t, device=dev,
+                  inputs=[s.claim, s.status, r])
+        wp.launch(k.flip_mark, dim=3 * t, device=dev,
+                  inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
+                          s.dirty, s.status, r, s.parity])
+        wp.launch(k.flip_apply, dim=3 * t, device=dev,
+                  inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
+                          s.twin_new, s.dirty, s.status, r, s.parity])
+        s.parity = 1 - s.parity  # the row this round marked
+        # Copied back, not swapped: the mesh's arrays may be a caller's
+        # buffers (an XLA call's outputs), which must end up holding the
+        # result.
+        wp.launch(k.copy_twins, dim=m.twin.shape, device=dev,
+                  inputs=[s.twin_new, m.twin, s.status, r])
     s.bad_vertex.zero_()
-    s.counter.zero_()
-    wp.launch(k.check_triangles, dim=m.tri.shape[0], device=m.device,
-              inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.counter])
-    return int(s.counter.numpy()[0])
+    wp.launch(k.check_triangles, dim=t, device=dev,
+              inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
+    st = s.status.numpy()
+    per_round = st[1:1 + rounds]
+    return int(per_round.sum()), int(per_round[-1]), int(st[0])
 
 
 def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
@@ -140,34 +166,46 @@ def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
     wanted. Returns ``(flips, done)``: ``done`` when the rounds ended with
     nothing to flip and every triangle positive (a Delaunay triangulation
     of ``P``)."""
-    P = m.position if P is None else P
-    flips = 0
-    for _ in range(max_rounds):
-        f = flip_round(m, P)
+    flips, _, done, _ = _flip_rounds(m, m.position if P is None else P,
+                                     max_rounds)
+    return flips, done
+
+
+def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int
+                 ) -> tuple[int, int, bool, int]:
+    """`flip_to_delaunay`: ``(flips, host reads, done, triangles not
+    certainly positive after the last batch)``."""
+    flips = reads = 0
+    left, fresh = max_rounds, True
+    while left > 0:
+        rounds = min(left, ROUNDS_PER_READ)
+        f, last, bad = flip_batch(m, P, rounds, fresh=fresh)
         flips += f
-        if f == 0:
-            return flips, bad_triangles(m, P) == 0
-    return flips, False
+        reads += 1
+        left -= rounds
+        fresh = False
+        if last == 0:
+            return flips, reads, bad == 0, bad
+    return flips, reads, False, bad
 
 
 @dataclasses.dataclass
 class Maintenance:
     """What one `maintain` did: ``ok`` (False: the caller must rebuild;
     the mesh's positions are then unchanged, its triangles valid for part
-    of the move only), ``flips``, ``splits`` (failed tries)."""
+    of the move only), ``flips``, ``splits`` (failed tries), ``tries``
+    and ``reads`` (host reads of device results)."""
 
     ok: bool
     flips: int
     splits: int
+    tries: int = 0
+    reads: int = 0
 
 
-def _save(m: Mesh, kept=None):
-    """Copies of the mesh's connectivity (into ``kept`` if given)."""
-    if kept is None:
-        return wp.clone(m.tri), wp.clone(m.twin), wp.clone(m.shift)
+def _save(m: Mesh, kept) -> None:
     for dst, src in zip(kept, (m.tri, m.twin, m.shift)):
         wp.copy(dst, src)
-    return kept
 
 
 def _restore(m: Mesh, kept) -> None:
@@ -179,53 +217,67 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
              max_splits: int = 32) -> Maintenance:
     """Local repair: move the vertices from ``m.position`` to ``target``
     (vec2d ``(V, 2)``; frame vertices unmoved) and restore the Delaunay
-    condition by flips from the current triangulation, splitting the
-    displacement where a try fails (as `jaxrt.backends.delaunay.maintain`).
+    condition by flips from the current triangulation.
+
+    Where a try leaves inverted triangles (a tangle flips cannot undo),
+    the mesh goes back to its last valid triangulation and the vertices of
+    those triangles halve their step along their move while every other
+    vertex keeps its own; after a successful try the steps double again.
+    So each try bisects every tangle of the mesh at once, and the
+    vertices away from tangles finish their move in the first try.
+    ``max_splits`` caps the failed tries; past it ``ok`` is False.
     """
     s = scratch(m)
     v = m.position.shape[0]
     dev = m.device
+    reads = 0
     if not m.periodic:
         s.counter.zero_()
         lo, hi = m.safe
         wp.launch(k.count_outside, dim=m.n, device=dev,
                   inputs=[target, wp.vec2d(*lo), wp.vec2d(*hi), s.counter])
+        reads += 1
         if int(s.counter.numpy()[0]):
-            return Maintenance(False, 0, 0)
+            return Maintenance(False, 0, 0, 0, reads)
     wp.launch(k.move_delta, dim=v, device=dev,
               inputs=[m.position, target, m.L, int(m.periodic), s.delta])
     s.done_part.zero_()
-    s.fraction.fill_(1.0)
-    whole, flips, splits = True, 0, 0
-    kept = _save(m)
+    s.step.fill_(1.0)
+    flips = splits = tries = 0
+    _save(m, s.kept)
     while True:
+        tries += 1
+        wp.launch(k.try_fraction, dim=v, device=dev,
+                  inputs=[s.done_part, s.step, s.fraction])
         wp.launch(k.move_part, dim=v, device=dev,
                   inputs=[m.position, s.delta, s.fraction, s.P])
-        f, done = flip_to_delaunay(m, s.P, max_flip_rounds)
+        f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds)
+        reads += r
         if done:
             flips += f
-            if whole:
+            s.counter.zero_()
+            wp.launch(k.commit_try, dim=v, device=dev,
+                      inputs=[s.done_part, s.step, s.fraction, s.counter, GROW])
+            reads += 1
+            if int(s.counter.numpy()[0]) == 0:
                 break
-            wp.copy(s.done_part, s.fraction)
-            s.fraction.fill_(1.0)
-            whole = True
-            _save(m, kept)
+            _save(m, s.kept)
             continue
-        any_bad = bad_triangles(m, s.P)  # marks the vertices to split
-        _restore(m, kept)
+        # bad_vertex marks the vertices of the triangles left inverted;
+        # none (the rounds ran out) halves every step.
+        _restore(m, s.kept)
         splits += 1
         if splits >= max_splits:
-            return Maintenance(False, flips, splits)
-        wp.launch(k.split_move, dim=v, device=dev,
-                  inputs=[s.done_part, s.fraction, s.bad_vertex, any_bad])
-        whole = False
+            return Maintenance(False, flips, splits, tries, reads)
+        wp.launch(k.halve_steps, dim=v, device=dev,
+                  inputs=[s.step, s.bad_vertex, any_bad])
     if m.periodic:
         wp.launch(k.wrap, dim=v, device=dev,
                   inputs=[m.position, s.delta, m.L, s.P, s.periods])
         wp.launch(k.add_periods, dim=m.tri.shape, device=dev,
                   inputs=[m.tri, s.periods, m.shift])
     wp.copy(m.position, s.P)
-    return Maintenance(True, flips, splits)
+    return Maintenance(True, flips, splits, tries, reads)
 
 
 def adjacency(m: Mesh) -> tuple[wp.array, wp.array]:

@@ -115,18 +115,34 @@ def _outside(x: int, t: int, u: int) -> bool:
 def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
               shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
               L: wp.vec2d, want: wp.array(dtype=wp.int32),
-              claim: wp.array(dtype=wp.int32)):
+              claim: wp.array(dtype=wp.int32),
+              dirty: wp.array2d(dtype=wp.int32),
+              status: wp.array(dtype=wp.int32), r: int, cur: int):
     """One thread per half-edge: does its edge want a flip (``want[h]``),
     and if so claim both its triangles (``claim``: atomic min of ``h``,
-    reset to `UNCLAIMED` before the launch)."""
+    reset to `UNCLAIMED` before the launch).
+
+    Round ``r`` of a batch launched without host reads: ``status[1 + r]``
+    counts its flips, and where round ``r - 1`` flipped nothing
+    (``status[r] == 0``) the round is a no-op (the device-side done flag).
+    Only edges of a triangle marked in ``dirty[cur]`` (those the last
+    round flipped; all of them after a move) are tested: an edge of two
+    untouched triangles kept its verdict. This launch clears
+    ``dirty[1 - cur]``, which `flip_apply` then marks."""
     h = wp.tid()
     t = h // 3
     e = h - 3 * t
     want[h] = 0
+    if e == 0:
+        dirty[1 - cur, t] = 0
+    if r > 0 and status[r] == 0:
+        return
     tw = int(twin[t, e])
     if tw <= h:  # hull edge (-1), or the twin's thread tests this edge
         return
     u = tw // 3
+    if dirty[cur, t] == 0 and dirty[cur, u] == 0:
+        return
     m = tw - 3 * u
     e1 = (e + 1) % 3
     e2 = (e + 2) % 3
@@ -205,10 +221,13 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
                shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
                claim: wp.array(dtype=wp.int32),
                twin_new: wp.array2d(dtype=wp.int32),
-               flips: wp.array(dtype=wp.int32)):
+               dirty: wp.array2d(dtype=wp.int32),
+               status: wp.array(dtype=wp.int32), r: int, cur: int):
     """One thread per half-edge: the edges that won both triangles flip.
     ``tri`` and ``shift`` are rewritten in place (each triangle by its one
-    winner), the twins into ``twin_new`` (a copy of ``twin``)."""
+    winner), the twins into ``twin_new`` (a copy of ``twin``); the two
+    triangles are marked in ``dirty[1 - cur]`` and the flip counted in
+    ``status[1 + r]`` (see `flip_mark`)."""
     h = wp.tid()
     if not _won(h, twin, want, claim):
         return
@@ -254,7 +273,29 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
     _link(twin_new, 3 * u + 2, D, twin, want, claim)
     twin_new[t, 1] = 3 * u + 1
     twin_new[u, 1] = 3 * t + 1
-    wp.atomic_add(flips, 0, 1)
+    dirty[1 - cur, t] = 1
+    dirty[1 - cur, u] = 1
+    wp.atomic_add(status, 1 + r, 1)
+
+
+@wp.kernel
+def copy_twins(src: wp.array2d(dtype=wp.int32), dst: wp.array2d(dtype=wp.int32),
+               status: wp.array(dtype=wp.int32), r: int):
+    """``dst = src`` after round ``r``, skipped where the round flipped
+    nothing (then the two already agree)."""
+    t, e = wp.tid()
+    if status[1 + r] != 0:
+        dst[t, e] = src[t, e]
+
+
+@wp.kernel
+def reset_claims(claim: wp.array(dtype=wp.int32),
+                 status: wp.array(dtype=wp.int32), r: int):
+    """Claims back to `UNCLAIMED` before round ``r`` (skipped once the
+    batch is done: a no-op round claims nothing)."""
+    t = wp.tid()
+    if r == 0 or status[r] != 0:
+        claim[t] = UNCLAIMED
 
 
 @wp.kernel
@@ -298,16 +339,40 @@ def move_part(start: wp.array(dtype=wp.vec2d), delta: wp.array(dtype=wp.vec2d),
 
 
 @wp.kernel
-def split_move(done_part: wp.array(dtype=wp.float64),
+def try_fraction(done_part: wp.array(dtype=wp.float64),
+                 step: wp.array(dtype=wp.float64),
+                 fraction: wp.array(dtype=wp.float64)):
+    """The fraction of its move each vertex tries next: its committed part
+    plus its step, capped at the whole move."""
+    v = wp.tid()
+    fraction[v] = wp.min(done_part[v] + step[v], wp.float64(1.0))
+
+
+@wp.kernel
+def commit_try(done_part: wp.array(dtype=wp.float64),
+               step: wp.array(dtype=wp.float64),
                fraction: wp.array(dtype=wp.float64),
-               bad_vertex: wp.array(dtype=wp.int32), any_bad: int):
-    """After a failed try (poster Fig 5): the vertices of the triangles
-    left inverted go half their remaining way (all of them if none is
-    marked); the others retry their whole move."""
+               unfinished: wp.array(dtype=wp.int32), grow: wp.float64):
+    """After a successful try: its fractions are committed, each step
+    doubles (a vertex slowed down by a tangle speeds up again once past
+    it), and the vertices still short of their whole move are counted."""
+    v = wp.tid()
+    done_part[v] = fraction[v]
+    # Capped at what is left, so one halving always shortens the try.
+    step[v] = wp.min(step[v] * grow, wp.float64(1.0) - fraction[v])
+    if fraction[v] < wp.float64(1.0):
+        wp.atomic_add(unfinished, 0, 1)
+
+
+@wp.kernel
+def halve_steps(step: wp.array(dtype=wp.float64),
+                bad_vertex: wp.array(dtype=wp.int32), any_bad: int):
+    """After a failed try: the vertices of the triangles left inverted
+    halve their step (all of them if none is marked); the others keep
+    theirs, so one try bisects every tangle of the mesh at once."""
     v = wp.tid()
     if any_bad == 0 or bad_vertex[v] != 0:
-        s = done_part[v]
-        fraction[v] = s + (fraction[v] - s) * wp.float64(0.5)
+        step[v] = step[v] * wp.float64(0.5)
 
 
 @wp.kernel
