@@ -31,7 +31,10 @@ Columns: ``update_ms`` (median per step over ``--repeats`` loops of
 neighbours, for delaunay ``flips_per_step``, ``rebuilds`` (from scratch,
 during the timed loops) and ``splits_last``; for the Warp engine
 ``maintain_ms`` and ``bfs_ms``, its two phases timed apart (median over
-10 steps, outside JAX); ``overflow`` if any list
+10 steps, outside JAX), with the maintenance's mean ``tries_per_step``,
+``reads_per_step`` (host reads of device results), ``splits_per_step``
+(failed tries) and ``maintain_failed`` (steps whose repair gave up, each
+then rebuilt on the host); ``overflow`` if any list
 overflowed during the loops (the row is then not valid).
 
     python benchmarks/delaunay.py --sizes 10000                   # CPU
@@ -124,15 +127,22 @@ def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
     out = host_triangulate(traj[0], L, cutoff)
     m = engine.mesh(*out[:4], n=traj.shape[1], side=L, device=device)
     engine.flip_to_delaunay(m)
-    maintain, search = [], []
+    maintain, search, tries, reads, splits, failed = [], [], [], [], [], 0
     result = None
     for R in traj[1:]:
         target = wp.array(R, dtype=wp.vec2d, device=device)
         wp.synchronize_device(device)
         t0 = time.perf_counter()
-        engine.maintain(m, target)
+        r = engine.maintain(m, target)
         wp.synchronize_device(device)
         t1 = time.perf_counter()
+        if not r.ok:  # the timed call then rebuilds from scratch
+            failed += 1
+            engine.step(m, target, lambda p: host_triangulate(p, L, cutoff),
+                        local_repair=False)
+        tries.append(r.tries)
+        reads.append(r.reads)
+        splits.append(r.splits)
         result = engine.radius_search(m, cutoff, width=width, points=target,
                                       out=result)
         wp.synchronize_device(device)
@@ -140,7 +150,11 @@ def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
         maintain.append(t1 - t0)
         search.append(t2 - t1)
     return {"maintain_ms": 1e3 * float(np.median(maintain)),
-            "bfs_ms": 1e3 * float(np.median(search))}
+            "bfs_ms": 1e3 * float(np.median(search)),
+            "tries_per_step": float(np.mean(tries)),
+            "reads_per_step": float(np.mean(reads)),
+            "splits_per_step": float(np.mean(splits)),
+            "maintain_failed": failed}
 
 
 def run_row(job: dict) -> dict:
@@ -220,7 +234,8 @@ def add_ratios(rows: list[dict]) -> None:
 
 COLUMNS = ["motion", "method", "N", "k_target", "k", "update_ms", "min_ms",
            "max_ms", "vs_cell", "vs_jax_md", "flips_per_step", "rebuilds",
-           "splits_last", "maintain_ms", "bfs_ms", "overflow", "allocate_s"]
+           "splits_last", "maintain_ms", "bfs_ms", "tries_per_step",
+           "reads_per_step", "splits_per_step", "maintain_failed", "overflow", "allocate_s"]
 
 
 def main(argv=None) -> None:

@@ -751,7 +751,7 @@ class Delaunay:
     """
 
     max_flip_rounds: int = 64
-    max_splits: int = 32
+    max_splits: int = 64
     engine: str = "xla"
     local_repair: bool = True
     name: ClassVar[str] = "delaunay"

@@ -115,9 +115,7 @@ def scratch(m: Mesh) -> _Scratch:
     return _SCRATCH[key]
 
 
-import os
-GROW = float(os.environ.get("GROW", "2"))
-ROUNDS_PER_READ = int(os.environ.get("RPR", "16"))
+ROUNDS_PER_READ = 16
 """Flip rounds launched between two host reads."""
 
 
@@ -214,7 +212,7 @@ def _restore(m: Mesh, kept) -> None:
 
 
 def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
-             max_splits: int = 32) -> Maintenance:
+             max_splits: int = 64) -> Maintenance:
     """Local repair: move the vertices from ``m.position`` to ``target``
     (vec2d ``(V, 2)``; frame vertices unmoved) and restore the Delaunay
     condition by flips from the current triangulation.
@@ -257,7 +255,7 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
             flips += f
             s.counter.zero_()
             wp.launch(k.commit_try, dim=v, device=dev,
-                      inputs=[s.done_part, s.step, s.fraction, s.counter, GROW])
+                      inputs=[s.done_part, s.step, s.fraction, s.counter, 2.0])
             reads += 1
             if int(s.counter.numpy()[0]) == 0:
                 break
@@ -380,7 +378,7 @@ class Step:
 
 
 def step(m: Mesh, target: wp.array, rebuild, *, local_repair: bool = True,
-         max_flip_rounds: int = 64, max_splits: int = 32) -> Step:
+         max_flip_rounds: int = 64, max_splits: int = 64) -> Step:
     """Bring the mesh to ``target`` (vec2d ``(V,)``, frame vertices
     included): local repair by `maintain`, or (``local_repair=False``, or
     where repair fails) a rebuild from scratch by ``rebuild(points)``

@@ -1019,7 +1019,7 @@ def delaunay_host(points, side, cutoff: float):
 
 def delaunay_step(target, points, side, state, *, cutoff: float,
                   periodic: bool, width: int, local_repair: bool = True,
-                  max_flip_rounds: int = 64, max_splits: int = 32):
+                  max_flip_rounds: int = 64, max_splits: int = 64):
     """One step of the Warp Delaunay engine under JAX: move the
     triangulation ``state`` (`jaxrt.backends.delaunay.Triangulation`) to
     ``target`` (float64 ``(V, 2)``, grid coordinates, frame vertices last
