@@ -253,6 +253,8 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
         reads += r
         if done:
             flips += f
+            if splits == 0:  # no step was ever halved: every move is whole
+                break
             s.counter.zero_()
             wp.launch(k.commit_try, dim=v, device=dev,
                       inputs=[s.done_part, s.step, s.fraction, s.counter, 2.0])
