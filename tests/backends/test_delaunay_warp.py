@@ -107,7 +107,8 @@ def test_stretched_triangulation_is_flipped_to_delaunay():
     assert ok
     pos = pos / stretch  # frame included: orientation is kept
     m = engine.mesh(pos, tri, twin, shift, n=250, safe=safe, device=DEVICE)
-    flips, done = engine.flip_to_delaunay(m, max_rounds=256)
+    flips, done = engine.flip_to_delaunay(m, max_rounds=256,
+                                          rounds_per_read=16)
     assert done and flips > 100
     assert_delaunay(m)
     assert pairs_of(m, 1.2) == brute(pts, 1.2)
@@ -175,8 +176,11 @@ def boids_move(pts, vel, side, rng, dt=0.05, radius=1.0):
     return np.mod(pts + dt * vel, side), vel
 
 
-@pytest.mark.parametrize("motion", ["boids", "random"])
-def test_local_repair_matches_brute_force_and_a_fresh_triangulation(motion):
+@pytest.mark.parametrize("motion,per_read", [("boids", None), ("random", 5)])
+def test_local_repair_matches_brute_force_and_a_fresh_triangulation(
+        motion, per_read):
+    # per_read=5: flip rounds batched without host reads (the GPU's way),
+    # ending mid-batch and across batches.
     rng = np.random.default_rng(7)
     pts = rng.uniform(0, 10, (300, 2))
     vel = rng.normal(size=pts.shape)
@@ -187,7 +191,8 @@ def test_local_repair_matches_brute_force_and_a_fresh_triangulation(motion):
             pts, vel = boids_move(pts, vel, SIDE, rng)
         else:
             pts = np.mod(pts + 0.05 * rng.normal(size=pts.shape), SIDE)
-        r = engine.maintain(m, wp.array(pts, dtype=wp.vec2d, device=DEVICE))
+        r = engine.maintain(m, wp.array(pts, dtype=wp.vec2d, device=DEVICE),
+                            rounds_per_read=per_read)
         assert r.ok
         repairs += r.flips
         assert_delaunay(m)
@@ -197,6 +202,25 @@ def test_local_repair_matches_brute_force_and_a_fresh_triangulation(motion):
         assert engine.flip_to_delaunay(fresh)[1]
         assert got == pairs_of(fresh, 1.0, points=pts)
     assert repairs > 0  # the moves did need flips
+
+
+def test_tangling_moves_are_repaired_on_the_device_by_split_steps():
+    # Moves of half a spacing invert triangles that no flip can undo: the
+    # repair must go back to the last valid triangulation and bisect the
+    # tangled vertices' steps (splits > 0), with no rebuild, and end exact.
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(0, 10, (300, 2))
+    m = triangulate(pts, 1.0, SIDE)
+    splits = 0
+    for per_read in (None, 4):
+        pts = np.mod(pts + 0.5 * rng.normal(size=pts.shape), SIDE)
+        r = engine.maintain(m, wp.array(pts, dtype=wp.vec2d, device=DEVICE),
+                            rounds_per_read=per_read)
+        assert r.ok and r.tries > r.splits
+        splits += r.splits
+        assert_delaunay(m)
+        assert pairs_of(m, 1.0, points=pts) == brute(pts, 1.0, SIDE)
+    assert splits > 0
 
 
 def test_free_space_repair_and_a_point_leaving_the_frame_rebuilds():

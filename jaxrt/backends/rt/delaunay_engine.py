@@ -116,7 +116,19 @@ def scratch(m: Mesh) -> _Scratch:
 
 
 ROUNDS_PER_READ = 16
-"""Flip rounds launched between two host reads."""
+"""Flip rounds launched between two host reads on a GPU. On the CPU a
+launch runs to completion before the next, so a read costs nothing and
+each round is read (a no-op round would cost a full pass there)."""
+
+
+def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
+    """``rounds`` (1 to `ROUNDS_PER_READ`) or the device's default."""
+    if rounds is None:
+        return ROUNDS_PER_READ if m.device.is_cuda else 1
+    if not 1 <= rounds <= ROUNDS_PER_READ:
+        raise ValueError(f"rounds_per_read={rounds}: pass 1 to "
+                         f"{ROUNDS_PER_READ}.")
+    return int(rounds)
 
 
 def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
@@ -159,24 +171,26 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
 
 
 def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
-                     max_rounds: int = 64) -> tuple[int, bool]:
+                     max_rounds: int = 64, rounds_per_read: int | None = None
+                     ) -> tuple[int, bool]:
     """Flip rounds at ``P`` (default: the mesh's positions) until none is
     wanted. Returns ``(flips, done)``: ``done`` when the rounds ended with
     nothing to flip and every triangle positive (a Delaunay triangulation
-    of ``P``)."""
+    of ``P``). ``rounds_per_read``: see `rounds_per_read`."""
     flips, _, done, _ = _flip_rounds(m, m.position if P is None else P,
-                                     max_rounds)
+                                     max_rounds, rounds_per_read)
     return flips, done
 
 
-def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int
-                 ) -> tuple[int, int, bool, int]:
+def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int,
+                 per_read: int | None = None) -> tuple[int, int, bool, int]:
     """`flip_to_delaunay`: ``(flips, host reads, done, triangles not
     certainly positive after the last batch)``."""
+    per_read = rounds_per_read(m, per_read)
     flips = reads = 0
     left, fresh = max_rounds, True
     while left > 0:
-        rounds = min(left, ROUNDS_PER_READ)
+        rounds = min(left, per_read)
         f, last, bad = flip_batch(m, P, rounds, fresh=fresh)
         flips += f
         reads += 1
@@ -212,7 +226,8 @@ def _restore(m: Mesh, kept) -> None:
 
 
 def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
-             max_splits: int = 64) -> Maintenance:
+             max_splits: int = 64, rounds_per_read: int | None = None
+             ) -> Maintenance:
     """Local repair: move the vertices from ``m.position`` to ``target``
     (vec2d ``(V, 2)``; frame vertices unmoved) and restore the Delaunay
     condition by flips from the current triangulation.
@@ -224,6 +239,7 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     So each try bisects every tangle of the mesh at once, and the
     vertices away from tangles finish their move in the first try.
     ``max_splits`` caps the failed tries; past it ``ok`` is False.
+    ``rounds_per_read``: see `rounds_per_read`.
     """
     s = scratch(m)
     v = m.position.shape[0]
@@ -249,7 +265,8 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
                   inputs=[s.done_part, s.step, s.fraction])
         wp.launch(k.move_part, dim=v, device=dev,
                   inputs=[m.position, s.delta, s.fraction, s.P])
-        f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds)
+        f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds,
+                                           rounds_per_read)
         reads += r
         if done:
             flips += f
