@@ -136,7 +136,7 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     """Up to ``rounds`` (at most `ROUNDS_PER_READ`) flip rounds at ``P``,
     then the validity check, with one host read at the end. ``fresh``: all
     triangles are tested in the first round (after a move); otherwise only
-    those the last batch's final round flipped. Returns ``(flips, last,
+    those the last batch's final round marked (its wanting edges'). Returns ``(flips, last,
     bad)``: the flips, those of the last round run (0: converged), and the
     triangles not certainly positive (their vertices marked in the
     scratch's ``bad_vertex``)."""
@@ -149,13 +149,13 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     wp.copy(s.twin_new, m.twin)
     for r in range(rounds):
         wp.launch(k.reset_claims, dim=t, device=dev,
-                  inputs=[s.claim, s.status, r])
+                  inputs=[s.claim, s.dirty, s.status, r, s.parity])
         wp.launch(k.flip_mark, dim=3 * t, device=dev,
                   inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
                           s.dirty, s.status, r, s.parity])
         wp.launch(k.flip_apply, dim=3 * t, device=dev,
                   inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
-                          s.twin_new, s.dirty, s.status, r, s.parity])
+                          s.twin_new, s.status, r])
         s.parity = 1 - s.parity  # the row this round marked
         # Copied back, not swapped: the mesh's arrays may be a caller's
         # buffers (an XLA call's outputs), which must end up holding the

@@ -125,16 +125,15 @@ def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
     Round ``r`` of a batch launched without host reads: ``status[1 + r]``
     counts its flips, and where round ``r - 1`` flipped nothing
     (``status[r] == 0``) the round is a no-op (the device-side done flag).
-    Only edges of a triangle marked in ``dirty[cur]`` (those the last
-    round flipped; all of them after a move) are tested: an edge of two
-    untouched triangles kept its verdict. This launch clears
-    ``dirty[1 - cur]``, which `flip_apply` then marks."""
+    Only edges of a triangle marked in ``dirty[cur]`` are tested: those
+    of the last round's wanting edges (flipped or not: an edge that lost a
+    claim must be tested again) and all of them after a move; an edge of
+    two unmarked triangles kept its verdict. The wanting edges mark their
+    triangles in ``dirty[1 - cur]`` (cleared by `reset_claims`)."""
     h = wp.tid()
     t = h // 3
     e = h - 3 * t
     want[h] = 0
-    if e == 0:
-        dirty[1 - cur, t] = 0
     if r > 0 and status[r] == 0:
         return
     tw = int(twin[t, e])
@@ -167,6 +166,8 @@ def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
         want[h] = 1
         wp.atomic_min(claim, t, h)
         wp.atomic_min(claim, u, h)
+        dirty[1 - cur, t] = 1
+        dirty[1 - cur, u] = 1
 
 
 @wp.func
@@ -221,13 +222,11 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
                shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
                claim: wp.array(dtype=wp.int32),
                twin_new: wp.array2d(dtype=wp.int32),
-               dirty: wp.array2d(dtype=wp.int32),
-               status: wp.array(dtype=wp.int32), r: int, cur: int):
+               status: wp.array(dtype=wp.int32), r: int):
     """One thread per half-edge: the edges that won both triangles flip.
     ``tri`` and ``shift`` are rewritten in place (each triangle by its one
-    winner), the twins into ``twin_new`` (a copy of ``twin``); the two
-    triangles are marked in ``dirty[1 - cur]`` and the flip counted in
-    ``status[1 + r]`` (see `flip_mark`)."""
+    winner), the twins into ``twin_new`` (a copy of ``twin``); the flip is
+    counted in ``status[1 + r]`` (see `flip_mark`)."""
     h = wp.tid()
     if not _won(h, twin, want, claim):
         return
@@ -273,8 +272,6 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
     _link(twin_new, 3 * u + 2, D, twin, want, claim)
     twin_new[t, 1] = 3 * u + 1
     twin_new[u, 1] = 3 * t + 1
-    dirty[1 - cur, t] = 1
-    dirty[1 - cur, u] = 1
     wp.atomic_add(status, 1 + r, 1)
 
 
@@ -290,12 +287,15 @@ def copy_twins(src: wp.array2d(dtype=wp.int32), dst: wp.array2d(dtype=wp.int32),
 
 @wp.kernel
 def reset_claims(claim: wp.array(dtype=wp.int32),
-                 status: wp.array(dtype=wp.int32), r: int):
-    """Claims back to `UNCLAIMED` before round ``r`` (skipped once the
-    batch is done: a no-op round claims nothing)."""
+                 dirty: wp.array2d(dtype=wp.int32),
+                 status: wp.array(dtype=wp.int32), r: int, cur: int):
+    """Before round ``r``: claims back to `UNCLAIMED`, and the marks the
+    round will write (``dirty[1 - cur]``) cleared; skipped once the batch
+    is done (a no-op round claims and marks nothing)."""
     t = wp.tid()
     if r == 0 or status[r] != 0:
         claim[t] = UNCLAIMED
+        dirty[1 - cur, t] = 0
 
 
 @wp.kernel
