@@ -48,7 +48,12 @@ Pieces (each a pure-JAX kernel that knows nothing of `neighbor_list`):
   last worked; the points of the triangles left inverted retry half their
   remaining way, the others their whole move, and then all try the rest.
   After ``max_splits`` failed tries the triangulation is rebuilt from
-  scratch.
+  scratch. The Warp engine (`jaxrt.backends.rt.delaunay_engine.maintain`)
+  keeps a step per point instead: the points of the triangles left
+  inverted halve theirs, and after a successful try every step doubles
+  (capped at the rest of the move); its flip rounds run in batches with
+  one host read each on a GPU, re-testing only the triangles of the last
+  round's wanting edges.
 * **Rebuilds** from scratch (scipy's Qhull, on the host, through
   `jax.pure_callback` under ``jit``: a host round trip) where maintenance
   cannot succeed: a point left the frame's safe region (free space),
