@@ -760,11 +760,37 @@ class _Lists:
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
+        # The capacities ``allocate`` built through `eager_update`'s program
+        # (`plan_build`), per (N, dtype, query).
+        self.built_as_update: dict[tuple, set[Capacity]] = {}
         # Eager ``update`` calls run the whole update as one jitted program,
         # compiled once per list structure and shape and then reused: run
         # op by op, its ``lax.cond`` closed over new functions at every call
-        # and recompiled the search each time.
-        self.eager_update = jax.jit(self.traced_update)
+        # and recompiled the search each time. ``allocate`` builds through
+        # it too (``force``: rebuild whatever moved), so that the first
+        # ``update`` compiles nothing.
+        self.eager_update = jax.jit(self.forced_update)
+
+    def plan_build(self, n: int, dtype, query: Query, capacity: Capacity,
+                   sizes: dict[str, int], limit: int) -> Capacity | None:
+        """How ``allocate`` builds: None, through `eager_update`'s program
+        at ``capacity`` itself, which the list's first ``update`` then
+        reuses (one compile for both), where no build of its kind was
+        compiled yet, where that program exists already, or where the build
+        must be exact; else `compiled_capacity`'s, a compiled build that
+        holds ``capacity`` or a rounded one, trimmed after, so that lists
+        of one N whose exact sizes differ a little (a training set's
+        structures) share a compile."""
+        key = (n, np.dtype(dtype).name, query)
+        done = self.built_as_update.setdefault(key, set())
+        exact = _compiled_capacity(self.searcher, n, capacity, query, sizes,
+                                   limit) is capacity
+        if capacity in done or exact or key not in self.compiled:
+            if not exact:
+                self.compiled.setdefault(key, [])
+            done.add(capacity)
+            return None
+        return self.compiled_capacity(n, dtype, query, capacity, sizes, limit)
 
     def compiled_capacity(self, n: int, dtype, query: Query,
                           capacity: Capacity, sizes: dict[str, int],
@@ -814,6 +840,7 @@ class _Lists:
         self.check_kwargs(kwargs, allocating=True)
         position = _check_position(position)
         n, dim = position.shape
+        own_radii = radii is not None
         if radii is None:
             radii = self.settings.radii
         else:
@@ -846,20 +873,49 @@ class _Lists:
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
-        compiled = self.compiled_capacity(n, position.dtype, query, capacity,
-                                          sizes, _rounded_list_limit(position))
+        compiled = self.plan_build(n, position.dtype, query, capacity, sizes,
+                                   _rounded_list_limit(position))
+        if compiled is None:
+            if not kwargs or self.settings.fractional_coordinates:
+                return self.build_as_update(position, capacity, state,
+                                            radii if own_radii else None,
+                                            kwargs)
+            compiled = capacity  # update takes no box=: a build of its own
         idx, overflow, code, state = self.build(
             position, geometry, metric, state, query=query, capacity=compiled)
         if compiled is not capacity:
             idx, overflow = _trimmed(idx, overflow, width=capacity.neighbors,
                                      n=n)
-        fields = (idx, position,
-                  PartitionError(code | _bits(overflow, _OVERFLOW)),
-                  capacity, capacity.neighbors, self.settings.format,
-                  None, None, self.update)
+        return self.neighbor_list(
+            idx, position, PartitionError(code | _bits(overflow, _OVERFLOW)),
+            capacity, state)
+
+    def neighbor_list(self, idx, position, error, capacity: Capacity, state
+                      ) -> NeighborList:
+        """jax-md's `NeighborList` (a `StatefulNeighborList` where
+        ``state`` is not None) of this factory."""
+        fields = (idx, position, error, capacity, capacity.neighbors,
+                  self.settings.format, None, None, self.update)
         if state is None:
             return NeighborList(*fields)
         return StatefulNeighborList(*fields, state)
+
+    def build_as_update(self, position, capacity: Capacity, state, radii,
+                        kwargs: dict) -> NeighborList:
+        """``allocate``'s list built by `eager_update`'s program, forced to
+        rebuild, from an empty list of ``capacity``: the very program the
+        list's first eager ``update`` runs. ``radii``: float64 ``(N,)``
+        given to ``allocate``, or None (the factory's, if any)."""
+        n = position.shape[0]
+        shape = ((n, capacity.neighbors) if self.settings.format is Dense
+                 else (2, capacity.neighbors))
+        # Host arrays: no program is compiled to make them.
+        empty = self.neighbor_list(
+            jnp.asarray(np.full(shape, n, np.int32)), position,
+            PartitionError(jnp.asarray(np.zeros((), np.uint8))), capacity,
+            state)
+        return self.eager_update(position, empty, jnp.asarray(True),
+                                 radii=radii, **kwargs)
 
     def reach(self, radii, dtype):
         """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
@@ -886,12 +942,19 @@ class _Lists:
             return self.traced_update(position, neighbors, radii=radii,
                                       **kwargs)
         position = _check_position(position)
-        return self.eager_update(position, neighbors, radii=radii, **kwargs)
+        return self.eager_update(position, neighbors, jnp.asarray(False),
+                                 radii=radii, **kwargs)
 
     def traced_update(self, position, neighbors: NeighborList, *, radii=None,
                       **kwargs) -> NeighborList:
-        """`update`'s body, traced (under the caller's ``jit`` or
-        `eager_update`'s)."""
+        """`update`'s body, traced (under the caller's ``jit``)."""
+        return self.forced_update(position, neighbors, False, radii=radii,
+                                  **kwargs)
+
+    def forced_update(self, position, neighbors: NeighborList, force, *,
+                      radii=None, **kwargs) -> NeighborList:
+        """`update`'s body, traced (`traced_update`, `eager_update`);
+        ``force`` (bool, may be traced): rebuild even if nothing moved."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
@@ -966,7 +1029,8 @@ class _Lists:
             return rebuild(None)
         threshold_sq = (self.settings.dr_threshold / 2) ** 2
         moved = jax.vmap(metric)(position, ref)
-        return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
+        return jax.lax.cond(jnp.any(moved > threshold_sq) | force, rebuild,
+                            keep, None)
 
 
 def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None

@@ -90,7 +90,8 @@ def test_second_factory_reuses_the_cell_lists_programs():
     displacement, _ = space.periodic(side)
     first = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
     expected = first.allocate(position)
-    programs = (search._sorted_system, search._visit)
+    programs = (search._sorted_system, search._visit, search._run_sizes_fast,
+                search._run_sizes_quick, search._visit_quick)
     before = [p._cache_size() for p in programs]
     second = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
     got = second.allocate(position)
@@ -98,3 +99,41 @@ def test_second_factory_reuses_the_cell_lists_programs():
     np.testing.assert_array_equal(np.sort(np.asarray(got.idx), axis=1),
                                   np.sort(np.asarray(expected.idx), axis=1))
     assert _pairs(got) == _brute_force(position, side, 1.4)
+
+
+@pytest.mark.parametrize("backend,fmt", [("auto", "Dense"), ("cell", "Sparse"),
+                                         ("brute", "OrderedSparse")])
+def test_first_eager_update_after_allocate_compiles_nothing(backend, fmt):
+    """``allocate`` builds through the program the first eager ``update``
+    runs (the same capacity, forced to rebuild): a newcomer's first update,
+    rebuild or not, compiles nothing more, and is exact."""
+    from jax_md import partition
+    position, side = _system(seed=2)
+    displacement, _ = space.periodic(side)
+    layout = getattr(partition.NeighborListFormat, fmt)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend=backend,
+                              format=layout)
+    nbrs = fns.allocate(position)
+    near = jax.block_until_ready(position + 0.01)  # no rebuild
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))  # rebuild
+    compiles = _count_compiles()
+    kept = nbrs.update(near)
+    rebuilt = nbrs.update(far)
+    assert len(compiles) == 0, compiles
+    np.testing.assert_array_equal(np.asarray(kept.idx), np.asarray(nbrs.idx))
+    assert not bool(rebuilt.did_buffer_overflow)
+    assert not bool(nbrs.did_buffer_overflow)
+    expected = _brute_force(np.mod(far, side), side, 1.4)
+    if fmt == "Dense":
+        assert _pairs(rebuilt) == expected
+        assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+    else:
+        i, j = np.asarray(rebuilt.idx)
+        n = position.shape[0]
+        got = {(int(a), int(b)) for a, b in zip(i, j) if a < n}
+        if fmt == "OrderedSparse":
+            expected = {(a, b) for a, b in expected if a > b} | {
+                (b, a) for a, b in expected if a > b}
+            got = got | {(b, a) for a, b in got}
+            expected = expected | {(b, a) for a, b in expected}
+        assert got == expected

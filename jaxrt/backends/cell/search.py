@@ -906,10 +906,8 @@ def _sorted_index(bit, word_run):
     return jnp.where(bit < limit, first1, first2) + bit
 
 
-@functools.partial(jax.jit, static_argnames=("window", "shell", "shell_rows",
-                                             "row_width", "query"))
-def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
-           shell, shell_rows, row_width, query: Query):
+def _visit_fn(position, geometry: Geometry, metric_sq: MetricSq, *, window,
+              shell, shell_rows, row_width, query: Query):
     """Every particle's neighbours, as the caller's metric decides.
 
     Args:
@@ -971,6 +969,31 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     j = jnp.clip(_sorted_index(bit, got), 0, n - 1)
     rows = jnp.where(valid, order[j], n)
     return rows, count, shell_sizes, overflow
+
+
+_VISIT_STATIC = ("window", "shell", "shell_rows", "row_width", "query")
+_visit = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC)
+
+
+def _run_sizes(position, geometry: Geometry, query: Query):
+    """What sizes the count: int32 ``(R,)`` the longest pair of runs of
+    each stencil row, and `_tolerance` (float scalar)."""
+    _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
+    return (jnp.max(len1 + len2, axis=0, initial=0),
+            _tolerance(cart, geometry, query, position))
+
+
+# ``allocate`` measures once, then builds: the measuring programs run once
+# or twice. Up to this many particles on a CPU they are compiled with XLA's
+# backend optimisation off, several times faster to compile (a first
+# ``allocate``'s largest cost) and ~10x slower to run (tens of ms at this N).
+_QUICK_MAX_N = 1 << 15
+_QUICK = {"xla_backend_optimization_level": 0}
+_run_sizes_fast = jax.jit(_run_sizes, static_argnames=("query",))
+_run_sizes_quick = jax.jit(_run_sizes, static_argnames=("query",),
+                           compiler_options=_QUICK)
+_visit_quick = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC,
+                       compiler_options=_QUICK)
 
 
 @functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
@@ -1117,11 +1140,12 @@ class Cell:
         return self.kernel if self.kernel == "interpret" else "kernel"
 
     def _candidates(self, engine: str, position, geometry, metric_sq, *,
-                    window: int, **options):
-        """`_visit` or `_walk` per ``engine`` (`_engine`)."""
+                    window: int, quick: bool = False, **options):
+        """`_visit` or `_walk` per ``engine`` (`_engine`); ``quick``: the
+        portable path compiled for compile speed (`_QUICK`)."""
         def portable():
-            return _visit(position, geometry, metric_sq, window=window,
-                          **options)
+            return (_visit_quick if quick else _visit)(
+                position, geometry, metric_sq, window=window, **options)
 
         def kernel():
             return _walk(position, geometry, metric_sq, **options)
@@ -1140,26 +1164,30 @@ class Cell:
             self._check_radii_kernel()
             return radius_classes.measure(position, geometry, query,
                                           metric_sq, self.radius_classes)
-        _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
-        window = max(int(np.max(len1 + len2, initial=0)), 1)
+        # Counting runs on the engine the search will use (the portable
+        # path at N = 1e6 would compile and run XLA's largest program).
+        platform = _platform_of(position)
+        quick = platform == "cpu" and n <= _QUICK_MAX_N
+        longest, tol = (_run_sizes_quick if quick else _run_sizes_fast)(
+            position, geometry, query)
+        longest, tol = np.asarray(longest), float(tol)
+        window = max(int(np.max(longest, initial=0)), 1)
         # The counts run on whole words, as the search does: positions
         # whose longest runs differ a little reuse one compiled count (the
         # list's own window stays the run's length, sized from it).
         words = _slots(window)
-        # Counting runs on the engine the search will use (the portable
-        # path at N = 1e6 would compile and run XLA's largest program).
-        platform = _platform_of(position)
         # A first guess that fits liquids (a few in a hundred have a shell).
         shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
         limit = _backend.max_list_entries(self)
         while True:  # enough room to count every shell pair exactly
             engine = self._engine(n, 1, shell, query, platform)
             if engine == "portable":
-                _check_candidate_words(self.name, n, len1.shape[1], window,
-                                       limit)
+                _check_candidate_words(self.name, n, longest.shape[0],
+                                       window, limit)
             _, count, (has, fullest), _ = self._candidates(
                 engine, position, geometry, metric_sq, window=words,
+                quick=quick,
                 shell=shell, shell_rows=shell_rows, query=query,
                 row_width=0 if engine == "portable" else 1)
             has, fullest = int(has), int(fullest)
@@ -1181,7 +1209,6 @@ class Cell:
         # liquid a few per hundred particles: expect the liquid's share,
         # from the pairs found (they grow as r**dim, so a shell of width
         # 2 tol holds 2 dim tol / cutoff of them).
-        tol = float(_tolerance(cart, geometry, query, position))
         per_particle = count.mean() * 2 * query.dim * tol / query.cutoff
         liquid = math.ceil(n * -math.expm1(-per_particle))
         sizes = {"row": int(count.max(initial=0)), "window": window,
