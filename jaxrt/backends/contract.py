@@ -177,6 +177,12 @@ class SearchResult(NamedTuple):
 # `Capabilities.max_list_entries`).
 MAX_LIST_ENTRIES = 2 ** 31 - 1
 
+# XLA's options for programs that run once or a few times (``allocate``'s
+# measuring, an eager call's program) at small N on a CPU: the backend's
+# optimisation off compiles several times faster (a first ``allocate``'s
+# largest cost) and runs ~10x slower. ``jit`` by the caller is unaffected.
+QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+
 
 @dataclasses.dataclass(frozen=True)
 class Capabilities:

@@ -208,17 +208,20 @@ def _probe_axes(metric, space: _space.Space, g
     ``g``: the metric's Gram matrix in that space (`jaxrt.lists.metric.gram`).
     Returns two tuples of ``dim`` bools."""
     dim = space.dim
+    steps = (0.75, 1.3, 7.3)
+    q = np.zeros((dim, len(steps), dim))
+    for a in range(dim):
+        q[a, :, a] = np.asarray(steps) * float(space.period[a])
+    lengths = np.asarray(_space.concrete(
+        _space.lengths_from_origin, metric, space,
+        q.reshape(-1, dim).astype(np.float32))).reshape(dim, -1)
     free, periodic = [], []
     for a in range(dim):
         unit = float(space.period[a])
         length = float(np.sqrt(max(float(g[a, a]), 0.0)))
         looks_free = looks_periodic = True
-        for t in (0.75, 1.3, 7.3):
-            q = np.zeros(dim)
-            q[a] = t * unit
-            with jax.ensure_compile_time_eval():
-                rb = space.from_grid(jnp.asarray(q, jnp.float32))
-                r = float(np.sqrt(metric(jnp.zeros(dim, jnp.float32), rb)))
+        for t, r in zip(steps, lengths[a]):
+            r = float(r)
             tol = 1e-4 * t * unit * length + 1e-6
             looks_free &= abs(r - t * unit * length) <= tol
             looks_periodic &= abs(r - abs(t - round(t)) * unit * length) <= tol
@@ -244,8 +247,8 @@ def _fractional_reading(metric, dim: int) -> tuple[bool, ...] | None:
     reading does not fit it either (some axis neither free nor periodic
     with period 1, or no axis periodic)."""
     unit = _space.Space((False,) * dim, np.ones(dim))
-    with jax.ensure_compile_time_eval():
-        g = np.asarray(_space.gram(metric, unit, jnp.float32))
+    g = np.asarray(_space.concrete(_space.gram, metric, unit,
+                                   np.dtype(np.float32)))
     axes = _infer_periodic(*_probe_axes(metric, unit, g), True)
     return axes if axes is not None and any(axes) else None
 
@@ -301,6 +304,15 @@ def _check_position(position, dim: int | None = None) -> jax.Array:
         raise TypeError("position must be a floating-point array; got dtype "
                         f"{position.dtype}. Convert with .astype(float).")
     return jnp.asarray(position)
+
+
+def _all_finite(position) -> bool:
+    """Eager: are all of ``position``'s entries finite? On the host where
+    the array is (no program to compile for one reduction), else where it
+    lives."""
+    if _space.on_accelerator(position):
+        return bool(jnp.all(jnp.isfinite(position)))
+    return bool(np.isfinite(np.asarray(position)).all())
 
 
 def _static_positive(name: str, value, allow_zero: bool = False) -> float:
@@ -421,9 +433,13 @@ def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
             raise ValueError(f"disable_cell_list=True asks for the all-pairs "
                              f"search but backend={backend!r}; drop one.")
         backend = "brute"
-    if isinstance(backend, str) and backend == "auto":
+    auto = isinstance(backend, str) and backend == "auto"
+    if auto:
         backend = _auto_backend(has_radii=radii is not None)
     backend = backends.resolve(backend)
+    if auto and backend.name == "cell" and jax.default_backend() == "cpu":
+        backend = backends.BySize(small=backends.resolve("brute"),
+                                  large=backend, max_small=_BRUTE_MAX_N_CPU)
     r_cutoff = _static_positive("r_cutoff", r_cutoff)
     if radii is not None:
         _check_radii_backend(backend)
@@ -534,8 +550,8 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
     has_box = any(part is not None for part in _box_parts(box, dim))
     metric = MetricSq(fn, dict(kwargs))
     if axes is None or (any(axes) and has_box and not fractional):
-        with jax.ensure_compile_time_eval():
-            g = np.asarray(_space.gram(metric, grid, jnp.float32))
+        g = np.asarray(_space.concrete(_space.gram, metric, grid,
+                                       np.dtype(np.float32)))
         free, periodic = _probe_axes(metric, grid, g)
         if axes is None:
             inferred = _infer_periodic(free, periodic, has_box)
@@ -753,14 +769,12 @@ class _Lists:
     def __init__(self, settings: _Settings):
         self.settings = settings
         self.searcher = backends.bind(settings.backend)
-        self.checks_metric = not capabilities(
-            self.searcher).exact_for_any_metric
         self.setups: dict[int, _Setup] = {}
         self.build = _make_build(self.searcher, settings.custom_mask_function)
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
-        # The capacities ``allocate`` built through `eager_update`'s program
+        # The capacities ``allocate`` built through `eager_program`'s program
         # (`plan_build`), per (N, dtype, query).
         self.built_as_update: dict[tuple, set[Capacity]] = {}
         # Eager ``update`` calls run the whole update as one jitted program,
@@ -770,10 +784,21 @@ class _Lists:
         # it too (``force``: rebuild whatever moved), so that the first
         # ``update`` compiles nothing.
         self.eager_update = jax.jit(self.forced_update)
+        self.eager_update_quick = jax.jit(
+            self.forced_update, compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+
+    def eager_program(self, position):
+        """`eager_update`, or for small N on a CPU `eager_update_quick`
+        (compiled for compile speed: most of a first ``allocate``; its
+        rebuilds stay many times faster than jax-md's eager update, and a
+        caller's ``jit`` of ``update`` compiles its own program)."""
+        quick = (position.shape[0] <= _QUICK_EAGER_MAX_N
+                 and not _space.on_accelerator(position))
+        return self.eager_update_quick if quick else self.eager_update
 
     def plan_build(self, n: int, dtype, query: Query, capacity: Capacity,
                    sizes: dict[str, int], limit: int) -> Capacity | None:
-        """How ``allocate`` builds: None, through `eager_update`'s program
+        """How ``allocate`` builds: None, through `eager_program`'s program
         at ``capacity`` itself, which the list's first ``update`` then
         reuses (one compile for both), where no build of its kind was
         compiled yet, where that program exists already, or where the build
@@ -848,7 +873,7 @@ class _Lists:
         if radii is not None:
             radii = _concrete_radii(radii, self.settings.r_cutoff,
                                     "allocate", n)
-        if not bool(jnp.all(jnp.isfinite(position))):
+        if not _all_finite(position):
             bad = np.argwhere(~np.isfinite(np.asarray(position)))[0]
             raise ValueError(f"position has a non-finite value at particle "
                              f"{bad[0]}, axis {bad[1]}; fix the input.")
@@ -857,7 +882,8 @@ class _Lists:
             raise ValueError("extra_capacity must be >= 0.")
         setup = self.setup(dim, kwargs)
         metric = MetricSq(setup.metric_fn, dict(kwargs))
-        model = _model_at_allocate(self.settings, self.searcher, setup,
+        model = _model_at_allocate(self.settings, _for_size(self.searcher, n),
+                                   setup,
                                    position, metric)
         query = dataclasses.replace(setup.query,
                                     decide_by_metric=model.metric_decides)
@@ -902,7 +928,7 @@ class _Lists:
 
     def build_as_update(self, position, capacity: Capacity, state, radii,
                         kwargs: dict) -> NeighborList:
-        """``allocate``'s list built by `eager_update`'s program, forced to
+        """``allocate``'s list built by `eager_program`'s program, forced to
         rebuild, from an empty list of ``capacity``: the very program the
         list's first eager ``update`` runs. ``radii``: float64 ``(N,)``
         given to ``allocate``, or None (the factory's, if any)."""
@@ -911,11 +937,11 @@ class _Lists:
                  else (2, capacity.neighbors))
         # Host arrays: no program is compiled to make them.
         empty = self.neighbor_list(
-            jnp.asarray(np.full(shape, n, np.int32)), position,
-            PartitionError(jnp.asarray(np.zeros((), np.uint8))), capacity,
+            jax.device_put(np.full(shape, n, np.int32)), position,
+            PartitionError(jax.device_put(np.zeros((), np.uint8))), capacity,
             state)
-        return self.eager_update(position, empty, jnp.asarray(True),
-                                 radii=radii, **kwargs)
+        return self.eager_program(position)(position, empty, np.bool_(True),
+                                            radii=radii, **kwargs)
 
     def reach(self, radii, dtype):
         """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
@@ -942,7 +968,8 @@ class _Lists:
             return self.traced_update(position, neighbors, radii=radii,
                                       **kwargs)
         position = _check_position(position)
-        return self.eager_update(position, neighbors, jnp.asarray(False),
+        return self.eager_program(position)(position, neighbors,
+                                            np.bool_(False),
                                  radii=radii, **kwargs)
 
     def traced_update(self, position, neighbors: NeighborList, *, radii=None,
@@ -953,7 +980,7 @@ class _Lists:
 
     def forced_update(self, position, neighbors: NeighborList, force, *,
                       radii=None, **kwargs) -> NeighborList:
-        """`update`'s body, traced (`traced_update`, `eager_update`);
+        """`update`'s body, traced (`traced_update`, `eager_program`);
         ``force`` (bool, may be traced): rebuild even if nothing moved."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
@@ -1013,7 +1040,8 @@ class _Lists:
                 position, geometry, metric, state, query=query,
                 capacity=capacity)
             bits |= _bits(overflow, _OVERFLOW)
-            if self.checks_metric:
+            if not capabilities(_for_size(
+                    self.searcher, position.shape[0])).exact_for_any_metric:
                 bits |= _metric_errors(position, metric, g, h, setup.grid,
                                        capacity)
             new = dict(idx=idx, reference_position=position,
@@ -1033,6 +1061,18 @@ class _Lists:
                             keep, None)
 
 
+# Eager updates of lists of up to this many particles on a CPU run a
+# program compiled for compile speed (`_Lists.eager_program`).
+_QUICK_EAGER_MAX_N = 4096
+
+
+def _for_size(backend, n: int):
+    """The backend that searches lists of ``n`` particles: ``backend``, or
+    the one it picks for that N (`jaxrt.backends.BySize.for_size`)."""
+    pick = getattr(backend, "for_size", None)
+    return backend if pick is None else pick(n)
+
+
 def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
               ) -> Geometry:
     """The backends' `Geometry` from the heights ``h`` (float ``(dim,)``,
@@ -1040,11 +1080,16 @@ def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
     every pair) the grid's distances shrink by that fraction, so that it
     still holds every neighbour of a metric up to that much shorter than
     its model. ``reach``: None or float ``(N,)`` (`Geometry.reach`)."""
-    grid_h = h * (1.0 - slack) if slack else h
+    # Eager (allocate's concrete heights) on the host: no program compiled.
+    xp = jnp if isinstance(h, jax.core.Tracer) else np
+    h = xp.asarray(h)
+    grid_h = h * h.dtype.type(1.0 - slack) if slack else h
     transform = (None if grid.transform is None
                  else jnp.asarray(grid.transform, dtype))
-    return Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
-                    scale=grid_h, transform=transform, reach=reach)
+    side = xp.asarray(grid.period, dtype) * grid_h
+    if xp is np:  # to the device as they are: no program compiled
+        side, grid_h = jax.device_put(side), jax.device_put(grid_h)
+    return Geometry(side=side, scale=grid_h, transform=transform, reach=reach)
 
 
 def _check_unknown_keywords(unknown: dict) -> None:
@@ -1281,6 +1326,13 @@ def _trimmed(idx, overflow, *, width: int, n: int):
     return idx[..., :width], overflow | jnp.any(idx[..., width:] < n)
 
 
+# ``"auto"`` on a CPU searches lists of up to this many particles with
+# ``"brute"`` (`jaxrt.backends.BySize`): its program compiles in a fraction
+# of the cell list's time (most of a first ``allocate``), and up to about
+# this N it rebuilds as fast (all pairs grow as N**2: 8x slower at N = 1000).
+_BRUTE_MAX_N_CPU = 256
+
+
 def _auto_backend(*, has_radii: bool = False) -> str:
     """``backend="auto"`` here: `choose_backend` for JAX's default device.
     Whether Warp loads is asked (which imports it) only where the rule
@@ -1310,8 +1362,12 @@ def choose_backend(*, platform: str, has_radii: bool = False,
       configuration, so neither is ever chosen; nor is `brute` (no table
       measures it against `cell`).
 
-    Dimension and N do not enter: no table shows a different winner for
-    2D or for small N. Args: ``platform``: ``jax.default_backend()``
+    Dimension does not enter: no table shows a different winner for 2D.
+    On a CPU, lists of at most 256 particles of a ``"cell"`` choice are
+    searched by ``"brute"`` (`jaxrt.backends.BySize`, picked at each
+    ``allocate`` by N): all pairs compile several times faster there, and
+    rebuild as fast, which makes a small system's first ``allocate`` and
+    ``update`` quicker than jax-md's. Args: ``platform``: ``jax.default_backend()``
     (``"cpu"``, ``"gpu"``/``"cuda"``, ``"tpu"``); ``has_radii``: radii given
     at construction; ``warp``: Warp's backends are installed.
     """

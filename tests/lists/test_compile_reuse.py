@@ -137,3 +137,29 @@ def test_first_eager_update_after_allocate_compiles_nothing(backend, fmt):
             got = got | {(b, a) for a, b in got}
             expected = expected | {(b, a) for a, b in expected}
         assert got == expected
+
+
+def test_auto_searches_small_lists_with_all_pairs_on_a_cpu():
+    """``"auto"`` on a CPU: lists of at most 256 particles by ``brute``
+    (whose program compiles in a fraction of the cell list's time), larger
+    ones by ``cell``, picked per allocate by N, both exact."""
+    if jax.default_backend() != "cpu":
+        pytest.skip("the small-N rule is the CPU's")
+    from jaxrt import backends
+    side = 7.0
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4)
+    searcher = fns.allocate.__self__.searcher
+    assert isinstance(searcher, backends.BySize)
+    assert searcher.for_size(256).name == "brute"
+    assert searcher.for_size(257).name == "cell"
+    for n, internal in ((256, {"row"}), (257, {"row", "shell", "shell_rows",
+                                               "window"})):
+        position, _ = _system(n=n, side=side, seed=n)
+        nbrs = fns.allocate(position)
+        assert set(dict(nbrs.cell_list_capacity.internal)) == internal
+        assert not bool(nbrs.did_buffer_overflow)
+        assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+        moved = jax.block_until_ready(position + 0.3)
+        got = nbrs.update(moved)
+        assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)

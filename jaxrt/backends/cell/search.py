@@ -984,11 +984,10 @@ def _run_sizes(position, geometry: Geometry, query: Query):
 
 
 # ``allocate`` measures once, then builds: the measuring programs run once
-# or twice. Up to this many particles on a CPU they are compiled with XLA's
-# backend optimisation off, several times faster to compile (a first
-# ``allocate``'s largest cost) and ~10x slower to run (tens of ms at this N).
+# or twice. Up to this many particles on a CPU they are compiled for
+# compile speed (`QUICK_COMPILE_OPTIONS`: tens of ms slower to run here).
 _QUICK_MAX_N = 1 << 15
-_QUICK = {"xla_backend_optimization_level": 0}
+_QUICK = _backend.QUICK_COMPILE_OPTIONS
 _run_sizes_fast = jax.jit(_run_sizes, static_argnames=("query",))
 _run_sizes_quick = jax.jit(_run_sizes, static_argnames=("query",),
                            compiler_options=_QUICK)
