@@ -50,8 +50,7 @@ class BySize:
 
     def for_size(self, n: int) -> Backend:
         """The backend that measures and searches lists of ``n``
-        particles (the front reads its capabilities where they may differ:
-        the metric checks that all pairs need not)."""
+        particles."""
         return self.small if n <= self.max_small else self.large
 
     def pick(self, position) -> Backend:

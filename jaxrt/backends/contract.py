@@ -78,6 +78,9 @@ class Query:
         the box is triclinic): the grid only proposes candidates, which
         holds as long as the metric is never shorter than that distance.
         Backends that cannot do this are refused by the front.
+      fixed_box: the box is the same at every search of the list (no
+        ``box=`` passed to ``update``): a backend may size its grid for it
+        once, at ``allocate``.
     """
 
     cutoff: float
@@ -85,6 +88,7 @@ class Query:
     mask_self: bool
     format: NeighborListFormat
     decide_by_metric: bool = False
+    fixed_box: bool = False
 
     @property
     def dim(self) -> int:

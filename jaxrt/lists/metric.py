@@ -304,7 +304,7 @@ def sample_pairs(position, space: Space) -> tuple[np.ndarray, np.ndarray]:
     n, dim = q.shape
     take = np.linspace(0, n - 2, min(_ADJACENT_SAMPLES // dim,
                                      max(n - 1, 0))).astype(int)
-    if n >= _DEVICE_SORT_MIN and on_accelerator(q):
+    if n >= _DEVICE_SORT_MIN and _on_accelerator(q):
         lowest, highest, before, after = _axis_samples_on_device(q, take)
     else:
         lowest, highest, before, after = _axis_samples_on_host(q, take)
@@ -317,9 +317,13 @@ def sample_pairs(position, space: Space) -> tuple[np.ndarray, np.ndarray]:
     return i[keep], j[keep]
 
 
+def _on_accelerator(x) -> bool:
+    return any(d.platform != "cpu" for d in x.devices())
+
+
 def on_accelerator(x) -> bool:
     """Does the array ``x`` live on a device other than a CPU?"""
-    return any(d.platform != "cpu" for d in x.devices())
+    return _on_accelerator(x)
 
 
 def _axis_samples_on_host(q, take):

@@ -588,8 +588,10 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
             "a triclinic box with Cartesian positions needs every axis "
             "periodic (periodic=True); for a slab, use an orthorhombic "
             "box or fractional_coordinates=True.")
+    # Only fractional coordinates take box= at update (`check_kwargs`).
     query = Query(cutoff=settings.cutoff, periodic=axes,
-                  mask_self=settings.mask_self, format=settings.format)
+                  mask_self=settings.mask_self, format=settings.format,
+                  fixed_box=not fractional and not kwargs)
     return _Setup(fn, grid, query, set())
 
 
@@ -769,6 +771,10 @@ class _Lists:
     def __init__(self, settings: _Settings):
         self.settings = settings
         self.searcher = backends.bind(settings.backend)
+        # `BySize`'s lists are checked as its large backend's at every N, so
+        # that what ``"auto"`` accepts does not change with N.
+        self.checks_metric = not capabilities(
+            self.searcher).exact_for_any_metric
         self.setups: dict[int, _Setup] = {}
         self.build = _make_build(self.searcher, settings.custom_mask_function)
         # Per (N, dtype, query): the capacities allocate's build has been
@@ -882,8 +888,7 @@ class _Lists:
             raise ValueError("extra_capacity must be >= 0.")
         setup = self.setup(dim, kwargs)
         metric = MetricSq(setup.metric_fn, dict(kwargs))
-        model = _model_at_allocate(self.settings, _for_size(self.searcher, n),
-                                   setup,
+        model = _model_at_allocate(self.settings, self.searcher, setup,
                                    position, metric)
         query = dataclasses.replace(setup.query,
                                     decide_by_metric=model.metric_decides)
@@ -1040,8 +1045,7 @@ class _Lists:
                 position, geometry, metric, state, query=query,
                 capacity=capacity)
             bits |= _bits(overflow, _OVERFLOW)
-            if not capabilities(_for_size(
-                    self.searcher, position.shape[0])).exact_for_any_metric:
+            if self.checks_metric:
                 bits |= _metric_errors(position, metric, g, h, setup.grid,
                                        capacity)
             new = dict(idx=idx, reference_position=position,
@@ -1064,13 +1068,6 @@ class _Lists:
 # Eager updates of lists of up to this many particles on a CPU run a
 # program compiled for compile speed (`_Lists.eager_program`).
 _QUICK_EAGER_MAX_N = 4096
-
-
-def _for_size(backend, n: int):
-    """The backend that searches lists of ``n`` particles: ``backend``, or
-    the one it picks for that N (`jaxrt.backends.BySize.for_size`)."""
-    pick = getattr(backend, "for_size", None)
-    return backend if pick is None else pick(n)
 
 
 def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None

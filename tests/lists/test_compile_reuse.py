@@ -153,8 +153,8 @@ def test_auto_searches_small_lists_with_all_pairs_on_a_cpu():
     assert isinstance(searcher, backends.BySize)
     assert searcher.for_size(256).name == "brute"
     assert searcher.for_size(257).name == "cell"
-    for n, internal in ((256, {"row"}), (257, {"row", "shell", "shell_rows",
-                                               "window"})):
+    for n, internal in ((256, {"row"}), (257, {"fixed_grid", "row", "shell",
+                                               "shell_rows", "window"})):
         position, _ = _system(n=n, side=side, seed=n)
         nbrs = fns.allocate(position)
         assert set(dict(nbrs.cell_list_capacity.internal)) == internal

@@ -587,29 +587,45 @@ def _run_ends(start, first, extra):
     return start[first], start[first + jnp.clip(extra + 1, 0, _RUN_SPAN - 1)]
 
 
-@functools.partial(jax.jit, static_argnames=("query",))
-def _sorted_system(position, geometry: Geometry, query: Query):
+@functools.partial(jax.jit, static_argnames=("query", "coarsen"))
+def _sorted_system(position, geometry: Geometry, query: Query,
+                   coarsen: bool = True):
     """Sort particles by cell.
 
     Args:
       position: float ``(N, dim)`` in the caller's coordinates.
+      coarsen: static, `_grid`'s (False where `_fixed_grid` proved that
+        the grid never coarsens).
     Returns:
       int32 ``order`` ``(N,)`` (sorted position -> caller's index); float
       ``(N, dim)`` Cartesian positions wrapped into the box, in the caller's
       order; and each particle's runs ``(start1, len1, start2, len2)``
       (`_runs`), int32 ``(N, R)`` in the caller's order.
     """
-    order, cart, sorted_key, cell, n = _sorted_grid(position, geometry, query)
+    order, cart, sorted_key, cell, n = _sorted_grid(position, geometry, query,
+                                                    coarsen)
     return order, cart, _runs(sorted_key, cell, n, query)
 
 
-def _sorted_grid(position, geometry: Geometry, query: Query):
+def _fixed_grid(n: int, geometry: Geometry, query: Query) -> bool:
+    """Eager: whether `_grid` provably never coarsens this list's grid
+    (`_static_cells`: every axis periodic, the box fixed for the list's
+    life, `Query.fixed_box`). Its programs then skip the coarsening loop
+    and the search for empty slabs, most of the grid's compile time."""
+    if not (query.fixed_box and all(query.periodic)):
+        return False
+    side = [float(x) for x in np.asarray(geometry.side)]
+    return _static_cells(n, side, query) is not None
+
+
+def _sorted_grid(position, geometry: Geometry, query: Query,
+                 coarsen: bool = True):
     """`_grid`'s cells and the order that sorts them: int32 ``order``
     ``(N,)``, float ``(N, dim)`` wrapped Cartesian positions, int32 ``(N,)``
     sorted keys, int32 ``(N, dim)`` cell coordinates (the caller's order),
     int32 ``(dim,)`` cells per axis."""
     cart, cell, n = _grid(geometry.grid_coordinates(position), geometry,
-                          query)
+                          query, coarsen=coarsen)
     key = _key(cell, n)
     # Ties in any order: rows are sets.
     sorted_key, order = jax.lax.sort(
@@ -907,7 +923,7 @@ def _sorted_index(bit, word_run):
 
 
 def _visit_fn(position, geometry: Geometry, metric_sq: MetricSq, *, window,
-              shell, shell_rows, row_width, query: Query):
+              shell, shell_rows, row_width, query: Query, coarsen=True):
     """Every particle's neighbours, as the caller's metric decides.
 
     Args:
@@ -926,7 +942,7 @@ def _visit_fn(position, geometry: Geometry, metric_sq: MetricSq, *, window,
       or a shell buffer too small (bool scalar).
     """
     n = position.shape[0]
-    order, cart, runs = _sorted_system(position, geometry, query)
+    order, cart, runs = _sorted_system(position, geometry, query, coarsen)
     sure, maybe = _candidate_words(cart, order, runs, geometry, query, window,
                                    position, metric_sq)
     m = sure.shape[1]
@@ -971,14 +987,16 @@ def _visit_fn(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     return rows, count, shell_sizes, overflow
 
 
-_VISIT_STATIC = ("window", "shell", "shell_rows", "row_width", "query")
+_VISIT_STATIC = ("window", "shell", "shell_rows", "row_width", "query",
+                 "coarsen")
 _visit = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC)
 
 
-def _run_sizes(position, geometry: Geometry, query: Query):
+def _run_sizes(position, geometry: Geometry, query: Query, coarsen=True):
     """What sizes the count: int32 ``(R,)`` the longest pair of runs of
     each stencil row, and `_tolerance` (float scalar)."""
-    _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
+    _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query,
+                                                 coarsen)
     return (jnp.max(len1 + len2, axis=0, initial=0),
             _tolerance(cart, geometry, query, position))
 
@@ -988,8 +1006,8 @@ def _run_sizes(position, geometry: Geometry, query: Query):
 # compile speed (`QUICK_COMPILE_OPTIONS`: tens of ms slower to run here).
 _QUICK_MAX_N = 1 << 15
 _QUICK = _backend.QUICK_COMPILE_OPTIONS
-_run_sizes_fast = jax.jit(_run_sizes, static_argnames=("query",))
-_run_sizes_quick = jax.jit(_run_sizes, static_argnames=("query",),
+_run_sizes_fast = jax.jit(_run_sizes, static_argnames=("query", "coarsen"))
+_run_sizes_quick = jax.jit(_run_sizes, static_argnames=("query", "coarsen"),
                            compiler_options=_QUICK)
 _visit_quick = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC,
                        compiler_options=_QUICK)
@@ -1081,7 +1099,7 @@ class Cell:
     decides_by_metric: ClassVar[bool] = True
     supports_radii: ClassVar[bool] = True
     small_boxes: ClassVar[bool] = True
-    fixed_sizes: ClassVar[tuple[str, ...]] = ("classes",)
+    fixed_sizes: ClassVar[tuple[str, ...]] = ("classes", "fixed_grid")
 
     def __post_init__(self):
         if self.kernel not in _KERNELS:
@@ -1139,12 +1157,15 @@ class Cell:
         return self.kernel if self.kernel == "interpret" else "kernel"
 
     def _candidates(self, engine: str, position, geometry, metric_sq, *,
-                    window: int, quick: bool = False, **options):
+                    window: int, quick: bool = False, coarsen: bool = True,
+                    **options):
         """`_visit` or `_walk` per ``engine`` (`_engine`); ``quick``: the
-        portable path compiled for compile speed (`_QUICK`)."""
+        portable path compiled for compile speed (`_QUICK`); ``coarsen``:
+        the portable path's grid (`_fixed_grid`)."""
         def portable():
             return (_visit_quick if quick else _visit)(
-                position, geometry, metric_sq, window=window, **options)
+                position, geometry, metric_sq, window=window, coarsen=coarsen,
+                **options)
 
         def kernel():
             return _walk(position, geometry, metric_sq, **options)
@@ -1168,8 +1189,9 @@ class Cell:
         # path at N = 1e6 would compile and run XLA's largest program).
         platform = _platform_of(position)
         quick = platform == "cpu" and n <= _QUICK_MAX_N
+        fixed = _fixed_grid(n, geometry, query)
         longest, tol = (_run_sizes_quick if quick else _run_sizes_fast)(
-            position, geometry, query)
+            position, geometry, query, not fixed)
         longest, tol = np.asarray(longest), float(tol)
         window = max(int(np.max(longest, initial=0)), 1)
         # The counts run on whole words, as the search does: positions
@@ -1186,7 +1208,7 @@ class Cell:
                                        window, limit)
             _, count, (has, fullest), _ = self._candidates(
                 engine, position, geometry, metric_sq, window=words,
-                quick=quick,
+                quick=quick, coarsen=not fixed,
                 shell=shell, shell_rows=shell_rows, query=query,
                 row_width=0 if engine == "portable" else 1)
             has, fullest = int(has), int(fullest)
@@ -1212,7 +1234,8 @@ class Cell:
         liquid = math.ceil(n * -math.expm1(-per_particle))
         sizes = {"row": int(count.max(initial=0)), "window": window,
                  "shell": max(2 * fullest, _MIN_SHELL),
-                 "shell_rows": _shell_rows(max(has, liquid), n)}
+                 "shell_rows": _shell_rows(max(has, liquid), n),
+                 "fixed_grid": int(fixed)}
         # OrderedSparse's rows hold its edges alone (`_lower_only`).
         sizes["edges"] = int(count.sum())
         # An explicit kernel that cannot hold the sized buffers fails here,
@@ -1230,9 +1253,10 @@ class Cell:
                        row_width=max(capacity["row"], 1), query=query)
         engine = self._engine(position.shape[0], options["row_width"],
                               options["shell"], query, None)
+        fixed = dict(capacity.internal).get("fixed_grid", 0)
         rows, count, _, overflow = self._candidates(
             engine, position, geometry, metric_sq, window=capacity["window"],
-            **options)
+            coarsen=not fixed, **options)
         result = _backend.format_dense_rows(
             rows, count, query, capacity, lower_only=_lower_only(query))
         return result._replace(overflow=result.overflow | overflow)
