@@ -10,7 +10,8 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
-from jaxrt.backends.contract import Backend, Capabilities
+from jaxrt.backends.contract import (Backend, Capabilities, capabilities,
+                                    is_stateful)
 
 _CAPABILITIES = frozenset(f.name for f in dataclasses.fields(Capabilities)
                           if f.name != "binds")
@@ -36,8 +37,7 @@ class BySize:
 
     def __post_init__(self):
         for part in (self.small, self.large):
-            if getattr(part, "stateful", False) or callable(
-                    getattr(part, "bind", None)):
+            if is_stateful(part) or capabilities(part).binds:
                 raise ValueError(f"BySize cannot hold backend {part.name!r}"
                                  ": it keeps state of its own.")
 
@@ -45,7 +45,7 @@ class BySize:
         # Only the capabilities delegate (`jaxrt.backends.capabilities`
         # reads them by name); dataclass fields never reach here.
         if name in _CAPABILITIES:
-            return getattr(self.large, name)
+            return getattr(capabilities(self.large), name)
         raise AttributeError(name)
 
     def for_size(self, n: int) -> Backend:

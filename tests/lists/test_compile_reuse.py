@@ -163,3 +163,25 @@ def test_auto_searches_small_lists_with_all_pairs_on_a_cpu():
         moved = jax.block_until_ready(position + 0.3)
         got = nbrs.update(moved)
         assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
+
+
+@pytest.mark.parametrize("cloud", [False, True])
+def test_a_fixed_box_grid_skips_coarsening_only_where_it_never_coarsens(
+        cloud):
+    """A periodic list with a fixed box compiles its grid without the
+    coarsening loop (``fixed_grid``) where the box proves that the grid
+    never coarsens; a small cloud in a huge box does coarsen (and compacts
+    an empty slab), and keeps the loop. Both lists exact, before and after
+    a rebuild."""
+    side = 60.0 if cloud else 7.0
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    position, _ = _system(n=300, side=4.0 if cloud else side, seed=5)
+    nbrs = fns.allocate(position)
+    assert dict(nbrs.cell_list_capacity.internal)["fixed_grid"] == int(
+        not cloud)
+    assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+    moved = jax.block_until_ready(position - 0.7)  # across the box's faces
+    got = nbrs.update(moved)
+    assert not bool(got.did_buffer_overflow)
+    assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
