@@ -7,6 +7,8 @@ list does:
 * `Cell` (``"cell"``, the default): the sorted cell list of
   `jaxrt.backends.cell.search`; ``kernel=`` picks its candidate pass.
 * `Brute` (``"brute"``, jax-md's ``disable_cell_list=True``): all pairs.
+* `BySize`: one backend for small N, another for the rest (``"auto"``'s
+  on a CPU: `Brute` for small lists, `Cell` for the rest).
 * `Bvh` (``"bvh"``; ``"bvh-unsorted"`` is ``Bvh(sort=False)``): the
   ray-traced custom AABB BVH of `jaxrt.backends.rt.aabb`, kept across calls by the
   list factory that owns it.
@@ -37,6 +39,7 @@ _NAMES = {
     "Backend": "jaxrt.backends.contract:Backend",
     "Brute": "jaxrt.backends.brute:Brute",
     "Bvh": "jaxrt.backends.rt.ffi:Bvh",
+    "BySize": "jaxrt.backends.bysize:BySize",
     "Capabilities": "jaxrt.backends.contract:Capabilities",
     "Capacity": "jaxrt.backends.contract:Capacity",
     "Cell": "jaxrt.backends.cell.search:Cell",

@@ -56,6 +56,8 @@ class Brute:
         _, count, lower = _rows(position, geometry.reach, metric_sq, width=0,
                                 query=query)
         ordered = query.format.name == "OrderedSparse"
+        # On the host: NumPy's reductions of a jax.Array compile JAX's.
+        count, lower = np.asarray(count), np.asarray(lower)
         return {"row": int(np.max(count, initial=0)),
                 "edges": int(np.sum(lower if ordered else count))}
 

@@ -78,6 +78,9 @@ class Query:
         the box is triclinic): the grid only proposes candidates, which
         holds as long as the metric is never shorter than that distance.
         Backends that cannot do this are refused by the front.
+      fixed_box: the box is the same at every search of the list (no
+        ``box=`` passed to ``update``): a backend may size its grid for it
+        once, at ``allocate``.
     """
 
     cutoff: float
@@ -85,6 +88,7 @@ class Query:
     mask_self: bool
     format: NeighborListFormat
     decide_by_metric: bool = False
+    fixed_box: bool = False
 
     @property
     def dim(self) -> int:
@@ -176,6 +180,12 @@ class SearchResult(NamedTuple):
 # int32 indices address at most this many entries (the default of
 # `Capabilities.max_list_entries`).
 MAX_LIST_ENTRIES = 2 ** 31 - 1
+
+# XLA's options for programs that run once or a few times (``allocate``'s
+# measuring, an eager call's program) at small N on a CPU: the backend's
+# optimisation off compiles several times faster (a first ``allocate``'s
+# largest cost) and runs ~10x slower. ``jit`` by the caller is unaffected.
+QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -169,6 +169,28 @@ def gram(metric_sq, space: Space, dtype):
     return jnp.stack(rows).astype(dtype)
 
 
+@functools.partial(jax.jit, static_argnames=("space",))
+def lengths_from_origin(metric_sq, space: Space, q):
+    """float ``(M,)``: the distances ``metric_sq`` gives from the origin
+    to the grid points ``q`` (float ``(M, dim)``), in one program."""
+    origin = jnp.zeros(q.shape[1:], q.dtype)
+    return jnp.sqrt(jax.vmap(lambda r: metric_sq(origin, r))(
+        space.from_grid(q)))
+
+
+def concrete(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` as concrete arrays: a jitted ``fn`` called
+    as one compiled program where no trace is under way, and evaluated at
+    trace time (``jax.ensure_compile_time_eval``: op by op, each op
+    compiled on its own, dozens of programs) only under a trace."""
+    out = fn(*args, **kwargs)
+    if any(isinstance(x, jax.core.Tracer)
+           for x in jax.tree_util.tree_leaves(out)):
+        with jax.ensure_compile_time_eval():
+            out = fn(*args, **kwargs)
+    return out
+
+
 def _off_diagonal(g, xp):
     """Does the Gram matrix have off-diagonal entries (bool)? ``xp`` is
     numpy (eager: no program to compile) or jax.numpy (traced)."""
@@ -299,6 +321,11 @@ def _on_accelerator(x) -> bool:
     return any(d.platform != "cpu" for d in x.devices())
 
 
+def on_accelerator(x) -> bool:
+    """Does the array ``x`` live on a device other than a CPU?"""
+    return _on_accelerator(x)
+
+
 def _axis_samples_on_host(q, take):
     """Per axis of ``q`` (float ``(N, dim)``): the first argmin and argmax,
     and the particles at ranks ``take`` and ``take + 1`` (int ``(M,)``) of
@@ -331,10 +358,9 @@ def sample_deviation(position, metric_sq, g, h, space: Space):
     i, j = sample_pairs(position, space)
     if len(i) == 0:
         return np.zeros(0), 0.0, i, j
-    with jax.ensure_compile_time_eval():
-        dev, m, d, allowed = (np.asarray(x, np.float64) for x in _deviation(
-            jnp.asarray(position), jnp.asarray(i), jnp.asarray(j), metric_sq,
-            g, h, space))
+    dev, m, d, allowed = (np.asarray(x, np.float64) for x in concrete(
+        _deviation, jnp.asarray(position), jnp.asarray(i), jnp.asarray(j),
+        metric_sq, g, h, space))
     # How much shorter than the model the metric is, beyond rounding:
     # twice that (a sample is not every pair) lets the grid hold every
     # neighbour of a metric that is noisy, e.g. jax-md's periodic_general,

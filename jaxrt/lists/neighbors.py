@@ -208,17 +208,20 @@ def _probe_axes(metric, space: _space.Space, g
     ``g``: the metric's Gram matrix in that space (`jaxrt.lists.metric.gram`).
     Returns two tuples of ``dim`` bools."""
     dim = space.dim
+    steps = (0.75, 1.3, 7.3)
+    q = np.zeros((dim, len(steps), dim))
+    for a in range(dim):
+        q[a, :, a] = np.asarray(steps) * float(space.period[a])
+    lengths = np.asarray(_space.concrete(
+        _space.lengths_from_origin, metric, space,
+        q.reshape(-1, dim).astype(np.float32))).reshape(dim, -1)
     free, periodic = [], []
     for a in range(dim):
         unit = float(space.period[a])
         length = float(np.sqrt(max(float(g[a, a]), 0.0)))
         looks_free = looks_periodic = True
-        for t in (0.75, 1.3, 7.3):
-            q = np.zeros(dim)
-            q[a] = t * unit
-            with jax.ensure_compile_time_eval():
-                rb = space.from_grid(jnp.asarray(q, jnp.float32))
-                r = float(np.sqrt(metric(jnp.zeros(dim, jnp.float32), rb)))
+        for t, r in zip(steps, lengths[a]):
+            r = float(r)
             tol = 1e-4 * t * unit * length + 1e-6
             looks_free &= abs(r - t * unit * length) <= tol
             looks_periodic &= abs(r - abs(t - round(t)) * unit * length) <= tol
@@ -244,8 +247,8 @@ def _fractional_reading(metric, dim: int) -> tuple[bool, ...] | None:
     reading does not fit it either (some axis neither free nor periodic
     with period 1, or no axis periodic)."""
     unit = _space.Space((False,) * dim, np.ones(dim))
-    with jax.ensure_compile_time_eval():
-        g = np.asarray(_space.gram(metric, unit, jnp.float32))
+    g = np.asarray(_space.concrete(_space.gram, metric, unit,
+                                   np.dtype(np.float32)))
     axes = _infer_periodic(*_probe_axes(metric, unit, g), True)
     return axes if axes is not None and any(axes) else None
 
@@ -301,6 +304,15 @@ def _check_position(position, dim: int | None = None) -> jax.Array:
         raise TypeError("position must be a floating-point array; got dtype "
                         f"{position.dtype}. Convert with .astype(float).")
     return jnp.asarray(position)
+
+
+def _all_finite(position) -> bool:
+    """Eager: are all of ``position``'s entries finite? On the host where
+    the array is (no program to compile for one reduction), else where it
+    lives."""
+    if _space.on_accelerator(position):
+        return bool(jnp.all(jnp.isfinite(position)))
+    return bool(np.isfinite(np.asarray(position)).all())
 
 
 def _static_positive(name: str, value, allow_zero: bool = False) -> float:
@@ -421,9 +433,13 @@ def _check_arguments(displacement_or_metric, *, box, r_cutoff, dr_threshold,
             raise ValueError(f"disable_cell_list=True asks for the all-pairs "
                              f"search but backend={backend!r}; drop one.")
         backend = "brute"
-    if isinstance(backend, str) and backend == "auto":
+    auto = isinstance(backend, str) and backend == "auto"
+    if auto:
         backend = _auto_backend(has_radii=radii is not None)
     backend = backends.resolve(backend)
+    if auto and backend.name == "cell" and jax.default_backend() == "cpu":
+        backend = backends.BySize(small=backends.resolve("brute"),
+                                  large=backend, max_small=_BRUTE_MAX_N_CPU)
     r_cutoff = _static_positive("r_cutoff", r_cutoff)
     if radii is not None:
         _check_radii_backend(backend)
@@ -534,8 +550,8 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
     has_box = any(part is not None for part in _box_parts(box, dim))
     metric = MetricSq(fn, dict(kwargs))
     if axes is None or (any(axes) and has_box and not fractional):
-        with jax.ensure_compile_time_eval():
-            g = np.asarray(_space.gram(metric, grid, jnp.float32))
+        g = np.asarray(_space.concrete(_space.gram, metric, grid,
+                                       np.dtype(np.float32)))
         free, periodic = _probe_axes(metric, grid, g)
         if axes is None:
             inferred = _infer_periodic(free, periodic, has_box)
@@ -572,8 +588,10 @@ def _setup(settings: _Settings, dim: int, kwargs: dict) -> _Setup:
             "a triclinic box with Cartesian positions needs every axis "
             "periodic (periodic=True); for a slab, use an orthorhombic "
             "box or fractional_coordinates=True.")
+    # Only fractional coordinates take box= at update (`check_kwargs`).
     query = Query(cutoff=settings.cutoff, periodic=axes,
-                  mask_self=settings.mask_self, format=settings.format)
+                  mask_self=settings.mask_self, format=settings.format,
+                  fixed_box=not fractional and not kwargs)
     return _Setup(fn, grid, query, set())
 
 
@@ -753,6 +771,8 @@ class _Lists:
     def __init__(self, settings: _Settings):
         self.settings = settings
         self.searcher = backends.bind(settings.backend)
+        # `BySize`'s lists are checked as its large backend's at every N, so
+        # that what ``"auto"`` accepts does not change with N.
         self.checks_metric = not capabilities(
             self.searcher).exact_for_any_metric
         self.setups: dict[int, _Setup] = {}
@@ -760,11 +780,48 @@ class _Lists:
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
+        # The capacities ``allocate`` built through `eager_program`'s program
+        # (`plan_build`), per (N, dtype, query).
+        self.built_as_update: dict[tuple, set[Capacity]] = {}
         # Eager ``update`` calls run the whole update as one jitted program,
         # compiled once per list structure and shape and then reused: run
         # op by op, its ``lax.cond`` closed over new functions at every call
-        # and recompiled the search each time.
-        self.eager_update = jax.jit(self.traced_update)
+        # and recompiled the search each time. ``allocate`` builds through
+        # it too (``force``: rebuild whatever moved), so that the first
+        # ``update`` compiles nothing.
+        self.eager_update = jax.jit(self.forced_update)
+        self.eager_update_quick = jax.jit(
+            self.forced_update, compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+
+    def eager_program(self, position):
+        """`eager_update`, or for small N on a CPU `eager_update_quick`
+        (compiled for compile speed: most of a first ``allocate``; its
+        rebuilds stay many times faster than jax-md's eager update, and a
+        caller's ``jit`` of ``update`` compiles its own program)."""
+        quick = (position.shape[0] <= _QUICK_EAGER_MAX_N
+                 and not _space.on_accelerator(position))
+        return self.eager_update_quick if quick else self.eager_update
+
+    def plan_build(self, n: int, dtype, query: Query, capacity: Capacity,
+                   sizes: dict[str, int], limit: int) -> Capacity | None:
+        """How ``allocate`` builds: None, through `eager_program`'s program
+        at ``capacity`` itself, which the list's first ``update`` then
+        reuses (one compile for both), where no build of its kind was
+        compiled yet, where that program exists already, or where the build
+        must be exact; else `compiled_capacity`'s, a compiled build that
+        holds ``capacity`` or a rounded one, trimmed after, so that lists
+        of one N whose exact sizes differ a little (a training set's
+        structures) share a compile."""
+        key = (n, np.dtype(dtype).name, query)
+        done = self.built_as_update.setdefault(key, set())
+        exact = _compiled_capacity(self.searcher, n, capacity, query, sizes,
+                                   limit) is capacity
+        if capacity in done or exact or key not in self.compiled:
+            if not exact:
+                self.compiled.setdefault(key, [])
+            done.add(capacity)
+            return None
+        return self.compiled_capacity(n, dtype, query, capacity, sizes, limit)
 
     def compiled_capacity(self, n: int, dtype, query: Query,
                           capacity: Capacity, sizes: dict[str, int],
@@ -814,6 +871,7 @@ class _Lists:
         self.check_kwargs(kwargs, allocating=True)
         position = _check_position(position)
         n, dim = position.shape
+        own_radii = radii is not None
         if radii is None:
             radii = self.settings.radii
         else:
@@ -821,7 +879,7 @@ class _Lists:
         if radii is not None:
             radii = _concrete_radii(radii, self.settings.r_cutoff,
                                     "allocate", n)
-        if not bool(jnp.all(jnp.isfinite(position))):
+        if not _all_finite(position):
             bad = np.argwhere(~np.isfinite(np.asarray(position)))[0]
             raise ValueError(f"position has a non-finite value at particle "
                              f"{bad[0]}, axis {bad[1]}; fix the input.")
@@ -846,20 +904,49 @@ class _Lists:
             metric_decides=model.metric_decides, orthorhombic=model.diagonal,
             slack=model.slack, radii=radii is not None)
         _check_list_size(self.searcher, n, capacity, query)
-        compiled = self.compiled_capacity(n, position.dtype, query, capacity,
-                                          sizes, _rounded_list_limit(position))
+        compiled = self.plan_build(n, position.dtype, query, capacity, sizes,
+                                   _rounded_list_limit(position))
+        if compiled is None:
+            if not kwargs or self.settings.fractional_coordinates:
+                return self.build_as_update(position, capacity, state,
+                                            radii if own_radii else None,
+                                            kwargs)
+            compiled = capacity  # update takes no box=: a build of its own
         idx, overflow, code, state = self.build(
             position, geometry, metric, state, query=query, capacity=compiled)
         if compiled is not capacity:
             idx, overflow = _trimmed(idx, overflow, width=capacity.neighbors,
                                      n=n)
-        fields = (idx, position,
-                  PartitionError(code | _bits(overflow, _OVERFLOW)),
-                  capacity, capacity.neighbors, self.settings.format,
-                  None, None, self.update)
+        return self.neighbor_list(
+            idx, position, PartitionError(code | _bits(overflow, _OVERFLOW)),
+            capacity, state)
+
+    def neighbor_list(self, idx, position, error, capacity: Capacity, state
+                      ) -> NeighborList:
+        """jax-md's `NeighborList` (a `StatefulNeighborList` where
+        ``state`` is not None) of this factory."""
+        fields = (idx, position, error, capacity, capacity.neighbors,
+                  self.settings.format, None, None, self.update)
         if state is None:
             return NeighborList(*fields)
         return StatefulNeighborList(*fields, state)
+
+    def build_as_update(self, position, capacity: Capacity, state, radii,
+                        kwargs: dict) -> NeighborList:
+        """``allocate``'s list built by `eager_program`'s program, forced to
+        rebuild, from an empty list of ``capacity``: the very program the
+        list's first eager ``update`` runs. ``radii``: float64 ``(N,)``
+        given to ``allocate``, or None (the factory's, if any)."""
+        n = position.shape[0]
+        shape = ((n, capacity.neighbors) if self.settings.format is Dense
+                 else (2, capacity.neighbors))
+        # Host arrays: no program is compiled to make them.
+        empty = self.neighbor_list(
+            jax.device_put(np.full(shape, n, np.int32)), position,
+            PartitionError(jax.device_put(np.zeros((), np.uint8))), capacity,
+            state)
+        return self.eager_program(position)(position, empty, np.bool_(True),
+                                            radii=radii, **kwargs)
 
     def reach(self, radii, dtype):
         """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
@@ -886,12 +973,20 @@ class _Lists:
             return self.traced_update(position, neighbors, radii=radii,
                                       **kwargs)
         position = _check_position(position)
-        return self.eager_update(position, neighbors, radii=radii, **kwargs)
+        return self.eager_program(position)(position, neighbors,
+                                            np.bool_(False),
+                                 radii=radii, **kwargs)
 
     def traced_update(self, position, neighbors: NeighborList, *, radii=None,
                       **kwargs) -> NeighborList:
-        """`update`'s body, traced (under the caller's ``jit`` or
-        `eager_update`'s)."""
+        """`update`'s body, traced (under the caller's ``jit``)."""
+        return self.forced_update(position, neighbors, False, radii=radii,
+                                  **kwargs)
+
+    def forced_update(self, position, neighbors: NeighborList, force, *,
+                      radii=None, **kwargs) -> NeighborList:
+        """`update`'s body, traced (`traced_update`, `eager_program`);
+        ``force`` (bool, may be traced): rebuild even if nothing moved."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
@@ -966,7 +1061,13 @@ class _Lists:
             return rebuild(None)
         threshold_sq = (self.settings.dr_threshold / 2) ** 2
         moved = jax.vmap(metric)(position, ref)
-        return jax.lax.cond(jnp.any(moved > threshold_sq), rebuild, keep, None)
+        return jax.lax.cond(jnp.any(moved > threshold_sq) | force, rebuild,
+                            keep, None)
+
+
+# Eager updates of lists of up to this many particles on a CPU run a
+# program compiled for compile speed (`_Lists.eager_program`).
+_QUICK_EAGER_MAX_N = 4096
 
 
 def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
@@ -976,11 +1077,16 @@ def _geometry(grid: _space.Space, h, dtype, slack: float, reach=None
     every pair) the grid's distances shrink by that fraction, so that it
     still holds every neighbour of a metric up to that much shorter than
     its model. ``reach``: None or float ``(N,)`` (`Geometry.reach`)."""
-    grid_h = h * (1.0 - slack) if slack else h
+    # Eager (allocate's concrete heights) on the host: no program compiled.
+    xp = jnp if isinstance(h, jax.core.Tracer) else np
+    h = xp.asarray(h)
+    grid_h = h * h.dtype.type(1.0 - slack) if slack else h
     transform = (None if grid.transform is None
                  else jnp.asarray(grid.transform, dtype))
-    return Geometry(side=jnp.asarray(grid.period, dtype) * grid_h,
-                    scale=grid_h, transform=transform, reach=reach)
+    side = xp.asarray(grid.period, dtype) * grid_h
+    if xp is np:  # to the device as they are: no program compiled
+        side, grid_h = jax.device_put(side), jax.device_put(grid_h)
+    return Geometry(side=side, scale=grid_h, transform=transform, reach=reach)
 
 
 def _check_unknown_keywords(unknown: dict) -> None:
@@ -1217,6 +1323,13 @@ def _trimmed(idx, overflow, *, width: int, n: int):
     return idx[..., :width], overflow | jnp.any(idx[..., width:] < n)
 
 
+# ``"auto"`` on a CPU searches lists of up to this many particles with
+# ``"brute"`` (`jaxrt.backends.BySize`): its program compiles in a fraction
+# of the cell list's time (most of a first ``allocate``), and up to about
+# this N it rebuilds as fast (all pairs grow as N**2: 8x slower at N = 1000).
+_BRUTE_MAX_N_CPU = 256
+
+
 def _auto_backend(*, has_radii: bool = False) -> str:
     """``backend="auto"`` here: `choose_backend` for JAX's default device.
     Whether Warp loads is asked (which imports it) only where the rule
@@ -1246,8 +1359,12 @@ def choose_backend(*, platform: str, has_radii: bool = False,
       configuration, so neither is ever chosen; nor is `brute` (no table
       measures it against `cell`).
 
-    Dimension and N do not enter: no table shows a different winner for
-    2D or for small N. Args: ``platform``: ``jax.default_backend()``
+    Dimension does not enter: no table shows a different winner for 2D.
+    On a CPU, lists of at most 256 particles of a ``"cell"`` choice are
+    searched by ``"brute"`` (`jaxrt.backends.BySize`, picked at each
+    ``allocate`` by N): all pairs compile several times faster there, and
+    rebuild as fast, which makes a small system's first ``allocate`` and
+    ``update`` quicker than jax-md's. Args: ``platform``: ``jax.default_backend()``
     (``"cpu"``, ``"gpu"``/``"cuda"``, ``"tpu"``); ``has_radii``: radii given
     at construction; ``warp``: Warp's backends are installed.
     """

@@ -90,7 +90,8 @@ def test_second_factory_reuses_the_cell_lists_programs():
     displacement, _ = space.periodic(side)
     first = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
     expected = first.allocate(position)
-    programs = (search._sorted_system, search._visit)
+    programs = (search._sorted_system, search._visit, search._run_sizes_fast,
+                search._run_sizes_quick, search._visit_quick)
     before = [p._cache_size() for p in programs]
     second = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
     got = second.allocate(position)
@@ -98,3 +99,89 @@ def test_second_factory_reuses_the_cell_lists_programs():
     np.testing.assert_array_equal(np.sort(np.asarray(got.idx), axis=1),
                                   np.sort(np.asarray(expected.idx), axis=1))
     assert _pairs(got) == _brute_force(position, side, 1.4)
+
+
+@pytest.mark.parametrize("backend,fmt", [("auto", "Dense"), ("cell", "Sparse"),
+                                         ("brute", "OrderedSparse")])
+def test_first_eager_update_after_allocate_compiles_nothing(backend, fmt):
+    """``allocate`` builds through the program the first eager ``update``
+    runs (the same capacity, forced to rebuild): a newcomer's first update,
+    rebuild or not, compiles nothing more, and is exact."""
+    from jax_md import partition
+    position, side = _system(seed=2)
+    displacement, _ = space.periodic(side)
+    layout = getattr(partition.NeighborListFormat, fmt)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend=backend,
+                              format=layout)
+    nbrs = fns.allocate(position)
+    near = jax.block_until_ready(position + 0.01)  # no rebuild
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))  # rebuild
+    compiles = _count_compiles()
+    kept = nbrs.update(near)
+    rebuilt = nbrs.update(far)
+    assert len(compiles) == 0, compiles
+    np.testing.assert_array_equal(np.asarray(kept.idx), np.asarray(nbrs.idx))
+    assert not bool(rebuilt.did_buffer_overflow)
+    assert not bool(nbrs.did_buffer_overflow)
+    expected = _brute_force(np.mod(far, side), side, 1.4)
+    if fmt == "Dense":
+        assert _pairs(rebuilt) == expected
+        assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+    else:
+        i, j = np.asarray(rebuilt.idx)
+        n = position.shape[0]
+        got = {(int(a), int(b)) for a, b in zip(i, j) if a < n}
+        if fmt == "OrderedSparse":
+            expected = {(a, b) for a, b in expected if a > b} | {
+                (b, a) for a, b in expected if a > b}
+            got = got | {(b, a) for a, b in got}
+            expected = expected | {(b, a) for a, b in expected}
+        assert got == expected
+
+
+def test_auto_searches_small_lists_with_all_pairs_on_a_cpu():
+    """``"auto"`` on a CPU: lists of at most 256 particles by ``brute``
+    (whose program compiles in a fraction of the cell list's time), larger
+    ones by ``cell``, picked per allocate by N, both exact."""
+    if jax.default_backend() != "cpu":
+        pytest.skip("the small-N rule is the CPU's")
+    from jaxrt import backends
+    side = 7.0
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4)
+    searcher = fns.allocate.__self__.searcher
+    assert isinstance(searcher, backends.BySize)
+    assert searcher.for_size(256).name == "brute"
+    assert searcher.for_size(257).name == "cell"
+    for n, internal in ((256, {"row"}), (257, {"fixed_grid", "row", "shell",
+                                               "shell_rows", "window"})):
+        position, _ = _system(n=n, side=side, seed=n)
+        nbrs = fns.allocate(position)
+        assert set(dict(nbrs.cell_list_capacity.internal)) == internal
+        assert not bool(nbrs.did_buffer_overflow)
+        assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+        moved = jax.block_until_ready(position + 0.3)
+        got = nbrs.update(moved)
+        assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
+
+
+@pytest.mark.parametrize("cloud", [False, True])
+def test_a_fixed_box_grid_skips_coarsening_only_where_it_never_coarsens(
+        cloud):
+    """A periodic list with a fixed box compiles its grid without the
+    coarsening loop (``fixed_grid``) where the box proves that the grid
+    never coarsens; a small cloud in a huge box does coarsen (and compacts
+    an empty slab), and keeps the loop. Both lists exact, before and after
+    a rebuild."""
+    side = 60.0 if cloud else 7.0
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4, backend="cell")
+    position, _ = _system(n=300, side=4.0 if cloud else side, seed=5)
+    nbrs = fns.allocate(position)
+    assert dict(nbrs.cell_list_capacity.internal)["fixed_grid"] == int(
+        not cloud)
+    assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+    moved = jax.block_until_ready(position - 0.7)  # across the box's faces
+    got = nbrs.update(moved)
+    assert not bool(got.did_buffer_overflow)
+    assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)

@@ -425,7 +425,8 @@ def test_allocate_on_new_positions_reuses_the_compiled_build():
 
 def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
     # Past the cap the wide list and its trimmed copy would need twice the
-    # memory: allocate must build exactly, one program per list size. The
+    # memory: allocate must build exactly, one program per list size (the
+    # update's own, which allocate builds through: `_Lists.plan_build`). The
     # device is made to report no free memory, as CPUs do; a GPU's report
     # would raise the cap (the next test).
     from jaxrt.lists import neighbors
@@ -441,7 +442,9 @@ def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
         capacities.add(fns.allocate(R).cell_list_capacity)
     assert lists.compiled == {}
     assert len(capacities) > 1  # the case this is about
-    assert lists.build._cache_size() == len(capacities)
+    assert (lists.eager_update._cache_size()
+            + lists.eager_update_quick._cache_size()) == len(capacities)
+    assert lists.build._cache_size() == 0
 
 
 @pytest.mark.parametrize("free_bytes", [None, 10_000, 10 ** 9])

@@ -587,29 +587,45 @@ def _run_ends(start, first, extra):
     return start[first], start[first + jnp.clip(extra + 1, 0, _RUN_SPAN - 1)]
 
 
-@functools.partial(jax.jit, static_argnames=("query",))
-def _sorted_system(position, geometry: Geometry, query: Query):
+@functools.partial(jax.jit, static_argnames=("query", "coarsen"))
+def _sorted_system(position, geometry: Geometry, query: Query,
+                   coarsen: bool = True):
     """Sort particles by cell.
 
     Args:
       position: float ``(N, dim)`` in the caller's coordinates.
+      coarsen: static, `_grid`'s (False where `_fixed_grid` proved that
+        the grid never coarsens).
     Returns:
       int32 ``order`` ``(N,)`` (sorted position -> caller's index); float
       ``(N, dim)`` Cartesian positions wrapped into the box, in the caller's
       order; and each particle's runs ``(start1, len1, start2, len2)``
       (`_runs`), int32 ``(N, R)`` in the caller's order.
     """
-    order, cart, sorted_key, cell, n = _sorted_grid(position, geometry, query)
+    order, cart, sorted_key, cell, n = _sorted_grid(position, geometry, query,
+                                                    coarsen)
     return order, cart, _runs(sorted_key, cell, n, query)
 
 
-def _sorted_grid(position, geometry: Geometry, query: Query):
+def _fixed_grid(n: int, geometry: Geometry, query: Query) -> bool:
+    """Eager: whether `_grid` provably never coarsens this list's grid
+    (`_static_cells`: every axis periodic, the box fixed for the list's
+    life, `Query.fixed_box`). Its programs then skip the coarsening loop
+    and the search for empty slabs, most of the grid's compile time."""
+    if not (query.fixed_box and all(query.periodic)):
+        return False
+    side = [float(x) for x in np.asarray(geometry.side)]
+    return _static_cells(n, side, query) is not None
+
+
+def _sorted_grid(position, geometry: Geometry, query: Query,
+                 coarsen: bool = True):
     """`_grid`'s cells and the order that sorts them: int32 ``order``
     ``(N,)``, float ``(N, dim)`` wrapped Cartesian positions, int32 ``(N,)``
     sorted keys, int32 ``(N, dim)`` cell coordinates (the caller's order),
     int32 ``(dim,)`` cells per axis."""
     cart, cell, n = _grid(geometry.grid_coordinates(position), geometry,
-                          query)
+                          query, coarsen=coarsen)
     key = _key(cell, n)
     # Ties in any order: rows are sets.
     sorted_key, order = jax.lax.sort(
@@ -906,10 +922,8 @@ def _sorted_index(bit, word_run):
     return jnp.where(bit < limit, first1, first2) + bit
 
 
-@functools.partial(jax.jit, static_argnames=("window", "shell", "shell_rows",
-                                             "row_width", "query"))
-def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
-           shell, shell_rows, row_width, query: Query):
+def _visit_fn(position, geometry: Geometry, metric_sq: MetricSq, *, window,
+              shell, shell_rows, row_width, query: Query, coarsen=True):
     """Every particle's neighbours, as the caller's metric decides.
 
     Args:
@@ -928,7 +942,7 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
       or a shell buffer too small (bool scalar).
     """
     n = position.shape[0]
-    order, cart, runs = _sorted_system(position, geometry, query)
+    order, cart, runs = _sorted_system(position, geometry, query, coarsen)
     sure, maybe = _candidate_words(cart, order, runs, geometry, query, window,
                                    position, metric_sq)
     m = sure.shape[1]
@@ -971,6 +985,32 @@ def _visit(position, geometry: Geometry, metric_sq: MetricSq, *, window,
     j = jnp.clip(_sorted_index(bit, got), 0, n - 1)
     rows = jnp.where(valid, order[j], n)
     return rows, count, shell_sizes, overflow
+
+
+_VISIT_STATIC = ("window", "shell", "shell_rows", "row_width", "query",
+                 "coarsen")
+_visit = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC)
+
+
+def _run_sizes(position, geometry: Geometry, query: Query, coarsen=True):
+    """What sizes the count: int32 ``(R,)`` the longest pair of runs of
+    each stencil row, and `_tolerance` (float scalar)."""
+    _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query,
+                                                 coarsen)
+    return (jnp.max(len1 + len2, axis=0, initial=0),
+            _tolerance(cart, geometry, query, position))
+
+
+# ``allocate`` measures once, then builds: the measuring programs run once
+# or twice. Up to this many particles on a CPU they are compiled for
+# compile speed (`QUICK_COMPILE_OPTIONS`: tens of ms slower to run here).
+_QUICK_MAX_N = 1 << 15
+_QUICK = _backend.QUICK_COMPILE_OPTIONS
+_run_sizes_fast = jax.jit(_run_sizes, static_argnames=("query", "coarsen"))
+_run_sizes_quick = jax.jit(_run_sizes, static_argnames=("query", "coarsen"),
+                           compiler_options=_QUICK)
+_visit_quick = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC,
+                       compiler_options=_QUICK)
 
 
 @functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
@@ -1059,7 +1099,7 @@ class Cell:
     decides_by_metric: ClassVar[bool] = True
     supports_radii: ClassVar[bool] = True
     small_boxes: ClassVar[bool] = True
-    fixed_sizes: ClassVar[tuple[str, ...]] = ("classes",)
+    fixed_sizes: ClassVar[tuple[str, ...]] = ("classes", "fixed_grid")
 
     def __post_init__(self):
         if self.kernel not in _KERNELS:
@@ -1117,11 +1157,15 @@ class Cell:
         return self.kernel if self.kernel == "interpret" else "kernel"
 
     def _candidates(self, engine: str, position, geometry, metric_sq, *,
-                    window: int, **options):
-        """`_visit` or `_walk` per ``engine`` (`_engine`)."""
+                    window: int, quick: bool = False, coarsen: bool = True,
+                    **options):
+        """`_visit` or `_walk` per ``engine`` (`_engine`); ``quick``: the
+        portable path compiled for compile speed (`_QUICK`); ``coarsen``:
+        the portable path's grid (`_fixed_grid`)."""
         def portable():
-            return _visit(position, geometry, metric_sq, window=window,
-                          **options)
+            return (_visit_quick if quick else _visit)(
+                position, geometry, metric_sq, window=window, coarsen=coarsen,
+                **options)
 
         def kernel():
             return _walk(position, geometry, metric_sq, **options)
@@ -1140,26 +1184,31 @@ class Cell:
             self._check_radii_kernel()
             return radius_classes.measure(position, geometry, query,
                                           metric_sq, self.radius_classes)
-        _, cart, (_, len1, _, len2) = _sorted_system(position, geometry, query)
         n = position.shape[0]
-        window = max(int(np.max(len1 + len2, initial=0)), 1)
+        # Counting runs on the engine the search will use (the portable
+        # path at N = 1e6 would compile and run XLA's largest program).
+        platform = _platform_of(position)
+        quick = platform == "cpu" and n <= _QUICK_MAX_N
+        fixed = _fixed_grid(n, geometry, query)
+        longest, tol = (_run_sizes_quick if quick else _run_sizes_fast)(
+            position, geometry, query, not fixed)
+        longest, tol = np.asarray(longest), float(tol)
+        window = max(int(np.max(longest, initial=0)), 1)
         # The counts run on whole words, as the search does: positions
         # whose longest runs differ a little reuse one compiled count (the
         # list's own window stays the run's length, sized from it).
         words = _slots(window)
-        # Counting runs on the engine the search will use (the portable
-        # path at N = 1e6 would compile and run XLA's largest program).
-        platform = _platform_of(position)
         # A first guess that fits liquids (a few in a hundred have a shell).
         shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
         limit = _backend.max_list_entries(self)
         while True:  # enough room to count every shell pair exactly
             engine = self._engine(n, 1, shell, query, platform)
             if engine == "portable":
-                _check_candidate_words(self.name, n, len1.shape[1], window,
-                                       limit)
+                _check_candidate_words(self.name, n, longest.shape[0],
+                                       window, limit)
             _, count, (has, fullest), _ = self._candidates(
                 engine, position, geometry, metric_sq, window=words,
+                quick=quick, coarsen=not fixed,
                 shell=shell, shell_rows=shell_rows, query=query,
                 row_width=0 if engine == "portable" else 1)
             has, fullest = int(has), int(fullest)
@@ -1181,12 +1230,12 @@ class Cell:
         # liquid a few per hundred particles: expect the liquid's share,
         # from the pairs found (they grow as r**dim, so a shell of width
         # 2 tol holds 2 dim tol / cutoff of them).
-        tol = float(_tolerance(cart, geometry, query, position))
         per_particle = count.mean() * 2 * query.dim * tol / query.cutoff
         liquid = math.ceil(n * -math.expm1(-per_particle))
         sizes = {"row": int(count.max(initial=0)), "window": window,
                  "shell": max(2 * fullest, _MIN_SHELL),
-                 "shell_rows": _shell_rows(max(has, liquid), n)}
+                 "shell_rows": _shell_rows(max(has, liquid), n),
+                 "fixed_grid": int(fixed)}
         # OrderedSparse's rows hold its edges alone (`_lower_only`).
         sizes["edges"] = int(count.sum())
         # An explicit kernel that cannot hold the sized buffers fails here,
@@ -1204,9 +1253,10 @@ class Cell:
                        row_width=max(capacity["row"], 1), query=query)
         engine = self._engine(position.shape[0], options["row_width"],
                               options["shell"], query, None)
+        fixed = dict(capacity.internal).get("fixed_grid", 0)
         rows, count, _, overflow = self._candidates(
             engine, position, geometry, metric_sq, window=capacity["window"],
-            **options)
+            coarsen=not fixed, **options)
         result = _backend.format_dense_rows(
             rows, count, query, capacity, lower_only=_lower_only(query))
         return result._replace(overflow=result.overflow | overflow)
