@@ -57,7 +57,11 @@ JAXMD_LIST_JAXRT_ENERGY = "jax-md list + jaxrt energy"
 FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
 # fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
 FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
-                 "cell[auto]": ("cell", "auto")}
+                 "cell[auto]": ("cell", "auto"), "cell[warp]": ("cell", "warp"),
+                 "cell[kernel=warp]": ("cell", "warp")}
+# fused:cell[warp-nograph]: the Warp engine, its Python callback run at
+# every call (no CUDA graph captured by JAX).
+WARP_NOGRAPH = "cell[warp-nograph]"
 
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
@@ -101,7 +105,8 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
     ``"Dense"``); jax-md's rows have no backend."""
     if label.startswith("fused:"):
         backend = label[len("fused:"):]
-        known = FUSED_BACKENDS + tuple(FUSED_OPTIONS) + ("brute",)
+        known = (FUSED_BACKENDS + tuple(FUSED_OPTIONS)
+                 + ("brute", WARP_NOGRAPH))
         if backend not in known and not _LAUNCH.fullmatch(backend):
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
                              f"{known} or cell[BLOCKxWARPS[xTILE]] (the "
@@ -204,6 +209,9 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     if backend in FUSED_OPTIONS:
         from jaxrt.backends import Cell
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
+    elif backend == WARP_NOGRAPH:
+        from jaxrt.energy.listfree.lj import CellSums
+        backend = CellSums(kernel="warp", graph=False)
     elif _LAUNCH.fullmatch(backend):
         backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,
