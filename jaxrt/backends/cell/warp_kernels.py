@@ -231,7 +231,10 @@ def _scalar_kernels(scalar):
                                     if has_radii != 0:
                                         cut = wp.max(ri, radius[j])
                                         cut2 = cut * cut
-                                    if d2 < cut2 and d2 > scalar(0.0) and j != i:
+                                    # Coincident pairs count, with no terms.
+                                    if d2 < cut2 and j != i:
+                                        hits = hits + 1
+                                    if d2 < cut2 and d2 > scalar(0.0):
                                         scale = cut / r_cutoff
                                         e, g, ds, de = lj(
                                             d2, sigma * scale, epsilon,
@@ -241,7 +244,6 @@ def _scalar_kernels(scalar):
                                         if derivatives != 0:
                                             ds_sum = ds_sum + ds
                                             de_sum = de_sum + de
-                                        hits = hits + 1
         forces[values[i]] = f
         energy[i] = e_sum
         d_sigma[i] = ds_sum
