@@ -59,9 +59,10 @@ FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
 FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
                  "cell[auto]": ("cell", "auto"), "cell[warp]": ("cell", "warp"),
                  "cell[kernel=warp]": ("cell", "warp")}
-# fused:cell[warp-nograph]: the Warp engine, its Python callback run at
-# every call (no CUDA graph captured by JAX).
-WARP_NOGRAPH = "cell[warp-nograph]"
+# fused:cell[warp-rXY-G]: the Warp engine (CellSums(kernel="warp")) with
+# its stencil's reach X along x and Y across (cells bound / reach wide) and
+# G the CUDA graph's capture (none, jax, warp; ffi.cell_lj_sums).
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-(none|jax|warp))?\]")
 
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
@@ -105,9 +106,9 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
     ``"Dense"``); jax-md's rows have no backend."""
     if label.startswith("fused:"):
         backend = label[len("fused:"):]
-        known = (FUSED_BACKENDS + tuple(FUSED_OPTIONS)
-                 + ("brute", WARP_NOGRAPH))
-        if backend not in known and not _LAUNCH.fullmatch(backend):
+        known = FUSED_BACKENDS + tuple(FUSED_OPTIONS) + ("brute",)
+        if (backend not in known and not _LAUNCH.fullmatch(backend)
+                and not _WARP.fullmatch(backend)):
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
                              f"{known} or cell[BLOCKxWARPS[xTILE]] (the "
                              "kernel's launch)")
@@ -209,9 +210,11 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     if backend in FUSED_OPTIONS:
         from jaxrt.backends import Cell
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
-    elif backend == WARP_NOGRAPH:
+    elif _WARP.fullmatch(backend):
         from jaxrt.energy.listfree.lj import CellSums
-        backend = CellSums(kernel="warp", graph=False)
+        x, y, graph = _WARP.fullmatch(backend).groups()
+        backend = CellSums(kernel="warp", graph=graph or "none",
+                           reach=(int(x or 1), int(y or 1)))
     elif _LAUNCH.fullmatch(backend):
         backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,

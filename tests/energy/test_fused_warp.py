@@ -31,7 +31,11 @@ pytest.importorskip("warp")
 import jaxrt  # noqa: E402
 from jaxrt.energy import lennard_jones_fused, lennard_jones_truncated  # noqa: E402
 
+from jaxrt.energy.listfree.lj import CellSums  # noqa: E402
+
 WARP = jaxrt.backends.Cell(kernel="warp")
+# Cells a quarter of the cutoff along x and half across (9 x 5 x 5 stencil).
+FINE = CellSums(kernel="warp", reach=(4, 2))
 E_RTOL, F_RTOL = 1e-12, 1e-10
 
 
@@ -62,18 +66,20 @@ def close(a, b, rtol):
     np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
 
 
-def pair(geometry, side, **kw):
+def pair(geometry, side, engine=WARP, **kw):
     displacement, box, periodic = GEOMETRIES[geometry](side)
     return tuple(lennard_jones_fused(displacement, box, backend=b,
                                      periodic=periodic, **kw)
-                 for b in (WARP, "brute"))
+                 for b in (engine, "brute"))
 
 
-@pytest.mark.parametrize("geometry", ["periodic", "free", "slab"])
-def test_matches_brute_float64(x64, geometry):
+@pytest.mark.parametrize("geometry, engine", [
+    ("periodic", WARP), ("free", WARP), ("slab", WARP), ("periodic", FINE),
+    ("free", FINE)])
+def test_matches_brute_float64(x64, geometry, engine):
     R, side = fluid()
     R = jnp.asarray(R)
-    warp, brute = pair(geometry, side)
+    warp, brute = pair(geometry, side, engine)
     s, t = warp.sums(R), brute.sums(R)
     assert int(s.count) == int(t.count) > 0
     close(s.energy, t.energy, E_RTOL)
@@ -94,14 +100,16 @@ def test_float32_within_tolerance(x64):
     close(-g, t.forces, 2e-3)
 
 
-@pytest.mark.parametrize("side_over_cutoff", [2.05, 2.6, 3.4, 7.0])
-def test_small_periodic_boxes_alias_no_pair(x64, side_over_cutoff):
+@pytest.mark.parametrize("side_over_cutoff, engine", [
+    (2.05, WARP), (2.6, WARP), (3.4, WARP), (7.0, WARP), (2.05, FINE),
+    (2.6, FINE), (3.4, FINE)])
+def test_small_periodic_boxes_alias_no_pair(x64, side_over_cutoff, engine):
     """One to a few cells per axis: each distinct cell walked once, every
     pair met once from each side (a doubled cell doubles the count)."""
     side = side_over_cutoff * 2.5
     n = max(8, int(0.5 * side ** 3))
     R = jnp.asarray(np.random.default_rng(3).uniform(0, side, (n, 3)))
-    warp, brute = pair("periodic", side)
+    warp, brute = pair("periodic", side, engine)
     s, t = warp.sums(R), brute.sums(R)
     assert int(s.count) == int(t.count)
     close(s.energy, t.energy, E_RTOL)
@@ -163,11 +171,11 @@ def test_radii_and_parameter_gradients(x64):
 def test_lists_and_sph_refuse_the_warp_engine():
     from jaxrt.energy.listfree.sph import density_fused
     from jaxrt.energy import sph
-    R, side = fluid(n_side=3)
+    R, side = fluid(n_side=7)
     displacement, _ = space.periodic(side)
     nfn = jaxrt.neighbor_list(displacement, side, 2.5, backend=WARP)
     with pytest.raises(ValueError, match="kernel='warp'"):
         nfn.allocate(jnp.asarray(R, jnp.float32))
     with pytest.raises(ValueError, match="kernel='warp'"):
-        density_fused(displacement, side, sph.kernel("cubic_spline", 1.0),
-                      backend=WARP)
+        density_fused(displacement, side,
+                      sph.kernel("cubic_spline", 1.0, dim=3), backend=WARP)

@@ -19,11 +19,12 @@ The pipeline, one launch each (`lj_sums`):
 
 The grid (per axis: origin, cell width, box side, cell count) is an input,
 so that free axes can follow the particles' extent while the table keeps a
-static size. Cells are at least the cutoff wide. On a periodic axis with 3
-cells or more each stencil cell is a distinct cell with a known image
-(the neighbour row's shift by a box side); with fewer, the stencil keeps
-each distinct cell once and the difference is rounded to its minimum image
-(exact, as the cutoff is below half the side).
+static size. Cells are at least the cutoff over the axis' reach ``a``
+wide, and the stencil spans ``2 a + 1`` cells. On a periodic axis with
+``2 a + 1`` cells or more each stencil cell is a distinct cell with a known
+image (the neighbour row's shift by a box side); with fewer, the stencil
+keeps each distinct cell once and the difference is rounded to its minimum
+image (exact, as the cutoff is below half the side).
 """
 
 import warp as wp
@@ -122,13 +123,13 @@ def _scalar_kernels(scalar):
         return e, g, switch * epsilon * repulsion / sigma_base, switch * lj_unit
 
     @wp.func
-    def row(c: int, d: int, n: int, periodic: int):
+    def row(c: int, d: int, n: int, periodic: int, reach: int):
         # (cell, image, valid) of the stencil row ``c + d`` on one axis.
         t = c + d
         if periodic == 0:
             return t, 0, t >= 0 and t < n
-        if n < 3:  # each distinct cell once, differences rounded
-            return (c + d + n) % n, 0, d >= 0 and d < n
+        if n < 2 * reach + 1:  # each distinct cell once, differences rounded
+            return (t + reach * n) % n, 0, d + reach < n
         if t < 0:
             return t + n, -1, True
         if t >= n:
@@ -160,13 +161,14 @@ def _scalar_kernels(scalar):
         derivatives = flags & DERIVATIVES
         px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
         nx, ny, nz = cells[0], cells[1], cells[2]
+        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         sigma, epsilon = params[SIGMA], params[EPSILON]
         r_onset, r_cutoff = params[R_ONSET], params[R_CUTOFF]
         # Rounded axes: periodic ones with too few cells for images.
-        ry = wp.where(py != 0 and ny < 3, 1, 0)
-        rz = wp.where(pz != 0 and nz < 3, 1, 0)
-        rx = wp.where(px != 0 and nx < 3, 1, 0)
+        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
+        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
+        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
         key = keys[i]
         cx = key % nx
         cy = (key / nx) % ny
@@ -182,33 +184,33 @@ def _scalar_kernels(scalar):
         de_sum = scalar(0.0)
         hits = int(0)
         # x: up to two ranges of cells [lo, hi], images ox.
-        lo0 = wp.max(cx - 1, 0)
-        hi0 = wp.min(cx + 1, nx - 1)
+        lo0 = wp.max(cx - ax, 0)
+        hi0 = wp.min(cx + ax, nx - 1)
         ox0 = 0
         lo1 = 0
         hi1 = -1
         ox1 = 0
         if px != 0:
-            if nx < 3:
+            if rx != 0:
                 lo0 = 0
                 hi0 = nx - 1
-            elif cx == 0:
-                lo0 = nx - 1
+            elif cx - ax < 0:
+                lo0 = cx - ax + nx
                 hi0 = nx - 1
                 ox0 = -1
                 lo1 = 0
-                hi1 = 1
-            elif cx == nx - 1:
-                lo0 = cx - 1
+                hi1 = cx + ax
+            elif cx + ax >= nx:
+                lo0 = cx - ax
                 hi0 = nx - 1
                 lo1 = 0
-                hi1 = 0
+                hi1 = cx + ax - nx
                 ox1 = 1
-        for dz in range(-1, 2):
-            z, oz, okz = row(cz, dz, nz, pz)
+        for dz in range(-az, az + 1):
+            z, oz, okz = row(cz, dz, nz, pz, az)
             if okz:
-                for dy in range(-1, 2):
-                    y, oy, oky = row(cy, dy, ny, py)
+                for dy in range(-ay, ay + 1):
+                    y, oy, oky = row(cy, dy, ny, py, ay)
                     if oky:
                         base = nx * (y + ny * z)
                         for part in range(2):
@@ -288,9 +290,10 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
       points: vec3 ``(N,)`` Cartesian positions (padding axes all equal).
       radii: scalar ``(N,)`` per-particle cutoffs (``flags & HAS_RADII``),
         else anything of that type.
-      grid: vec3 ``(3,)`` rows `ORIGIN`, `WIDTH` (>= the largest cut),
-        `SIDE` (1 on free axes); cells: int32 ``(3,)`` cells per axis
-        (x, y, z); their product ``T`` is at most ``start``'s size - 1.
+      grid: vec3 ``(3,)`` rows `ORIGIN`, `WIDTH` (>= the largest cut
+        over the axis' reach), `SIDE` (1 on free axes); cells: int32
+        ``(6,)``, cells per axis (x, y, z), their product ``T`` at most
+        ``start``'s size - 1, then the stencil's reach in cells per axis.
       params: scalar ``(N_PARAMS,)``; flags: `HAS_RADII`, `DERIVATIVES`,
         `COUNT`, ``PERIODIC << axis``.
       forces: vec3 ``(N,)`` out, caller's order; energy, d_sigma, d_epsilon:

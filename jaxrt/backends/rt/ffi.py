@@ -1082,10 +1082,16 @@ def delaunay_counts(points, state, side, *, n: int, periodic: bool,
 _CELL_LJ_CALLABLES: dict = {}
 
 
-def _cell_lj_callable(vector, graph: bool):
+_GRAPH_MODES = {"none": wp.JaxCallableGraphMode.NONE,
+                "jax": wp.JaxCallableGraphMode.JAX,
+                "warp": wp.JaxCallableGraphMode.WARP}
+
+
+def _cell_lj_callable(vector, graph: str):
     """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
-    positions of type ``vector``; ``graph``: let JAX capture its launches
-    in a CUDA graph (nothing in the pipeline reads back to the host)."""
+    positions of type ``vector``; ``graph``: who captures its launches in a
+    CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
+    host)."""
     from jaxrt.backends.cell import warp_kernels
     key = (vector, graph)
     if key in _CELL_LJ_CALLABLES:
@@ -1110,15 +1116,14 @@ def _cell_lj_callable(vector, graph: bool):
                              position=position, radius=radius)
 
     sums.__module__ = warp_kernels.__name__  # see _aabb_callables
-    mode = (wp.JaxCallableGraphMode.JAX if graph
-            else wp.JaxCallableGraphMode.NONE)
+    mode = _GRAPH_MODES[graph]
     _CELL_LJ_CALLABLES[key] = wp.jax_callable(
         sums, num_outputs=11, graph_mode=mode, vmap_method="sequential")
     return _CELL_LJ_CALLABLES[key]
 
 
 def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
-                 table: int, graph: bool = True):
+                 table: int, graph: str = "none"):
     """The per-particle LJ sums of `jaxrt.backends.cell.warp_kernels.lj_sums`
     in one call.
 
@@ -1126,11 +1131,15 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
       points: float32 or float64 ``(N, 3)`` Cartesian positions.
       radii: ``(N,)`` per-particle cuts, or ``(1,)`` without radii.
       grid: ``(3, 3)`` origin, cell width, side per axis; cells: int32
-        ``(3,)``, their product at most ``table``.
+        ``(6,)``, cells per axis (their product at most ``table``) and the
+        stencil's reach per axis.
       params: ``(warp_kernels.N_PARAMS,)``; flags: static int,
         `jaxrt.backends.cell.warp_kernels`' bits.
       table: static, the cell-start table's size less one.
-      graph: static; on CUDA, JAX captures the launches in its graphs.
+      graph: static, ``"none"`` (the callback runs at every call),
+        ``"jax"`` (JAX captures the launches in its graphs: fails inside
+        ``lax.scan`` on the H200 measured, "operation not supported"),
+        ``"warp"`` (Warp captures them, reused for the same buffers).
     Returns:
       ``(forces (N, 3) in the caller's order, energy (N,), d_sigma (N,),
       d_epsilon (N,), count int32 (N,))``: per particle (sorted order for

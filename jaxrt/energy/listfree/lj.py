@@ -355,9 +355,12 @@ class CellSums(_Backend):
     # on the GPUs measured the atomics cost more than the evaluations they
     # save (docs/benchmarks-notes.md, the list-free step).
     newton: bool = False
-    # ``kernel="warp"``: JAX captures the Warp launches in its CUDA graphs
-    # (False: each call runs the Python callback; for comparison).
-    graph: bool = True
+    # ``kernel="warp"``: who captures its launches in a CUDA graph
+    # (`jaxrt.backends.rt.ffi.cell_lj_sums`: "none", "jax", "warp"), and
+    # its stencil's reach in cells along x and across (cells ``bound /
+    # reach`` wide).
+    graph: str = "none"
+    reach: tuple = (1, 1)
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
@@ -389,7 +392,7 @@ class CellSums(_Backend):
             from jaxrt.energy.listfree import warp_cell
             forces, e, ds, de, c = warp_cell.walk(
                 R3, sigma, epsilon, radii, params, derivatives=derivatives,
-                graph=self.graph)
+                graph=self.graph, reach=self.reach)
             return FusedSums(_total(e) / 2, forces, jnp.sum(ds) / 2,
                              jnp.sum(de) / 2, jnp.sum(c) / 2,
                              jnp.zeros((), jnp.int32))

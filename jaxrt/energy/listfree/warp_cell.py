@@ -28,27 +28,32 @@ def _flat(params: Params) -> tuple[bool, ...]:
     return tuple(a >= dim for a in range(3))
 
 
-def table_size(n: int, params: Params) -> tuple[int, int, tuple[int, ...]]:
+def table_size(n: int, params: Params, reach=(1, 1, 1)
+               ) -> tuple[int, int, tuple[int, ...]]:
     """Static: ``(table, free_cells, periodic cells)``: the cell-start
     table's size, the budget of cells of the free axes together, and the
-    cells of each periodic axis (0 elsewhere)."""
+    cells of each periodic axis (0 elsewhere), cells ``bound / reach``
+    wide."""
     flat = _flat(params)
-    fixed = tuple(max(1, int(math.floor(s / params.bound))) if p and not f
-                  else 0 for s, p, f in zip(params.side, params.periodic, flat))
+    fixed = tuple(max(1, int(math.floor(s * r / params.bound))) if p and not f
+                  else 0 for s, p, f, r in zip(params.side, params.periodic,
+                                               flat, reach))
     product = math.prod(c for c in fixed if c)
     free = sum(1 for c, f in zip(fixed, flat) if not c and not f)
     budget = max(27, -(-2 * n // product)) if free else 1
     return product * budget, budget, fixed
 
 
-def grid(R3: Array, params: Params) -> tuple[Array, Array, int]:
-    """``(grid (3, 3), cells int32 (3,), table)`` of
-    `jaxrt.backends.rt.ffi.cell_lj_sums` for positions ``R3`` (finite)."""
+def grid(R3: Array, params: Params, reach=(1, 1, 1)
+         ) -> tuple[Array, Array, int]:
+    """``(grid (3, 3), cells int32 (6,), table)`` of
+    `jaxrt.backends.rt.ffi.cell_lj_sums` for positions ``R3`` (finite),
+    cells ``bound / reach`` wide (static ints per axis)."""
     dtype = R3.dtype
-    table, budget, fixed = table_size(R3.shape[0], params)
+    table, budget, fixed = table_size(R3.shape[0], params, reach)
     flat = _flat(params)
     free = jnp.asarray([not c and not f for c, f in zip(fixed, flat)])
-    bound = jnp.asarray(params.bound, dtype)
+    bound = jnp.asarray(params.bound, dtype) / jnp.asarray(reach, dtype)
     if R3.shape[0]:
         lo, hi = jnp.min(R3, axis=0), jnp.max(R3, axis=0)
     else:
@@ -70,23 +75,29 @@ def grid(R3: Array, params: Params) -> tuple[Array, Array, int]:
                       jnp.maximum(extent / cells.astype(dtype), bound))
     origin = jnp.where(free, lo, 0).astype(dtype)
     side = jnp.where(periodic, side, 1).astype(dtype)
+    cells = jnp.concatenate([cells, jnp.asarray(reach, jnp.int32)])
     return jnp.stack([origin, width.astype(dtype), side]), cells, table
 
 
 def walk(R3: Array, sigma, epsilon, radii, params: Params, *,
-         derivatives: bool = True, graph: bool = True):
+         derivatives: bool = True, graph: str = "none", reach=(1, 1)):
     """Per-particle sums ``(forces (N, 3), energy, d_sigma, d_epsilon,
     count)`` as `jaxrt.energy.listfree.lj.CellSums`' walks return them,
     forces in the caller's order, each pair in both of its particles'
     sums. Non-finite positions give garbage sums (the caller poisons
-    them), never an access out of bounds."""
+    them), never an access out of bounds. ``reach``: static, the
+    stencil's reach in cells along x and across (cells ``bound / reach``
+    wide); ``graph``: `jaxrt.backends.rt.ffi.cell_lj_sums`'."""
+    reach = (reach[0], reach[1], reach[1])
+    flat = _flat(params)
+    reach = tuple(1 if f else r for r, f in zip(reach, flat))
     dtype = R3.dtype
     R3 = jnp.where(jnp.all(jnp.isfinite(R3)), R3, 0)
-    g, cells, table = grid(R3, params)
+    g, cells, table = grid(R3, params, reach)
     flags = warp_kernels.COUNT
     flags |= warp_kernels.DERIVATIVES if derivatives else 0
     flags |= warp_kernels.HAS_RADII if radii is not None else 0
-    for a, c in enumerate(table_size(R3.shape[0], params)[2]):
+    for a, c in enumerate(table_size(R3.shape[0], params, reach)[2]):
         flags |= (warp_kernels.PERIODIC << a) if c else 0
     values = [None] * warp_kernels.N_PARAMS
     values[warp_kernels.SIGMA], values[warp_kernels.EPSILON] = sigma, epsilon
