@@ -26,8 +26,10 @@ default, and ``--only`` takes Sparse as well):
   fused:<backend>                   (LJ) no list: `energy.lennard_jones_fused`
                                     (backend cell, cell[xla], cell[pallas],
                                     bvh or brute; cell is the Pallas kernel
-                                    on CUDA), forces from its custom_vjp,
-                                    the same NVE step
+                                    on CUDA; cell[warp] or cell[kernel=warp]
+                                    the Warp engine, cell[warp-rXY-G] with
+                                    its reach and graph capture), forces
+                                    from its custom_vjp, the same NVE step
 A label in ``--only`` without ``/`` selects both formats.
 
     python benchmarks/md_step.py                         # CPU sizes, all
