@@ -31,7 +31,10 @@ import warp as wp
 
 # No adjoints (the sums are their own derivatives), and the stencil's loops
 # kept as loops: the unrolled walk took minutes to compile for the CPU.
-wp.set_module_options({"enable_backward": False, "max_unroll": 1})
+# Fast math on CUDA: float32 reciprocals and divisions approximate to 2 ulp
+# (as Triton's), well inside the float32 tolerances of the tests.
+wp.set_module_options({"enable_backward": False, "max_unroll": 1,
+                       "fast_math": True})
 
 # Grid rows (`lj_sums`' ``grid``): origin, cell width, box side per axis.
 ORIGIN, WIDTH, SIDE = 0, 1, 2
@@ -44,7 +47,8 @@ PERIODIC = 8
 
 
 def _scalar_kernels(scalar):
-    """The kernels for positions of ``scalar`` (wp.float32 / wp.float64)."""
+    """Binning and gather (`lj_sums` steps 1 and 4) for positions of
+    ``scalar`` (wp.float32 / wp.float64)."""
     vector = wp.types.vector(3, scalar)
 
     @wp.func
@@ -94,6 +98,12 @@ def _scalar_kernels(scalar):
         if has_radii != 0:
             radius[i] = radii[j]
 
+    return dict(bin_particles=bin_particles, gather=gather)
+
+
+def _pair_functions(scalar):
+    """The pair walk's functions for ``scalar``: (lj, row, rounded)."""
+
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
            r_cutoff: scalar, sigma_base: scalar):
@@ -142,6 +152,14 @@ def _scalar_kernels(scalar):
             return d - side * wp.round(d / side)
         return d
 
+    return lj, row, rounded
+
+
+def _walk_kernel(scalar):
+    """The thread walk (`lj_sums` step 5) for positions of ``scalar``."""
+    vector = wp.types.vector(3, scalar)
+    lj, row, rounded = _pair_functions(scalar)
+
     @wp.kernel
     def pair_sums(position: wp.array(dtype=vector),
                   keys: wp.array(dtype=wp.int32),
@@ -159,6 +177,7 @@ def _scalar_kernels(scalar):
         i = wp.tid()
         has_radii = flags & HAS_RADII
         derivatives = flags & DERIVATIVES
+        counting = flags & COUNT
         px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
         nx, ny, nz = cells[0], cells[1], cells[2]
         ax, ay, az = cells[3], cells[4], cells[5]
@@ -234,7 +253,7 @@ def _scalar_kernels(scalar):
                                         cut = wp.max(ri, radius[j])
                                         cut2 = cut * cut
                                     # Coincident pairs count, with no terms.
-                                    if d2 < cut2 and j != i:
+                                    if counting != 0 and d2 < cut2 and j != i:
                                         hits = hits + 1
                                     if d2 < cut2 and d2 > scalar(0.0):
                                         scale = cut / r_cutoff
@@ -252,8 +271,7 @@ def _scalar_kernels(scalar):
         d_epsilon[i] = de_sum
         count[i] = hits
 
-    return dict(bin_particles=bin_particles, gather=gather,
-                pair_sums=pair_sums)
+    return pair_sums
 
 
 @wp.kernel
@@ -272,8 +290,8 @@ def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
         start[c] = i
 
 
-KERNELS = {wp.float32: _scalar_kernels(wp.float32),
-           wp.float64: _scalar_kernels(wp.float64)}
+KERNELS = {t: dict(_scalar_kernels(t), pair_sums=_walk_kernel(t))
+           for t in (wp.float32, wp.float64)}
 
 
 def scalar_of(vector) -> type:

@@ -392,7 +392,7 @@ class CellSums(_Backend):
             from jaxrt.energy.listfree import warp_cell
             forces, e, ds, de, c = warp_cell.walk(
                 R3, sigma, epsilon, radii, params, derivatives=derivatives,
-                graph=self.graph, reach=self.reach)
+                count=count, graph=self.graph, reach=self.reach)
             return FusedSums(_total(e) / 2, forces, jnp.sum(ds) / 2,
                              jnp.sum(de) / 2, jnp.sum(c) / 2,
                              jnp.zeros((), jnp.int32))

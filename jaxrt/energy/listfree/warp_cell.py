@@ -80,11 +80,12 @@ def grid(R3: Array, params: Params, reach=(1, 1, 1)
 
 
 def walk(R3: Array, sigma, epsilon, radii, params: Params, *,
-         derivatives: bool = True, graph: str = "none", reach=(1, 1)):
+         derivatives: bool = True, count: bool = True, graph: str = "none",
+         reach=(1, 1)):
     """Per-particle sums ``(forces (N, 3), energy, d_sigma, d_epsilon,
     count)`` as `jaxrt.energy.listfree.lj.CellSums`' walks return them,
     forces in the caller's order, each pair in both of its particles'
-    sums. Non-finite positions give garbage sums (the caller poisons
+    sums (the count zero unless ``count``). Non-finite positions give garbage sums (the caller poisons
     them), never an access out of bounds. ``reach``: static, the
     stencil's reach in cells along x and across (cells ``bound / reach``
     wide); ``graph``: `jaxrt.backends.rt.ffi.cell_lj_sums`'."""
@@ -94,7 +95,7 @@ def walk(R3: Array, sigma, epsilon, radii, params: Params, *,
     dtype = R3.dtype
     R3 = jnp.where(jnp.all(jnp.isfinite(R3)), R3, 0)
     g, cells, table = grid(R3, params, reach)
-    flags = warp_kernels.COUNT
+    flags = warp_kernels.COUNT if count else 0
     flags |= warp_kernels.DERIVATIVES if derivatives else 0
     flags |= warp_kernels.HAS_RADII if radii is not None else 0
     for a, c in enumerate(table_size(R3.shape[0], params, reach)[2]):
