@@ -215,8 +215,8 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     elif _WARP.fullmatch(backend):
         from jaxrt.energy.listfree.lj import CellSums
         x, y, graph = _WARP.fullmatch(backend).groups()
-        backend = CellSums(kernel="warp", graph=graph or "none",
-                           reach=(int(x or 1), int(y or 1)))
+        reach = (int(x), int(y)) if x else CellSums.reach
+        backend = CellSums(kernel="warp", graph=graph or "none", reach=reach)
     elif _LAUNCH.fullmatch(backend):
         backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,

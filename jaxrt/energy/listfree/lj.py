@@ -358,9 +358,10 @@ class CellSums(_Backend):
     # ``kernel="warp"``: who captures its launches in a CUDA graph
     # (`jaxrt.backends.rt.ffi.cell_lj_sums`: "none", "jax", "warp"), and
     # its stencil's reach in cells along x and across (cells ``bound /
-    # reach`` wide).
+    # reach`` wide; (4, 2) measured fastest on an H200, results/h200/
+    # md_step_warp_*).
     graph: str = "none"
-    reach: tuple = (1, 1)
+    reach: tuple = (4, 2)
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
