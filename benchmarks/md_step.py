@@ -26,8 +26,10 @@ default, and ``--only`` takes Sparse as well):
   fused:<backend>                   (LJ) no list: `energy.lennard_jones_fused`
                                     (backend cell, cell[xla], cell[pallas],
                                     bvh or brute; cell is the Pallas kernel
-                                    on CUDA), forces from its custom_vjp,
-                                    the same NVE step
+                                    on CUDA; cell[warp] or cell[kernel=warp]
+                                    the Warp engine, cell[warp-rXY-G] with
+                                    its reach and graph capture), forces
+                                    from its custom_vjp, the same NVE step
 A label in ``--only`` without ``/`` selects both formats.
 
     python benchmarks/md_step.py                         # CPU sizes, all
@@ -57,7 +59,12 @@ JAXMD_LIST_JAXRT_ENERGY = "jax-md list + jaxrt energy"
 FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
 # fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
 FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
-                 "cell[auto]": ("cell", "auto")}
+                 "cell[auto]": ("cell", "auto"), "cell[warp]": ("cell", "warp"),
+                 "cell[kernel=warp]": ("cell", "warp")}
+# fused:cell[warp-rXY-G]: the Warp engine (CellSums(kernel="warp")) with
+# its stencil's reach X along x and Y across (cells bound / reach wide) and
+# G the CUDA graph's capture (none, jax, warp; ffi.cell_lj_sums).
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-(none|jax|warp))?\]")
 
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
@@ -102,7 +109,8 @@ def parse_label(label: str) -> tuple[str, str | None, str]:
     if label.startswith("fused:"):
         backend = label[len("fused:"):]
         known = FUSED_BACKENDS + tuple(FUSED_OPTIONS) + ("brute",)
-        if backend not in known and not _LAUNCH.fullmatch(backend):
+        if (backend not in known and not _LAUNCH.fullmatch(backend)
+                and not _WARP.fullmatch(backend)):
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
                              f"{known} or cell[BLOCKxWARPS[xTILE]] (the "
                              "kernel's launch)")
@@ -204,6 +212,11 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
     if backend in FUSED_OPTIONS:
         from jaxrt.backends import Cell
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
+    elif _WARP.fullmatch(backend):
+        from jaxrt.energy.listfree.lj import CellSums
+        x, y, graph = _WARP.fullmatch(backend).groups()
+        reach = (int(x), int(y)) if x else CellSums.reach
+        backend = CellSums(kernel="warp", graph=graph or "none", reach=reach)
     elif _LAUNCH.fullmatch(backend):
         backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,

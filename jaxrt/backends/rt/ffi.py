@@ -1074,3 +1074,86 @@ def delaunay_counts(points, state, side, *, n: int, periodic: bool,
                    device=m.device)
     s = delaunay_engine.radius_search(m, cutoff, width=width, points=pts)
     return s.found.numpy(), s.count.numpy()
+
+
+# ---------------------------------------------------------------------------
+# The list-free LJ sums on a cell grid (`jaxrt.backends.cell.warp_kernels`).
+
+_CELL_LJ_CALLABLES: dict = {}
+
+
+_GRAPH_MODES = {"none": wp.JaxCallableGraphMode.NONE,
+                "jax": wp.JaxCallableGraphMode.JAX,
+                "warp": wp.JaxCallableGraphMode.WARP}
+
+
+def _cell_lj_callable(vector, graph: str):
+    """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
+    positions of type ``vector``; ``graph``: who captures its launches in a
+    CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
+    host)."""
+    from jaxrt.backends.cell import warp_kernels
+    key = (vector, graph)
+    if key in _CELL_LJ_CALLABLES:
+        return _CELL_LJ_CALLABLES[key]
+    scalar = warp_kernels.scalar_of(vector)
+
+    def sums(points: wp.array(dtype=vector), radii: wp.array(dtype=scalar),
+             grid: wp.array(dtype=vector), cells: wp.array(dtype=wp.int32),
+             params: wp.array(dtype=scalar), flags: wp.int32,
+             forces: wp.array(dtype=vector), energy: wp.array(dtype=scalar),
+             d_sigma: wp.array(dtype=scalar),
+             d_epsilon: wp.array(dtype=scalar),
+             count: wp.array(dtype=wp.int32), keys: wp.array(dtype=wp.int32),
+             values: wp.array(dtype=wp.int32),
+             wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
+             position: wp.array(dtype=vector),
+             radius: wp.array(dtype=scalar)):
+        warp_kernels.lj_sums(points, radii, grid, cells, params, int(flags),
+                             forces=forces, energy=energy, d_sigma=d_sigma,
+                             d_epsilon=d_epsilon, count=count, keys=keys,
+                             values=values, wrapped=wrapped, start=start,
+                             position=position, radius=radius)
+
+    sums.__module__ = warp_kernels.__name__  # see _aabb_callables
+    mode = _GRAPH_MODES[graph]
+    _CELL_LJ_CALLABLES[key] = wp.jax_callable(
+        sums, num_outputs=11, graph_mode=mode, vmap_method="sequential")
+    return _CELL_LJ_CALLABLES[key]
+
+
+def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
+                 table: int, graph: str = "none"):
+    """The per-particle LJ sums of `jaxrt.backends.cell.warp_kernels.lj_sums`
+    in one call.
+
+    Args:
+      points: float32 or float64 ``(N, 3)`` Cartesian positions.
+      radii: ``(N,)`` per-particle cuts, or ``(1,)`` without radii.
+      grid: ``(3, 3)`` origin, cell width, side per axis; cells: int32
+        ``(6,)``, cells per axis (their product at most ``table``) and the
+        stencil's reach per axis.
+      params: ``(warp_kernels.N_PARAMS,)``; flags: static int,
+        `jaxrt.backends.cell.warp_kernels`' bits.
+      table: static, the cell-start table's size less one.
+      graph: static, ``"none"`` (the callback runs at every call),
+        ``"jax"`` (JAX captures the launches in its graphs: fails inside
+        ``lax.scan`` on the H200 measured, "operation not supported"),
+        ``"warp"`` (Warp captures them, reused for the same buffers).
+    Returns:
+      ``(forces (N, 3) in the caller's order, energy (N,), d_sigma (N,),
+      d_epsilon (N,), count int32 (N,))``: per particle (sorted order for
+      all but the forces), each pair in both of its particles' sums.
+    """
+    from jaxrt.backends.cell import warp_kernels
+    n = points.shape[0]
+    call = _cell_lj_callable(_vector_of(points), graph)
+    has_radii = bool(flags & warp_kernels.HAS_RADII)
+    outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),
+                int(flags), output_dims={
+                    "forces": (n, 3), "energy": (n,), "d_sigma": (n,),
+                    "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
+                    "values": (2 * n,), "wrapped": (n, 3),
+                    "start": (table + 1,), "position": (n, 3),
+                    "radius": (n if has_radii else 1,)})
+    return tuple(outs[:5])

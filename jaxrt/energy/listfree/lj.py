@@ -299,6 +299,8 @@ class _Brute(_Backend):
 
 
 CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
+# The LJ sums' kernels: those of the SPH walks too, and the Warp engine.
+LJ_CELL_KERNELS = CELL_KERNELS + ("warp",)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -321,7 +323,9 @@ class CellSums(_Backend):
     minimum image);
     ``"auto"``, the kernel on CUDA and the array programs elsewhere
     (chosen where the program is lowered); ``"interpret"``, the kernel in
-    Pallas' interpreter (tests). They agree to rounding: the switch makes
+    Pallas' interpreter (tests); ``"warp"``, the Warp engine
+    (`jaxrt.energy.listfree.warp_cell`: bin, radix sort, cell table and a
+    thread per particle in one JAX call, on CPU or CUDA). They agree to rounding: the switch makes
     every term continuous at the cut, so a pair decided differently by one
     ulp at the cutoff changes nothing.
     """
@@ -351,12 +355,19 @@ class CellSums(_Backend):
     # on the GPUs measured the atomics cost more than the evaluations they
     # save (docs/benchmarks-notes.md, the list-free step).
     newton: bool = False
+    # ``kernel="warp"``: who captures its launches in a CUDA graph
+    # (`jaxrt.backends.rt.ffi.cell_lj_sums`: "none", "jax", "warp"), and
+    # its stencil's reach in cells along x and across (cells ``bound /
+    # reach`` wide; (4, 2) measured fastest on an H200, results/h200/
+    # md_step_warp_*).
+    graph: str = "none"
+    reach: tuple = (4, 2)
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
-        if self.kernel not in CELL_KERNELS:
+        if self.kernel not in LJ_CELL_KERNELS:
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): choose "
-                             f"one of {CELL_KERNELS}.")
+                             f"one of {LJ_CELL_KERNELS}.")
         if self.kernel in ("pallas", "interpret") and _cell_kernel.pl is None:
             raise ValueError(f"backend=Cell(kernel={self.kernel!r}): this JAX "
                              "has no Pallas Triton backend; use "
@@ -378,6 +389,14 @@ class CellSums(_Backend):
              derivatives: bool = True, count: bool = True) -> FusedSums:
         from jaxrt.backends.cell import kernel as _cell_kernel
         dtype = R3.dtype
+        if self.kernel == "warp":
+            from jaxrt.energy.listfree import warp_cell
+            forces, e, ds, de, c = warp_cell.walk(
+                R3, sigma, epsilon, radii, params, derivatives=derivatives,
+                count=count, graph=self.graph, reach=self.reach)
+            return FusedSums(_total(e) / 2, forces, jnp.sum(ds) / 2,
+                             jnp.sum(de) / 2, jnp.sum(c) / 2,
+                             jnp.zeros((), jnp.int32))
         order, runs, images = cell_runs(R3, params, across=self.across)
 
         def portable():

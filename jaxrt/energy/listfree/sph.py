@@ -612,6 +612,11 @@ def _traversal(backend) -> tuple[str, str]:
                 f"backend=Cell(radius_classes={backend.radius_classes!r}): "
                 "the SPH walks use one grid of the kernel's support; leave "
                 "radius_classes at None.")
+        if backend.kernel == "warp":
+            raise ValueError(
+                "backend=Cell(kernel='warp'): the Warp engine computes the "
+                "Lennard-Jones sums only; for SPH use Cell(kernel='auto'), "
+                "'pallas' or 'xla'.")
         CellSums(kernel=backend.kernel)
         return "cell", backend.kernel
     if isinstance(backend, str) and backend in BACKENDS:

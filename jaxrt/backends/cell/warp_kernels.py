@@ -1,0 +1,342 @@
+"""Warp kernels of the list-free Lennard-Jones sums on a cell grid: Warp
+and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_lj_sums` puts
+`lj_sums` behind a JAX call).
+
+The pipeline, one launch each (`lj_sums`):
+
+1. ``bin_particles``: each particle wrapped into the box on periodic axes,
+   its cell's row-major key (x fastest) and its index.
+2. ``wp.utils.radix_sort_pairs`` on (key, index), only the key's bits.
+3. ``cell_table``: ``start[c]``, the first sorted particle of a cell ``>=
+   c``, for every ``c`` in ``[0, T]``: cells ``a..b`` of one row hold the
+   sorted range ``[start[a], start[b + 1])``.
+4. ``gather``: wrapped positions (and radii) in sorted order, so that the
+   threads of a warp read neighbouring particles.
+5. ``pair_sums``: a thread per sorted particle walks its stencil: 3 x 3
+   rows (y, z), each one contiguous range of x-adjacent cells (two where a
+   periodic x row wraps), every pair met from both of its particles (no
+   atomics), and writes its force to the caller's order.
+
+The grid (per axis: origin, cell width, box side, cell count) is an input,
+so that free axes can follow the particles' extent while the table keeps a
+static size. Cells are at least the cutoff over the axis' reach ``a``
+wide, and the stencil spans ``2 a + 1`` cells. On a periodic axis with
+``2 a + 1`` cells or more each stencil cell is a distinct cell with a known
+image (the neighbour row's shift by a box side); with fewer, the stencil
+keeps each distinct cell once and the difference is rounded to its minimum
+image (exact, as the cutoff is below half the side).
+"""
+
+import warp as wp
+
+# No adjoints (the sums are their own derivatives), and the stencil's loops
+# kept as loops: the unrolled walk took minutes to compile for the CPU.
+# Fast math on CUDA: float32 reciprocals and divisions approximate to 2 ulp
+# (as Triton's), well inside the float32 tolerances of the tests.
+wp.set_module_options({"enable_backward": False, "max_unroll": 1,
+                       "fast_math": True})
+
+# Grid rows (`lj_sums`' ``grid``): origin, cell width, box side per axis.
+ORIGIN, WIDTH, SIDE = 0, 1, 2
+# `lj_sums`' ``params``.
+SIGMA, EPSILON, R_ONSET, R_CUTOFF = 0, 1, 2, 3
+N_PARAMS = 4
+# `lj_sums`' ``flags`` bits; bits ``PERIODIC << a`` for axis ``a``.
+HAS_RADII, DERIVATIVES, COUNT = 1, 2, 4
+PERIODIC = 8
+
+
+def _scalar_kernels(scalar):
+    """Binning and gather (`lj_sums` steps 1 and 4) for positions of
+    ``scalar`` (wp.float32 / wp.float64)."""
+    vector = wp.types.vector(3, scalar)
+
+    @wp.func
+    def wrap(x: scalar, side: scalar, periodic: int):
+        if periodic == 0:
+            return x
+        w = x - side * wp.floor(x / side)
+        if w < scalar(0.0):
+            w = w + side
+        if w >= side:
+            w = scalar(0.0)
+        return w
+
+    @wp.func
+    def cell_of(x: scalar, origin: scalar, width: scalar, n: int):
+        c = int(wp.floor((x - origin) / width))
+        return wp.clamp(c, 0, n - 1)
+
+    @wp.kernel
+    def bin_particles(points: wp.array(dtype=vector),
+                      grid: wp.array(dtype=vector),
+                      cells: wp.array(dtype=wp.int32), flags: int,
+                      wrapped: wp.array(dtype=vector),
+                      keys: wp.array(dtype=wp.int32),
+                      values: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        p = points[i]
+        o, w, s = grid[ORIGIN], grid[WIDTH], grid[SIDE]
+        x = wrap(p[0], s[0], (flags >> 3) & 1)
+        y = wrap(p[1], s[1], (flags >> 4) & 1)
+        z = wrap(p[2], s[2], (flags >> 5) & 1)
+        wrapped[i] = vector(x, y, z)
+        nx, ny, nz = cells[0], cells[1], cells[2]
+        keys[i] = cell_of(x, o[0], w[0], nx) + nx * (
+            cell_of(y, o[1], w[1], ny) + ny * cell_of(z, o[2], w[2], nz))
+        values[i] = i
+
+    @wp.kernel
+    def gather(values: wp.array(dtype=wp.int32),
+               wrapped: wp.array(dtype=vector),
+               radii: wp.array(dtype=scalar), has_radii: int,
+               position: wp.array(dtype=vector),
+               radius: wp.array(dtype=scalar)):
+        i = wp.tid()
+        j = values[i]
+        position[i] = wrapped[j]
+        if has_radii != 0:
+            radius[i] = radii[j]
+
+    return dict(bin_particles=bin_particles, gather=gather)
+
+
+def _pair_functions(scalar):
+    """The pair walk's functions for ``scalar``: (lj, row, rounded)."""
+
+    @wp.func
+    def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
+           r_cutoff: scalar, sigma_base: scalar):
+        # The terms of `jaxrt.energy.listfree.lj.lj_terms` for one pair
+        # inside the cut (d2 > 0): energy, force factor, d/dsigma_base,
+        # d/depsilon.
+        inverse = scalar(1.0) / d2
+        idr = sigma * sigma * inverse
+        idr6 = idr * idr * idr
+        idr12 = idr6 * idr6
+        lj_unit = scalar(4.0) * (idr12 - idr6)
+        repulsion = scalar(24.0) * (scalar(2.0) * idr12 - idr6)
+        rc2 = r_cutoff * r_cutoff
+        ro2 = r_onset * r_onset
+        switch = scalar(1.0)
+        dswitch = scalar(0.0)
+        if d2 >= ro2:
+            width = rc2 - ro2
+            inverse_cube = scalar(1.0) / (width * width * width)
+            gap = rc2 - d2
+            switch = gap * gap * (rc2 + scalar(2.0) * d2 - scalar(3.0) * ro2
+                                  ) * inverse_cube
+            dswitch = scalar(-6.0) * gap * (d2 - ro2) * inverse_cube
+        e = switch * epsilon * lj_unit
+        g = (switch * epsilon * repulsion * inverse
+             - scalar(2.0) * dswitch * epsilon * lj_unit)
+        return e, g, switch * epsilon * repulsion / sigma_base, switch * lj_unit
+
+    @wp.func
+    def row(c: int, d: int, n: int, periodic: int, reach: int):
+        # (cell, image, valid) of the stencil row ``c + d`` on one axis.
+        t = c + d
+        if periodic == 0:
+            return t, 0, t >= 0 and t < n
+        if n < 2 * reach + 1:  # each distinct cell once, differences rounded
+            return (t + reach * n) % n, 0, d + reach < n
+        if t < 0:
+            return t + n, -1, True
+        if t >= n:
+            return t - n, 1, True
+        return t, 0, True
+
+    @wp.func
+    def rounded(d: scalar, side: scalar, on: int):
+        if on != 0:
+            return d - side * wp.round(d / side)
+        return d
+
+    return lj, row, rounded
+
+
+def _walk_kernel(scalar):
+    """The thread walk (`lj_sums` step 5) for positions of ``scalar``."""
+    vector = wp.types.vector(3, scalar)
+    lj, row, rounded = _pair_functions(scalar)
+
+    @wp.kernel
+    def pair_sums(position: wp.array(dtype=vector),
+                  keys: wp.array(dtype=wp.int32),
+                  values: wp.array(dtype=wp.int32),
+                  radius: wp.array(dtype=scalar),
+                  start: wp.array(dtype=wp.int32),
+                  grid: wp.array(dtype=vector),
+                  cells: wp.array(dtype=wp.int32),
+                  params: wp.array(dtype=scalar), flags: int,
+                  forces: wp.array(dtype=vector),
+                  energy: wp.array(dtype=scalar),
+                  d_sigma: wp.array(dtype=scalar),
+                  d_epsilon: wp.array(dtype=scalar),
+                  count: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        has_radii = flags & HAS_RADII
+        derivatives = flags & DERIVATIVES
+        counting = flags & COUNT
+        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
+        nx, ny, nz = cells[0], cells[1], cells[2]
+        ax, ay, az = cells[3], cells[4], cells[5]
+        side = grid[SIDE]
+        sigma, epsilon = params[SIGMA], params[EPSILON]
+        r_onset, r_cutoff = params[R_ONSET], params[R_CUTOFF]
+        # Rounded axes: periodic ones with too few cells for images.
+        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
+        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
+        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
+        key = keys[i]
+        cx = key % nx
+        cy = (key / nx) % ny
+        cz = key / (nx * ny)
+        p = position[i]
+        ri = scalar(0.0)
+        if has_radii != 0:
+            ri = radius[i]
+        cut2 = r_cutoff * r_cutoff
+        f = vector()
+        e_sum = scalar(0.0)
+        ds_sum = scalar(0.0)
+        de_sum = scalar(0.0)
+        hits = int(0)
+        # x: up to two ranges of cells [lo, hi], images ox.
+        lo0 = wp.max(cx - ax, 0)
+        hi0 = wp.min(cx + ax, nx - 1)
+        ox0 = 0
+        lo1 = 0
+        hi1 = -1
+        ox1 = 0
+        if px != 0:
+            if rx != 0:
+                lo0 = 0
+                hi0 = nx - 1
+            elif cx - ax < 0:
+                lo0 = cx - ax + nx
+                hi0 = nx - 1
+                ox0 = -1
+                lo1 = 0
+                hi1 = cx + ax
+            elif cx + ax >= nx:
+                lo0 = cx - ax
+                hi0 = nx - 1
+                lo1 = 0
+                hi1 = cx + ax - nx
+                ox1 = 1
+        for dz in range(-az, az + 1):
+            z, oz, okz = row(cz, dz, nz, pz, az)
+            if okz:
+                for dy in range(-ay, ay + 1):
+                    y, oy, oky = row(cy, dy, ny, py, ay)
+                    if oky:
+                        base = nx * (y + ny * z)
+                        for part in range(2):
+                            lo = wp.where(part == 0, lo0, lo1)
+                            hi = wp.where(part == 0, hi0, hi1)
+                            ox = wp.where(part == 0, ox0, ox1)
+                            if hi >= lo:
+                                shift = vector(scalar(ox) * side[0],
+                                               scalar(oy) * side[1],
+                                               scalar(oz) * side[2])
+                                q = p - shift
+                                for j in range(start[base + lo],
+                                               start[base + hi + 1]):
+                                    d = q - position[j]
+                                    d = vector(rounded(d[0], side[0], rx),
+                                               rounded(d[1], side[1], ry),
+                                               rounded(d[2], side[2], rz))
+                                    d2 = wp.dot(d, d)
+                                    cut = r_cutoff
+                                    if has_radii != 0:
+                                        cut = wp.max(ri, radius[j])
+                                        cut2 = cut * cut
+                                    # Coincident pairs count, with no terms.
+                                    if counting != 0 and d2 < cut2 and j != i:
+                                        hits = hits + 1
+                                    if d2 < cut2 and d2 > scalar(0.0):
+                                        scale = cut / r_cutoff
+                                        e, g, ds, de = lj(
+                                            d2, sigma * scale, epsilon,
+                                            r_onset * scale, cut, sigma)
+                                        f = f + g * d
+                                        e_sum = e_sum + e
+                                        if derivatives != 0:
+                                            ds_sum = ds_sum + ds
+                                            de_sum = de_sum + de
+        forces[values[i]] = f
+        energy[i] = e_sum
+        d_sigma[i] = ds_sum
+        d_epsilon[i] = de_sum
+        count[i] = hits
+
+    return pair_sums
+
+
+@wp.kernel
+def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
+               start: wp.array(dtype=wp.int32)):
+    """``start[c]`` for the cells between sorted particle ``i - 1``'s and
+    ``i``'s (a thread per ``i`` in ``[0, n]``)."""
+    i = wp.tid()
+    previous = int(-1)
+    if i > 0:
+        previous = keys[i - 1]
+    current = table
+    if i < n:
+        current = keys[i]
+    for c in range(previous + 1, current + 1):
+        start[c] = i
+
+
+KERNELS = {t: dict(_scalar_kernels(t), pair_sums=_walk_kernel(t))
+           for t in (wp.float32, wp.float64)}
+
+
+def scalar_of(vector) -> type:
+    """wp.float32 or wp.float64, the scalar of a vec3 type."""
+    return vector._wp_scalar_type_
+
+
+def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
+            energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
+            position, radius) -> None:
+    """Launch the pipeline of the module docstring on ``points``' device.
+
+    Args:
+      points: vec3 ``(N,)`` Cartesian positions (padding axes all equal).
+      radii: scalar ``(N,)`` per-particle cutoffs (``flags & HAS_RADII``),
+        else anything of that type.
+      grid: vec3 ``(3,)`` rows `ORIGIN`, `WIDTH` (>= the largest cut
+        over the axis' reach), `SIDE` (1 on free axes); cells: int32
+        ``(6,)``, cells per axis (x, y, z), their product ``T`` at most
+        ``start``'s size - 1, then the stencil's reach in cells per axis.
+      params: scalar ``(N_PARAMS,)``; flags: `HAS_RADII`, `DERIVATIVES`,
+        `COUNT`, ``PERIODIC << axis``.
+      forces: vec3 ``(N,)`` out, caller's order; energy, d_sigma, d_epsilon:
+        scalar ``(N,)`` out, count int32 ``(N,)`` out: per sorted particle,
+        the sums over all its pairs (each pair in two particles' sums).
+      keys, values: int32 ``(2N,)`` scratch (the sort's); wrapped,
+        position: vec3 ``(N,)`` scratch; start: int32 ``(T + 1,)`` at
+        least; radius: scalar ``(N,)`` scratch (or ``(1,)`` without radii).
+    """
+    n = points.shape[0]
+    if n == 0:
+        return
+    device = points.device
+    k = KERNELS[scalar_of(points.dtype)]
+    table = start.shape[0] - 1
+    wp.launch(k["bin_particles"], dim=n, device=device,
+              inputs=[points, grid, cells, flags, wrapped, keys, values])
+    wp.utils.radix_sort_pairs(keys, values, n,
+                              end_bit=max(1, int(table).bit_length()))
+    wp.launch(cell_table, dim=n + 1, device=device,
+              inputs=[keys, n, table, start])
+    wp.launch(k["gather"], dim=n, device=device,
+              inputs=[values, wrapped, radii, flags & HAS_RADII, position,
+                      radius])
+    wp.launch(k["pair_sums"], dim=n, device=device,
+              inputs=[position, keys, values, radius, start, grid, cells,
+                      params, flags, forces, energy, d_sigma, d_epsilon,
+                      count])

@@ -1,0 +1,182 @@
+"""`lennard_jones_fused` on the Warp engine (``Cell(kernel="warp")``,
+`jaxrt.energy.listfree.warp_cell`) against ``backend="brute"`` in float64
+(every pair, the reference arithmetic): energies, forces, pair counts,
+sigma / epsilon gradients and radii; periodic, free and slab boxes,
+periodic boxes of 2 to 7 cutoffs whose stencils alias, coincident
+particles and pairs at the cutoff, ``jit``, ``lax.scan`` and 2D.
+
+The engine runs where JAX runs: Warp's CPU device here, CUDA where JAX's
+default backend is a GPU (the GPU hosts' Warp has no CPU compiler).
+
+Tolerances: in float64 both sides add the same pair terms in different
+orders (per sorted particle vs per row block), so they agree to a few ulps
+of the largest terms: ``rtol = 1e-12`` of the energy and ``1e-10`` of the
+largest force (single pairs reach O(1e3) at the closest distances of these
+fluids while the sums are O(10)). float32 against the float64 reference:
+``rtol = 1e-4`` on energies (sums of ~10^3 terms of mixed sign) and
+``2e-3`` of the largest force, as tests/energy/test_fused.py. Pair counts
+are integers and equal exactly.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax_md import space
+from scenes import fluid
+
+pytest.importorskip("warp")
+
+import jaxrt  # noqa: E402
+from jaxrt.energy import lennard_jones_fused, lennard_jones_truncated  # noqa: E402
+
+from jaxrt.energy.listfree.lj import CellSums  # noqa: E402
+
+WARP = jaxrt.backends.Cell(kernel="warp")
+# The default: cells a quarter of the cutoff along x and half across (a
+# 9 x 5 x 5 stencil); COARSE: cells a cutoff wide (3 x 3 x 3).
+COARSE = CellSums(kernel="warp", reach=(1, 1))
+E_RTOL, F_RTOL = 1e-12, 1e-10
+
+
+@pytest.fixture
+def x64():
+    with jax.enable_x64(True):
+        yield
+
+
+def slab_displacement(side):
+    """Periodic on x and y, a wall (free) on z."""
+    def displacement(a, b, **unused):
+        d = a - b
+        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
+    return displacement
+
+
+GEOMETRIES = {
+    "periodic": lambda side: (space.periodic(side)[0], side, None),
+    "free": lambda side: (space.free()[0], None, None),
+    "slab": lambda side: (slab_displacement(side), side, (True, True, False)),
+}
+
+
+def close(a, b, rtol):
+    a, b = np.asarray(a), np.asarray(b)
+    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
+    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
+
+
+def pair(geometry, side, engine=WARP, **kw):
+    displacement, box, periodic = GEOMETRIES[geometry](side)
+    return tuple(lennard_jones_fused(displacement, box, backend=b,
+                                     periodic=periodic, **kw)
+                 for b in (engine, "brute"))
+
+
+@pytest.mark.parametrize("geometry, engine", [
+    ("periodic", WARP), ("free", WARP), ("slab", WARP), ("periodic", COARSE),
+    ("free", COARSE)])
+def test_matches_brute_float64(x64, geometry, engine):
+    R, side = fluid()
+    R = jnp.asarray(R)
+    warp, brute = pair(geometry, side, engine)
+    s, t = warp.sums(R), brute.sums(R)
+    assert int(s.count) == int(t.count) > 0
+    close(s.energy, t.energy, E_RTOL)
+    close(s.forces, t.forces, F_RTOL)
+    close(s.d_sigma, t.d_sigma, E_RTOL)
+    close(s.d_epsilon, t.d_epsilon, E_RTOL)
+    close(jax.grad(warp)(R), -t.forces, F_RTOL)
+
+
+def test_float32_within_tolerance(x64):
+    R, side = fluid(n_side=7)
+    warp, brute = pair("periodic", side)
+    R32 = jnp.asarray(R, jnp.float32)
+    e, g = jax.value_and_grad(warp)(R32)
+    assert e.dtype == g.dtype == jnp.float32
+    t = brute.sums(jnp.asarray(R))
+    np.testing.assert_allclose(float(e), float(t.energy), rtol=1e-4)
+    close(-g, t.forces, 2e-3)
+
+
+@pytest.mark.parametrize("side_over_cutoff, engine", [
+    (2.05, WARP), (2.6, WARP), (3.4, WARP), (7.0, WARP), (2.05, COARSE),
+    (2.6, COARSE), (3.4, COARSE)])
+def test_small_periodic_boxes_alias_no_pair(x64, side_over_cutoff, engine):
+    """One to a few cells per axis: each distinct cell walked once, every
+    pair met once from each side (a doubled cell doubles the count)."""
+    side = side_over_cutoff * 2.5
+    n = max(8, int(0.5 * side ** 3))
+    R = jnp.asarray(np.random.default_rng(3).uniform(0, side, (n, 3)))
+    warp, brute = pair("periodic", side, engine)
+    s, t = warp.sums(R), brute.sums(R)
+    assert int(s.count) == int(t.count)
+    close(s.energy, t.energy, E_RTOL)
+    close(s.forces, t.forces, F_RTOL)
+
+
+def test_coincident_and_exact_cutoff_pairs(x64):
+    side = 10.0
+    R = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0],   # coincident
+                     [5.0, 5.0, 5.0], [7.5, 5.0, 5.0],   # exactly r_cutoff
+                     [1.0, 6.0, 6.0], [2.2, 6.0, 6.0],   # inside the switch
+                     [9.9, 3.0, 3.0], [0.3, 3.0, 3.0]])  # across the x face
+    warp, brute = pair("periodic", side)
+    g = jax.grad(warp)(R)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_array_equal(np.asarray(g[:4]), 0.0)
+    assert int(warp.sums(R).count) == int(brute.sums(R).count) == 3
+    close(warp(R), brute(R), E_RTOL)
+    close(g, jax.grad(brute)(R), F_RTOL)
+    r = jnp.asarray(1.2)
+    close(g[5, 0], jax.grad(lennard_jones_truncated)(r, r_onset=2.0,
+                                                      r_cutoff=2.5), F_RTOL)
+
+
+def test_jit_scan_and_2d(x64):
+    R, side = fluid(n_side=10, dim=2)
+    R = jnp.asarray(R)
+    displacement, shift = space.periodic(side)
+    warp = lennard_jones_fused(displacement, side, backend=WARP)
+    brute = lennard_jones_fused(displacement, side, backend="brute")
+    close(jax.jit(warp)(R), brute(R), E_RTOL)
+
+    def descend(R, _):
+        R = shift(R, -1e-4 * jax.grad(warp)(R))
+        return R, warp(R)
+
+    R_end, energies = jax.jit(lambda R: jax.lax.scan(descend, R, None,
+                                                     length=5))(R)
+    close(energies[-1], brute(R_end), E_RTOL)
+    close(jax.grad(warp)(R_end), jax.grad(brute)(R_end), F_RTOL)
+    assert np.all(np.diff(np.asarray(energies)) < 0)
+
+
+def test_radii_and_parameter_gradients(x64):
+    R, side = fluid(n_side=5, density=0.4)
+    R = jnp.asarray(R)
+    radii = jnp.asarray(np.random.default_rng(1).uniform(0.8, 2.6, len(R)))
+    warp, brute = pair("slab", side, radii=radii)
+    close(warp(R), brute(R), E_RTOL)
+    close(jax.grad(warp)(R), jax.grad(brute)(R), F_RTOL)
+    small = radii * 0.9
+    close(warp(R, radii=small), brute(R, radii=small), E_RTOL)
+    for name in ("sigma", "epsilon"):
+        value = jnp.asarray(0.95 if name == "sigma" else 1.3)
+        g = jax.grad(lambda v: warp(R, **{name: v}))(value)
+        close(g, jax.grad(lambda v: brute(R, **{name: v}))(value), E_RTOL)
+
+
+def test_lists_and_sph_refuse_the_warp_engine():
+    from jaxrt.energy.listfree.sph import density_fused
+    from jaxrt.energy import sph
+    R, side = fluid(n_side=7)
+    displacement, _ = space.periodic(side)
+    nfn = jaxrt.neighbor_list(displacement, side, 2.5, backend=WARP)
+    with pytest.raises(ValueError, match="kernel='warp'"):
+        nfn.allocate(jnp.asarray(R, jnp.float32))
+    with pytest.raises(ValueError, match="kernel='warp'"):
+        density_fused(displacement, side,
+                      sph.kernel("cubic_spline", 1.0, dim=3), backend=WARP)
