@@ -650,3 +650,68 @@ def search_small(positions, mask, h, hinv, cutoff, species, *,
     error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
     tail = jnp.stack([total, error.astype(jnp.int32)] + [jnp.int32(0)] * 3)
     return jnp.concatenate([out, tail[None]])
+
+
+@functools.lru_cache(maxsize=64)
+def _host_stencil(reach):
+    """int32 ``(M, 3)`` every offset within ``reach``, and bool ``(M,)``:
+    the zero offset (cached: an eager call builds it once)."""
+    every = np.array(list(itertools.product(
+        *(range(-k, k + 1) for k in reach))), np.int32)
+    return every, ~every.any(axis=1)
+
+
+def search_small_host(positions, mask, h, hinv, cutoff, species, *,
+                      periodic: tuple[bool, ...], reach: tuple[int, ...],
+                      half: bool, self_interaction: bool):
+    """`search_small` in numpy, for eager calls on host arrays: the same
+    candidates, decisions (``d`` as there, in the positions' dtype,
+    elementwise: no contraction of products into sums) and ``i``-major
+    order, without a program's dispatch, which is most of the time of a
+    system of a few atoms.
+
+    Args:
+      positions: numpy float ``(N, 3)``; mask: bool ``(N,)``; h, hinv:
+        numpy ``(3, 3)`` in the positions' dtype; cutoff: float, or numpy
+        ``(S, S)``; species: int ``(N,)`` or None; the rest as
+        `search_small`.
+    Returns:
+      int32 ``(count, 5)`` rows ``(i, j, S)`` (exactly the pairs) and the
+      int error bits.
+    """
+    dtype = positions.dtype
+    n = positions.shape[0]
+    finite = np.all(np.isfinite(positions), axis=1)
+    error = int(ErrorBit.NONFINITE_POSITION) if np.any(mask & ~finite) \
+        else 0
+    real = mask & finite
+    r = np.where(real[:, None], positions, 0).astype(dtype)
+    f = np.sum(r[:, :, None] * hinv, axis=1)
+    w = np.where(np.array(periodic), np.floor(f), 0).astype(np.int32)
+    every, zero = _host_stencil(tuple(reach))
+    s = every[None, None] + w[:, None, None, :] - w[None, :, None, :]
+    sf = s.astype(dtype)
+    shift = (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2]
+    d = (r[None, :, None, :] - r[:, None, None, :]) + shift
+    dist = np.sqrt((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
+                   + d[..., 2] * d[..., 2])
+    if species is None:
+        limit = np.asarray(cutoff, dtype)
+    else:
+        limit = np.asarray(cutoff, dtype)[species[:, None, None],
+                                          species[None, :, None]]
+    atoms = np.arange(n, dtype=np.int32)
+    same = atoms[:, None, None] == atoms[None, :, None]
+    own = same & zero[None, None]
+    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
+    if half:
+        lex = (s[..., 0] > 0) | ((s[..., 0] == 0) & (
+            (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
+        keep &= (atoms[:, None, None] < atoms[None, :, None]) | (
+            same & lex) | own
+    if not self_interaction:
+        keep &= ~own
+    i, j, m = np.nonzero(keep)
+    rows = np.empty((len(i), 5), np.int32)
+    rows[:, 0], rows[:, 1], rows[:, 2:] = i, j, s[i, j, m]
+    return rows, error
