@@ -4,6 +4,7 @@ buckets), on the host."""
 from __future__ import annotations
 
 import math
+import os
 import warnings
 
 import jax
@@ -350,12 +351,9 @@ def plan(n: int, pbc, max_shift, backend: str, candidates=None,
         backend == "auto" and candidates * images <= BRUTE_CANDIDATES)
     if brute:
         reach = max_shift
-        chunk = max(1, min(n if longest is None else longest,
-                           CHUNK_CANDIDATES // max(n * images, 1)))
     else:
         reach = tuple(r if p else 1 for r, p in zip(max_shift, pbc))
-        k = math.prod(2 * r + 1 for r in reach)
-        chunk = max(1, min(CELL_CHUNK, CHUNK_CANDIDATES // max(n * k, 1)))
+    chunk = int(os.environ.get("JAXRT_BLOCK", 2 ** 14))
     return brute, reach, chunk
 
 

@@ -156,39 +156,39 @@ def _lex_positive(s):
 
 def _exclusive_prefix(x):
     """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
-    inclusive = jnp.cumsum(x, dtype=jnp.int32)
-    return inclusive - x
+    return _prefix_sum(x, jnp.float64) - x
 
 
 def _triangular_dot(x, strict: bool = False):
     """Inclusive (or, ``strict``, exclusive) prefix sums along the last
-    axis of float32 ``x`` as one product with a triangular matrix: exact
-    for sums below 2^24, and one small dot compiles and runs faster than a
-    scan on a CPU."""
+    axis of float ``x`` as one product with a triangular matrix: exact for
+    whole sums below 2^24 (float32) or 2^53 (float64), and one small dot
+    compiles and runs faster than a scan on a CPU."""
     m = x.shape[-1]
-    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32), k=int(strict)))
+    upper = jnp.asarray(np.triu(np.ones((m, m), x.dtype), k=int(strict)))
     return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
 
 
-_RANK_BLOCK = 32
+_PREFIX_BLOCK = 64
 
 
-def _row_ranks(keep):
-    """int32 ``(R, M)``: the inclusive count of True along each row of bool
-    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
-    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
-    ``M²``."""
-    rows, m = keep.shape
-    x = keep.astype(jnp.float32)
-    if m <= 2 * _RANK_BLOCK:
+def _prefix_sum(x, dtype=jnp.float32):
+    """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
+    triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
+    sum may pass 2^24): a CPU runs them several times faster than
+    ``cumsum``'s scan."""
+    m = x.shape[0]
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
+        return jnp.cumsum(x, dtype=jnp.int32)
+    x = x.astype(dtype)
+    if m <= _PREFIX_BLOCK:
         return _triangular_dot(x).astype(jnp.int32)
-    blocks = -(-m // _RANK_BLOCK)
-    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
-        rows, blocks, _RANK_BLOCK)
-    inner = _triangular_dot(x)
-    before = _triangular_dot(inner[..., -1], strict=True)
-    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
-    return ranks.astype(jnp.int32)
+    rows = -(-m // _PREFIX_BLOCK)
+    inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
+        rows, _PREFIX_BLOCK))
+    totals = inner[:, -1]
+    before = _prefix_sum(totals, dtype).astype(dtype) - totals
+    return (inner + before[:, None]).reshape(-1)[:m].astype(jnp.int32)
 
 
 def table_size(n: int, n_graph: int, brute: bool) -> int:
@@ -326,7 +326,12 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     # The half stencil's target cells and their images (docstring, 4.).
     target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
     cells_k = cells_a[:, None, :]
-    image = jnp.where(pbc_a[:, None, :], jnp.floor_divide(target, cells_k), 0)
+    # floor(target / cells) of small whole numbers, in float32 (exact:
+    # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
+    # faster than an integer division.
+    image = jnp.where(pbc_a[:, None, :], jnp.floor(
+        (target.astype(jnp.float32) + 0.5) / cells_k.astype(jnp.float32)
+    ).astype(jnp.int32), 0)
     target = target - image * cells_k
     inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
         real[:, None]
@@ -357,7 +362,13 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
     with ``i = N``: from the half stencil each pair is found once; from the
     ``full`` stencil each atom finds all its own pairs (its representatives
-    only, with ``half``) and a third column ranks them among the atom's."""
+    only, with ``half``) and a third column ranks them among the atom's.
+
+    The candidates are the runs' slots laid end to end, atom by atom and
+    offset by offset (``i``-major), and read ``chunk`` at a time: the work
+    follows the candidates there are, not the fullest cell times every
+    run, and the pairs kept come out in ``i``-major order, so a pair's
+    place in the list is its rank among the kept (no sort, one scatter)."""
     n, dtype = positions.shape[0], positions.dtype
     b = binned
     own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
@@ -368,64 +379,87 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     # One gather per candidate: the sorted atoms' positions, wraps (small
     # whole numbers, exact in the dtype) and species side by side.
     table = jnp.concatenate(columns, axis=1)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    h_k = b.h_atom[:, None, None]
-    width = 3 if full else 2
-    # (i, k) of each candidate as one int: atom i's offset k.
-    code = (atoms[:, None] * k_offsets + jnp.arange(
-        k_offsets, dtype=jnp.int32))[:, :, None]
+    length = b.length.reshape(-1)
+    ends = _prefix_sum(length, jnp.float64)  # (N K,) inclusive
+    total_candidates = ends[-1]
+    runs = n * k_offsets
+    # The runs that hold candidates, in order (compacted, padded with
+    # runs that start past every candidate): a block of ``chunk``
+    # candidates meets at most ``chunk`` of them, in one slice.
+    nonempty = length > 0
+    at = jnp.where(nonempty, _prefix_sum(nonempty) - 1,
+                   runs + chunk)
+    big = jnp.iinfo(jnp.int32).max
+    run_first = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends - length, mode="drop")
+    run_ends = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends, mode="drop")
+    run_id = jnp.full((runs + chunk,), runs - 1, jnp.int32).at[at].set(
+        jnp.arange(runs, dtype=jnp.int32), mode="drop")
+    runs_start = b.start.reshape(-1)
+    image = b.image.reshape(-1, 3)
+    # Each atom's last candidate: the kept count there, read as the block
+    # holding it passes, gives the pairs per atom (exact past the capacity).
+    atom_end = ends[k_offsets - 1::k_offsets] - 1
+    slots = jnp.arange(chunk, dtype=jnp.int32)
 
-    def step(t, carry):
-        total, per_atom, out = carry
-        slot = t * chunk + jnp.arange(chunk, dtype=jnp.int32)
-        valid = slot[None, None, :] < b.length[:, :, None]  # (N, K, B)
-        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+    def step(carry):
+        c0, total, upto, out = carry
+        c = c0 + slots
+        valid = c < total_candidates
+        # The compacted run of each candidate: the block's first (holding
+        # c0), plus the later runs that start at or before it.
+        r0 = jnp.searchsorted(run_ends, c0, side="right").astype(jnp.int32)
+        first = jax.lax.dynamic_slice(run_first, (r0 + 1,), (chunk,))
+        starts = jnp.zeros((chunk,), jnp.float32).at[first - c0].add(
+            1, mode="drop")
+        compact = r0 + _prefix_sum(starts)
+        run = run_id[compact]
+        c_first = run_first[compact]
+        i = run // k_offsets
+        k = run - i * k_offsets
+        p = jnp.clip(runs_start[run] + c - c_first, 0, n - 1)
         row = table[p]
-        s = b.image[:, :, None, :] - row[..., 3:6].astype(jnp.int32)
-        d = (row[..., :3] - positions[:, None, None, :]) + shift_vectors(
-            s.astype(dtype), h_k)
-        dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
-                        + d[..., 2] * d[..., 2])
+        s = image[run] - row[:, 3:6].astype(jnp.int32)
+        d = (row[:, :3] - positions[i]) + shift_vectors(
+            s.astype(dtype), b.h_atom[i])
+        dist = jnp.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+                        + d[:, 2] * d[:, 2])
         if species is None:
             limit = cut
         else:
-            limit = cut.at[species[:, None, None], row[..., 6].astype(
-                jnp.int32)].get(mode="fill", fill_value=0)
-        rank_i = b.rank[:, None, None]
+            limit = cut.at[species[i], row[:, 6].astype(jnp.int32)].get(
+                mode="fill", fill_value=0)
+        rank_i = b.rank[i]
         if not full:  # within the own cell, from the atom sorted first
-            once = ~own[None, :, None] | (p > rank_i)
+            once = ~own[k] | (p > rank_i)
         else:  # all but (i, i, 0)
-            once = ~(own[None, :, None] & (p == rank_i))
+            once = ~(own[k] & (p == rank_i))
             if half:
                 j = b.order[p]
-                i = atoms[:, None, None]
                 once = once & ((i < j) | ((i == j) & _lex_positive(s)))
         if brute:  # runs hold padding atoms (not sorted out)
             valid = valid & b.real[p]
-        keep = (valid & (dist < limit) & once).reshape(n, k_offsets * chunk)
-        ranks = _row_ranks(keep)
-        row_count = ranks[:, -1]
+        keep = valid & (dist < limit) & once
+        ranks = _prefix_sum(keep)
         if stored > 0:
-            # Two or three ints per candidate (the scatter's cost is per
-            # candidate read, kept or not); S is rebuilt after the loop.
-            at = total + _exclusive_prefix(row_count)[:, None] + ranks - 1
-            columns = [jnp.broadcast_to(code, p.shape).reshape(n, -1),
-                       p.reshape(n, -1)]
-            if full:
-                columns.append(per_atom[:, None] + ranks - 1)
-            rows = jnp.stack(columns, axis=-1)
-            out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
-                rows.reshape(-1, width), mode="drop")
-        return (total + jnp.sum(row_count, dtype=jnp.int32),
-                per_atom + row_count, out)
+            at = jnp.where(keep, total + ranks - 1, stored)
+            rows = jnp.stack([run, p], axis=-1)
+            out = out.at[at].set(rows, mode="drop")
+        last = atom_end - c0
+        here = (last >= 0) & (last < chunk)
+        upto = jnp.where(here, total + ranks[jnp.clip(last, 0, chunk - 1)],
+                         upto)
+        return c0 + chunk, total + ranks[-1], upto, out
 
-    pad = jnp.array([n * k_offsets, 0, 0][:width], jnp.int32)
-    out = jnp.broadcast_to(pad, (stored, width))
-    start = (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out)
-    if chunk >= n:  # no run is longer: one step, no loop
-        return step(0, start)
-    steps = (jnp.max(b.length, initial=0) + chunk - 1) // chunk
-    return jax.lax.fori_loop(0, steps, step, start)
+    pad = jnp.array([n * k_offsets, 0], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, 2))
+    zero = jnp.zeros((), jnp.int32)
+    _, found, upto, out = jax.lax.while_loop(
+        lambda carry: carry[0] < total_candidates, step,
+        (zero, zero, jnp.zeros((n,), jnp.int32), out))
+    per_atom = upto - jnp.concatenate([zero[None], upto[:-1]])
+    return found, per_atom, out
 
 
 def _stored_pairs(out, binned: _Binned):
@@ -442,27 +476,31 @@ def _stored_pairs(out, binned: _Binned):
 
 
 def _placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
-    """The full stencil's rows placed by atom (a counting sort): atom
-    ``i``'s self pair (``selfs``), then its pairs in their rank order, at
-    its offset in the list. Returns int32 ``(capacity, 5)`` rows padded
+    """The full stencil's rows, found ``i``-major (so stored at their place
+    when there are no self pairs), with atom ``i``'s self pair (``selfs``)
+    placed before its pairs. Returns int32 ``(capacity, 5)`` rows padded
     with ``(N, N, 0)``, their count and the count per system."""
     n = binned.order.shape[0]
     i, j, s = _stored_pairs(out, binned)
-    kept = i < n
-    own = jnp.zeros((n,), jnp.int32) if selfs is None else \
-        selfs.astype(jnp.int32)
-    degree = per_atom + own
-    first = _exclusive_prefix(degree)
-    at = jnp.where(kept, first[jnp.where(kept, i, 0)] + own[
-        jnp.where(kept, i, 0)] + out[:, 2], capacity)
     rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    if selfs is None:
+        return rows, jnp.sum(per_atom, dtype=jnp.int32), \
+            jax.ops.segment_sum(per_atom, binned.graph, n_graph)
+    kept = i < n
+    at_i = jnp.where(kept, i, 0)
+    own = selfs.astype(jnp.int32)
+    # Each pair moves down by the self pairs of the atoms up to its own.
+    before = _prefix_sum(own, jnp.float64)
+    at = jnp.where(kept, jnp.arange(capacity, dtype=jnp.int32)
+                   + before[at_i], capacity)
     placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
                               (capacity, 5)).at[at].set(rows, mode="drop")
-    if selfs is not None:
-        atoms = jnp.arange(n, dtype=jnp.int32)
-        placed = placed.at[jnp.where(selfs, first, capacity)].set(
-            jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-            mode="drop")
+    degree = per_atom + own
+    first = _exclusive_prefix(degree)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    placed = placed.at[jnp.where(selfs, first, capacity)].set(
+        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+        mode="drop")
     return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
         degree, binned.graph, n_graph)
 
