@@ -30,26 +30,28 @@ How it searches (the search of one system is the same with one graph):
    candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
    read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
    after ``i``); sorted by ``i``, all of it.
-5. **Decide and store.** Candidates are read ``chunk`` slots of every run
-   at a time in a loop until the fullest cell is read. Each is decided as
-   ASE decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
-   cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
-   matrix), and kept candidates are written at the running count, so the
-   count is exact past the capacity. From the half stencil a kept pair
-   stands for ``(i, j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| =
-   |d|`` bit for bit): a full list writes both, a half list the
-   representative, ``i < j``, or ``i == j`` and ``S`` lexicographically
-   positive. From the full stencil each atom finds its own pairs (only
-   representatives for a half list) and ranks them.
+5. **Decide and store.** The candidates are the runs' slots laid end to
+   end, atom by atom and offset by offset (``i``-major), read ``chunk`` at
+   a time in a loop until every one is read (the work follows the
+   candidates there are). Each is decided as ASE decides, in the
+   positions' dtype: ``|R[j] - R[i] + S @ cell| < cutoff`` (strict; the
+   cutoff of the two atoms' species with a cutoff matrix), and kept
+   candidates are written at the running count, so the count is exact
+   past the capacity. From the half stencil a kept pair stands for ``(i,
+   j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| = |d|`` bit for bit):
+   a full list writes both, a half list the representative, ``i < j``, or
+   ``i == j`` and ``S`` lexicographically positive. From the full stencil
+   each atom finds its own pairs (only representatives for a half list),
+   in ``i``-major order.
 6. **Assemble.** Unsorted: self pairs ``(i, i, 0)`` first when asked for,
-   then the pairs. Sorted: each atom's self pair and pairs at the atom's
-   offset in the list (a counting sort: no sort runs). Padding rows
-   ``(pad, pad, 0)`` at the end.
+   then the pairs. Sorted: the pairs are already in place (the order they
+   were found in); each atom's self pair, when asked for, is put before its
+   pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
 ``brute=True`` is the same program with one cell per system: every atom
-of a system is a candidate of every atom of it, in every image (unsorted,
-in one step when the chunk covers the atoms). `search_small` decides every
-candidate of one small system at once, for eager calls.
+of a system is a candidate of every atom of it, in every image.
+`search_small_host` decides every candidate of one small system at once
+in numpy, for eager calls.
 """
 from __future__ import annotations
 
@@ -362,7 +364,7 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
     with ``i = N``: from the half stencil each pair is found once; from the
     ``full`` stencil each atom finds all its own pairs (its representatives
-    only, with ``half``) and a third column ranks them among the atom's.
+    only, with ``half``).
 
     The candidates are the runs' slots laid end to end, atom by atom and
     offset by offset (``i``-major), and read ``chunk`` at a time: the work
@@ -621,75 +623,6 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     return rows, total, per_system, error.astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=(
-    "periodic", "reach", "capacity", "half", "self_interaction"))
-def search_small(positions, mask, h, hinv, cutoff, species, *,
-                 periodic: tuple[bool, ...], reach: tuple[int, ...],
-                 capacity: int, half: bool, self_interaction: bool):
-    """The pairs of one small system, every candidate ``(i, j, S)`` at once
-    (no grid, no loop, no sort: a handful of XLA operations, for eager calls
-    whose cost is the program's dispatch). The same decisions as `search`
-    (each ``d`` computed as there; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit
-    for bit), in ``i``-major order (sorted by ``i``).
-
-    Args:
-      positions: float ``(N, 3)``; mask: bool ``(N,)`` real atoms.
-      h, hinv: ``(3, 3)`` the completed cell (checked on the host) and its
-        inverse, the positions' dtype.
-      cutoff, species: as `search`.
-      periodic, reach: static; the cell needs no shift past ``reach``
-        (checked on the host).
-    Returns:
-      int32 ``(capacity + 1, 5)``: the rows ``(i, j, S)`` padded with
-      ``(N, N, 0)``, then ``(count, error bits, 0, 0, 0)``.
-    """
-    n, dtype = positions.shape[0], positions.dtype
-    cut = jnp.asarray(cutoff, dtype)
-    r = jax.lax.stop_gradient(positions)
-    finite = jnp.all(jnp.isfinite(r), axis=1)
-    error = jnp.where(jnp.any(mask & ~finite),
-                      int(ErrorBit.NONFINITE_POSITION), 0)
-    real = mask & finite
-    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv, axis=1)
-    w = jnp.where(np.array(periodic), jnp.floor(f), 0).astype(jnp.int32)
-    every = np.array(list(itertools.product(
-        *(range(-k, k + 1) for k in reach))), np.int32)  # (M, 3)
-    # S = o + w[i] - w[j] for every (i, j, o): i-major.
-    s = (jnp.asarray(every)[None, None] + w[:, None, None, :]
-         - w[None, :, None, :])
-    d = (r[None, :, None, :] - r[:, None, None, :]) + shift_vectors(
-        s.astype(dtype), h)
-    dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
-                    + d[..., 2] * d[..., 2])
-    if species is None:
-        limit = cut
-    else:
-        limit = cut.at[species[:, None, None], species[None, :, None]].get(
-            mode="fill", fill_value=0)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    same = atoms[:, None, None] == atoms[None, :, None]
-    own = same & jnp.asarray(~every.any(axis=1))[None, None]
-    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
-    if half:
-        keep = keep & ((atoms[:, None, None] < atoms[None, :, None])
-                       | (same & _lex_positive(s)) | own)
-    if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
-        keep = keep & ~own
-    flat = keep.reshape(-1)
-    total = jnp.sum(flat, dtype=jnp.int32)
-    at = jnp.where(flat, jnp.cumsum(flat, dtype=jnp.int32) - 1, capacity)
-    shape = s.shape[:3]
-    rows = jnp.concatenate([
-        jnp.broadcast_to(atoms[:, None, None], shape)[..., None],
-        jnp.broadcast_to(atoms[None, :, None], shape)[..., None], s], axis=-1)
-    out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
-                           (capacity, 5)).at[at].set(rows.reshape(-1, 5),
-                                                     mode="drop")
-    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
-    tail = jnp.stack([total, error.astype(jnp.int32)] + [jnp.int32(0)] * 3)
-    return jnp.concatenate([out, tail[None]])
-
-
 @functools.lru_cache(maxsize=64)
 def _host_stencil(reach):
     """int32 ``(M, 3)`` every offset within ``reach``, and bool ``(M,)``:
@@ -702,17 +635,20 @@ def _host_stencil(reach):
 def search_small_host(positions, mask, h, hinv, cutoff, species, *,
                       periodic: tuple[bool, ...], reach: tuple[int, ...],
                       half: bool, self_interaction: bool):
-    """`search_small` in numpy, for eager calls on host arrays: the same
-    candidates, decisions (``d`` as there, in the positions' dtype,
-    elementwise: no contraction of products into sums) and ``i``-major
-    order, without a program's dispatch, which is most of the time of a
-    system of a few atoms.
+    """The pairs of one small system in numpy, for eager calls on host
+    arrays: every candidate ``(i, j, S)`` at once (no grid, no loop, no
+    program to dispatch, which is most of the time of a system of a few
+    atoms), decided as `search` decides (``d`` computed as there, in the
+    positions' dtype; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit for bit), in
+    ``i``-major order (sorted by ``i``).
 
     Args:
       positions: numpy float ``(N, 3)``; mask: bool ``(N,)``; h, hinv:
-        numpy ``(3, 3)`` in the positions' dtype; cutoff: float, or numpy
-        ``(S, S)``; species: int ``(N,)`` or None; the rest as
-        `search_small`.
+        numpy ``(3, 3)`` the completed cell and its inverse, in the
+        positions' dtype; cutoff: float, or numpy ``(S, S)``; species: int
+        ``(N,)`` or None.
+      periodic, reach: static; the cell needs no shift past ``reach``
+        (checked on the host); half, self_interaction: as `search`.
     Returns:
       int32 ``(count, 5)`` rows ``(i, j, S)`` (exactly the pairs) and the
       int error bits.
