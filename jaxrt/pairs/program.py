@@ -655,36 +655,39 @@ def search_small_host(positions, mask, h, hinv, cutoff, species, *,
     """
     dtype = positions.dtype
     n = positions.shape[0]
-    finite = np.all(np.isfinite(positions), axis=1)
-    error = int(ErrorBit.NONFINITE_POSITION) if np.any(mask & ~finite) \
-        else 0
+    finite = np.isfinite(positions).all(axis=1)
+    everyone = bool(mask.all()) and bool(finite.all())
+    error = 0 if everyone or not np.any(mask & ~finite) else \
+        int(ErrorBit.NONFINITE_POSITION)
     real = mask & finite
-    r = np.where(real[:, None], positions, 0).astype(dtype)
+    r = positions if everyone else np.where(real[:, None], positions,
+                                            0).astype(dtype)
     f = np.sum(r[:, :, None] * hinv, axis=1)
     w = np.where(np.array(periodic), np.floor(f), 0).astype(np.int32)
     every, zero = _host_stencil(tuple(reach))
-    s = every[None, None] + w[:, None, None, :] - w[None, :, None, :]
+    # (Few numpy calls: each costs more than its arithmetic here.)
+    s = every + (w[:, None, None, :] - w[None, :, None, :])  # o + w_i - w_j
     sf = s.astype(dtype)
-    shift = (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2]
-    d = (r[None, :, None, :] - r[:, None, None, :]) + shift
-    dist = np.sqrt((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1])
-                   + d[..., 2] * d[..., 2])
+    d = (r[None, :, None, :] - r[:, None, None, :]) + (
+        (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2])
+    d2 = d * d
+    dist = np.sqrt((d2[..., 0] + d2[..., 1]) + d2[..., 2])
     if species is None:
-        limit = np.asarray(cutoff, dtype)
+        keep = dist < np.asarray(cutoff, dtype)
     else:
-        limit = np.asarray(cutoff, dtype)[species[:, None, None],
-                                          species[None, :, None]]
-    atoms = np.arange(n, dtype=np.int32)
-    same = atoms[:, None, None] == atoms[None, :, None]
-    own = same & zero[None, None]
-    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
+        keep = dist < np.asarray(cutoff, dtype)[species[:, None, None],
+                                                species[None, :, None]]
+    if not everyone:
+        keep &= real[:, None, None] & real[None, :, None]
+    atoms = np.arange(n)
     if half:
         lex = (s[..., 0] > 0) | ((s[..., 0] == 0) & (
             (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
+        same = atoms[:, None, None] == atoms[None, :, None]
         keep &= (atoms[:, None, None] < atoms[None, :, None]) | (
-            same & lex) | own
-    if not self_interaction:
-        keep &= ~own
+            same & (lex | zero))
+    if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
+        keep[atoms, atoms, int(np.argmax(zero))] = False
     i, j, m = np.nonzero(keep)
     rows = np.empty((len(i), 5), np.int32)
     rows[:, 0], rows[:, 1], rows[:, 2:] = i, j, s[i, j, m]
