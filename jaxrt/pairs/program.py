@@ -570,6 +570,7 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
       pad_index: int32 scalar, ``i`` and ``j`` of the padding rows.
       reach: static ``r_k`` per axis (0 on the static free axes of the
         brute force).
+      chunk: static candidates read per step of the loop.
       capacity: static rows; 0 counts only.
       completed: static; the cells have no zero rows to complete (checked
         on the host).

@@ -26,9 +26,10 @@ and ``capacity=None`` sizes the list exactly. Eager calls round the atom
 count and the capacity up to shared buckets (1, 2, 3, 4, 6, 8, 12, 16, 24,
 ...), padding with masked atoms, so that a data set of many sizes compiles a
 few programs, and each call is one compiled program and one transfer back
-(a second when the estimated capacity was short). Under ``jit`` / ``vmap``
-pass ``capacity`` and ``max_shift`` (`pairs_sizes` measures them on a data
-set); anything that leaves the list incomplete (more pairs than
+(a second when the estimated capacity was short); a system of a few atoms
+is searched on the host, in numpy, with no program at all. Under ``jit`` /
+``vmap`` pass ``capacity`` and ``max_shift`` (`pairs_sizes` measures them
+on a data set); anything that leaves the list incomplete (more pairs than
 ``capacity``, a cell that needs more shifts than ``max_shift``, a
 non-finite position, a singular cell) sets ``overflow`` and a bit of
 ``error``; `Pairs.check` raises on it, and an eager call raises at once.
