@@ -68,6 +68,8 @@ from jaxrt.pairs.bits import ErrorBit
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
 CELL_MARGIN = 2.0 ** -10
+# The brute force up to this many slots (N² K) is one step, without a loop.
+BRUTE_ONE_STEP = 2 ** 16
 # A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
 CELLS_PER_ATOM = 4
 CELLS_PER_SYSTEM = 64
@@ -381,6 +383,52 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     # One gather per candidate: the sorted atoms' positions, wraps (small
     # whole numbers, exact in the dtype) and species side by side.
     table = jnp.concatenate(columns, axis=1)
+
+    def decide(i, k, p, image):
+        """Which candidates ``(i, offset k, sorted slot p)`` (any shape;
+        ``image`` the run's ``S' + w[i]``, shape + (3,)) are kept."""
+        row = table[p]
+        s = image - row[..., 3:6].astype(jnp.int32)
+        d = (row[..., :3] - positions[i]) + shift_vectors(
+            s.astype(dtype), b.h_atom[i])
+        dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                        + d[..., 2] * d[..., 2])
+        if species is None:
+            limit = cut
+        else:
+            limit = cut.at[species[i], row[..., 6].astype(jnp.int32)].get(
+                mode="fill", fill_value=0)
+        rank_i = b.rank[i]
+        if not full:  # within the own cell, from the atom sorted first
+            once = ~own[k] | (p > rank_i)
+        else:  # all but (i, i, 0)
+            once = ~(own[k] & (p == rank_i))
+            if half:
+                j = b.order[p]
+                once = once & ((i < j) | ((i == j) & _lex_positive(s)))
+        if brute:  # runs hold padding atoms (not sorted out)
+            once = once & b.real[p]
+        return (dist < limit) & once
+
+    pad = jnp.array([n * k_offsets, 0], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, 2))
+    if brute and n * n * k_offsets <= max(chunk, BRUTE_ONE_STEP):
+        # Few candidates (every slot of every run, N² K at most): one
+        # step, no loop and no stream to lay out.
+        slot = jnp.arange(n, dtype=jnp.int32)
+        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+        keep = (slot < b.length[:, :, None]) & decide(
+            atoms, k, p, b.image[:, :, None, :])
+        ranks = _prefix_sum(keep.reshape(-1))
+        if stored > 0:
+            rows = jnp.stack([jnp.broadcast_to(atoms * k_offsets + k,
+                                               p.shape), p], axis=-1)
+            out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
+                rows.reshape(-1, 2), mode="drop")
+        return ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
+
     length = b.length.reshape(-1)
     ends = _prefix_sum(length, jnp.float64)  # (N K,) inclusive
     total_candidates = ends[-1]
@@ -421,28 +469,7 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
         i = run // k_offsets
         k = run - i * k_offsets
         p = jnp.clip(runs_start[run] + c - c_first, 0, n - 1)
-        row = table[p]
-        s = image[run] - row[:, 3:6].astype(jnp.int32)
-        d = (row[:, :3] - positions[i]) + shift_vectors(
-            s.astype(dtype), b.h_atom[i])
-        dist = jnp.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
-                        + d[:, 2] * d[:, 2])
-        if species is None:
-            limit = cut
-        else:
-            limit = cut.at[species[i], row[:, 6].astype(jnp.int32)].get(
-                mode="fill", fill_value=0)
-        rank_i = b.rank[i]
-        if not full:  # within the own cell, from the atom sorted first
-            once = ~own[k] | (p > rank_i)
-        else:  # all but (i, i, 0)
-            once = ~(own[k] & (p == rank_i))
-            if half:
-                j = b.order[p]
-                once = once & ((i < j) | ((i == j) & _lex_positive(s)))
-        if brute:  # runs hold padding atoms (not sorted out)
-            valid = valid & b.real[p]
-        keep = valid & (dist < limit) & once
+        keep = valid & decide(i, k, p, image[run])
         ranks = _prefix_sum(keep)
         if stored > 0:
             at = jnp.where(keep, total + ranks - 1, stored)
@@ -454,8 +481,6 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
                          upto)
         return c0 + chunk, total + ranks[-1], upto, out
 
-    pad = jnp.array([n * k_offsets, 0], jnp.int32)
-    out = jnp.broadcast_to(pad, (stored, 2))
     zero = jnp.zeros((), jnp.int32)
     _, found, upto, out = jax.lax.while_loop(
         lambda carry: carry[0] < total_candidates, step,
