@@ -30,10 +30,11 @@ How it searches (the search of one system is the same with one graph):
    candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
    read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
    after ``i``); sorted by ``i``, all of it.
-5. **Decide and store.** The candidates are the runs' slots laid end to
-   end, atom by atom and offset by offset (``i``-major), read ``chunk`` at
-   a time in a loop until every one is read (the work follows the
-   candidates there are). Each is decided as ASE decides, in the
+5. **Decide and store.** Sorted by ``i``, the candidates are the runs'
+   slots laid end to end, atom by atom and offset by offset (``i``-major),
+   read ``chunk`` at a time in a loop until every one is read (the work
+   follows the candidates there are); unsorted, every run is read a slot
+   at a time until the fullest cell is read. Each is decided as ASE decides, in the
    positions' dtype: ``|R[j] - R[i] + S @ cell| < cutoff`` (strict; the
    cutoff of the two atoms' species with a cutoff matrix), and kept
    candidates are written at the running count, so the count is exact
@@ -389,11 +390,13 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     ``full`` stencil each atom finds all its own pairs (its representatives
     only, with ``half``).
 
-    The candidates are the runs' slots laid end to end, atom by atom and
-    offset by offset (``i``-major), and read ``chunk`` at a time: the work
-    follows the candidates there are, not the fullest cell times every
-    run, and the pairs kept come out in ``i``-major order, so a pair's
-    place in the list is its rank among the kept (no sort, one scatter)."""
+    From the ``full`` stencil the candidates are the runs' slots laid end
+    to end, atom by atom and offset by offset (``i``-major), and read
+    ``chunk`` at a time: the work follows the candidates there are, not
+    the fullest cell times every run, and the pairs kept come out in
+    ``i``-major order, so a pair's place in the list is its rank among the
+    kept (no sort, one scatter). A brute force of few candidates is one
+    step."""
     n, dtype = positions.shape[0], positions.dtype
     b = binned
     own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
