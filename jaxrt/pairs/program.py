@@ -480,6 +480,13 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             0, jnp.max(b.length, initial=0), slot_step,
             (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
 
+    return _stream(decide, b, out, n=n, k_offsets=k_offsets, chunk=chunk,
+                   stored=stored)
+
+
+def _stream(decide, b: _Binned, out, *, n, k_offsets, chunk, stored):
+    """`_candidates` from the full stencil: the candidates as one
+    ``i``-major stream read ``chunk`` at a time (its docstring)."""
     length = b.length.reshape(-1)
     ends = _prefix_sum(length, jnp.float64)  # (N K,) inclusive
     total_candidates = ends[-1]
