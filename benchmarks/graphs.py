@@ -296,14 +296,12 @@ def compile_row(job: dict) -> list[dict]:
     rows = []
 
     def passes(call, items, what, method):
-        before = program.search._cache_size() + \
-            program.search_small._cache_size()
+        before = program.search._cache_size()
         t = time.perf_counter()
         for x in items:
             call(x)
         first = time.perf_counter() - t
-        programs = program.search._cache_size() + \
-            program.search_small._cache_size() - before
+        programs = program.search._cache_size() - before
         t = time.perf_counter()
         for x in items:
             call(x)

@@ -364,8 +364,7 @@ def _prepare(positions, n_node, cells, pbc, periodic, graph_mask, radius,
                      graph_mask)
     brute, reach, chunk = checks.plan(
         padded[0].shape[0], periodic, shift, backend,
-        candidates=int(np.sum(counts.astype(np.int64) ** 2)),
-        longest=checks.bucket(int(counts.max(initial=1))))
+        candidates=int(np.sum(counts.astype(np.int64) ** 2)))
     # The guess at the padded size (shared by batches of one bucket).
     guess = guess * padded[0].shape[0] / max(int(counts.sum()), 1)
     return padded, dict(periodic=periodic, reach=reach, brute=brute,

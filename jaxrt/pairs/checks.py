@@ -16,14 +16,13 @@ import numpy as np
 # at 64.
 BRUTE_CANDIDATES = 2 ** 13
 # An eager call of one system up to this many candidates (N² · images)
-# takes the small program (`program.search_small`).
+# searches on the host (`program.search_small_host`).
 SMALL_CANDIDATES = 2 ** 14
-# Candidates read per step of the loop, at most (slots of every run at once).
-CHUNK_CANDIDATES = 2 ** 22
-# Slots of each run read per step on the cell grid (the fullest cell of a
-# dense solid at a 5 Å cutoff holds ~12 atoms): on 2 CPU cores 1 was the
-# fastest from 1 728 atoms to 32 768 (2 and 4 up to 1.4x slower).
-CELL_CHUNK = 1
+# Candidates read per step of the loop: a power of two near this many per
+# atom, within these bounds (on 2 CPU cores smaller blocks ran faster on
+# batches of a few hundred atoms; larger ones save steps on large systems).
+BLOCK_PER_ATOM = 16
+BLOCK_CANDIDATES = (2 ** 12, 2 ** 16)
 BACKENDS = ("auto", "brute", "cell")
 # Reach beyond the cell's own rounding of the heights (program.CELL_MARGIN).
 _REACH_MARGIN = 2.0 ** -10
@@ -330,17 +329,16 @@ def check_sort(sort):
 
 
 def is_small(n: int, max_shift) -> bool:
-    """Whether an eager call of one system takes `program.search_small`
-    (every candidate at once: cheaper to dispatch than the loop)."""
+    """Whether an eager call of one system takes
+    `program.search_small_host` (every candidate at once, in numpy: no
+    program to dispatch)."""
     return n * n * math.prod(2 * r + 1 for r in max_shift) <= SMALL_CANDIDATES
 
 
-def plan(n: int, pbc, max_shift, backend: str, candidates=None,
-         longest=None):
-    """``(brute, reach, chunk)`` static options of the program.
-    ``candidates``: the brute force's atom pairs (``N²`` for one system,
-    ``sum n_g²`` for a batch); ``longest``: the most atoms of one system
-    (the brute force reads that many slots at most)."""
+def plan(n: int, pbc, max_shift, backend: str, candidates=None):
+    """``(brute, reach, chunk)`` static options of the program (``chunk``:
+    candidates per step). ``candidates``: the brute force's atom pairs
+    (``N²`` for one system, ``sum n_g²`` for a batch)."""
     if backend not in BACKENDS:
         raise ValueError(f"jaxrt.pairs: backend={backend!r}: choose one of "
                          f"{BACKENDS}.")
@@ -350,12 +348,10 @@ def plan(n: int, pbc, max_shift, backend: str, candidates=None,
         backend == "auto" and candidates * images <= BRUTE_CANDIDATES)
     if brute:
         reach = max_shift
-        chunk = max(1, min(n if longest is None else longest,
-                           CHUNK_CANDIDATES // max(n * images, 1)))
     else:
         reach = tuple(r if p else 1 for r, p in zip(max_shift, pbc))
-        k = math.prod(2 * r + 1 for r in reach)
-        chunk = max(1, min(CELL_CHUNK, CHUNK_CANDIDATES // max(n * k, 1)))
+    low, high = BLOCK_CANDIDATES
+    chunk = min(max(1 << (BLOCK_PER_ATOM * n - 1).bit_length(), low), high)
     return brute, reach, chunk
 
 

@@ -30,26 +30,29 @@ How it searches (the search of one system is the same with one graph):
    candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
    read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
    after ``i``); sorted by ``i``, all of it.
-5. **Decide and store.** Candidates are read ``chunk`` slots of every run
-   at a time in a loop until the fullest cell is read. Each is decided as
-   ASE decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
-   cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
-   matrix), and kept candidates are written at the running count, so the
-   count is exact past the capacity. From the half stencil a kept pair
-   stands for ``(i, j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| =
-   |d|`` bit for bit): a full list writes both, a half list the
-   representative, ``i < j``, or ``i == j`` and ``S`` lexicographically
-   positive. From the full stencil each atom finds its own pairs (only
-   representatives for a half list) and ranks them.
+5. **Decide and store.** Sorted by ``i``, the candidates are the runs'
+   slots laid end to end, atom by atom and offset by offset (``i``-major),
+   read ``chunk`` at a time in a loop until every one is read (the work
+   follows the candidates there are); unsorted, every run is read a slot
+   at a time until the fullest cell is read. Each is decided as ASE decides, in the
+   positions' dtype: ``|R[j] - R[i] + S @ cell| < cutoff`` (strict; the
+   cutoff of the two atoms' species with a cutoff matrix), and kept
+   candidates are written at the running count, so the count is exact
+   past the capacity. From the half stencil a kept pair stands for ``(i,
+   j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| = |d|`` bit for bit):
+   a full list writes both, a half list the representative, ``i < j``, or
+   ``i == j`` and ``S`` lexicographically positive. From the full stencil
+   each atom finds its own pairs (only representatives for a half list),
+   in ``i``-major order.
 6. **Assemble.** Unsorted: self pairs ``(i, i, 0)`` first when asked for,
-   then the pairs. Sorted: each atom's self pair and pairs at the atom's
-   offset in the list (a counting sort: no sort runs). Padding rows
-   ``(pad, pad, 0)`` at the end.
+   then the pairs. Sorted: the pairs are already in place (the order they
+   were found in); each atom's self pair, when asked for, is put before its
+   pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
 ``brute=True`` is the same program with one cell per system: every atom
-of a system is a candidate of every atom of it, in every image (unsorted,
-in one step when the chunk covers the atoms). `search_small` decides every
-candidate of one small system at once, for eager calls.
+of a system is a candidate of every atom of it, in every image.
+`search_small_host` decides every candidate of one small system at once
+in numpy, for eager calls.
 """
 from __future__ import annotations
 
@@ -66,6 +69,8 @@ from jaxrt.pairs.bits import ErrorBit
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
 CELL_MARGIN = 2.0 ** -10
+# The brute force up to this many slots (N² K) is one step, without a loop.
+BRUTE_ONE_STEP = 2 ** 16
 # A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
 CELLS_PER_ATOM = 4
 CELLS_PER_SYSTEM = 64
@@ -156,18 +161,39 @@ def _lex_positive(s):
 
 def _exclusive_prefix(x):
     """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
-    inclusive = jnp.cumsum(x, dtype=jnp.int32)
-    return inclusive - x
+    return _prefix_sum(x, jnp.float64) - x
 
 
 def _triangular_dot(x, strict: bool = False):
     """Inclusive (or, ``strict``, exclusive) prefix sums along the last
-    axis of float32 ``x`` as one product with a triangular matrix: exact
-    for sums below 2^24, and one small dot compiles and runs faster than a
-    scan on a CPU."""
+    axis of float ``x`` as one product with a triangular matrix: exact for
+    whole sums below 2^24 (float32) or 2^53 (float64), and one small dot
+    compiles and runs faster than a scan on a CPU."""
     m = x.shape[-1]
-    upper = jnp.asarray(np.triu(np.ones((m, m), np.float32), k=int(strict)))
+    upper = jnp.asarray(np.triu(np.ones((m, m), x.dtype), k=int(strict)))
     return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
+
+
+_PREFIX_BLOCK = 64
+
+
+def _prefix_sum(x, dtype=jnp.float32):
+    """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
+    triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
+    sum may pass 2^24): a CPU runs them several times faster than
+    ``cumsum``'s scan."""
+    m = x.shape[0]
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
+        return jnp.cumsum(x, dtype=jnp.int32)
+    x = x.astype(dtype)
+    if m <= _PREFIX_BLOCK:
+        return _triangular_dot(x).astype(jnp.int32)
+    rows = -(-m // _PREFIX_BLOCK)
+    inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
+        rows, _PREFIX_BLOCK))
+    totals = inner[:, -1]
+    before = _prefix_sum(totals, dtype).astype(dtype) - totals
+    return (inner + before[:, None]).reshape(-1)[:m].astype(jnp.int32)
 
 
 _RANK_BLOCK = 32
@@ -326,7 +352,12 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     # The half stencil's target cells and their images (docstring, 4.).
     target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
     cells_k = cells_a[:, None, :]
-    image = jnp.where(pbc_a[:, None, :], jnp.floor_divide(target, cells_k), 0)
+    # floor(target / cells) of small whole numbers, in float32 (exact:
+    # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
+    # faster than an integer division.
+    image = jnp.where(pbc_a[:, None, :], jnp.floor(
+        (target.astype(jnp.float32) + 0.5) / cells_k.astype(jnp.float32)
+    ).astype(jnp.int32), 0)
     target = target - image * cells_k
     inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
         real[:, None]
@@ -357,7 +388,15 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
     with ``i = N``: from the half stencil each pair is found once; from the
     ``full`` stencil each atom finds all its own pairs (its representatives
-    only, with ``half``) and a third column ranks them among the atom's."""
+    only, with ``half``).
+
+    From the ``full`` stencil the candidates are the runs' slots laid end
+    to end, atom by atom and offset by offset (``i``-major), and read
+    ``chunk`` at a time: the work follows the candidates there are, not
+    the fullest cell times every run, and the pairs kept come out in
+    ``i``-major order, so a pair's place in the list is its rank among the
+    kept (no sort, one scatter). A brute force of few candidates is one
+    step."""
     n, dtype = positions.shape[0], positions.dtype
     b = binned
     own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
@@ -368,64 +407,144 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     # One gather per candidate: the sorted atoms' positions, wraps (small
     # whole numbers, exact in the dtype) and species side by side.
     table = jnp.concatenate(columns, axis=1)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    h_k = b.h_atom[:, None, None]
-    width = 3 if full else 2
-    # (i, k) of each candidate as one int: atom i's offset k.
-    code = (atoms[:, None] * k_offsets + jnp.arange(
-        k_offsets, dtype=jnp.int32))[:, :, None]
 
-    def step(t, carry):
-        total, per_atom, out = carry
-        slot = t * chunk + jnp.arange(chunk, dtype=jnp.int32)
-        valid = slot[None, None, :] < b.length[:, :, None]  # (N, K, B)
-        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+    def decide(i, k, p, image):
+        """Which candidates ``(i, offset k, sorted slot p)`` (any shape;
+        ``image`` the run's ``S' + w[i]``, shape + (3,)) are kept."""
         row = table[p]
-        s = b.image[:, :, None, :] - row[..., 3:6].astype(jnp.int32)
-        d = (row[..., :3] - positions[:, None, None, :]) + shift_vectors(
-            s.astype(dtype), h_k)
+        s = image - row[..., 3:6].astype(jnp.int32)
+        d = (row[..., :3] - positions[i]) + shift_vectors(
+            s.astype(dtype), b.h_atom[i])
         dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
                         + d[..., 2] * d[..., 2])
         if species is None:
             limit = cut
         else:
-            limit = cut.at[species[:, None, None], row[..., 6].astype(
-                jnp.int32)].get(mode="fill", fill_value=0)
-        rank_i = b.rank[:, None, None]
+            limit = cut.at[species[i], row[..., 6].astype(jnp.int32)].get(
+                mode="fill", fill_value=0)
+        rank_i = b.rank[i]
         if not full:  # within the own cell, from the atom sorted first
-            once = ~own[None, :, None] | (p > rank_i)
+            once = ~own[k] | (p > rank_i)
         else:  # all but (i, i, 0)
-            once = ~(own[None, :, None] & (p == rank_i))
+            once = ~(own[k] & (p == rank_i))
             if half:
                 j = b.order[p]
-                i = atoms[:, None, None]
                 once = once & ((i < j) | ((i == j) & _lex_positive(s)))
         if brute:  # runs hold padding atoms (not sorted out)
-            valid = valid & b.real[p]
-        keep = (valid & (dist < limit) & once).reshape(n, k_offsets * chunk)
-        ranks = _row_ranks(keep)
-        row_count = ranks[:, -1]
-        if stored > 0:
-            # Two or three ints per candidate (the scatter's cost is per
-            # candidate read, kept or not); S is rebuilt after the loop.
-            at = total + _exclusive_prefix(row_count)[:, None] + ranks - 1
-            columns = [jnp.broadcast_to(code, p.shape).reshape(n, -1),
-                       p.reshape(n, -1)]
-            if full:
-                columns.append(per_atom[:, None] + ranks - 1)
-            rows = jnp.stack(columns, axis=-1)
-            out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
-                rows.reshape(-1, width), mode="drop")
-        return (total + jnp.sum(row_count, dtype=jnp.int32),
-                per_atom + row_count, out)
+            once = once & b.real[p]
+        return (dist < limit) & once
 
-    pad = jnp.array([n * k_offsets, 0, 0][:width], jnp.int32)
-    out = jnp.broadcast_to(pad, (stored, width))
-    start = (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out)
-    if chunk >= n:  # no run is longer: one step, no loop
-        return step(0, start)
-    steps = (jnp.max(b.length, initial=0) + chunk - 1) // chunk
-    return jax.lax.fori_loop(0, steps, step, start)
+    pad = jnp.array([n * k_offsets, 0], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, 2))
+    if brute and n * n * k_offsets <= max(chunk, BRUTE_ONE_STEP):
+        # Few candidates (every slot of every run, N² K at most): one
+        # step, no loop and no stream to lay out.
+        slot = jnp.arange(n, dtype=jnp.int32)
+        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+        keep = (slot < b.length[:, :, None]) & decide(
+            atoms, k, p, b.image[:, :, None, :])
+        ranks = _prefix_sum(keep.reshape(-1))
+        if stored > 0:
+            rows = jnp.stack([jnp.broadcast_to(atoms * k_offsets + k,
+                                               p.shape), p], axis=-1)
+            out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
+                rows.reshape(-1, 2), mode="drop")
+        return ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
+
+    if not full:
+        # Unsorted, the order is free: every run read a slot at a time (as
+        # many steps as the fullest cell holds), which on a CPU costs less
+        # than laying out the stream for one system of ~100 atoms.
+        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+
+        def slot_step(t, carry):
+            total, per_atom, out = carry
+            p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
+            keep = ((t < b.length[:, :, None]) & decide(
+                atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
+            ranks = _row_ranks(keep)
+            row_count = ranks[:, -1]
+            if stored > 0:
+                at = total + _exclusive_prefix(row_count)[:, None] + ranks - 1
+                rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
+                                  p.reshape(n, -1)], axis=-1)
+                out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
+                    rows.reshape(-1, 2), mode="drop")
+            return (total + jnp.sum(row_count, dtype=jnp.int32),
+                    per_atom + row_count, out)
+
+        return jax.lax.fori_loop(
+            0, jnp.max(b.length, initial=0), slot_step,
+            (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+
+    return _stream(decide, b, out, n=n, k_offsets=k_offsets, chunk=chunk,
+                   stored=stored)
+
+
+def _stream(decide, b: _Binned, out, *, n, k_offsets, chunk, stored):
+    """`_candidates` from the full stencil: the candidates as one
+    ``i``-major stream read ``chunk`` at a time (its docstring)."""
+    length = b.length.reshape(-1)
+    ends = _prefix_sum(length, jnp.float64)  # (N K,) inclusive
+    total_candidates = ends[-1]
+    runs = n * k_offsets
+    # The runs that hold candidates, in order (compacted, padded with
+    # runs that start past every candidate): a block of ``chunk``
+    # candidates meets at most ``chunk`` of them, in one slice.
+    nonempty = length > 0
+    at = jnp.where(nonempty, _prefix_sum(nonempty) - 1,
+                   runs + chunk)
+    big = jnp.iinfo(jnp.int32).max
+    run_first = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends - length, mode="drop")
+    run_ends = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends, mode="drop")
+    run_id = jnp.full((runs + chunk,), runs - 1, jnp.int32).at[at].set(
+        jnp.arange(runs, dtype=jnp.int32), mode="drop")
+    runs_start = b.start.reshape(-1)
+    image = b.image.reshape(-1, 3)
+    # Each atom's last candidate: the kept count there, read as the block
+    # holding it passes, gives the pairs per atom (exact past the capacity).
+    atom_end = ends[k_offsets - 1::k_offsets] - 1
+    slots = jnp.arange(chunk, dtype=jnp.int32)
+
+    def step(carry):
+        c0, total, upto, out = carry
+        c = c0 + slots
+        valid = c < total_candidates
+        # The compacted run of each candidate: the block's first (holding
+        # c0), plus the later runs that start at or before it.
+        r0 = jnp.searchsorted(run_ends, c0, side="right").astype(jnp.int32)
+        first = jax.lax.dynamic_slice(run_first, (r0 + 1,), (chunk,))
+        starts = jnp.zeros((chunk,), jnp.float32).at[first - c0].add(
+            1, mode="drop")
+        compact = r0 + _prefix_sum(starts)
+        run = run_id[compact]
+        c_first = run_first[compact]
+        i = run // k_offsets
+        k = run - i * k_offsets
+        p = jnp.clip(runs_start[run] + c - c_first, 0, n - 1)
+        keep = valid & decide(i, k, p, image[run])
+        ranks = _prefix_sum(keep)
+        if stored > 0:
+            at = jnp.where(keep, total + ranks - 1, stored)
+            rows = jnp.stack([run, p], axis=-1)
+            out = out.at[at].set(rows, mode="drop")
+        last = atom_end - c0
+        here = (last >= 0) & (last < chunk)
+        upto = jnp.where(here, total + ranks[jnp.clip(last, 0, chunk - 1)],
+                         upto)
+        return c0 + chunk, total + ranks[-1], upto, out
+
+    zero = jnp.zeros((), jnp.int32)
+    _, found, upto, out = jax.lax.while_loop(
+        lambda carry: carry[0] < total_candidates, step,
+        (zero, zero, jnp.zeros((n,), jnp.int32), out))
+    per_atom = upto - jnp.concatenate([zero[None], upto[:-1]])
+    return found, per_atom, out
 
 
 def _stored_pairs(out, binned: _Binned):
@@ -442,27 +561,31 @@ def _stored_pairs(out, binned: _Binned):
 
 
 def _placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
-    """The full stencil's rows placed by atom (a counting sort): atom
-    ``i``'s self pair (``selfs``), then its pairs in their rank order, at
-    its offset in the list. Returns int32 ``(capacity, 5)`` rows padded
+    """The full stencil's rows, found ``i``-major (so stored at their place
+    when there are no self pairs), with atom ``i``'s self pair (``selfs``)
+    placed before its pairs. Returns int32 ``(capacity, 5)`` rows padded
     with ``(N, N, 0)``, their count and the count per system."""
     n = binned.order.shape[0]
     i, j, s = _stored_pairs(out, binned)
-    kept = i < n
-    own = jnp.zeros((n,), jnp.int32) if selfs is None else \
-        selfs.astype(jnp.int32)
-    degree = per_atom + own
-    first = _exclusive_prefix(degree)
-    at = jnp.where(kept, first[jnp.where(kept, i, 0)] + own[
-        jnp.where(kept, i, 0)] + out[:, 2], capacity)
     rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    if selfs is None:
+        return rows, jnp.sum(per_atom, dtype=jnp.int32), \
+            jax.ops.segment_sum(per_atom, binned.graph, n_graph)
+    kept = i < n
+    at_i = jnp.where(kept, i, 0)
+    own = selfs.astype(jnp.int32)
+    # Each pair moves down by the self pairs of the atoms up to its own.
+    before = _prefix_sum(own, jnp.float64)
+    at = jnp.where(kept, jnp.arange(capacity, dtype=jnp.int32)
+                   + before[at_i], capacity)
     placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
                               (capacity, 5)).at[at].set(rows, mode="drop")
-    if selfs is not None:
-        atoms = jnp.arange(n, dtype=jnp.int32)
-        placed = placed.at[jnp.where(selfs, first, capacity)].set(
-            jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-            mode="drop")
+    degree = per_atom + own
+    first = _exclusive_prefix(degree)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    placed = placed.at[jnp.where(selfs, first, capacity)].set(
+        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+        mode="drop")
     return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
         degree, binned.graph, n_graph)
 
@@ -530,6 +653,7 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
       pad_index: int32 scalar, ``i`` and ``j`` of the padding rows.
       reach: static ``r_k`` per axis (0 on the static free axes of the
         brute force).
+      chunk: static candidates read per step of the loop.
       capacity: static rows; 0 counts only.
       completed: static; the cells have no zero rows to complete (checked
         on the host).
@@ -583,70 +707,72 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     return rows, total, per_system, error.astype(jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnames=(
-    "periodic", "reach", "capacity", "half", "self_interaction"))
-def search_small(positions, mask, h, hinv, cutoff, species, *,
-                 periodic: tuple[bool, ...], reach: tuple[int, ...],
-                 capacity: int, half: bool, self_interaction: bool):
-    """The pairs of one small system, every candidate ``(i, j, S)`` at once
-    (no grid, no loop, no sort: a handful of XLA operations, for eager calls
-    whose cost is the program's dispatch). The same decisions as `search`
-    (each ``d`` computed as there; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit
-    for bit), in ``i``-major order (sorted by ``i``).
+@functools.lru_cache(maxsize=64)
+def _host_stencil(reach):
+    """int32 ``(M, 3)`` every offset within ``reach``, and bool ``(M,)``:
+    the zero offset (cached: an eager call builds it once)."""
+    every = np.array(list(itertools.product(
+        *(range(-k, k + 1) for k in reach))), np.int32)
+    return every, ~every.any(axis=1)
+
+
+def search_small_host(positions, mask, h, hinv, cutoff, species, *,
+                      periodic: tuple[bool, ...], reach: tuple[int, ...],
+                      half: bool, self_interaction: bool):
+    """The pairs of one small system in numpy, for eager calls on host
+    arrays: every candidate ``(i, j, S)`` at once (no grid, no loop, no
+    program to dispatch, which is most of the time of a system of a few
+    atoms), decided as `search` decides (``d`` computed as there, in the
+    positions' dtype; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit for bit), in
+    ``i``-major order (sorted by ``i``).
 
     Args:
-      positions: float ``(N, 3)``; mask: bool ``(N,)`` real atoms.
-      h, hinv: ``(3, 3)`` the completed cell (checked on the host) and its
-        inverse, the positions' dtype.
-      cutoff, species: as `search`.
+      positions: numpy float ``(N, 3)``; mask: bool ``(N,)``; h, hinv:
+        numpy ``(3, 3)`` the completed cell and its inverse, in the
+        positions' dtype; cutoff: float, or numpy ``(S, S)``; species: int
+        ``(N,)`` or None.
       periodic, reach: static; the cell needs no shift past ``reach``
-        (checked on the host).
+        (checked on the host); half, self_interaction: as `search`.
     Returns:
-      int32 ``(capacity + 1, 5)``: the rows ``(i, j, S)`` padded with
-      ``(N, N, 0)``, then ``(count, error bits, 0, 0, 0)``.
+      int32 ``(count, 5)`` rows ``(i, j, S)`` (exactly the pairs) and the
+      int error bits.
     """
-    n, dtype = positions.shape[0], positions.dtype
-    cut = jnp.asarray(cutoff, dtype)
-    r = jax.lax.stop_gradient(positions)
-    finite = jnp.all(jnp.isfinite(r), axis=1)
-    error = jnp.where(jnp.any(mask & ~finite),
-                      int(ErrorBit.NONFINITE_POSITION), 0)
+    dtype = positions.dtype
+    n = positions.shape[0]
+    finite = np.isfinite(positions).all(axis=1)
+    everyone = bool(mask.all()) and bool(finite.all())
+    error = 0 if everyone or not np.any(mask & ~finite) else \
+        int(ErrorBit.NONFINITE_POSITION)
     real = mask & finite
-    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv, axis=1)
-    w = jnp.where(np.array(periodic), jnp.floor(f), 0).astype(jnp.int32)
-    every = np.array(list(itertools.product(
-        *(range(-k, k + 1) for k in reach))), np.int32)  # (M, 3)
-    # S = o + w[i] - w[j] for every (i, j, o): i-major.
-    s = (jnp.asarray(every)[None, None] + w[:, None, None, :]
-         - w[None, :, None, :])
-    d = (r[None, :, None, :] - r[:, None, None, :]) + shift_vectors(
-        s.astype(dtype), h)
-    dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
-                    + d[..., 2] * d[..., 2])
+    r = positions if everyone else np.where(real[:, None], positions,
+                                            0).astype(dtype)
+    f = np.sum(r[:, :, None] * hinv, axis=1)
+    w = np.where(np.array(periodic), np.floor(f), 0).astype(np.int32)
+    every, zero = _host_stencil(tuple(reach))
+    # (Few numpy calls: each costs more than its arithmetic here.)
+    s = every + (w[:, None, None, :] - w[None, :, None, :])  # o + w_i - w_j
+    sf = s.astype(dtype)
+    d = (r[None, :, None, :] - r[:, None, None, :]) + (
+        (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2])
+    d2 = d * d
+    dist = np.sqrt((d2[..., 0] + d2[..., 1]) + d2[..., 2])
     if species is None:
-        limit = cut
+        keep = dist < np.asarray(cutoff, dtype)
     else:
-        limit = cut.at[species[:, None, None], species[None, :, None]].get(
-            mode="fill", fill_value=0)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    same = atoms[:, None, None] == atoms[None, :, None]
-    own = same & jnp.asarray(~every.any(axis=1))[None, None]
-    keep = real[:, None, None] & real[None, :, None] & (dist < limit)
+        keep = dist < np.asarray(cutoff, dtype)[species[:, None, None],
+                                                species[None, :, None]]
+    if not everyone:
+        keep &= real[:, None, None] & real[None, :, None]
+    atoms = np.arange(n)
     if half:
-        keep = keep & ((atoms[:, None, None] < atoms[None, :, None])
-                       | (same & _lex_positive(s)) | own)
+        lex = (s[..., 0] > 0) | ((s[..., 0] == 0) & (
+            (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
+        same = atoms[:, None, None] == atoms[None, :, None]
+        keep &= (atoms[:, None, None] < atoms[None, :, None]) | (
+            same & (lex | zero))
     if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
-        keep = keep & ~own
-    flat = keep.reshape(-1)
-    total = jnp.sum(flat, dtype=jnp.int32)
-    at = jnp.where(flat, jnp.cumsum(flat, dtype=jnp.int32) - 1, capacity)
-    shape = s.shape[:3]
-    rows = jnp.concatenate([
-        jnp.broadcast_to(atoms[:, None, None], shape)[..., None],
-        jnp.broadcast_to(atoms[None, :, None], shape)[..., None], s], axis=-1)
-    out = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
-                           (capacity, 5)).at[at].set(rows.reshape(-1, 5),
-                                                     mode="drop")
-    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
-    tail = jnp.stack([total, error.astype(jnp.int32)] + [jnp.int32(0)] * 3)
-    return jnp.concatenate([out, tail[None]])
+        keep[atoms, atoms, int(np.argmax(zero))] = False
+    i, j, m = np.nonzero(keep)
+    rows = np.empty((len(i), 5), np.int32)
+    rows[:, 0], rows[:, 1], rows[:, 2:] = i, j, s[i, j, m]
+    return rows, error

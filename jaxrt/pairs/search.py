@@ -26,9 +26,10 @@ and ``capacity=None`` sizes the list exactly. Eager calls round the atom
 count and the capacity up to shared buckets (1, 2, 3, 4, 6, 8, 12, 16, 24,
 ...), padding with masked atoms, so that a data set of many sizes compiles a
 few programs, and each call is one compiled program and one transfer back
-(a second when the estimated capacity was short). Under ``jit`` / ``vmap``
-pass ``capacity`` and ``max_shift`` (`pairs_sizes` measures them on a data
-set); anything that leaves the list incomplete (more pairs than
+(a second when the estimated capacity was short); a system of a few atoms
+is searched on the host, in numpy, with no program at all. Under ``jit`` /
+``vmap`` pass ``capacity`` and ``max_shift`` (`pairs_sizes` measures them
+on a data set); anything that leaves the list incomplete (more pairs than
 ``capacity``, a cell that needs more shifts than ``max_shift``, a
 non-finite position, a singular cell) sets ``overflow`` and a bit of
 ``error``; `Pairs.check` raises on it, and an eager call raises at once.
@@ -47,7 +48,7 @@ from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, PairsError, raise_if
 from jaxrt.pairs.checks import BRUTE_CANDIDATES, Float32Warning
 from jaxrt.pairs.program import safe_norm as _safe_norm
-from jaxrt.pairs.program import search, search_small, shift_vectors
+from jaxrt.pairs.program import search, search_small_host, shift_vectors
 
 __all__ = ["BRUTE_CANDIDATES", "ErrorBit", "Float32Warning", "PairSizes",
            "Pairs", "PairsError", "pairs", "pairs_sizes"]
@@ -346,9 +347,7 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
     brute, reach, chunk = checks.plan(size, pbc, shift, backend)
     if brute and checks.is_small(size, shift):
         return _eager_small(positions, real, h, concrete_cell, cut, species,
-                            pbc, shift, capacity, n, guess_args=(
-                                positions[:n][real[:n]], radius, options,
-                                size), options=options)
+                            pbc, shift, capacity, n, options)
     call = functools.partial(
         search, positions, np.zeros((size,), np.int32), real, h[None],
         np.array(pbc)[None], cut, species, np.int32(n), periodic=pbc,
@@ -371,27 +370,25 @@ def _eager(positions, h, mask, cut, species, radius, pbc, shift, backend,
 
 
 def _eager_small(positions, real, h, concrete_cell, cut, species, pbc,
-                 shift, capacity, n, guess_args, options) -> Pairs:
-    """`_eager` for a small system: `search_small`, one array back."""
+                 shift, capacity, n, options) -> Pairs:
+    """`_eager` for a small system: `search_small_host` (numpy: no
+    program to dispatch), on the caller's ``n`` atoms."""
     hinv = checks.inverse3(concrete_cell)[0].astype(positions.dtype)
-    call = functools.partial(
-        search_small, positions, real, h, hinv, cut, species, periodic=pbc,
-        reach=shift, half=options["half"],
+    rows, error = search_small_host(
+        positions[:n], real[:n], np.asarray(h, positions.dtype), hinv,
+        np.asarray(cut), None if species is None else species[:n],
+        periodic=pbc, reach=shift, half=options["half"],
         self_interaction=options["self_interaction"])
-    exact = capacity is None
-    if exact:
-        r, radius, options, size = guess_args
-        capacity = _guess(r, concrete_cell, pbc, radius, options, size)
-    out = np.asarray(call(capacity=capacity))
-    total, error = int(out[-1, 0]), int(out[-1, 1])
-    if not exact:
-        raise_if(error, total, capacity)
-        return _host_result(np.where(out[:-1] < n, out[:-1], [n, n, 0, 0, 0]),
-                            total, error)
-    raise_if(error & ~int(ErrorBit.CAPACITY))
+    total = len(rows)
+    if capacity is None:
+        raise_if(error)
+        return _host_result(rows, total, 0)
     if total > capacity:
-        out = np.asarray(call(capacity=checks.bucket(total)))
-    return _host_result(out[:total], total, 0)
+        error |= int(ErrorBit.CAPACITY)
+    raise_if(error, total, capacity)
+    out = np.empty((capacity, 5), np.int32)
+    out[:total], out[total:] = rows, [n, n, 0, 0, 0]
+    return _host_result(out, total, error)
 
 
 def _guess(r, cell, pbc, radius, options, size: int) -> int:

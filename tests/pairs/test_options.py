@@ -175,3 +175,33 @@ def test_free_space_half_list_of_a_random_cloud(x64):
     got = jaxrt.pairs(atoms.positions, 2.0, half=True)
     assert set(stored(got)) == halved(ase_set(atoms, 2.0))
     assert all(i < j for i, j, *_ in stored(got))
+
+
+@pytest.mark.parametrize("options", [
+    {"self_interaction": True},
+    {"half": True, "species": [11, 17, 11, 17],
+     "cutoff": {(11, 11): 4.0, (11, 17): 2.82, (17, 17): 5.0}}])
+def test_host_search_of_small_systems_equals_the_jitted_program(options,
+                                                                x64):
+    """Eager calls of small systems search on the host (numpy), jitted ones
+    in the program: the same pairs, both sorted by i (the order within an
+    atom's pairs is the search's), a pair at the cutoff (to rounding)
+    decided alike."""
+    atoms = rock_salt()
+    atoms.positions[1] = atoms.positions[0] + [2.82, 0, 0]  # |d| = 2.82
+    options = dict(options)
+    cutoff = options.pop("cutoff", 2.82)
+    species = options.pop("species", None)
+    r, h = atoms.positions, cell_of(atoms)
+    host = jaxrt.pairs(r, cutoff, cell=h, species=species, sort="i",
+                       **options)
+    sizes = jaxrt.pairs_sizes(r, cutoff, cell=h, species=species, **options)
+    program = jax.jit(lambda r, h: jaxrt.pairs(
+        r, cutoff, cell=h, species=species, sort="i", capacity=sizes.capacity
+        + 3, max_shift=sizes.max_shift, **options))(jnp.asarray(r),
+                                                    jnp.asarray(h))
+    assert int(program.count) == int(host.count) > 0
+    for result in (host, program):
+        i = [p[0] for p in stored(result)]
+        assert i == sorted(i)
+    assert sorted(stored(program)) == sorted(stored(host))
