@@ -771,6 +771,12 @@ class _Lists:
     def __init__(self, settings: _Settings):
         self.settings = settings
         self.searcher = backends.bind(settings.backend)
+        # A backend bound per factory (its trees kept per traced call site)
+        # or keeping state in the list builds at ``allocate`` through its
+        # own build program, which its later updates meet again.
+        self.builds_as_update = not (
+            _backend.capabilities(settings.backend).binds
+            or _backend.is_stateful(self.searcher))
         # `BySize`'s lists are checked as its large backend's at every N, so
         # that what ``"auto"`` accepts does not change with N.
         self.checks_metric = not capabilities(
@@ -907,7 +913,8 @@ class _Lists:
         compiled = self.plan_build(n, position.dtype, query, capacity, sizes,
                                    _rounded_list_limit(position))
         if compiled is None:
-            if not kwargs or self.settings.fractional_coordinates:
+            if self.builds_as_update and (
+                    not kwargs or self.settings.fractional_coordinates):
                 return self.build_as_update(position, capacity, state,
                                             radii if own_radii else None,
                                             kwargs)
