@@ -62,12 +62,18 @@ def _child(library: str, n: int, fmt: str) -> None:
     displacement, _ = space.periodic(side)
     layout = getattr(partition.NeighborListFormat, fmt)
     clock[:] = [time.process_time(), time.perf_counter()]
-    fns = neighbor_list(displacement, side, 1.5, 0.5, format=layout)
-    nbrs = fns.allocate(position)
-    nbrs.idx.block_until_ready()
-    lap("allocate")
-    nbrs.update(moved[0]).idx.block_until_ready()
-    lap("first_update")
+
+    def allocate_and_update(prefix):
+        """A new factory's ``allocate`` and first eager ``update``, timed."""
+        fns = neighbor_list(displacement, side, 1.5, 0.5, format=layout)
+        nbrs = fns.allocate(position)
+        nbrs.idx.block_until_ready()
+        lap(prefix + "allocate")
+        nbrs.update(moved[0]).idx.block_until_ready()
+        lap(prefix + "first_update")
+        return nbrs
+
+    nbrs = allocate_and_update("")
     def median_lap(name, call):
         """The median (CPU, wall) seconds of ``call`` over the later moves."""
         laps = []
@@ -82,12 +88,7 @@ def _child(library: str, n: int, fmt: str) -> None:
     update(moved[0], nbrs).idx.block_until_ready()
     lap("jit_first")
     median_lap("jit_update", lambda r: update(r, nbrs))
-    fns = neighbor_list(displacement, side, 1.5, 0.5, format=layout)
-    nbrs = fns.allocate(position)
-    nbrs.idx.block_until_ready()
-    lap("warm_allocate")
-    nbrs.update(moved[0]).idx.block_until_ready()
-    lap("warm_first_update")
+    nbrs = allocate_and_update("warm_")
     out["capacity"] = [int(nbrs.idx.shape[-1]), 0]
     print("RESULT " + json.dumps(out), flush=True)
 

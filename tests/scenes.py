@@ -1,6 +1,8 @@
 """Scenes shared by test files in different folders (importable as
 ``scenes``: pyproject's ``pythonpath`` holds ``tests``)."""
+import jax.numpy as jnp
 import numpy as np
+from jax_md import space
 
 
 def lattice(n_per_side, spacing, dim=3):
@@ -17,6 +19,23 @@ def fluid(n_side=6, dim=3, density=0.8, seed=0, jitter=0.15):
                  -1).reshape(-1, dim) * a
     rng = np.random.default_rng(seed)
     return (g + rng.uniform(-jitter, jitter, g.shape) * a) % side, side
+
+
+def slab_displacement(side):
+    """Periodic on x and y, a wall (free) on z."""
+    def displacement(a, b, **unused):
+        d = a - b
+        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
+    return displacement
+
+
+# The list-free LJ tests' boxes: name -> side -> (displacement, box,
+# periodic axes or None).
+GEOMETRIES = {
+    "periodic": lambda side: (space.periodic(side)[0], side, None),
+    "free": lambda side: (space.free()[0], None, None),
+    "slab": lambda side: (slab_displacement(side), side, (True, True, False)),
+}
 
 
 # A small 2D LJ scene in TOML.

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from jax_md import energy as jmd_energy
 from jax_md import partition, space
-from scenes import fluid
+from scenes import GEOMETRIES, fluid, slab_displacement
 
 import jaxrt
 from jaxrt.backends.cell import grid as cell_grid
@@ -62,21 +62,6 @@ BRUTE_SLOW = ("bvh", pytest.param("brute", marks=SLOW))
 def x64():
     with jax.enable_x64(True):
         yield
-
-
-def slab_displacement(side):
-    """Periodic on x and y, a wall (free) on z."""
-    def displacement(a, b, **unused):
-        d = a - b
-        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
-    return displacement
-
-
-GEOMETRIES = {
-    "periodic": lambda side: (space.periodic(side)[0], side, None),
-    "free": lambda side: (space.free()[0], None, None),
-    "slab": lambda side: (slab_displacement(side), side, (True, True, False)),
-}
 
 
 def list_energy(displacement, box, periodic, R0, radii=None, **kw):

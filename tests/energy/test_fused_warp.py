@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax_md import space
-from scenes import fluid
+from scenes import GEOMETRIES, fluid
 
 pytest.importorskip("warp")
 
@@ -44,21 +44,6 @@ E_RTOL, F_RTOL = 1e-12, 1e-10
 def x64():
     with jax.enable_x64(True):
         yield
-
-
-def slab_displacement(side):
-    """Periodic on x and y, a wall (free) on z."""
-    def displacement(a, b, **unused):
-        d = a - b
-        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
-    return displacement
-
-
-GEOMETRIES = {
-    "periodic": lambda side: (space.periodic(side)[0], side, None),
-    "free": lambda side: (space.free()[0], None, None),
-    "slab": lambda side: (slab_displacement(side), side, (True, True, False)),
-}
 
 
 def close(a, b, rtol):
