@@ -12,10 +12,12 @@ The pipeline, one launch each (`lj_sums`):
    sorted range ``[start[a], start[b + 1])``.
 4. ``gather``: wrapped positions (and radii) in sorted order, so that the
    threads of a warp read neighbouring particles.
-5. ``pair_sums``: a thread per sorted particle walks its stencil: 3 x 3
-   rows (y, z), each one contiguous range of x-adjacent cells (two where a
-   periodic x row wraps), every pair met from both of its particles (no
-   atomics), and writes its force to the caller's order.
+5. ``pair_sums`` (`walk_kernel`): a thread per sorted particle walks its
+   stencil: rows (y, z), each one contiguous range of x-adjacent cells (two
+   where a periodic x row wraps) trimmed to the cells the particle's cut
+   can reach from that row, rows out of reach skipped, every pair met from
+   both of its particles (no atomics), and writes its force to the
+   caller's order. The flags that choose what is summed are compiled in.
 
 The grid (per axis: origin, cell width, box side, cell count) is an input,
 so that free axes can follow the particles' extent while the table keeps a
@@ -155,12 +157,38 @@ def _pair_functions(scalar):
     return lj, row, rounded
 
 
-def _walk_kernel(scalar):
-    """The thread walk (`lj_sums` step 5) for positions of ``scalar``."""
+# Module options of the lazily built walks (`walk_kernel`).
+_OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
+# The flag bits a walk may fix at compile time.
+STATIC_BITS = HAS_RADII | DERIVATIVES | COUNT
+
+
+def _walk_kernel(scalar, static_bits, prune):
+    """The thread walk (`lj_sums` step 5) for positions of ``scalar``.
+
+    ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
+    (the branches they guard compiled away), or None to read them from
+    ``flags``. ``prune``: each stencil row's x range cut to the cells within
+    the largest cut of the particle (by its distance to the row's slab in y
+    and z), rows beyond it skipped: the same pairs, fewer candidates.
+    """
     vector = wp.types.vector(3, scalar)
     lj, row, rounded = _pair_functions(scalar)
+    generic = static_bits is None
+    fixed = 0 if generic else int(static_bits)
 
-    @wp.kernel
+    @wp.func
+    def gap(p: scalar, t: int, origin: scalar, width: scalar,
+            slack: scalar, on: int):
+        # A lower bound of the distance from ``p`` to the cells of row
+        # ``t`` (unwrapped: images keep their offset), less ``slack``.
+        if on == 0:
+            return scalar(0.0)
+        lo = origin + scalar(t) * width
+        g = wp.max(lo - p, p - (lo + width))
+        return wp.max(g - slack, scalar(0.0))
+
+    @wp.kernel(module="unique", module_options=_OPTIONS)
     def pair_sums(position: wp.array(dtype=vector),
                   keys: wp.array(dtype=wp.int32),
                   values: wp.array(dtype=wp.int32),
@@ -175,9 +203,12 @@ def _walk_kernel(scalar):
                   d_epsilon: wp.array(dtype=scalar),
                   count: wp.array(dtype=wp.int32)):
         i = wp.tid()
-        has_radii = flags & HAS_RADII
-        derivatives = flags & DERIVATIVES
-        counting = flags & COUNT
+        low = flags & STATIC_BITS
+        if wp.static(not generic):
+            low = wp.static(fixed)
+        has_radii = low & HAS_RADII
+        derivatives = low & DERIVATIVES
+        counting = low & COUNT
         px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
         nx, ny, nz = cells[0], cells[1], cells[2]
         ax, ay, az = cells[3], cells[4], cells[5]
@@ -202,6 +233,21 @@ def _walk_kernel(scalar):
         ds_sum = scalar(0.0)
         de_sum = scalar(0.0)
         hits = int(0)
+        origin, width = grid[ORIGIN], grid[WIDTH]
+        # The pruning's radius: the cutoff, or with radii a bound of every
+        # cut (each axis' cells are at least the largest cut over its
+        # reach wide); its slack covers the rounding of the cell bounds
+        # (float32: ~80 ulps of the grid's largest coordinate).
+        reach_r = r_cutoff
+        if has_radii != 0:
+            reach_r = wp.min(scalar(ax) * width[0],
+                             wp.min(scalar(ay) * width[1],
+                                    scalar(az) * width[2]))
+        reach2 = reach_r * reach_r
+        slack = scalar(1.0e-5) * (
+            wp.max(wp.abs(origin[0]) + scalar(nx) * width[0],
+                   wp.max(wp.abs(origin[1]) + scalar(ny) * width[1],
+                          wp.abs(origin[2]) + scalar(nz) * width[2])))
         # x: up to two ranges of cells [lo, hi], images ox.
         lo0 = wp.max(cx - ax, 0)
         hi0 = wp.min(cx + ax, nx - 1)
@@ -227,11 +273,60 @@ def _walk_kernel(scalar):
                 ox1 = 1
         for dz in range(-az, az + 1):
             z, oz, okz = row(cz, dz, nz, pz, az)
+            gz = scalar(0.0)
+            if wp.static(prune):
+                gz = gap(p[2], cz + dz, origin[2], width[2], slack,
+                         1 - rz)
+                if gz * gz >= reach2:
+                    okz = False
             if okz:
                 for dy in range(-ay, ay + 1):
                     y, oy, oky = row(cy, dy, ny, py, ay)
+                    rem = reach2
+                    if wp.static(prune):
+                        gy = gap(p[1], cy + dy, origin[1], width[1], slack,
+                                 1 - ry)
+                        rem = reach2 - gz * gz - gy * gy
+                        if rem <= scalar(0.0):
+                            oky = False
                     if oky:
                         base = nx * (y + ny * z)
+                        if wp.static(prune):
+                            if rx == 0:
+                                # This row's x cells within reach, unwrapped,
+                                # then split at the periodic seam.
+                                ext = wp.sqrt(rem) + slack
+                                xl = wp.max(cx - ax, int(wp.floor(
+                                    (p[0] - ext - origin[0]) / width[0])))
+                                xh = wp.min(cx + ax, int(wp.floor(
+                                    (p[0] + ext - origin[0]) / width[0])))
+                                lo0 = xl
+                                hi0 = xh
+                                ox0 = 0
+                                hi1 = -1
+                                if px == 0:
+                                    lo0 = wp.max(xl, 0)
+                                    hi0 = wp.min(xh, nx - 1)
+                                elif xl < 0:
+                                    lo0 = xl + nx
+                                    ox0 = -1
+                                    if xh < 0:
+                                        hi0 = xh + nx
+                                    else:
+                                        hi0 = nx - 1
+                                        lo1 = 0
+                                        hi1 = xh
+                                        ox1 = 0
+                                elif xh >= nx:
+                                    if xl >= nx:
+                                        lo0 = xl - nx
+                                        hi0 = xh - nx
+                                        ox0 = 1
+                                    else:
+                                        hi0 = nx - 1
+                                        lo1 = 0
+                                        hi1 = xh - nx
+                                        ox1 = 1
                         for part in range(2):
                             lo = wp.where(part == 0, lo0, lo1)
                             hi = wp.where(part == 0, hi0, hi1)
@@ -274,6 +369,21 @@ def _walk_kernel(scalar):
     return pair_sums
 
 
+_WALKS: dict = {}
+
+
+def walk_kernel(scalar, flags: int, *, specialize: bool = True,
+                prune: bool = True):
+    """The walk for positions of ``scalar`` and ``flags``, built (and
+    compiled) on first use: ``specialize`` fixes ``flags``' `STATIC_BITS`
+    at compile time, ``prune`` trims each stencil row (`_walk_kernel`)."""
+    bits = (int(flags) & STATIC_BITS) if specialize else None
+    key = (scalar, bits, bool(prune))
+    if key not in _WALKS:
+        _WALKS[key] = _walk_kernel(scalar, bits, bool(prune))
+    return _WALKS[key]
+
+
 @wp.kernel
 def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
                start: wp.array(dtype=wp.int32)):
@@ -290,8 +400,7 @@ def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
         start[c] = i
 
 
-KERNELS = {t: dict(_scalar_kernels(t), pair_sums=_walk_kernel(t))
-           for t in (wp.float32, wp.float64)}
+KERNELS = {t: _scalar_kernels(t) for t in (wp.float32, wp.float64)}
 
 
 def scalar_of(vector) -> type:
@@ -301,7 +410,8 @@ def scalar_of(vector) -> type:
 
 def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
             energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
-            position, radius) -> None:
+            position, radius, specialize: bool = True,
+            prune: bool = True) -> None:
     """Launch the pipeline of the module docstring on ``points``' device.
 
     Args:
@@ -320,6 +430,7 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
       keys, values: int32 ``(2N,)`` scratch (the sort's); wrapped,
         position: vec3 ``(N,)`` scratch; start: int32 ``(T + 1,)`` at
         least; radius: scalar ``(N,)`` scratch (or ``(1,)`` without radii).
+      specialize, prune: `walk_kernel`'s (the same sums either way).
     """
     n = points.shape[0]
     if n == 0:
@@ -336,7 +447,9 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     wp.launch(k["gather"], dim=n, device=device,
               inputs=[values, wrapped, radii, flags & HAS_RADII, position,
                       radius])
-    wp.launch(k["pair_sums"], dim=n, device=device,
+    walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
+                       prune=prune)
+    wp.launch(walk, dim=n, device=device,
               inputs=[position, keys, values, radius, start, grid, cells,
                       params, flags, forces, energy, d_sigma, d_epsilon,
                       count])
