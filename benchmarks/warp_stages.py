@@ -6,15 +6,19 @@ pipeline, the host's time to enqueue it, and the jitted JAX call
 system (roofline.py's jittered simple-cubic lattice, rho 0.8, cutoff 2.5,
 float32, periodic), with the MD step's flags (forces and energy only).
 
-Timing: CUDA events around each stage inside one pass of the pipeline
-(on the CPU, wall time with a device synchronise between stages); median,
-min and max over ``--repeats`` passes after ``--warmup`` untimed ones.
+Timing: CUDA events around each stage inside one pass of the pipeline,
+queued behind an untimed walk so that they time the GPU's work rather
+than Python's launches (on the CPU, wall time with a device synchronise
+between stages); median, min and max over ``--repeats`` passes after
+``--warmup`` untimed ones. ``host enqueue``: the host's time to launch the
+whole pipeline, which a step pays where nothing else keeps the GPU busy.
 
 Walk variants (`walk_kernel`): ``generic`` reads the flags at run time,
-``static`` compiles them in; ``prune`` trims each stencil row to the cells
-within the cutoff of the particle; ``bN`` launches N threads per block.
-``same`` says whether the variant's forces equal the first variant's bit
-for bit (pruning skips only candidates beyond the cutoff, so they must).
+``static`` compiles them in; ``hoist`` computes the pair terms' constants
+once per particle and selects the switch (`lj_forces`); ``bN`` launches N
+threads per block. ``same`` says whether the variant's forces equal the
+first variant's bit for bit (``max_rel``: else their largest difference
+over the largest force).
 
 Roofline columns per row: ``bytes`` and ``flops`` counted per stage (the
 model below), ``floor_ms`` the larger of bytes over ``--bandwidth`` and
@@ -41,18 +45,21 @@ if __package__:  # run as -m, or imported: the package's modules
 else:  # run as a file: its folder is sys.path[0]
     import _harness
 
-# The walk's variants: (label, specialize, prune, block_dim).
+# The walk's variants: (label, specialize, hoist, block_dim). Measured
+# before and dropped (slower; results/h200/warp_stages_244e535): each
+# stencil row's x range trimmed to the particle's cutoff (171 -> 116
+# candidates per particle, but a warp still walks its widest lane's range).
 VARIANTS = (("generic", False, False, 256), ("static", True, False, 256),
-            ("generic+prune", False, True, 256),
-            ("static+prune", True, True, 256),
-            ("static+prune b128", True, True, 128),
-            ("static+prune b64", True, True, 64))
+            ("static+hoist", True, True, 256),
+            ("static+hoist b128", True, True, 128),
+            ("static+hoist b64", True, True, 64))
 # Flops of the walk: a candidate's difference, square and test; a pair's
 # Lennard-Jones terms inside the switch (reciprocal, powers, force, sums).
 FLOPS_CANDIDATE, FLOPS_PAIR = 9, 35
 
 
-def candidates(position, keys, grid, cells, r_cutoff, prune, sample=4096):
+def candidates(position, keys, grid, cells, r_cutoff, prune=False,
+               sample=4096):
     """Mean candidates per particle of the walk's stencil (the kernel's
     rows and x ranges, periodic axes with images) over ``sample`` sorted
     particles, from the cell-start table's counts."""
@@ -125,9 +132,9 @@ def measure(n_target, args, rows, device_columns):
     end_bit = max(1, int(table).bit_length())
 
     def walk(variant, walk_flags=flags):
-        _, specialize, prune, block = variant
+        _, specialize, hoist, block = variant
         kernel = wk.walk_kernel(wp.float32, walk_flags, specialize=specialize,
-                                prune=prune)
+                                hoist=hoist)
         wp.launch(kernel, dim=n, device=device, block_dim=block,
                   inputs=[position, keys, values, radius, start, grid_w,
                           cells_w, params_w, walk_flags, forces, energy,
@@ -153,6 +160,10 @@ def measure(n_target, args, rows, device_columns):
         # returns ms per stage.
         out = {}
         if cuda:
+            # A walk queued first keeps the GPU busy while the host
+            # enqueues the stages: the events then time the GPU's work,
+            # not Python's launches (``host enqueue`` times those).
+            walk(VARIANTS[0])
             marks = [wp.Event(enable_timing=True) for _ in range(len(stages)
                                                                   + 1)]
             wp.record_event(marks[0])
@@ -185,7 +196,9 @@ def measure(n_target, args, rows, device_columns):
                 f = forces.numpy()
                 if reference is None:
                     reference = f
-                same[v[0]] = bool(np.array_equal(f, reference))
+                same[v[0]] = (bool(np.array_equal(f, reference)),
+                              float(np.max(np.abs(f - reference))
+                                    / np.max(np.abs(reference))))
 
     # The pipeline whole (events around it) and the host's enqueue time.
     def pipeline():
@@ -198,6 +211,7 @@ def measure(n_target, args, rows, device_columns):
     for rep in range(args.warmup + args.repeats):
         wp.synchronize_device(device)
         if cuda:
+            walk(VARIANTS[0])  # busy, as in timed_pass
             a, b = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
             wp.record_event(a)
         t0 = time.perf_counter()
@@ -226,8 +240,7 @@ def measure(n_target, args, rows, device_columns):
     wp.synchronize_device(device)
     hits = float(np.mean(count.numpy()))
     pos, key = position.numpy(), keys.numpy()[:n]
-    cand = {p: candidates(pos, key, g, cells, params.r_cutoff, p)
-            for p in (False, True)}
+    cand = candidates(pos, key, g, cells, params.r_cutoff)
     passes = math.ceil(end_bit / 8)
     model = {
         "bin": (12 + 20) * n, "sort": (4 + passes * 16) * n,
@@ -247,12 +260,10 @@ def measure(n_target, args, rows, device_columns):
         base = name.split(" ")[0]
         if base == "walk":
             label = name[len("walk "):]
-            prune = "prune" in label
-            row["candidates"] = cand[prune]
-            row["same"] = same[label]
+            row["candidates"] = cand
+            row["same"], row["max_rel"] = same[label]
             row["bytes"] = model["walk"]
-            row["flops"] = n * (cand[prune] * FLOPS_CANDIDATE
-                                + hits * FLOPS_PAIR)
+            row["flops"] = n * (cand * FLOPS_CANDIDATE + hits * FLOPS_PAIR)
         elif base in model:
             row["bytes"], row["flops"] = model[base], 0
         if "bytes" in row:
@@ -262,8 +273,8 @@ def measure(n_target, args, rows, device_columns):
         rows.append(row)
         print(f"N {n:9d} {name:24s} {row['median_ms']:9.4f} ms"
               + (f"  floor {row['floor_ms']:.4f}" if "floor_ms" in row
-                 else "") + (f"  same {row['same']}" if "same" in row
-                             else ""), flush=True)
+                 else "") + (f"  same {row['same']} {row['max_rel']:.1e}"
+                             if "same" in row else ""), flush=True)
     rows.append({"stage": "jax walk (jit, grid + ffi)",
                  **timing_jax.columns(), **common})
     print(f"N {n:9d} {'jax walk':24s} {timing_jax.median_ms:9.4f} ms; "

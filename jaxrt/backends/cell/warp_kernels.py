@@ -14,10 +14,9 @@ The pipeline, one launch each (`lj_sums`):
    threads of a warp read neighbouring particles.
 5. ``pair_sums`` (`walk_kernel`): a thread per sorted particle walks its
    stencil: rows (y, z), each one contiguous range of x-adjacent cells (two
-   where a periodic x row wraps) trimmed to the cells the particle's cut
-   can reach from that row, rows out of reach skipped, every pair met from
-   both of its particles (no atomics), and writes its force to the
-   caller's order. The flags that choose what is summed are compiled in.
+   where a periodic x row wraps), every pair met from both of its
+   particles (no atomics), and writes its force to the caller's order.
+   The flags that choose what is summed are compiled in.
 
 The grid (per axis: origin, cell width, box side, cell count) is an input,
 so that free axes can follow the particles' extent while the table keeps a
@@ -104,7 +103,8 @@ def _scalar_kernels(scalar):
 
 
 def _pair_functions(scalar):
-    """The pair walk's functions for ``scalar``: (lj, row, rounded)."""
+    """The pair walk's functions for ``scalar``: (lj, lj_forces, row,
+    rounded)."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -135,6 +135,30 @@ def _pair_functions(scalar):
         return e, g, switch * epsilon * repulsion / sigma_base, switch * lj_unit
 
     @wp.func
+    def lj_forces(d2: scalar, sigma2: scalar, epsilon: scalar, ro2: scalar,
+                  rc2: scalar, inverse_cube: scalar):
+        # `lj`'s energy and force factor at one cut (no radii), its
+        # constants computed once per particle and the switch selected
+        # rather than branched on (lanes of a warp straddle the onset).
+        inverse = scalar(1.0) / d2
+        idr = sigma2 * inverse
+        idr6 = idr * idr * idr
+        idr12 = idr6 * idr6
+        lj_unit = scalar(4.0) * (idr12 - idr6)
+        repulsion = scalar(24.0) * (scalar(2.0) * idr12 - idr6)
+        gap = rc2 - d2
+        inside = d2 >= ro2
+        switch = wp.where(inside, gap * gap * (
+            rc2 + scalar(2.0) * d2 - scalar(3.0) * ro2) * inverse_cube,
+            scalar(1.0))
+        dswitch = wp.where(inside, scalar(-6.0) * gap * (d2 - ro2)
+                           * inverse_cube, scalar(0.0))
+        return (switch * epsilon * lj_unit,
+                switch * epsilon * repulsion * inverse
+                - scalar(2.0) * dswitch * epsilon * lj_unit,
+                switch * epsilon * repulsion, switch * lj_unit)
+
+    @wp.func
     def row(c: int, d: int, n: int, periodic: int, reach: int):
         # (cell, image, valid) of the stencil row ``c + d`` on one axis.
         t = c + d
@@ -154,7 +178,7 @@ def _pair_functions(scalar):
             return d - side * wp.round(d / side)
         return d
 
-    return lj, row, rounded
+    return lj, lj_forces, row, rounded
 
 
 # Module options of the lazily built walks (`walk_kernel`).
@@ -163,30 +187,19 @@ _OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
 STATIC_BITS = HAS_RADII | DERIVATIVES | COUNT
 
 
-def _walk_kernel(scalar, static_bits, prune):
+def _walk_kernel(scalar, static_bits, hoist):
     """The thread walk (`lj_sums` step 5) for positions of ``scalar``.
 
     ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
     (the branches they guard compiled away), or None to read them from
-    ``flags``. ``prune``: each stencil row's x range cut to the cells within
-    the largest cut of the particle (by its distance to the row's slab in y
-    and z), rows beyond it skipped: the same pairs, fewer candidates.
+    ``flags``. ``hoist`` (with ``static_bits`` and no radii): the pair
+    terms by `lj_forces`, their constants computed once per particle.
     """
     vector = wp.types.vector(3, scalar)
-    lj, row, rounded = _pair_functions(scalar)
+    lj, lj_forces, row, rounded = _pair_functions(scalar)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
-
-    @wp.func
-    def gap(p: scalar, t: int, origin: scalar, width: scalar,
-            slack: scalar, on: int):
-        # A lower bound of the distance from ``p`` to the cells of row
-        # ``t`` (unwrapped: images keep their offset), less ``slack``.
-        if on == 0:
-            return scalar(0.0)
-        lo = origin + scalar(t) * width
-        g = wp.max(lo - p, p - (lo + width))
-        return wp.max(g - slack, scalar(0.0))
+    fast = bool(hoist) and not generic and not fixed & HAS_RADII
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def pair_sums(position: wp.array(dtype=vector),
@@ -228,26 +241,16 @@ def _walk_kernel(scalar, static_bits, prune):
         if has_radii != 0:
             ri = radius[i]
         cut2 = r_cutoff * r_cutoff
+        # `lj_forces`' constants (the same expressions as `lj`'s).
+        sigma2 = sigma * sigma
+        ro2 = r_onset * r_onset
+        band = cut2 - ro2
+        inverse_cube = scalar(1.0) / (band * band * band)
         f = vector()
         e_sum = scalar(0.0)
         ds_sum = scalar(0.0)
         de_sum = scalar(0.0)
         hits = int(0)
-        origin, width = grid[ORIGIN], grid[WIDTH]
-        # The pruning's radius: the cutoff, or with radii a bound of every
-        # cut (each axis' cells are at least the largest cut over its
-        # reach wide); its slack covers the rounding of the cell bounds
-        # (float32: ~80 ulps of the grid's largest coordinate).
-        reach_r = r_cutoff
-        if has_radii != 0:
-            reach_r = wp.min(scalar(ax) * width[0],
-                             wp.min(scalar(ay) * width[1],
-                                    scalar(az) * width[2]))
-        reach2 = reach_r * reach_r
-        slack = scalar(1.0e-5) * (
-            wp.max(wp.abs(origin[0]) + scalar(nx) * width[0],
-                   wp.max(wp.abs(origin[1]) + scalar(ny) * width[1],
-                          wp.abs(origin[2]) + scalar(nz) * width[2])))
         # x: up to two ranges of cells [lo, hi], images ox.
         lo0 = wp.max(cx - ax, 0)
         hi0 = wp.min(cx + ax, nx - 1)
@@ -273,60 +276,11 @@ def _walk_kernel(scalar, static_bits, prune):
                 ox1 = 1
         for dz in range(-az, az + 1):
             z, oz, okz = row(cz, dz, nz, pz, az)
-            gz = scalar(0.0)
-            if wp.static(prune):
-                gz = gap(p[2], cz + dz, origin[2], width[2], slack,
-                         1 - rz)
-                if gz * gz >= reach2:
-                    okz = False
             if okz:
                 for dy in range(-ay, ay + 1):
                     y, oy, oky = row(cy, dy, ny, py, ay)
-                    rem = reach2
-                    if wp.static(prune):
-                        gy = gap(p[1], cy + dy, origin[1], width[1], slack,
-                                 1 - ry)
-                        rem = reach2 - gz * gz - gy * gy
-                        if rem <= scalar(0.0):
-                            oky = False
                     if oky:
                         base = nx * (y + ny * z)
-                        if wp.static(prune):
-                            if rx == 0:
-                                # This row's x cells within reach, unwrapped,
-                                # then split at the periodic seam.
-                                ext = wp.sqrt(rem) + slack
-                                xl = wp.max(cx - ax, int(wp.floor(
-                                    (p[0] - ext - origin[0]) / width[0])))
-                                xh = wp.min(cx + ax, int(wp.floor(
-                                    (p[0] + ext - origin[0]) / width[0])))
-                                lo0 = xl
-                                hi0 = xh
-                                ox0 = 0
-                                hi1 = -1
-                                if px == 0:
-                                    lo0 = wp.max(xl, 0)
-                                    hi0 = wp.min(xh, nx - 1)
-                                elif xl < 0:
-                                    lo0 = xl + nx
-                                    ox0 = -1
-                                    if xh < 0:
-                                        hi0 = xh + nx
-                                    else:
-                                        hi0 = nx - 1
-                                        lo1 = 0
-                                        hi1 = xh
-                                        ox1 = 0
-                                elif xh >= nx:
-                                    if xl >= nx:
-                                        lo0 = xl - nx
-                                        hi0 = xh - nx
-                                        ox0 = 1
-                                    else:
-                                        hi0 = nx - 1
-                                        lo1 = 0
-                                        hi1 = xh - nx
-                                        ox1 = 1
                         for part in range(2):
                             lo = wp.where(part == 0, lo0, lo1)
                             hi = wp.where(part == 0, hi0, hi1)
@@ -343,23 +297,39 @@ def _walk_kernel(scalar, static_bits, prune):
                                                rounded(d[1], side[1], ry),
                                                rounded(d[2], side[2], rz))
                                     d2 = wp.dot(d, d)
-                                    cut = r_cutoff
-                                    if has_radii != 0:
-                                        cut = wp.max(ri, radius[j])
-                                        cut2 = cut * cut
-                                    # Coincident pairs count, with no terms.
-                                    if counting != 0 and d2 < cut2 and j != i:
-                                        hits = hits + 1
-                                    if d2 < cut2 and d2 > scalar(0.0):
-                                        scale = cut / r_cutoff
-                                        e, g, ds, de = lj(
-                                            d2, sigma * scale, epsilon,
-                                            r_onset * scale, cut, sigma)
-                                        f = f + g * d
-                                        e_sum = e_sum + e
-                                        if derivatives != 0:
-                                            ds_sum = ds_sum + ds
-                                            de_sum = de_sum + de
+                                    if wp.static(fast):
+                                        if counting != 0 and d2 < cut2 \
+                                                and j != i:
+                                            hits = hits + 1
+                                        if d2 < cut2 and d2 > scalar(0.0):
+                                            e, g, ds, de = lj_forces(
+                                                d2, sigma2, epsilon, ro2,
+                                                cut2, inverse_cube)
+                                            f = f + g * d
+                                            e_sum = e_sum + e
+                                            if derivatives != 0:
+                                                ds_sum = ds_sum + ds / sigma
+                                                de_sum = de_sum + de
+                                    else:
+                                        cut = r_cutoff
+                                        if has_radii != 0:
+                                            cut = wp.max(ri, radius[j])
+                                            cut2 = cut * cut
+                                        # Coincident pairs count, with no
+                                        # terms.
+                                        if counting != 0 and d2 < cut2 \
+                                                and j != i:
+                                            hits = hits + 1
+                                        if d2 < cut2 and d2 > scalar(0.0):
+                                            scale = cut / r_cutoff
+                                            e, g, ds, de = lj(
+                                                d2, sigma * scale, epsilon,
+                                                r_onset * scale, cut, sigma)
+                                            f = f + g * d
+                                            e_sum = e_sum + e
+                                            if derivatives != 0:
+                                                ds_sum = ds_sum + ds
+                                                de_sum = de_sum + de
         forces[values[i]] = f
         energy[i] = e_sum
         d_sigma[i] = ds_sum
@@ -370,17 +340,21 @@ def _walk_kernel(scalar, static_bits, prune):
 
 
 _WALKS: dict = {}
+# The walk's threads per block: small blocks let an SM mix more of them
+# while the longest lanes of one finish (benchmarks/warp_stages.py).
+WALK_BLOCK = 64
 
 
 def walk_kernel(scalar, flags: int, *, specialize: bool = True,
-                prune: bool = True):
+                hoist: bool = True):
     """The walk for positions of ``scalar`` and ``flags``, built (and
     compiled) on first use: ``specialize`` fixes ``flags``' `STATIC_BITS`
-    at compile time, ``prune`` trims each stencil row (`_walk_kernel`)."""
+    at compile time, ``hoist`` takes `lj_forces` where it can
+    (`_walk_kernel`)."""
     bits = (int(flags) & STATIC_BITS) if specialize else None
-    key = (scalar, bits, bool(prune))
+    key = (scalar, bits, bool(hoist))
     if key not in _WALKS:
-        _WALKS[key] = _walk_kernel(scalar, bits, bool(prune))
+        _WALKS[key] = _walk_kernel(scalar, bits, bool(hoist))
     return _WALKS[key]
 
 
@@ -411,7 +385,7 @@ def scalar_of(vector) -> type:
 def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
             energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
             position, radius, specialize: bool = True,
-            prune: bool = True) -> None:
+            hoist: bool = True, block_dim: int = WALK_BLOCK) -> None:
     """Launch the pipeline of the module docstring on ``points``' device.
 
     Args:
@@ -430,7 +404,8 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
       keys, values: int32 ``(2N,)`` scratch (the sort's); wrapped,
         position: vec3 ``(N,)`` scratch; start: int32 ``(T + 1,)`` at
         least; radius: scalar ``(N,)`` scratch (or ``(1,)`` without radii).
-      specialize, prune: `walk_kernel`'s (the same sums either way).
+      specialize, hoist: `walk_kernel`'s (the same sums to rounding);
+      block_dim: the walk's threads per block.
     """
     n = points.shape[0]
     if n == 0:
@@ -448,8 +423,8 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
               inputs=[values, wrapped, radii, flags & HAS_RADII, position,
                       radius])
     walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
-                       prune=prune)
-    wp.launch(walk, dim=n, device=device,
+                       hoist=hoist)
+    wp.launch(walk, dim=n, device=device, block_dim=block_dim,
               inputs=[position, keys, values, radius, start, grid, cells,
                       params, flags, forces, energy, d_sigma, d_epsilon,
                       count])
