@@ -103,8 +103,8 @@ def _scalar_kernels(scalar):
 
 
 def _pair_functions(scalar):
-    """The pair walk's functions for ``scalar``: (lj, lj_forces, row,
-    rounded)."""
+    """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
+    row, rounded)."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -159,6 +159,31 @@ def _pair_functions(scalar):
                 switch * epsilon * repulsion, switch * lj_unit)
 
     @wp.func
+    def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
+        # The stencil's x cells as up to two ranges [lo, hi] with images
+        # (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range.
+        lo0 = wp.max(c - reach, 0)
+        hi0 = wp.min(c + reach, n - 1)
+        ox0 = 0
+        hi1 = -1
+        ox1 = 0
+        if periodic != 0:
+            if rounded != 0:
+                lo0 = 0
+                hi0 = n - 1
+            elif c - reach < 0:
+                lo0 = c - reach + n
+                hi0 = n - 1
+                ox0 = -1
+                hi1 = c + reach
+            elif c + reach >= n:
+                lo0 = c - reach
+                hi0 = n - 1
+                hi1 = c + reach - n
+                ox1 = 1
+        return lo0, hi0, ox0, 0, hi1, ox1
+
+    @wp.func
     def row(c: int, d: int, n: int, periodic: int, reach: int):
         # (cell, image, valid) of the stencil row ``c + d`` on one axis.
         t = c + d
@@ -178,7 +203,7 @@ def _pair_functions(scalar):
             return d - side * wp.round(d / side)
         return d
 
-    return lj, lj_forces, row, rounded
+    return lj, lj_forces, x_ranges, row, rounded
 
 
 # Module options of the lazily built walks (`walk_kernel`).
@@ -196,7 +221,7 @@ def _walk_kernel(scalar, static_bits, hoist):
     terms by `lj_forces`, their constants computed once per particle.
     """
     vector = wp.types.vector(3, scalar)
-    lj, lj_forces, row, rounded = _pair_functions(scalar)
+    lj, lj_forces, x_ranges, row, rounded = _pair_functions(scalar)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
     fast = bool(hoist) and not generic and not fixed & HAS_RADII
@@ -251,29 +276,7 @@ def _walk_kernel(scalar, static_bits, hoist):
         ds_sum = scalar(0.0)
         de_sum = scalar(0.0)
         hits = int(0)
-        # x: up to two ranges of cells [lo, hi], images ox.
-        lo0 = wp.max(cx - ax, 0)
-        hi0 = wp.min(cx + ax, nx - 1)
-        ox0 = 0
-        lo1 = 0
-        hi1 = -1
-        ox1 = 0
-        if px != 0:
-            if rx != 0:
-                lo0 = 0
-                hi0 = nx - 1
-            elif cx - ax < 0:
-                lo0 = cx - ax + nx
-                hi0 = nx - 1
-                ox0 = -1
-                lo1 = 0
-                hi1 = cx + ax
-            elif cx + ax >= nx:
-                lo0 = cx - ax
-                hi0 = nx - 1
-                lo1 = 0
-                hi1 = cx + ax - nx
-                ox1 = 1
+        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
         for dz in range(-az, az + 1):
             z, oz, okz = row(cz, dz, nz, pz, az)
             if okz:
@@ -297,39 +300,29 @@ def _walk_kernel(scalar, static_bits, hoist):
                                                rounded(d[1], side[1], ry),
                                                rounded(d[2], side[2], rz))
                                     d2 = wp.dot(d, d)
-                                    if wp.static(fast):
-                                        if counting != 0 and d2 < cut2 \
-                                                and j != i:
-                                            hits = hits + 1
-                                        if d2 < cut2 and d2 > scalar(0.0):
+                                    cut = r_cutoff
+                                    if has_radii != 0:
+                                        cut = wp.max(ri, radius[j])
+                                        cut2 = cut * cut
+                                    # Coincident pairs count, with no terms.
+                                    if counting != 0 and d2 < cut2 and j != i:
+                                        hits = hits + 1
+                                    if d2 < cut2 and d2 > scalar(0.0):
+                                        if wp.static(fast):
                                             e, g, ds, de = lj_forces(
                                                 d2, sigma2, epsilon, ro2,
                                                 cut2, inverse_cube)
-                                            f = f + g * d
-                                            e_sum = e_sum + e
-                                            if derivatives != 0:
-                                                ds_sum = ds_sum + ds / sigma
-                                                de_sum = de_sum + de
-                                    else:
-                                        cut = r_cutoff
-                                        if has_radii != 0:
-                                            cut = wp.max(ri, radius[j])
-                                            cut2 = cut * cut
-                                        # Coincident pairs count, with no
-                                        # terms.
-                                        if counting != 0 and d2 < cut2 \
-                                                and j != i:
-                                            hits = hits + 1
-                                        if d2 < cut2 and d2 > scalar(0.0):
+                                            ds = ds / sigma
+                                        else:
                                             scale = cut / r_cutoff
                                             e, g, ds, de = lj(
                                                 d2, sigma * scale, epsilon,
                                                 r_onset * scale, cut, sigma)
-                                            f = f + g * d
-                                            e_sum = e_sum + e
-                                            if derivatives != 0:
-                                                ds_sum = ds_sum + ds
-                                                de_sum = de_sum + de
+                                        f = f + g * d
+                                        e_sum = e_sum + e
+                                        if derivatives != 0:
+                                            ds_sum = ds_sum + ds
+                                            de_sum = de_sum + de
         forces[values[i]] = f
         energy[i] = e_sum
         d_sigma[i] = ds_sum
