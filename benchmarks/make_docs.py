@@ -85,6 +85,12 @@ BENCHMARKS = [
      "benchmarks/grid_stages.py",
      "Keys, sort, cell starts and runs of the grid the list-free kernels "
      "walk, beside the alternatives."),
+    ("warp_stages", "The Warp list-free LJ engine, stage by stage",
+     "benchmarks/warp_stages.py",
+     "Bin, radix sort, cell table, gather and the walk's variants of "
+     "`Cell(kernel=\"warp\")` timed apart on the GPU (CUDA events), the "
+     "pipeline whole, the host's launches, and each stage's floor from "
+     "its bytes and flops."),
     ("pairs", "`jaxrt.pairs` against ASE, matscipy, vesin",
      "benchmarks/pairs.py",
      "Pairs with lattice shifts of silicon (cutoff 5 Å, float64 on the "

@@ -12,10 +12,11 @@ The pipeline, one launch each (`lj_sums`):
    sorted range ``[start[a], start[b + 1])``.
 4. ``gather``: wrapped positions (and radii) in sorted order, so that the
    threads of a warp read neighbouring particles.
-5. ``pair_sums``: a thread per sorted particle walks its stencil: 3 x 3
-   rows (y, z), each one contiguous range of x-adjacent cells (two where a
-   periodic x row wraps), every pair met from both of its particles (no
-   atomics), and writes its force to the caller's order.
+5. ``pair_sums`` (`walk_kernel`): a thread per sorted particle walks its
+   stencil: rows (y, z), each one contiguous range of x-adjacent cells (two
+   where a periodic x row wraps), every pair met from both of its
+   particles (no atomics), and writes its force to the caller's order.
+   The flags that choose what is summed are compiled in.
 
 The grid (per axis: origin, cell width, box side, cell count) is an input,
 so that free axes can follow the particles' extent while the table keeps a
@@ -102,7 +103,8 @@ def _scalar_kernels(scalar):
 
 
 def _pair_functions(scalar):
-    """The pair walk's functions for ``scalar``: (lj, row, rounded)."""
+    """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
+    row, rounded)."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -133,6 +135,55 @@ def _pair_functions(scalar):
         return e, g, switch * epsilon * repulsion / sigma_base, switch * lj_unit
 
     @wp.func
+    def lj_forces(d2: scalar, sigma2: scalar, epsilon: scalar, ro2: scalar,
+                  rc2: scalar, inverse_cube: scalar):
+        # `lj`'s energy and force factor at one cut (no radii), its
+        # constants computed once per particle and the switch selected
+        # rather than branched on (lanes of a warp straddle the onset).
+        inverse = scalar(1.0) / d2
+        idr = sigma2 * inverse
+        idr6 = idr * idr * idr
+        idr12 = idr6 * idr6
+        lj_unit = scalar(4.0) * (idr12 - idr6)
+        repulsion = scalar(24.0) * (scalar(2.0) * idr12 - idr6)
+        gap = rc2 - d2
+        inside = d2 >= ro2
+        switch = wp.where(inside, gap * gap * (
+            rc2 + scalar(2.0) * d2 - scalar(3.0) * ro2) * inverse_cube,
+            scalar(1.0))
+        dswitch = wp.where(inside, scalar(-6.0) * gap * (d2 - ro2)
+                           * inverse_cube, scalar(0.0))
+        return (switch * epsilon * lj_unit,
+                switch * epsilon * repulsion * inverse
+                - scalar(2.0) * dswitch * epsilon * lj_unit,
+                switch * epsilon * repulsion, switch * lj_unit)
+
+    @wp.func
+    def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
+        # The stencil's x cells as up to two ranges [lo, hi] with images
+        # (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range.
+        lo0 = wp.max(c - reach, 0)
+        hi0 = wp.min(c + reach, n - 1)
+        ox0 = 0
+        hi1 = -1
+        ox1 = 0
+        if periodic != 0:
+            if rounded != 0:
+                lo0 = 0
+                hi0 = n - 1
+            elif c - reach < 0:
+                lo0 = c - reach + n
+                hi0 = n - 1
+                ox0 = -1
+                hi1 = c + reach
+            elif c + reach >= n:
+                lo0 = c - reach
+                hi0 = n - 1
+                hi1 = c + reach - n
+                ox1 = 1
+        return lo0, hi0, ox0, 0, hi1, ox1
+
+    @wp.func
     def row(c: int, d: int, n: int, periodic: int, reach: int):
         # (cell, image, valid) of the stencil row ``c + d`` on one axis.
         t = c + d
@@ -152,15 +203,30 @@ def _pair_functions(scalar):
             return d - side * wp.round(d / side)
         return d
 
-    return lj, row, rounded
+    return lj, lj_forces, x_ranges, row, rounded
 
 
-def _walk_kernel(scalar):
-    """The thread walk (`lj_sums` step 5) for positions of ``scalar``."""
+# Module options of the lazily built walks (`walk_kernel`).
+_OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
+# The flag bits a walk may fix at compile time.
+STATIC_BITS = HAS_RADII | DERIVATIVES | COUNT
+
+
+def _walk_kernel(scalar, static_bits, hoist):
+    """The thread walk (`lj_sums` step 5) for positions of ``scalar``.
+
+    ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
+    (the branches they guard compiled away), or None to read them from
+    ``flags``. ``hoist`` (with ``static_bits`` and no radii): the pair
+    terms by `lj_forces`, their constants computed once per particle.
+    """
     vector = wp.types.vector(3, scalar)
-    lj, row, rounded = _pair_functions(scalar)
+    lj, lj_forces, x_ranges, row, rounded = _pair_functions(scalar)
+    generic = static_bits is None
+    fixed = 0 if generic else int(static_bits)
+    fast = bool(hoist) and not generic and not fixed & HAS_RADII
 
-    @wp.kernel
+    @wp.kernel(module="unique", module_options=_OPTIONS)
     def pair_sums(position: wp.array(dtype=vector),
                   keys: wp.array(dtype=wp.int32),
                   values: wp.array(dtype=wp.int32),
@@ -175,9 +241,12 @@ def _walk_kernel(scalar):
                   d_epsilon: wp.array(dtype=scalar),
                   count: wp.array(dtype=wp.int32)):
         i = wp.tid()
-        has_radii = flags & HAS_RADII
-        derivatives = flags & DERIVATIVES
-        counting = flags & COUNT
+        low = flags & STATIC_BITS
+        if wp.static(not generic):
+            low = wp.static(fixed)
+        has_radii = low & HAS_RADII
+        derivatives = low & DERIVATIVES
+        counting = low & COUNT
         px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
         nx, ny, nz = cells[0], cells[1], cells[2]
         ax, ay, az = cells[3], cells[4], cells[5]
@@ -197,34 +266,17 @@ def _walk_kernel(scalar):
         if has_radii != 0:
             ri = radius[i]
         cut2 = r_cutoff * r_cutoff
+        # `lj_forces`' constants (the same expressions as `lj`'s).
+        sigma2 = sigma * sigma
+        ro2 = r_onset * r_onset
+        band = cut2 - ro2
+        inverse_cube = scalar(1.0) / (band * band * band)
         f = vector()
         e_sum = scalar(0.0)
         ds_sum = scalar(0.0)
         de_sum = scalar(0.0)
         hits = int(0)
-        # x: up to two ranges of cells [lo, hi], images ox.
-        lo0 = wp.max(cx - ax, 0)
-        hi0 = wp.min(cx + ax, nx - 1)
-        ox0 = 0
-        lo1 = 0
-        hi1 = -1
-        ox1 = 0
-        if px != 0:
-            if rx != 0:
-                lo0 = 0
-                hi0 = nx - 1
-            elif cx - ax < 0:
-                lo0 = cx - ax + nx
-                hi0 = nx - 1
-                ox0 = -1
-                lo1 = 0
-                hi1 = cx + ax
-            elif cx + ax >= nx:
-                lo0 = cx - ax
-                hi0 = nx - 1
-                lo1 = 0
-                hi1 = cx + ax - nx
-                ox1 = 1
+        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
         for dz in range(-az, az + 1):
             z, oz, okz = row(cz, dz, nz, pz, az)
             if okz:
@@ -256,10 +308,16 @@ def _walk_kernel(scalar):
                                     if counting != 0 and d2 < cut2 and j != i:
                                         hits = hits + 1
                                     if d2 < cut2 and d2 > scalar(0.0):
-                                        scale = cut / r_cutoff
-                                        e, g, ds, de = lj(
-                                            d2, sigma * scale, epsilon,
-                                            r_onset * scale, cut, sigma)
+                                        if wp.static(fast):
+                                            e, g, ds, de = lj_forces(
+                                                d2, sigma2, epsilon, ro2,
+                                                cut2, inverse_cube)
+                                            ds = ds / sigma
+                                        else:
+                                            scale = cut / r_cutoff
+                                            e, g, ds, de = lj(
+                                                d2, sigma * scale, epsilon,
+                                                r_onset * scale, cut, sigma)
                                         f = f + g * d
                                         e_sum = e_sum + e
                                         if derivatives != 0:
@@ -272,6 +330,25 @@ def _walk_kernel(scalar):
         count[i] = hits
 
     return pair_sums
+
+
+_WALKS: dict = {}
+# The walk's threads per block: small blocks let an SM mix more of them
+# while the longest lanes of one finish (benchmarks/warp_stages.py).
+WALK_BLOCK = 64
+
+
+def walk_kernel(scalar, flags: int, *, specialize: bool = True,
+                hoist: bool = True):
+    """The walk for positions of ``scalar`` and ``flags``, built (and
+    compiled) on first use: ``specialize`` fixes ``flags``' `STATIC_BITS`
+    at compile time, ``hoist`` takes `lj_forces` where it can
+    (`_walk_kernel`)."""
+    bits = (int(flags) & STATIC_BITS) if specialize else None
+    key = (scalar, bits, bool(hoist))
+    if key not in _WALKS:
+        _WALKS[key] = _walk_kernel(scalar, bits, bool(hoist))
+    return _WALKS[key]
 
 
 @wp.kernel
@@ -290,8 +367,7 @@ def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
         start[c] = i
 
 
-KERNELS = {t: dict(_scalar_kernels(t), pair_sums=_walk_kernel(t))
-           for t in (wp.float32, wp.float64)}
+KERNELS = {t: _scalar_kernels(t) for t in (wp.float32, wp.float64)}
 
 
 def scalar_of(vector) -> type:
@@ -301,7 +377,8 @@ def scalar_of(vector) -> type:
 
 def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
             energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
-            position, radius) -> None:
+            position, radius, specialize: bool = True,
+            hoist: bool = True, block_dim: int = WALK_BLOCK) -> None:
     """Launch the pipeline of the module docstring on ``points``' device.
 
     Args:
@@ -320,6 +397,8 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
       keys, values: int32 ``(2N,)`` scratch (the sort's); wrapped,
         position: vec3 ``(N,)`` scratch; start: int32 ``(T + 1,)`` at
         least; radius: scalar ``(N,)`` scratch (or ``(1,)`` without radii).
+      specialize, hoist: `walk_kernel`'s (the same sums to rounding);
+      block_dim: the walk's threads per block.
     """
     n = points.shape[0]
     if n == 0:
@@ -336,7 +415,9 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     wp.launch(k["gather"], dim=n, device=device,
               inputs=[values, wrapped, radii, flags & HAS_RADII, position,
                       radius])
-    wp.launch(k["pair_sums"], dim=n, device=device,
+    walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
+                       hoist=hoist)
+    wp.launch(walk, dim=n, device=device, block_dim=block_dim,
               inputs=[position, keys, values, radius, start, grid, cells,
                       params, flags, forces, energy, d_sigma, d_epsilon,
                       count])

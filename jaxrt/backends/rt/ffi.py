@@ -1147,7 +1147,13 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
     """
     from jaxrt.backends.cell import warp_kernels
     n = points.shape[0]
-    call = _cell_lj_callable(_vector_of(points), graph)
+    vector = _vector_of(points)
+    # The walk lives in a module of its own, built for these flags: load
+    # it now, not inside the callback (where a graph capture may be open).
+    walk = warp_kernels.walk_kernel(warp_kernels.scalar_of(vector), flags)
+    wp.load_module(walk.module, device=_warp_device(),
+                   block_dim=warp_kernels.WALK_BLOCK)
+    call = _cell_lj_callable(vector, graph)
     has_radii = bool(flags & warp_kernels.HAS_RADII)
     outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),
                 int(flags), output_dims={
