@@ -709,11 +709,33 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
 
 @functools.lru_cache(maxsize=64)
 def _host_stencil(reach):
-    """int32 ``(M, 3)`` every offset within ``reach``, and bool ``(M,)``:
-    the zero offset (cached: an eager call builds it once)."""
+    """int32 ``(M, 3)`` every offset within ``reach``, bool ``(M,)`` the
+    lexicographically positive ones, and the zero offset's index (cached:
+    an eager call builds them once)."""
     every = np.array(list(itertools.product(
         *(range(-k, k + 1) for k in reach))), np.int32)
-    return every, ~every.any(axis=1)
+    every.flags.writeable = False
+    lex = np.asarray(_lex_positive(every))
+    return every, lex, int(np.argmin(np.abs(every).sum(axis=1)))
+
+
+_HOST_VECTORS: dict = {}
+
+
+def _host_vectors(h, reach):
+    """``S @ h`` of every offset of the stencil (`shift_vectors`' sums in
+    ``h``'s dtype), kept by the cell's bytes: the frames of one structure
+    share their cell."""
+    key = (h.dtype.str, h.tobytes(), reach)
+    found = _HOST_VECTORS.get(key)
+    if found is None:
+        sf = _host_stencil(reach)[0].astype(h.dtype)
+        found = (sf[:, 0:1] * h[0] + sf[:, 1:2] * h[1]) + sf[:, 2:3] * h[2]
+        found.flags.writeable = False
+        if len(_HOST_VECTORS) >= 256:
+            _HOST_VECTORS.clear()
+        _HOST_VECTORS[key] = found
+    return found
 
 
 def search_small_host(positions, mask, h, hinv, cutoff, species, *,
@@ -739,21 +761,32 @@ def search_small_host(positions, mask, h, hinv, cutoff, species, *,
     """
     dtype = positions.dtype
     n = positions.shape[0]
-    finite = np.isfinite(positions).all(axis=1)
-    everyone = bool(mask.all()) and bool(finite.all())
-    error = 0 if everyone or not np.any(mask & ~finite) else \
-        int(ErrorBit.NONFINITE_POSITION)
-    real = mask & finite
-    r = positions if everyone else np.where(real[:, None], positions,
-                                            0).astype(dtype)
-    f = np.sum(r[:, :, None] * hinv, axis=1)
-    w = np.where(np.array(periodic), np.floor(f), 0).astype(np.int32)
-    every, zero = _host_stencil(tuple(reach))
+    reach = tuple(reach)
+    everyone = bool(mask.all()) and bool(np.isfinite(positions).all())
+    if everyone:
+        error, real, r = 0, mask, positions
+    else:
+        finite = np.isfinite(positions).all(axis=1)
+        error = int(ErrorBit.NONFINITE_POSITION) if np.any(
+            mask & ~finite) else 0
+        real = mask & finite
+        r = np.where(real[:, None], positions, 0).astype(dtype)
+    every, lex_every, zero = _host_stencil(reach)
     # (Few numpy calls: each costs more than its arithmetic here.)
-    s = every + (w[:, None, None, :] - w[None, :, None, :])  # o + w_i - w_j
-    sf = s.astype(dtype)
-    d = (r[None, :, None, :] - r[:, None, None, :]) + (
-        (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2])
+    w = np.floor(r @ hinv) if any(periodic) else None
+    if w is not None and not all(periodic):
+        w[:, ~np.array(periodic)] = 0
+    moved = w is not None and bool(w.any())
+    if not moved:
+        # Atoms inside the cell: S is the offset, its vector cached.
+        vectors = _host_vectors(np.asarray(h, dtype), reach)
+        d = (r[None, :, None, :] - r[:, None, None, :]) + vectors
+    else:
+        w = w.astype(np.int32)
+        s = every + (w[:, None, None, :] - w[None, :, None, :])
+        sf = s.astype(dtype)
+        d = (r[None, :, None, :] - r[:, None, None, :]) + (
+            (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2])
     d2 = d * d
     dist = np.sqrt((d2[..., 0] + d2[..., 1]) + d2[..., 2])
     if species is None:
@@ -765,14 +798,16 @@ def search_small_host(positions, mask, h, hinv, cutoff, species, *,
         keep &= real[:, None, None] & real[None, :, None]
     atoms = np.arange(n)
     if half:
-        lex = (s[..., 0] > 0) | ((s[..., 0] == 0) & (
-            (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
+        lex = _lex_positive(s) if moved else lex_every
+        zeros = np.zeros(len(every), bool)
+        zeros[zero] = True
         same = atoms[:, None, None] == atoms[None, :, None]
         keep &= (atoms[:, None, None] < atoms[None, :, None]) | (
-            same & (lex | zero))
+            same & (lex | zeros))
     if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
-        keep[atoms, atoms, int(np.argmax(zero))] = False
+        keep[atoms, atoms, zero] = False
     i, j, m = np.nonzero(keep)
     rows = np.empty((len(i), 5), np.int32)
-    rows[:, 0], rows[:, 1], rows[:, 2:] = i, j, s[i, j, m]
+    rows[:, 0], rows[:, 1] = i, j
+    rows[:, 2:] = s[i, j, m] if moved else every[m]
     return rows, error
