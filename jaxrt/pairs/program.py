@@ -303,8 +303,11 @@ def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
     tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
                                     base_a[:, None]), 0)
-    start = first[tkey]
-    length = jnp.where(inside, sizes[tkey], 0)
+    # One gather for both (the key's arithmetic is fused into the gather,
+    # and would be done once per gathered array).
+    run = jnp.stack([first, sizes], axis=1)[tkey]
+    start = run[..., 0]
+    length = jnp.where(inside, run[..., 1], 0)
     rank = jnp.zeros((n,), jnp.int32).at[order].set(
         jnp.arange(n, dtype=jnp.int32))
     return start, length, order, rank
