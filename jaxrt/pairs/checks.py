@@ -16,7 +16,7 @@ import numpy as np
 # at 64.
 BRUTE_CANDIDATES = 2 ** 13
 # An eager call of one system up to this many candidates (N² · images)
-# searches on the host (`program.search_small_host`).
+# searches on the host (`host.search_small_host`).
 SMALL_CANDIDATES = 2 ** 14
 # Candidates read per step of the loop: a power of two near this many per
 # atom, within these bounds (on 2 CPU cores smaller blocks ran faster on
@@ -364,7 +364,7 @@ def check_sort(sort):
 
 def is_small(n: int, max_shift) -> bool:
     """Whether an eager call of one system takes
-    `program.search_small_host` (every candidate at once, in numpy: no
+    `host.search_small_host` (every candidate at once, in numpy: no
     program to dispatch)."""
     return n * n * math.prod(2 * r + 1 for r in max_shift) <= SMALL_CANDIDATES
 
