@@ -16,7 +16,7 @@ import numpy as np
 # at 64.
 BRUTE_CANDIDATES = 2 ** 13
 # An eager call of one system up to this many candidates (N² · images)
-# searches on the host (`program.search_small_host`).
+# searches on the host (`host.search_small_host`).
 SMALL_CANDIDATES = 2 ** 14
 # Candidates read per step of the loop: a power of two near this many per
 # atom, within these bounds (on 2 CPU cores smaller blocks ran faster on
@@ -235,24 +235,50 @@ def plain(array):
     return np.asarray(getattr(array, "array", array))
 
 
+# Eager calls of one structure (a training set's frames) repeat its cell:
+# the checked cell, its inverse and its reach are kept by the cell's bytes.
+_CACHE_SIZE = 256
+_cells: dict = {}
+_inverses: dict = {}
+_reaches: dict = {}
+
+
+def _remember(cache: dict, key, value):
+    if len(cache) >= _CACHE_SIZE:
+        cache.clear()
+    cache[key] = value
+    return value
+
+
 def inverse3(h: np.ndarray):
-    """``(inv(h), det(h))`` of one float64 ``(3, 3)`` by cofactors in
-    Python floats (a numpy call costs more than the arithmetic)."""
+    """``(inv(h), det(h))`` of one float ``(3, 3)`` by cofactors in Python
+    floats (a numpy call costs more than the arithmetic); float64, read
+    only (kept for the next call with the same ``h``)."""
+    key = (h.dtype.str, h.tobytes())
+    found = _inverses.get(key)
+    if found is not None:
+        return found
     (a, b, c), (d, e, f), (g, i, k) = h.tolist()
     co = [e * k - f * i, f * g - d * k, d * i - e * g]
     det = a * co[0] + b * co[1] + c * co[2]
     if det == 0 or not math.isfinite(det):
-        return None, det
+        return _remember(_inverses, key, (None, det))
     inv = np.array([[co[0], c * i - b * k, b * f - c * e],
                     [co[1], a * k - c * g, c * d - a * f],
                     [co[2], b * g - a * i, a * e - b * d]]) / det
-    return inv, det
+    inv.flags.writeable = False
+    return _remember(_inverses, key, (inv, det))
 
 
 def concrete_cell(cell, pbc, who: str = "jaxrt.pairs") -> np.ndarray:
     """A concrete cell (matrix or sides) checked and completed: float64
-    ``(3, 3)``."""
-    h = as_cell_matrix(plain(cell).astype(np.float64))
+    ``(3, 3)``, read only."""
+    c = plain(cell)
+    key = (c.dtype.str, c.shape, c.tobytes(), tuple(bool(p) for p in pbc))
+    found = _cells.get(key)
+    if found is not None:
+        return found
+    h = as_cell_matrix(c.astype(np.float64))
     if not np.isfinite(h).all():
         raise ValueError(f"{who}: cell has NaN or infinite entries.")
     if not h.any(axis=1).all():
@@ -262,7 +288,9 @@ def concrete_cell(cell, pbc, who: str = "jaxrt.pairs") -> np.ndarray:
     if not abs(det) > 1e-12 * scale ** 3:
         raise ValueError(f"{who}: cell is singular (det = {det:.3g}): its "
                          f"rows must be three independent lattice vectors.")
-    return h
+    h = np.array(h)
+    h.flags.writeable = False
+    return _remember(_cells, key, h)
 
 
 def check_cell(cell, pbc, dtype):
@@ -286,9 +314,15 @@ def shift_for_cell(h: np.ndarray, cutoff: float, pbc) -> tuple[int, ...]:
     axis (with a margin over the program's own rounding of the heights);
     ``h`` ``(3, 3)`` or ``(B, 3, 3)`` (the largest of each axis)."""
     if h.ndim == 2:  # one cell: Python floats (numpy calls cost more)
+        key = (h.dtype.str, h.tobytes(), cutoff, tuple(pbc))
+        found = _reaches.get(key)
+        if found is not None:
+            return found
         columns = zip(*inverse3(h)[0].tolist())
         need = [math.ceil(cutoff * math.sqrt(sum(v * v for v in c))
                           * (1 + _REACH_MARGIN)) for c in columns]
+        return _remember(_reaches, key, tuple(
+            int(max(n, 1)) if p else 0 for n, p in zip(need, pbc)))
     else:
         hinv = np.linalg.inv(h)
         heights = 1 / np.sqrt(np.sum(hinv * hinv, axis=-2))
@@ -330,7 +364,7 @@ def check_sort(sort):
 
 def is_small(n: int, max_shift) -> bool:
     """Whether an eager call of one system takes
-    `program.search_small_host` (every candidate at once, in numpy: no
+    `host.search_small_host` (every candidate at once, in numpy: no
     program to dispatch)."""
     return n * n * math.prod(2 * r + 1 for r in max_shift) <= SMALL_CANDIDATES
 

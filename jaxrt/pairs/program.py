@@ -51,8 +51,8 @@ How it searches (the search of one system is the same with one graph):
 
 ``brute=True`` is the same program with one cell per system: every atom
 of a system is a candidate of every atom of it, in every image.
-`search_small_host` decides every candidate of one small system at once
-in numpy, for eager calls.
+`jaxrt.pairs.host` decides every candidate of one small system at once
+in numpy, for eager calls, as this program decides them.
 """
 from __future__ import annotations
 
@@ -303,8 +303,11 @@ def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
     tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
                                     base_a[:, None]), 0)
-    start = first[tkey]
-    length = jnp.where(inside, sizes[tkey], 0)
+    # One gather for both (the key's arithmetic is fused into the gather,
+    # and would be done once per gathered array).
+    run = jnp.stack([first, sizes], axis=1)[tkey]
+    start = run[..., 0]
+    length = jnp.where(inside, run[..., 1], 0)
     rank = jnp.zeros((n,), jnp.int32).at[order].set(
         jnp.arange(n, dtype=jnp.int32))
     return start, length, order, rank
@@ -705,74 +708,3 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     error = binned.error | jnp.where(total > capacity,
                                      int(ErrorBit.CAPACITY), 0)
     return rows, total, per_system, error.astype(jnp.int32)
-
-
-@functools.lru_cache(maxsize=64)
-def _host_stencil(reach):
-    """int32 ``(M, 3)`` every offset within ``reach``, and bool ``(M,)``:
-    the zero offset (cached: an eager call builds it once)."""
-    every = np.array(list(itertools.product(
-        *(range(-k, k + 1) for k in reach))), np.int32)
-    return every, ~every.any(axis=1)
-
-
-def search_small_host(positions, mask, h, hinv, cutoff, species, *,
-                      periodic: tuple[bool, ...], reach: tuple[int, ...],
-                      half: bool, self_interaction: bool):
-    """The pairs of one small system in numpy, for eager calls on host
-    arrays: every candidate ``(i, j, S)`` at once (no grid, no loop, no
-    program to dispatch, which is most of the time of a system of a few
-    atoms), decided as `search` decides (``d`` computed as there, in the
-    positions' dtype; ``d(j, i, -S)`` is ``-d(i, j, S)`` bit for bit), in
-    ``i``-major order (sorted by ``i``).
-
-    Args:
-      positions: numpy float ``(N, 3)``; mask: bool ``(N,)``; h, hinv:
-        numpy ``(3, 3)`` the completed cell and its inverse, in the
-        positions' dtype; cutoff: float, or numpy ``(S, S)``; species: int
-        ``(N,)`` or None.
-      periodic, reach: static; the cell needs no shift past ``reach``
-        (checked on the host); half, self_interaction: as `search`.
-    Returns:
-      int32 ``(count, 5)`` rows ``(i, j, S)`` (exactly the pairs) and the
-      int error bits.
-    """
-    dtype = positions.dtype
-    n = positions.shape[0]
-    finite = np.isfinite(positions).all(axis=1)
-    everyone = bool(mask.all()) and bool(finite.all())
-    error = 0 if everyone or not np.any(mask & ~finite) else \
-        int(ErrorBit.NONFINITE_POSITION)
-    real = mask & finite
-    r = positions if everyone else np.where(real[:, None], positions,
-                                            0).astype(dtype)
-    f = np.sum(r[:, :, None] * hinv, axis=1)
-    w = np.where(np.array(periodic), np.floor(f), 0).astype(np.int32)
-    every, zero = _host_stencil(tuple(reach))
-    # (Few numpy calls: each costs more than its arithmetic here.)
-    s = every + (w[:, None, None, :] - w[None, :, None, :])  # o + w_i - w_j
-    sf = s.astype(dtype)
-    d = (r[None, :, None, :] - r[:, None, None, :]) + (
-        (sf[..., 0:1] * h[0] + sf[..., 1:2] * h[1]) + sf[..., 2:3] * h[2])
-    d2 = d * d
-    dist = np.sqrt((d2[..., 0] + d2[..., 1]) + d2[..., 2])
-    if species is None:
-        keep = dist < np.asarray(cutoff, dtype)
-    else:
-        keep = dist < np.asarray(cutoff, dtype)[species[:, None, None],
-                                                species[None, :, None]]
-    if not everyone:
-        keep &= real[:, None, None] & real[None, :, None]
-    atoms = np.arange(n)
-    if half:
-        lex = (s[..., 0] > 0) | ((s[..., 0] == 0) & (
-            (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
-        same = atoms[:, None, None] == atoms[None, :, None]
-        keep &= (atoms[:, None, None] < atoms[None, :, None]) | (
-            same & (lex | zero))
-    if not self_interaction:  # (i, i, 0) otherwise kept where 0 < rc
-        keep[atoms, atoms, int(np.argmax(zero))] = False
-    i, j, m = np.nonzero(keep)
-    rows = np.empty((len(i), 5), np.int32)
-    rows[:, 0], rows[:, 1], rows[:, 2:] = i, j, s[i, j, m]
-    return rows, error

@@ -48,7 +48,8 @@ from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, PairsError, raise_if
 from jaxrt.pairs.checks import BRUTE_CANDIDATES, Float32Warning
 from jaxrt.pairs.program import safe_norm as _safe_norm
-from jaxrt.pairs.program import search, search_small_host, shift_vectors
+from jaxrt.pairs.host import search_small_host
+from jaxrt.pairs.program import search, shift_vectors
 
 __all__ = ["BRUTE_CANDIDATES", "ErrorBit", "Float32Warning", "PairSizes",
            "Pairs", "PairsError", "pairs", "pairs_sizes"]

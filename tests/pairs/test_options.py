@@ -205,3 +205,27 @@ def test_host_search_of_small_systems_equals_the_jitted_program(options,
         i = [p[0] for p in stored(result)]
         assert i == sorted(i)
     assert sorted(stored(program)) == sorted(stored(host))
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_host_search_with_atoms_outside_the_cell_and_a_repeated_cell(half,
+                                                                     x64):
+    """The host search keeps each cell's stencil vectors between calls; with
+    atoms wrapped back into the cell it uses them, with atoms outside (whose
+    shifts differ) it does not: ASE's set either way, call after call, and
+    a changed cell is not served the old cell's vectors."""
+    atoms = si2()
+    for pbc in [(True, True, True), (True, False, True)]:
+        atoms.pbc = pbc
+        for k, move in enumerate([(0, 0, 0), (1, -2, 0), (0, 0, 0)]):
+            moved = atoms.copy()
+            moved.positions[k % 2] += np.array(move) @ moved.cell.array
+            want = ase_set(moved, 5.0)
+            got = set(stored(run(moved, 5.0, half=half)))
+            assert got == (halved(want) if half else want)
+    strained = atoms.copy()
+    strained.set_cell(atoms.cell.array * 1.02, scale_atoms=True)
+    strained.pbc = True
+    for a in (atoms, strained, atoms):
+        a.pbc = True
+        assert set(stored(run(a, 5.0))) == ase_set(a, 5.0)
