@@ -90,6 +90,21 @@ class Space:
     def dim(self) -> int:
         return len(self.periodic)
 
+    def _value(self) -> tuple:
+        transform = (None if self.transform is None else
+                     np.asarray(self.transform, np.float64).tobytes())
+        return (self.periodic,
+                np.asarray(self.period, np.float64).tobytes(), transform)
+
+    # Equal by value: a `Space` is static in jitted programs, and two
+    # `jaxrt.neighbor_list` factories with equal arguments must meet one
+    # another's compiled programs (the arrays make the default eq fail).
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Space) and self._value() == other._value()
+
+    def __hash__(self) -> int:
+        return hash(self._value())
+
     def to_grid(self, position):
         """Grid coordinates ``q`` of float ``(..., dim)`` positions."""
         if self.transform is None:
@@ -123,7 +138,7 @@ def apply(matrix, vectors):
     return jnp.sum(matrix * vectors[..., None, :], axis=-1)
 
 
-# The model's functions are jitted (``space`` static, hashed by identity):
+# The model's functions are jitted (``space`` static, equal by value):
 # called eagerly at allocate, op by op, their dozens of tiny programs each
 # compiled on its own, most of a cold allocate's extra time.
 @functools.partial(jax.jit, static_argnames=("space", "dtype"))
