@@ -185,3 +185,85 @@ def test_a_fixed_box_grid_skips_coarsening_only_where_it_never_coarsens(
     got = nbrs.update(moved)
     assert not bool(got.did_buffer_overflow)
     assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
+
+
+@pytest.mark.parametrize("backend,fmt", [("auto", "Dense"), ("cell", "Dense"),
+                                         ("cell", "Sparse"),
+                                         ("brute", "OrderedSparse")])
+def test_second_equal_factory_compiles_nothing(backend, fmt):
+    """A second `neighbor_list` with the same displacement and arguments
+    (a user's second system, a test's second case) meets the first one's
+    programs: its ``allocate`` and its updates compile nothing, and its
+    lists are exact and its own (their ``update`` is its factory's)."""
+    from jax_md import partition
+    position, side = _system(n=300, side=7.0, seed=3)
+    displacement, _ = space.periodic(side)
+    layout = getattr(partition.NeighborListFormat, fmt)
+
+    def factory():
+        return jaxrt.neighbor_list(displacement, side, 1.0, 0.4,
+                                   backend=backend, format=layout)
+
+    first = factory()
+    first.allocate(position).update(position + 0.5).idx.block_until_ready()
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+    second = factory()
+    compiles = _count_compiles()
+    nbrs = second.allocate(position)
+    rebuilt = nbrs.update(far)
+    kept = rebuilt.update(far + 0.01)
+    jax.block_until_ready((nbrs.idx, rebuilt.idx, kept.idx))
+    assert len(compiles) == 0, compiles
+    assert nbrs.update_fn == second.update
+    assert rebuilt.update_fn == second.update
+    for got, at in ((nbrs, position), (rebuilt, far), (kept, far)):
+        assert not bool(got.did_buffer_overflow)
+        expected = _brute_force(np.mod(at, side), side, 1.4)
+        if fmt == "Dense":
+            assert _pairs(got) == expected
+            continue
+        i, j = np.asarray(got.idx)
+        pairs = {(int(a), int(b)) for a, b in zip(i, j) if a < 300}
+        if fmt == "OrderedSparse":
+            assert all(a > b for a, b in pairs) or all(a < b for a, b in pairs)
+            pairs |= {(b, a) for a, b in pairs}
+        assert pairs == expected
+
+
+@pytest.mark.parametrize("change", ["cutoff", "skin", "mask_self", "box",
+                                    "mask_function"])
+def test_factories_that_differ_keep_their_own_programs(change):
+    """Factories share programs only where nothing they trace differs: each
+    list below is exact for its own arguments although an earlier factory
+    of almost the same arguments compiled first."""
+    position, side = _system(n=300, side=7.0, seed=4)
+    displacement, _ = space.periodic(side)
+    base = dict(r_cutoff=1.0, dr_threshold=0.4, mask_self=True)
+    jaxrt.neighbor_list(displacement, side, **base).allocate(
+        position).update(position + 0.5).idx.block_until_ready()
+    cutoff, box, mask = 1.4, side, None
+    other = dict(base)
+    if change == "cutoff":
+        other["r_cutoff"], cutoff = 0.7, 1.1
+    elif change == "skin":
+        other["dr_threshold"], cutoff = 0.1, 1.1
+    elif change == "mask_self":
+        other["mask_self"] = False
+    elif change == "box":
+        box = side + 1.0
+        displacement, _ = space.periodic(box)
+    else:
+        def mask(idx):  # drop odd neighbours
+            return jnp.where(idx % 2 == 1, idx.shape[0], idx)
+        other["custom_mask_function"] = mask
+    fns = jaxrt.neighbor_list(displacement, box, **other)
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+    nbrs = fns.allocate(position)
+    for got, at in ((nbrs, position), (nbrs.update(far), far)):
+        assert not bool(got.did_buffer_overflow)
+        expected = _brute_force(np.mod(at, box), box, cutoff)
+        if change == "mask_self":
+            expected |= {(i, i) for i in range(300)}
+        if mask is not None:
+            expected = {(i, j) for i, j in expected if j % 2 == 0}
+        assert _pairs(got) == expected
