@@ -267,3 +267,81 @@ def test_factories_that_differ_keep_their_own_programs(change):
         if mask is not None:
             expected = {(i, j) for i, j in expected if j % 2 == 0}
         assert _pairs(got) == expected
+
+
+def _case(name):
+    """(position float32 (N, dim), displacement, box, r_cutoff)."""
+    from scenes import fluid, lattice
+    if name == "lattice":  # every nearest pair exactly at the cutoff
+        r = lattice(7, 1.0)
+        return jnp.asarray(r), space.periodic(7.0)[0], 7.0, 0.8
+    if name == "small_box":  # a cutoff of more than half the box
+        r, side = fluid(n_side=4)
+        return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 2.2
+    if name == "free":
+        r, _ = fluid(n_side=7)
+        return jnp.asarray(r, jnp.float32), space.free()[0], None, 1.0
+    if name == "2d":
+        r, side = fluid(n_side=20, dim=2)
+        return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 1.2
+    r, side = fluid(n_side=8)
+    return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 1.0
+
+
+@pytest.mark.parametrize("name,fmt,mask_self", [
+    ("fluid", "Dense", True), ("fluid", "OrderedSparse", True),
+    ("fluid", "Sparse", False), ("lattice", "Dense", True),
+    ("small_box", "Dense", True), ("free", "Sparse", True),
+    ("2d", "Dense", False)])
+def test_small_lists_count_over_all_pairs_as_the_windows_do(
+        monkeypatch, name, fmt, mask_self):
+    """``allocate`` on a CPU counts a small cell list's rows over all pairs
+    (its program compiles several times faster than the windows' count):
+    the same capacity, the windows' own, shell buffers at least the
+    windows' (an upper bound), and the same exact list, never flagged."""
+    if jax.default_backend() != "cpu":
+        pytest.skip("the all-pairs count is the CPU's")
+    import warnings
+    from jax_md import partition
+    from jaxrt.backends.cell import search
+    position, displacement, box, cutoff = _case(name)
+    layout = getattr(partition.NeighborListFormat, fmt)
+
+    def allocate(limit):
+        monkeypatch.setattr(search, "_ALL_PAIRS_COUNT_MAX_N", limit)
+        fns = jaxrt.neighbor_list(displacement, box, cutoff, 0.2,
+                                  backend="cell", format=layout,
+                                  mask_self=mask_self)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the small box's warning
+            nbrs = fns.allocate(position)
+        return nbrs, dict(nbrs.cell_list_capacity.internal)
+
+    before = search._visit_quick._cache_size()
+    nbrs, sizes = allocate(10 ** 9)
+    assert search._visit_quick._cache_size() == before  # no windows' count
+    windows, by_windows = allocate(0)
+    assert nbrs.idx.shape == windows.idx.shape
+    assert sizes["window"] == by_windows["window"]
+    assert sizes["shell"] >= by_windows["shell"]
+    assert sizes["shell_rows"] >= by_windows["shell_rows"]
+    for got in (nbrs, windows):
+        assert not bool(got.did_buffer_overflow)
+    if fmt == "Dense":
+        assert _sorted_rows(nbrs) == _sorted_rows(windows)
+    else:
+        assert _edges(nbrs) == _edges(windows)
+    far = jax.block_until_ready(position + 0.35)
+    assert not bool(nbrs.update(far).did_buffer_overflow)
+
+
+def _sorted_rows(nbrs):
+    n = nbrs.idx.shape[0]
+    return [sorted(int(j) for j in row if j < n)
+            for row in np.asarray(nbrs.idx)]
+
+
+def _edges(nbrs):
+    i, j = np.asarray(nbrs.idx)
+    n = nbrs.reference_position.shape[0]
+    return sorted((int(a), int(b)) for a, b in zip(i, j) if a < n)
