@@ -612,9 +612,9 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
     """Model the metric and check the model on sampled pairs; raise where
     the grid would miss pairs or the backend cannot serve the metric."""
     grid = setup.grid
-    g = _space.gram(metric, grid, position.dtype)
+    g = _space.concrete(_space.gram, metric, grid, position.dtype)
     diagonal = grid.transform is None and _space.is_diagonal(g)
-    h = _space.heights(g, diagonal)
+    h = _space.concrete(_space.heights, g, diagonal)
     small = _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64),
                           searcher)
     if small is not None and "small box" not in setup.warned:
