@@ -762,9 +762,10 @@ def _cluster_within_the_cutoff(n=300):
                        jnp.float32)
 
 
+@pytest.mark.parametrize("windows", [False, True])
 @pytest.mark.parametrize("fmt", [partition.Dense, partition.OrderedSparse])
 def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
-        monkeypatch, fmt):
+        monkeypatch, fmt, windows):
     # Seed 003's cluster: every particle within the cutoff of every other,
     # so every layout's rows are N wide. The cell list must refuse after its
     # count pass, before the pass that writes N x row entries (at n = 50 000
@@ -783,11 +784,17 @@ def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
         return candidates(self, *args, **options)
 
     monkeypatch.setattr(backends.Cell, "_candidates", spy)
+    if windows:  # the windows' count even where all pairs would count
+        from jaxrt.backends.cell import search
+        monkeypatch.setattr(search, "_ALL_PAIRS_COUNT_MAX_N", 0)
     with pytest.raises(jaxrt.ListTooLargeError, match=r"needs 89,700 int32 entries \(rows "
                        r"before conversion.*lennard_jones_fused"):
         jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * (n - 1) - 1),
                             format=fmt).allocate(R)
-    assert widths and max(widths) <= 1  # only the count pass ran
+    # Only a count ran (small lists on a CPU count over all pairs, with
+    # no candidate pass at all): no rows pass.
+    assert max(widths, default=0) <= 1
+    assert bool(widths) == (windows or jax.default_backend() != "cpu")
     # Room for N x N (the rows' capacity is capped at N) and the same list
     # is built, every pair in it.
     nbrs = jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * n),
