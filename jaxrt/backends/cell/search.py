@@ -1016,8 +1016,10 @@ _visit_quick = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC,
 
 # Up to this many particles on a CPU, ``allocate`` counts rows over all
 # pairs (`_all_pairs_counts`): its program compiles in a fraction of the
-# windows' count, and all N**2 distances still take milliseconds.
-_ALL_PAIRS_COUNT_MAX_N = 2048
+# windows' count. Past it the N**2 distances slow down every ``allocate``
+# on a new structure (at N = 1000 it took as long either way; at 2000 a
+# third longer: a training set's allocates).
+_ALL_PAIRS_COUNT_MAX_N = 1024
 
 
 @functools.partial(jax.jit, static_argnames=("query",))
