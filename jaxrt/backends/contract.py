@@ -181,11 +181,9 @@ class SearchResult(NamedTuple):
 # `Capabilities.max_list_entries`).
 MAX_LIST_ENTRIES = 2 ** 31 - 1
 
-# XLA's options for programs that run once or a few times (``allocate``'s
-# measuring, an eager call's program) at small N on a CPU: the backend's
-# optimisation off compiles several times faster (a first ``allocate``'s
-# largest cost) and runs ~10x slower. ``jit`` by the caller is unaffected.
-QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+# XLA's options for programs run once or a few times at small N on a CPU
+# (`jaxrt.lists.metric.QUICK_COMPILE_OPTIONS`).
+QUICK_COMPILE_OPTIONS = _space.QUICK_COMPILE_OPTIONS
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxrt import platforms
 from jaxrt.layouts import edge_kernel as _edge_kernel
 
 Array = jax.Array
@@ -108,4 +109,4 @@ def dense_to_sparse(dense: Array, capacity: int, ordered: bool, *,
         return scatters(), total
     if engine == "interpret":
         return kernel(interpret=True), total
-    return jax.lax.platform_dependent(cuda=kernel, default=scatters), total
+    return platforms.cuda_or_default(kernel, scatters), total

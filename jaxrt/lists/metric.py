@@ -90,6 +90,21 @@ class Space:
     def dim(self) -> int:
         return len(self.periodic)
 
+    def _value(self) -> tuple:
+        transform = (None if self.transform is None else
+                     np.asarray(self.transform, np.float64).tobytes())
+        return (self.periodic,
+                np.asarray(self.period, np.float64).tobytes(), transform)
+
+    # Equal by value: a `Space` is static in jitted programs, and two
+    # `jaxrt.neighbor_list` factories with equal arguments must meet one
+    # another's compiled programs (the arrays make the default eq fail).
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Space) and self._value() == other._value()
+
+    def __hash__(self) -> int:
+        return hash(self._value())
+
     def to_grid(self, position):
         """Grid coordinates ``q`` of float ``(..., dim)`` positions."""
         if self.transform is None:
@@ -123,7 +138,7 @@ def apply(matrix, vectors):
     return jnp.sum(matrix * vectors[..., None, :], axis=-1)
 
 
-# The model's functions are jitted (``space`` static, hashed by identity):
+# The model's functions are jitted (``space`` static, equal by value):
 # called eagerly at allocate, op by op, their dozens of tiny programs each
 # compiled on its own, most of a cold allocate's extra time.
 @functools.partial(jax.jit, static_argnames=("space", "dtype"))
@@ -178,11 +193,22 @@ def lengths_from_origin(metric_sq, space: Space, q):
         space.from_grid(q)))
 
 
+# XLA's options for programs that run once or a few times (``allocate``'s
+# measuring, an eager call's program) at small N on a CPU: the backend's
+# optimisation off compiles several times faster (a first ``allocate``'s
+# largest cost) and runs ~10x slower. ``jit`` by the caller is unaffected.
+QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
 def concrete(fn, *args, **kwargs):
     """``fn(*args, **kwargs)`` as concrete arrays: a jitted ``fn`` called
     as one compiled program where no trace is under way, and evaluated at
     trace time (``jax.ensure_compile_time_eval``: op by op, each op
-    compiled on its own, dozens of programs) only under a trace."""
+    compiled on its own, dozens of programs) only under a trace. On a
+    CPU the model's programs (run once per ``allocate``) are compiled for
+    compile speed (`QUICK_COMPILE_OPTIONS`)."""
+    if fn in _QUICK and _on_cpu_only(args, kwargs):
+        fn = _QUICK[fn]
     out = fn(*args, **kwargs)
     if any(isinstance(x, jax.core.Tracer)
            for x in jax.tree_util.tree_leaves(out)):
@@ -321,6 +347,16 @@ def _on_accelerator(x) -> bool:
     return any(d.platform != "cpu" for d in x.devices())
 
 
+def _on_cpu_only(*args) -> bool:
+    """Would an eager program of ``args`` run on a CPU (JAX's default
+    device a CPU and no array of them elsewhere)?"""
+    if jax.default_backend() != "cpu":
+        return False
+    return not any(isinstance(x, jax.Array) and not isinstance(
+        x, jax.core.Tracer) and _on_accelerator(x)
+        for x in jax.tree_util.tree_leaves(args))
+
+
 def on_accelerator(x) -> bool:
     """Does the array ``x`` live on a device other than a CPU?"""
     return _on_accelerator(x)
@@ -375,3 +411,17 @@ def cutoff_fits(cutoff: float, height_times_period):
     margin), i.e. not a small box? ``height_times_period``: float
     ``(dim,)``, one answer per axis (the caller ignores free axes)."""
     return cutoff < 0.5 * (1.0 - CUTOFF_MARGIN) * height_times_period
+
+
+def _quick_twin(fn, static: tuple[str, ...]):
+    return jax.jit(fn.__wrapped__, static_argnames=static,
+                   compiler_options=QUICK_COMPILE_OPTIONS)
+
+
+# `concrete`'s programs compiled for compile speed, by the jitted function.
+_QUICK = {
+    gram: _quick_twin(gram, ("space", "dtype")),
+    lengths_from_origin: _quick_twin(lengths_from_origin, ("space",)),
+    heights: _quick_twin(heights, ("diagonal",)),
+    _deviation: _quick_twin(_deviation, ("space", "slack")),
+}

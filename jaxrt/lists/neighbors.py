@@ -612,9 +612,9 @@ def _model_at_allocate(settings: _Settings, searcher, setup: _Setup,
     """Model the metric and check the model on sampled pairs; raise where
     the grid would miss pairs or the backend cannot serve the metric."""
     grid = setup.grid
-    g = _space.gram(metric, grid, position.dtype)
+    g = _space.concrete(_space.gram, metric, grid, position.dtype)
     diagonal = grid.transform is None and _space.is_diagonal(g)
-    h = _space.heights(g, diagonal)
+    h = _space.concrete(_space.heights, g, diagonal)
     small = _check_cutoff(settings.cutoff, grid, np.asarray(h, np.float64),
                           searcher)
     if small is not None and "small box" not in setup.warned:
@@ -704,7 +704,10 @@ def _measure(settings: _Settings, searcher, position, geometry, query,
 def _make_build(searcher, custom_mask_function: Callable | None) -> Callable:
     """The jitted search: ``build(position, geometry, metric, state, *,
     query, capacity)`` -> (idx, overflow, error bits (uint8), state), the
-    custom mask applied; ``state`` is None for a stateless backend."""
+    custom mask applied; ``state`` is None for a stateless backend. One
+    per equal (``searcher``, ``custom_mask_function``) where the searcher
+    is shared (`_shared_build`), so that factories of equal arguments
+    reuse its compiled programs."""
 
     def bits_of(result):
         return (jnp.uint8(0) if result.error is None
@@ -728,6 +731,14 @@ def _make_build(searcher, custom_mask_function: Callable | None) -> Callable:
                 state)
 
     return build
+
+
+@functools.lru_cache(maxsize=64)
+def _shared_build(searcher, custom_mask_function: Callable | None
+                  ) -> Callable:
+    """`_make_build`'s, one per equal pair (a backend neither bound per
+    factory nor stateful: its programs depend on nothing else)."""
+    return _make_build(searcher, custom_mask_function)
 
 
 def _bits(flag, code) -> jax.Array:
@@ -763,6 +774,85 @@ def _metric_errors(position, metric, g, h, grid, capacity: Capacity
     return _bits(wrong, ErrorCode.METRIC_MISMATCH | _OVERFLOW)
 
 
+@dataclasses.dataclass(frozen=True)
+class _Program:
+    """Everything of a factory that its update's traced program reads,
+    for one dimension: static (hashable, equal by value), so that the
+    eager update of factories with equal arguments is one jitted program
+    (`_update_arrays`), compiled once per process and list structure.
+
+    Attributes: ``searcher`` (the bound backend), ``build`` (its jitted
+    search, `_make_build`), ``metric_fn`` (`_SquaredMetric`), ``grid``
+    (`jaxrt.lists.metric.Space`), ``query`` (`Query`, before the list's
+    ``decide_by_metric``), ``r_cutoff``, ``dr_threshold``, ``box_limit``
+    (`_box_limit`), ``checks_metric`` (the metric's model is checked at
+    every rebuild) and ``stateful`` (the backend keeps state in the list).
+    """
+
+    searcher: object
+    build: Callable
+    metric_fn: Callable
+    grid: _space.Space
+    query: Query
+    r_cutoff: float
+    dr_threshold: float
+    box_limit: float
+    checks_metric: bool
+    stateful: bool
+
+
+def _update_arrays(position, idx, reference, code, state, force, radii,
+                   kwargs, *, program: _Program, capacity: Capacity,
+                   given_radii: bool):
+    """The update's body on the list's arrays: rebuild where a particle
+    moved more than half the skin, or ``force`` (bool, may be traced), or
+    ``given_radii`` (radii passed to ``update``: float ``(N,)``, checked).
+
+    Args: ``position`` float ``(N, dim)``; ``idx``, ``reference``,
+    ``code`` (uint8 error bits) and ``state`` (the backend's, or None) of
+    the list; ``radii`` float ``(N,)`` or None; ``kwargs`` the metric's
+    (``box=``). Returns the new ``(idx, reference, code, state)``."""
+    query = dataclasses.replace(program.query,
+                                decide_by_metric=capacity.metric_decides)
+    metric = MetricSq(program.metric_fn, dict(kwargs))
+    grid = program.grid
+    g = _space.gram(metric, grid, position.dtype)
+    h = _space.heights(g, capacity.orthorhombic)
+    reach = None if radii is None else (
+        jnp.asarray(radii, position.dtype)
+        + jnp.asarray(program.dr_threshold, position.dtype))
+    geometry = _geometry(grid, h, position.dtype, capacity.slack, reach)
+    code = code | _input_errors(position, grid, h, program.box_limit)
+    if given_radii:
+        code |= _radii_errors(jnp.asarray(radii), program.r_cutoff)
+
+    def rebuild(_):
+        new_idx, overflow, bits, new_state = program.build(
+            position, geometry, metric, state, query=query, capacity=capacity)
+        bits |= _bits(overflow, _OVERFLOW)
+        if program.checks_metric:
+            bits |= _metric_errors(position, metric, g, h, grid, capacity)
+        return new_idx, position, code | bits, new_state
+
+    def keep(_):
+        return idx, reference, code, state
+
+    if program.dr_threshold == 0 or given_radii:
+        return rebuild(None)
+    threshold_sq = (program.dr_threshold / 2) ** 2
+    moved = jax.vmap(metric)(position, reference)
+    return jax.lax.cond(jnp.any(moved > threshold_sq) | force, rebuild,
+                        keep, None)
+
+
+_UPDATE_STATIC = ("program", "capacity", "given_radii")
+# Eager updates of every factory whose programs are shared (`_Lists`).
+_eager_update = jax.jit(_update_arrays, static_argnames=_UPDATE_STATIC)
+_eager_update_quick = jax.jit(
+    _update_arrays, static_argnames=_UPDATE_STATIC,
+    compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+
+
 class _Lists:
     """``allocate`` and ``update`` of one `neighbor_list` call: its checked
     settings, the backend bound for it (`jaxrt.backends.bind`), the setup
@@ -782,22 +872,34 @@ class _Lists:
         self.checks_metric = not capabilities(
             self.searcher).exact_for_any_metric
         self.setups: dict[int, _Setup] = {}
-        self.build = _make_build(self.searcher, settings.custom_mask_function)
+        self.programs: dict[int, _Program] = {}
+        # Factories of equal arguments share their compiled programs (a
+        # second `neighbor_list` compiles nothing), except where the
+        # searcher holds per-factory state: its programs stay its own.
+        self.shares_programs = self.builds_as_update
+        self.build = (_shared_build if self.shares_programs else _make_build)(
+            self.searcher, settings.custom_mask_function)
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
         self.compiled: dict[tuple, list[Capacity]] = {}
         # The capacities ``allocate`` built through `eager_program`'s program
         # (`plan_build`), per (N, dtype, query).
         self.built_as_update: dict[tuple, set[Capacity]] = {}
-        # Eager ``update`` calls run the whole update as one jitted program,
-        # compiled once per list structure and shape and then reused: run
-        # op by op, its ``lax.cond`` closed over new functions at every call
-        # and recompiled the search each time. ``allocate`` builds through
-        # it too (``force``: rebuild whatever moved), so that the first
-        # ``update`` compiles nothing.
-        self.eager_update = jax.jit(self.forced_update)
-        self.eager_update_quick = jax.jit(
-            self.forced_update, compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+        # Eager ``update`` calls run the whole update as one jitted program
+        # (`_update_arrays`), compiled once per list structure and shape
+        # and then reused: run op by op, its ``lax.cond`` closed over new
+        # functions at every call and recompiled the search each time.
+        # ``allocate`` builds through it too (``force``: rebuild whatever
+        # moved), so that the first ``update`` compiles nothing.
+        if self.shares_programs:
+            self.eager_update = _eager_update
+            self.eager_update_quick = _eager_update_quick
+        else:
+            self.eager_update = jax.jit(_update_arrays,
+                                        static_argnames=_UPDATE_STATIC)
+            self.eager_update_quick = jax.jit(
+                _update_arrays, static_argnames=_UPDATE_STATIC,
+                compiler_options=_backend.QUICK_COMPILE_OPTIONS)
 
     def eager_program(self, position):
         """`eager_update`, or for small N on a CPU `eager_update_quick`
@@ -952,8 +1054,8 @@ class _Lists:
             jax.device_put(np.full(shape, n, np.int32)), position,
             PartitionError(jax.device_put(np.zeros((), np.uint8))), capacity,
             state)
-        return self.eager_program(position)(position, empty, np.bool_(True),
-                                            radii=radii, **kwargs)
+        return self.eager_call(position, empty, np.bool_(True), radii,
+                               kwargs)
 
     def reach(self, radii, dtype):
         """float ``(N,)`` ``radii + dr_threshold`` in ``dtype``, or None."""
@@ -979,10 +1081,21 @@ class _Lists:
         if traced:
             return self.traced_update(position, neighbors, radii=radii,
                                       **kwargs)
-        position = _check_position(position)
-        return self.eager_program(position)(position, neighbors,
-                                            np.bool_(False),
-                                 radii=radii, **kwargs)
+        return self.eager_call(position, neighbors, np.bool_(False), radii,
+                               kwargs)
+
+    def eager_call(self, position, neighbors: NeighborList, force, radii,
+                   kwargs: dict) -> NeighborList:
+        """`update` called eagerly (or ``allocate``'s build, ``force``d):
+        `eager_program`'s compiled program on the list's arrays."""
+        position, capacity, program, radii, given = self.prepare(
+            position, neighbors, radii, kwargs)
+        state = neighbors.backend_state if program.stateful else None
+        out = self.eager_program(position)(
+            position, neighbors.idx, neighbors.reference_position,
+            neighbors.error.code, state, force, radii, kwargs,
+            program=program, capacity=capacity, given_radii=given)
+        return self.replaced(neighbors, program, *out)
 
     def traced_update(self, position, neighbors: NeighborList, *, radii=None,
                       **kwargs) -> NeighborList:
@@ -992,8 +1105,32 @@ class _Lists:
 
     def forced_update(self, position, neighbors: NeighborList, force, *,
                       radii=None, **kwargs) -> NeighborList:
-        """`update`'s body, traced (`traced_update`, `eager_program`);
-        ``force`` (bool, may be traced): rebuild even if nothing moved."""
+        """`update`'s body, traced (`traced_update`); ``force`` (bool, may
+        be traced): rebuild even if nothing moved."""
+        position, capacity, program, radii, given = self.prepare(
+            position, neighbors, radii, kwargs)
+        state = neighbors.backend_state if program.stateful else None
+        out = _update_arrays(position, neighbors.idx,
+                             neighbors.reference_position,
+                             neighbors.error.code, state, force, radii,
+                             kwargs, program=program, capacity=capacity,
+                             given_radii=given)
+        return self.replaced(neighbors, program, *out)
+
+    @staticmethod
+    def replaced(neighbors: NeighborList, program: _Program, idx, reference,
+                 code, state) -> NeighborList:
+        """``neighbors`` with `_update_arrays`' new arrays."""
+        new = dict(idx=idx, reference_position=reference,
+                   error=PartitionError(code))
+        if program.stateful:
+            new["backend_state"] = state
+        return dataclasses.replace(neighbors, **new)
+
+    def prepare(self, position, neighbors: NeighborList, radii, kwargs: dict):
+        """Check `update`'s arguments; returns ``(position, capacity,
+        program, radii, given_radii)`` for `_update_arrays` (``radii``:
+        those given, else the factory's, else None)."""
         self.check_kwargs(kwargs, allocating=False)
         if not isinstance(neighbors, NeighborList):
             raise TypeError("neighbors must be a NeighborList from allocate; "
@@ -1031,45 +1168,22 @@ class _Lists:
                 f"neighbors {'lacks' if stateful else 'carries'} the state "
                 f"of backend={self.searcher.name!r}; use the update of the "
                 "factory that allocated it.")
-        setup = self.setup(position.shape[1], kwargs)
-        query = dataclasses.replace(setup.query,
-                                    decide_by_metric=capacity.metric_decides)
-        metric = MetricSq(setup.metric_fn, dict(kwargs))
-        g = _space.gram(metric, setup.grid, position.dtype)
-        h = _space.heights(g, capacity.orthorhombic)
-        geometry = _geometry(setup.grid, h, position.dtype, capacity.slack,
-                             self.reach(radii, position.dtype))
-        code = neighbors.error.code | _input_errors(
-            position, setup.grid, h, _box_limit(self.searcher,
-                                                self.settings.cutoff))
-        if given_radii:
-            code |= _radii_errors(jnp.asarray(radii),
-                                  self.settings.r_cutoff)
+        return (position, capacity, self.program(position.shape[1], kwargs),
+                radii, given_radii)
 
-        def rebuild(_):
-            state = neighbors.backend_state if stateful else None
-            idx, overflow, bits, state = self.build(
-                position, geometry, metric, state, query=query,
-                capacity=capacity)
-            bits |= _bits(overflow, _OVERFLOW)
-            if self.checks_metric:
-                bits |= _metric_errors(position, metric, g, h, setup.grid,
-                                       capacity)
-            new = dict(idx=idx, reference_position=position,
-                       error=PartitionError(code | bits))
-            if stateful:
-                new["backend_state"] = state
-            return dataclasses.replace(neighbors, **new)
-
-        def keep(_):
-            return dataclasses.replace(neighbors, error=PartitionError(code))
-
-        if self.settings.dr_threshold == 0 or given_radii:
-            return rebuild(None)
-        threshold_sq = (self.settings.dr_threshold / 2) ** 2
-        moved = jax.vmap(metric)(position, ref)
-        return jax.lax.cond(jnp.any(moved > threshold_sq) | force, rebuild,
-                            keep, None)
+    def program(self, dim: int, kwargs: dict) -> _Program:
+        """The `_Program` of positions of dimension ``dim``."""
+        if dim not in self.programs:
+            setup = self.setup(dim, kwargs)
+            self.programs[dim] = _Program(
+                searcher=self.searcher, build=self.build,
+                metric_fn=setup.metric_fn, grid=setup.grid, query=setup.query,
+                r_cutoff=self.settings.r_cutoff,
+                dr_threshold=self.settings.dr_threshold,
+                box_limit=_box_limit(self.searcher, self.settings.cutoff),
+                checks_metric=self.checks_metric,
+                stateful=_backend.is_stateful(self.searcher))
+        return self.programs[dim]
 
 
 # Eager updates of lists of up to this many particles on a CPU run a

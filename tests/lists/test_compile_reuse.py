@@ -185,3 +185,163 @@ def test_a_fixed_box_grid_skips_coarsening_only_where_it_never_coarsens(
     got = nbrs.update(moved)
     assert not bool(got.did_buffer_overflow)
     assert _pairs(got) == _brute_force(np.mod(moved, side), side, 1.4)
+
+
+@pytest.mark.parametrize("backend,fmt", [("auto", "Dense"), ("cell", "Dense"),
+                                         ("cell", "Sparse"),
+                                         ("brute", "OrderedSparse")])
+def test_second_equal_factory_compiles_nothing(backend, fmt):
+    """A second `neighbor_list` with the same displacement and arguments
+    (a user's second system, a test's second case) meets the first one's
+    programs: its ``allocate`` and its updates compile nothing, and its
+    lists are exact and its own (their ``update`` is its factory's)."""
+    from jax_md import partition
+    position, side = _system(n=300, side=7.0, seed=3)
+    displacement, _ = space.periodic(side)
+    layout = getattr(partition.NeighborListFormat, fmt)
+
+    def factory():
+        return jaxrt.neighbor_list(displacement, side, 1.0, 0.4,
+                                   backend=backend, format=layout)
+
+    first = factory()
+    first.allocate(position).update(position + 0.5).idx.block_until_ready()
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+    second = factory()
+    compiles = _count_compiles()
+    nbrs = second.allocate(position)
+    rebuilt = nbrs.update(far)
+    kept = rebuilt.update(far + 0.01)
+    jax.block_until_ready((nbrs.idx, rebuilt.idx, kept.idx))
+    assert len(compiles) == 0, compiles
+    assert nbrs.update_fn == second.update
+    assert rebuilt.update_fn == second.update
+    for got, at in ((nbrs, position), (rebuilt, far), (kept, far)):
+        assert not bool(got.did_buffer_overflow)
+        expected = _brute_force(np.mod(at, side), side, 1.4)
+        if fmt == "Dense":
+            assert _pairs(got) == expected
+            continue
+        i, j = np.asarray(got.idx)
+        pairs = {(int(a), int(b)) for a, b in zip(i, j) if a < 300}
+        if fmt == "OrderedSparse":
+            assert all(a > b for a, b in pairs) or all(a < b for a, b in pairs)
+            pairs |= {(b, a) for a, b in pairs}
+        assert pairs == expected
+
+
+@pytest.mark.parametrize("change", ["cutoff", "skin", "mask_self", "box",
+                                    "mask_function"])
+def test_factories_that_differ_keep_their_own_programs(change):
+    """Factories share programs only where nothing they trace differs: each
+    list below is exact for its own arguments although an earlier factory
+    of almost the same arguments compiled first."""
+    position, side = _system(n=300, side=7.0, seed=4)
+    displacement, _ = space.periodic(side)
+    base = dict(r_cutoff=1.0, dr_threshold=0.4, mask_self=True)
+    jaxrt.neighbor_list(displacement, side, **base).allocate(
+        position).update(position + 0.5).idx.block_until_ready()
+    cutoff, box, mask = 1.4, side, None
+    other = dict(base)
+    if change == "cutoff":
+        other["r_cutoff"], cutoff = 0.7, 1.1
+    elif change == "skin":
+        other["dr_threshold"], cutoff = 0.1, 1.1
+    elif change == "mask_self":
+        other["mask_self"] = False
+    elif change == "box":
+        box = side + 1.0
+        displacement, _ = space.periodic(box)
+    else:
+        def mask(idx):  # drop odd neighbours
+            return jnp.where(idx % 2 == 1, idx.shape[0], idx)
+        other["custom_mask_function"] = mask
+    fns = jaxrt.neighbor_list(displacement, box, **other)
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+    nbrs = fns.allocate(position)
+    for got, at in ((nbrs, position), (nbrs.update(far), far)):
+        assert not bool(got.did_buffer_overflow)
+        expected = _brute_force(np.mod(at, box), box, cutoff)
+        if change == "mask_self":
+            expected |= {(i, i) for i in range(300)}
+        if mask is not None:
+            expected = {(i, j) for i, j in expected if j % 2 == 0}
+        assert _pairs(got) == expected
+
+
+def _case(name):
+    """(position float32 (N, dim), displacement, box, r_cutoff)."""
+    from scenes import fluid, lattice
+    if name == "lattice":  # every nearest pair exactly at the cutoff
+        r = lattice(7, 1.0)
+        return jnp.asarray(r), space.periodic(7.0)[0], 7.0, 0.8
+    if name == "small_box":  # a cutoff of more than half the box
+        r, side = fluid(n_side=4)
+        return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 2.2
+    if name == "free":
+        r, _ = fluid(n_side=7)
+        return jnp.asarray(r, jnp.float32), space.free()[0], None, 1.0
+    if name == "2d":
+        r, side = fluid(n_side=20, dim=2)
+        return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 1.2
+    r, side = fluid(n_side=8)
+    return jnp.asarray(r, jnp.float32), space.periodic(side)[0], side, 1.0
+
+
+@pytest.mark.parametrize("name,fmt,mask_self", [
+    ("fluid", "Dense", True), ("fluid", "OrderedSparse", True),
+    ("fluid", "Sparse", False), ("lattice", "Dense", True),
+    ("small_box", "Dense", True), ("free", "Sparse", True),
+    ("2d", "Dense", False)])
+def test_small_lists_count_over_all_pairs_as_the_windows_do(
+        monkeypatch, name, fmt, mask_self):
+    """``allocate`` on a CPU counts a small cell list's rows over all pairs
+    (its program compiles several times faster than the windows' count):
+    the same capacity, the windows' own, shell buffers at least the
+    windows' (an upper bound), and the same exact list, never flagged."""
+    if jax.default_backend() != "cpu":
+        pytest.skip("the all-pairs count is the CPU's")
+    import warnings
+    from jax_md import partition
+    from jaxrt.backends.cell import search
+    position, displacement, box, cutoff = _case(name)
+    layout = getattr(partition.NeighborListFormat, fmt)
+
+    def allocate(limit):
+        monkeypatch.setattr(search, "_ALL_PAIRS_COUNT_MAX_N", limit)
+        fns = jaxrt.neighbor_list(displacement, box, cutoff, 0.2,
+                                  backend="cell", format=layout,
+                                  mask_self=mask_self)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the small box's warning
+            nbrs = fns.allocate(position)
+        return nbrs, dict(nbrs.cell_list_capacity.internal)
+
+    before = search._visit_quick._cache_size()
+    nbrs, sizes = allocate(10 ** 9)
+    assert search._visit_quick._cache_size() == before  # no windows' count
+    windows, by_windows = allocate(0)
+    assert nbrs.idx.shape == windows.idx.shape
+    assert sizes["window"] == by_windows["window"]
+    assert sizes["shell"] >= by_windows["shell"]
+    assert sizes["shell_rows"] >= by_windows["shell_rows"]
+    for got in (nbrs, windows):
+        assert not bool(got.did_buffer_overflow)
+    if fmt == "Dense":
+        assert _sorted_rows(nbrs) == _sorted_rows(windows)
+    else:
+        assert _edges(nbrs) == _edges(windows)
+    far = jax.block_until_ready(position + 0.35)
+    assert not bool(nbrs.update(far).did_buffer_overflow)
+
+
+def _sorted_rows(nbrs):
+    n = nbrs.idx.shape[0]
+    return [sorted(int(j) for j in row if j < n)
+            for row in np.asarray(nbrs.idx)]
+
+
+def _edges(nbrs):
+    i, j = np.asarray(nbrs.idx)
+    n = nbrs.reference_position.shape[0]
+    return sorted((int(a), int(b)) for a, b in zip(i, j) if a < n)

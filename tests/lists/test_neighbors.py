@@ -409,6 +409,9 @@ def test_allocate_on_new_positions_reuses_the_compiled_build():
     disp, _ = space.periodic(side)
     fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
     lists = fns.allocate.__self__
+    # The build is shared by factories of equal arguments: count this
+    # one's compiles (its displacement is new, so are its programs).
+    before = lists.build._cache_size()
     widths = []
     for seed in range(6):
         R = jax.random.uniform(jax.random.PRNGKey(seed), (n, 3)) * side
@@ -418,9 +421,9 @@ def test_allocate_on_new_positions_reuses_the_compiled_build():
             partition.Dense, brute_pairs(R, 1.5, side, True))
         # Every compile is one remembered capacity, none is made besides.
         (remembered,) = lists.compiled.values()
-        assert lists.build._cache_size() == len(remembered)
+        assert lists.build._cache_size() - before == len(remembered)
     assert len(set(widths)) > 1  # the case this is about
-    assert lists.build._cache_size() < len(set(widths))
+    assert lists.build._cache_size() - before < len(set(widths))
 
 
 def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
@@ -436,15 +439,20 @@ def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
     disp, _ = space.periodic(side)
     fns = jaxrt.neighbor_list(disp, side, 1.5, backend="cell")
     lists = fns.allocate.__self__
+    # Programs are shared by factories of equal arguments: count this
+    # one's compiles (its displacement is new, so are its programs).
+    def compiled():
+        return (lists.eager_update._cache_size()
+                + lists.eager_update_quick._cache_size(),
+                lists.build._cache_size())
+    (updates, builds) = compiled()
     capacities = set()
     for seed in range(3):
         R = jax.random.uniform(jax.random.PRNGKey(seed), (700, 3)) * side
         capacities.add(fns.allocate(R).cell_list_capacity)
     assert lists.compiled == {}
     assert len(capacities) > 1  # the case this is about
-    assert (lists.eager_update._cache_size()
-            + lists.eager_update_quick._cache_size()) == len(capacities)
-    assert lists.build._cache_size() == 0
+    assert compiled() == (updates + len(capacities), builds)
 
 
 @pytest.mark.parametrize("free_bytes", [None, 10_000, 10 ** 9])
@@ -754,9 +762,10 @@ def _cluster_within_the_cutoff(n=300):
                        jnp.float32)
 
 
+@pytest.mark.parametrize("windows", [False, True])
 @pytest.mark.parametrize("fmt", [partition.Dense, partition.OrderedSparse])
 def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
-        monkeypatch, fmt):
+        monkeypatch, fmt, windows):
     # Seed 003's cluster: every particle within the cutoff of every other,
     # so every layout's rows are N wide. The cell list must refuse after its
     # count pass, before the pass that writes N x row entries (at n = 50 000
@@ -775,11 +784,17 @@ def test_cell_rows_past_the_limit_are_refused_before_they_are_built(
         return candidates(self, *args, **options)
 
     monkeypatch.setattr(backends.Cell, "_candidates", spy)
+    if windows:  # the windows' count even where all pairs would count
+        from jaxrt.backends.cell import search
+        monkeypatch.setattr(search, "_ALL_PAIRS_COUNT_MAX_N", 0)
     with pytest.raises(jaxrt.ListTooLargeError, match=r"needs 89,700 int32 entries \(rows "
                        r"before conversion.*lennard_jones_fused"):
         jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * (n - 1) - 1),
                             format=fmt).allocate(R)
-    assert widths and max(widths) <= 1  # only the count pass ran
+    # Only a count ran (small lists on a CPU count over all pairs, with
+    # no candidate pass at all): no rows pass.
+    assert max(widths, default=0) <= 1
+    assert bool(widths) == (windows or jax.default_backend() != "cpu")
     # Room for N x N (the rows' capacity is capped at N) and the same list
     # is built, every pair in it.
     nbrs = jaxrt.neighbor_list(disp, None, 1.5, backend=limited(n * n),

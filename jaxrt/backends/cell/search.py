@@ -86,6 +86,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt import platforms
 from jaxrt.backends import contract as _backend
 from jaxrt.backends.cell import kernel as _cell_kernel
 from jaxrt.backends.cell import radius_classes
@@ -1013,6 +1014,54 @@ _visit_quick = jax.jit(_visit_fn, static_argnames=_VISIT_STATIC,
                        compiler_options=_QUICK)
 
 
+# Up to this many particles on a CPU, ``allocate`` counts rows over all
+# pairs (`_all_pairs_counts`): its program compiles in a fraction of the
+# windows' count. Past it the N**2 distances slow down every ``allocate``
+# on a new structure (at N = 1000 it took as long either way; at 2000 a
+# third longer: a training set's allocates).
+_ALL_PAIRS_COUNT_MAX_N = 1024
+
+
+@functools.partial(jax.jit, static_argnames=("query",))
+def _all_pairs_counts(position, metric_sq: MetricSq, tol, *, query: Query):
+    """`_visit`'s counts (row_width 0) over all pairs, for ``allocate``.
+
+    The rows are the list's: each pair the caller's metric puts within the
+    cutoff (once, through the image it picks; the windows find the same
+    set). The shell sizes bound the windows' from above: a pair in their
+    shell is within ``tol`` of the cutoff by the cheap distance, which is
+    within ``tol / 4`` of the caller's (`_TOL_ULPS`), so within ``2 tol``
+    of it by the caller's metric, where all such pairs are counted here.
+
+    Args:
+      position: float ``(N, dim)``; ``tol``: `_tolerance` (float scalar).
+    Returns:
+      int32 ``(N,)`` row counts (only ``j < i`` where `_lower_only`) and
+      int32 ``(2,)`` the particles with a pair near the cutoff and the
+      most such pairs of one.
+    """
+    n = position.shape[0]
+    dtype = position.dtype
+    d2 = jax.vmap(jax.vmap(metric_sq, (None, 0)), (0, None))(position,
+                                                             position)
+    j = jnp.arange(n, dtype=jnp.int32)[None, :]
+    i = jnp.arange(n, dtype=jnp.int32)[:, None]
+    keep = d2 < jnp.asarray(query.cutoff ** 2, dtype)
+    if query.mask_self:
+        keep &= i != j
+    if _lower_only(query):
+        keep &= j < i
+    count = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    if query.decide_by_metric:  # the metric decides every slot: no shell
+        return count, jnp.zeros((2,), jnp.int32)
+    tol = jnp.asarray(tol, dtype)
+    low = jnp.maximum(query.cutoff - 2 * tol, 0) ** 2
+    high = (query.cutoff + 2 * tol) ** 2
+    near = jnp.sum((d2 >= low) & (d2 < high), axis=1, dtype=jnp.int32)
+    return count, jnp.stack([jnp.sum(near > 0, dtype=jnp.int32),
+                             jnp.max(near, initial=0)])
+
+
 @functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
                                              "row_width", "query",
                                              "interpret"))
@@ -1184,7 +1233,7 @@ class Cell:
                          **options)
         if engine == "kernel":
             return kernel()
-        return jax.lax.platform_dependent(cuda=kernel, default=portable)
+        return platforms.cuda_or_default(kernel, portable)
 
     def measure(self, position, geometry, query, metric_sq):
         if geometry.reach is not None:
@@ -1208,17 +1257,28 @@ class Cell:
         # A first guess that fits liquids (a few in a hundred have a shell).
         shell, shell_rows = _MIN_SHELL, _shell_rows(n // 8, n)
         limit = _backend.max_list_entries(self)
-        while True:  # enough room to count every shell pair exactly
+        # Small lists on a CPU: all pairs count the rows (on the portable
+        # path, which the search then takes there).
+        all_pairs = (platform == "cpu" and n <= _ALL_PAIRS_COUNT_MAX_N
+                     and self.kernel in ("auto", "xla"))
+        if all_pairs:
+            _check_candidate_words(self.name, n, longest.shape[0], window,
+                                   limit)
+            count, near = _all_pairs_counts(position, metric_sq, tol,
+                                            query=query)
+            has, fullest = (int(x) for x in np.asarray(near))
+        while not all_pairs:  # enough room to count every shell pair exactly
             engine = self._engine(n, 1, shell, query, platform)
             if engine == "portable":
                 _check_candidate_words(self.name, n, longest.shape[0],
                                        window, limit)
-            _, count, (has, fullest), _ = self._candidates(
+            _, count, near, _ = self._candidates(
                 engine, position, geometry, metric_sq, window=words,
                 quick=quick, coarsen=not fixed,
                 shell=shell, shell_rows=shell_rows, query=query,
                 row_width=0 if engine == "portable" else 1)
-            has, fullest = int(has), int(fullest)
+            # On the host: unpacking a jax.Array compiles a program.
+            has, fullest = (int(x) for x in np.asarray(near))
             if has <= shell_rows and fullest <= shell:
                 break
             shell = max(shell, 2 * fullest)
