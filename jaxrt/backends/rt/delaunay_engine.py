@@ -8,7 +8,8 @@ from scratch is the caller's (``rebuild``, e.g.
 Flip rounds run in batches of ``ROUNDS_PER_READ`` launches with no host
 read in between: each round counts its flips on the device, a round after
 one that flipped nothing is a no-op (the device-side done flag), and only
-the triangles the previous round flipped are re-tested. The host reads one
+the triangles of the previous round's wanting edges are re-tested, from a
+compacted worklist (grid-stride launches of at most `STRIDE_THREADS`). The host reads one
 small status array per batch (the rounds' flips and the inverted triangles
 left), so a converged try costs one read whatever its number of rounds.
 """
@@ -82,13 +83,18 @@ class _Scratch:
     def __init__(self, m: Mesh):
         t, v, dev = m.tri.shape[0], m.position.shape[0], m.device
         self.want = wp.zeros(3 * t, dtype=wp.int32, device=dev)
-        self.claim = wp.zeros(t, dtype=wp.int32, device=dev)
+        self.claim = wp.full(t, k.UNCLAIMED, dtype=wp.int32, device=dev)
         self.twin_new = wp.zeros((t, 3), dtype=wp.int32, device=dev)
         self.counter = wp.zeros(1, dtype=wp.int32, device=dev)
         # status[0]: inverted triangles; status[1 + r]: flips of round r.
         self.status = wp.zeros(2 + ROUNDS_PER_READ, dtype=wp.int32, device=dev)
-        self.dirty = wp.zeros((2, t), dtype=wp.int32, device=dev)
-        self.parity = 0  # the dirty row the next round reads
+        # Three worklists of triangles (read, being filled, emptied) with
+        # their membership flags; sizes[3]: rows rewritten this round.
+        self.lists = wp.zeros((3, t), dtype=wp.int32, device=dev)
+        self.flag = wp.zeros((3, t), dtype=wp.int32, device=dev)
+        self.sizes = wp.zeros(4, dtype=wp.int32, device=dev)
+        self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
+        self.ring = 0  # the worklist the next round reads
         self.step = wp.zeros(v, dtype=wp.float64, device=dev)
         self.kept = (wp.zeros_like(m.tri), wp.zeros_like(m.twin),
                      wp.zeros_like(m.shift))  # the last valid connectivity
@@ -116,6 +122,15 @@ def scratch(m: Mesh) -> _Scratch:
 
 
 ROUNDS_PER_READ = 16
+STRIDE_THREADS = 1 << 17
+"""Threads of a worklist launch (grid-stride): a round after the first
+costs its worklist (the tangle) plus one launch of this size, whatever the
+mesh's size; 2^17 threads keep an H200's SMs busy on a long list."""
+
+
+def _threads(work: int) -> int:
+    return max(1, min(work, STRIDE_THREADS))
+
 """Flip rounds launched between two host reads on a GPU. On the CPU a
 launch runs to completion before the next, so a read costs nothing and
 each round is read (a no-op round would cost a full pass there)."""
@@ -144,24 +159,29 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     t = m.tri.shape[0]
     dev = m.device
     s.status.zero_()
-    if fresh:
-        s.dirty.fill_(1)
+    if fresh:  # every edge is tested: no worklist
+        s.flag.zero_()
+        s.sizes.zero_()
+        s.ring = 0
     wp.copy(s.twin_new, m.twin)
+    edges, tris = _threads(3 * t), _threads(t)
     for r in range(rounds):
-        wp.launch(k.reset_claims, dim=t, device=dev,
-                  inputs=[s.claim, s.dirty, s.status, r, s.parity])
-        wp.launch(k.flip_mark, dim=3 * t, device=dev,
+        first = int(fresh and r == 0)
+        wp.launch(k.flip_mark, dim=3 * t if first else edges, device=dev,
                   inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
-                          s.dirty, s.status, r, s.parity])
-        wp.launch(k.flip_apply, dim=3 * t, device=dev,
+                          s.flag, s.lists, s.sizes, s.status, r, s.ring,
+                          first, 3 * t if first else edges])
+        wp.launch(k.flip_apply, dim=tris, device=dev,
                   inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
-                          s.twin_new, s.status, r])
-        s.parity = 1 - s.parity  # the row this round marked
+                          s.twin_new, s.lists, s.sizes, s.written, s.status,
+                          r, s.ring, tris])
         # Copied back, not swapped: the mesh's arrays may be a caller's
         # buffers (an XLA call's outputs), which must end up holding the
         # result.
-        wp.launch(k.copy_twins, dim=m.twin.shape, device=dev,
-                  inputs=[s.twin_new, m.twin, s.status, r])
+        wp.launch(k.finish_round, dim=tris, device=dev,
+                  inputs=[s.twin_new, m.twin, s.claim, s.flag, s.lists,
+                          s.sizes, s.written, s.status, r, s.ring, tris])
+        s.ring = (s.ring + 1) % 3  # the worklist this round filled
     s.bad_vertex.zero_()
     wp.launch(k.check_triangles, dim=t, device=dev,
               inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
