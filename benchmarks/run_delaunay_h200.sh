@@ -16,7 +16,10 @@
 # Each mode stays under ~9 minutes (--hard-stop). CSV:
 # benchmarks/results/<device>/ by default, or $OUT/delaunay_<mode>/ when $OUT
 # is set (the device run's output folder). Environment: STEPS, REPEATS,
-# PYTHON, METHODS (overrides the methods).
+# PYTHON, METHODS (overrides the methods), NEIGHBOURS (default "8 64"),
+# HARD_STOP (seconds, default 540), SIZES (overrides N: a CPU check of a
+# mode end to end, e.g. SIZES=500) and REUSE=1 (one worker for the rows
+# while they succeed: its start-up is paid once).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
@@ -33,10 +36,12 @@ run() {  # name, sizes, motions, timeout per row, methods...
   if [[ -n ${METHODS:-} ]]; then read -r -a methods <<< "$METHODS"; fi
   local out=()
   if [[ -n ${OUT:-} ]]; then out=(--out "$OUT/delaunay_$name"); fi
-  $PY benchmarks/delaunay.py --name "delaunay_$name.csv" --sizes $sizes \
-    --motions $motions --neighbours 8 64 --methods "${methods[@]}" \
+  $PY benchmarks/delaunay.py --name "delaunay_$name.csv" --sizes ${SIZES:-$sizes} \
+    --motions $motions --neighbours ${NEIGHBOURS:-8 64} \
+    --methods "${methods[@]}" \
     --steps "${STEPS:-20}" --repeats "${REPEATS:-5}" \
-    --timeout "$row_timeout" --hard-stop 540 "${out[@]}"
+    --timeout "$row_timeout" --hard-stop "${HARD_STOP:-540}" "${out[@]}" \
+    ${REUSE:+--reuse-worker}
 }
 case $MODE in
   tests)

@@ -223,6 +223,35 @@ def test_tangling_moves_are_repaired_on_the_device_by_split_steps():
     assert splits > 0
 
 
+@pytest.mark.parametrize("periodic", [True, False])
+def test_tries_after_a_success_test_only_the_moving_vertices(periodic):
+    # Large moves: the first tries fail, one succeeds with the tangled
+    # vertices short of their move, and the tries after it start from that
+    # checked triangulation, testing and checking only the triangles of the
+    # vertices still moving (seeded). The end must still be exact, on a
+    # lattice with cocircular points moved off it partly.
+    rng = np.random.default_rng(5)
+    g = np.arange(16) * 0.625 + 0.3
+    pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    side = SIDE if periodic else None
+    m = triangulate(pts, 1.0, side)
+    frame = m.position.numpy()[pts.shape[0]:]
+    seeded = 0
+    for _ in range(3):
+        move = 0.35 * rng.normal(size=pts.shape)
+        move[rng.random(len(pts)) < 0.3] = 0.0  # some stay on the lattice
+        pts = pts + move
+        pts = np.mod(pts, SIDE) if periodic else np.clip(pts, 0.05, 9.95)
+        target = np.concatenate([pts, frame])
+        r = engine.maintain(m, wp.array(target, dtype=wp.vec2d,
+                                        device=DEVICE))
+        assert r.ok
+        seeded += r.seeded
+        assert_delaunay(m)
+        assert pairs_of(m, 1.0, points=pts) == brute(pts, 1.0, side)
+    assert seeded > 0
+
+
 def test_free_space_repair_and_a_point_leaving_the_frame_rebuilds():
     rng = np.random.default_rng(8)
     pts = rng.uniform(0, 10, (200, 2))

@@ -92,7 +92,8 @@ class _Scratch:
         # their membership flags; sizes[3]: rows rewritten this round.
         self.lists = wp.zeros((3, t), dtype=wp.int32, device=dev)
         self.flag = wp.zeros((3, t), dtype=wp.int32, device=dev)
-        self.sizes = wp.zeros(4, dtype=wp.int32, device=dev)
+        self.sizes = wp.zeros(5, dtype=wp.int32, device=dev)
+        self.seeds = wp.zeros(t, dtype=wp.int32, device=dev)
         self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
         self.ring = 0  # the worklist the next round reads
         self.step = wp.zeros(v, dtype=wp.float64, device=dev)
@@ -147,11 +148,15 @@ def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
 
 
 def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
-               fresh: bool) -> tuple[int, int, int]:
+               fresh: bool, seeded: bool = False) -> tuple[int, int, int]:
     """Up to ``rounds`` (at most `ROUNDS_PER_READ`) flip rounds at ``P``,
     then the validity check, with one host read at the end. ``fresh``: all
     triangles are tested in the first round (after a move); otherwise only
-    those the last batch's final round marked (its wanting edges'). Returns ``(flips, last,
+    those the last batch's final round marked (its wanting edges').
+    ``seeded`` (maintenance from a verified Delaunay triangulation at the
+    committed fractions, `maintain`): a fresh batch tests only the
+    triangles of the vertices that move (`delaunay_kernels.seed_moved`),
+    and every batch of the try checks only those. Returns ``(flips, last,
     bad)``: the flips, those of the last round run (0: converged), and the
     triangles not certainly positive (their vertices marked in the
     scratch's ``bad_vertex``)."""
@@ -159,14 +164,18 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     t = m.tri.shape[0]
     dev = m.device
     s.status.zero_()
-    if fresh:  # every edge is tested: no worklist
+    if fresh:
         s.flag.zero_()
         s.sizes.zero_()
         s.ring = 0
+        if seeded:
+            wp.launch(k.seed_moved, dim=t, device=dev,
+                      inputs=[m.tri, s.delta, s.done_part, s.fraction,
+                              s.flag, s.lists, s.sizes, s.seeds, s.ring])
     wp.copy(s.twin_new, m.twin)
     edges, tris = _threads(3 * t), _threads(t)
     for r in range(rounds):
-        first = int(fresh and r == 0)
+        first = int(fresh and not seeded and r == 0)  # all edges, no list
         wp.launch(k.flip_mark, dim=3 * t if first else edges, device=dev,
                   inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
                           s.flag, s.lists, s.sizes, s.status, r, s.ring,
@@ -183,8 +192,13 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
                           s.sizes, s.written, s.status, r, s.ring, tris])
         s.ring = (s.ring + 1) % 3  # the worklist this round filled
     s.bad_vertex.zero_()
-    wp.launch(k.check_triangles, dim=t, device=dev,
-              inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
+    if seeded:
+        wp.launch(k.check_seeds, dim=tris, device=dev,
+                  inputs=[m.tri, m.shift, P, m.L, s.seeds, s.sizes,
+                          s.bad_vertex, s.status, tris])
+    else:
+        wp.launch(k.check_triangles, dim=t, device=dev,
+                  inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
     st = s.status.numpy()
     per_round = st[1:1 + rounds]
     return int(per_round.sum()), int(per_round[-1]), int(st[0])
@@ -203,15 +217,17 @@ def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
 
 
 def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int,
-                 per_read: int | None = None) -> tuple[int, int, bool, int]:
+                 per_read: int | None = None, seeded: bool = False
+                 ) -> tuple[int, int, bool, int]:
     """`flip_to_delaunay`: ``(flips, host reads, done, triangles not
-    certainly positive after the last batch)``."""
+    certainly positive after the last batch)``; ``seeded``: see
+    `flip_batch`."""
     per_read = rounds_per_read(m, per_read)
     flips = reads = 0
     left, fresh = max_rounds, True
     while left > 0:
         rounds = min(left, per_read)
-        f, last, bad = flip_batch(m, P, rounds, fresh=fresh)
+        f, last, bad = flip_batch(m, P, rounds, fresh=fresh, seeded=seeded)
         flips += f
         reads += 1
         left -= rounds
@@ -225,14 +241,16 @@ def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int,
 class Maintenance:
     """What one `maintain` did: ``ok`` (False: the caller must rebuild;
     the mesh's positions are then unchanged, its triangles valid for part
-    of the move only), ``flips``, ``splits`` (failed tries), ``tries``
-    and ``reads`` (host reads of device results)."""
+    of the move only), ``flips``, ``splits`` (failed tries), ``tries``,
+    ``reads`` (host reads of device results) and ``seeded`` (tries that
+    tested only the triangles of their moving vertices)."""
 
     ok: bool
     flips: int
     splits: int
     tries: int = 0
     reads: int = 0
+    seeded: int = 0
 
 
 def _save(m: Mesh, kept) -> None:
@@ -257,7 +275,10 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     those triangles halve their step along their move while every other
     vertex keeps its own; after a successful try the steps double again.
     So each try bisects every tangle of the mesh at once, and the
-    vertices away from tangles finish their move in the first try.
+    vertices away from tangles finish their move in the first successful
+    try; the tries after it start from that checked triangulation and
+    test only the triangles of the vertices still moving (a tangle's
+    neighbourhood), so they cost the tangle, not the mesh.
     ``max_splits`` caps the failed tries; past it ``ok`` is False.
     ``rounds_per_read``: see `rounds_per_read`.
     """
@@ -277,16 +298,21 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
               inputs=[m.position, target, m.L, int(m.periodic), s.delta])
     s.done_part.zero_()
     s.step.fill_(1.0)
-    flips = splits = tries = 0
+    flips = splits = tries = seeded = 0
+    # Set once a try has succeeded: the kept triangulation is then a
+    # checked Delaunay one (at the committed fractions), and later tries
+    # test only the triangles of the vertices they move.
+    verified = False
     _save(m, s.kept)
     while True:
         tries += 1
+        seeded += verified
         wp.launch(k.try_fraction, dim=v, device=dev,
                   inputs=[s.done_part, s.step, s.fraction])
         wp.launch(k.move_part, dim=v, device=dev,
                   inputs=[m.position, s.delta, s.fraction, s.P])
         f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds,
-                                           rounds_per_read)
+                                           rounds_per_read, seeded=verified)
         reads += r
         if done:
             flips += f
@@ -299,13 +325,14 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
             if int(s.counter.numpy()[0]) == 0:
                 break
             _save(m, s.kept)
+            verified = True
             continue
         # bad_vertex marks the vertices of the triangles left inverted;
         # none (the rounds ran out) halves every step.
         _restore(m, s.kept)
         splits += 1
         if splits >= max_splits:
-            return Maintenance(False, flips, splits, tries, reads)
+            return Maintenance(False, flips, splits, tries, reads, seeded)
         wp.launch(k.halve_steps, dim=v, device=dev,
                   inputs=[s.step, s.bad_vertex, any_bad])
     if m.periodic:
@@ -314,7 +341,7 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
         wp.launch(k.add_periods, dim=m.tri.shape, device=dev,
                   inputs=[m.tri, s.periods, m.shift])
     wp.copy(m.position, s.P)
-    return Maintenance(True, flips, splits, tries, reads)
+    return Maintenance(True, flips, splits, tries, reads, seeded)
 
 
 def adjacency(m: Mesh) -> tuple[wp.array, wp.array]:

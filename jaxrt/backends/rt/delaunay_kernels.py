@@ -381,6 +381,20 @@ def finish_round(twin_new: wp.array2d(dtype=wp.int32),
         j += stride
 
 
+@wp.func
+def _check(t: int, tri: wp.array2d(dtype=wp.int32),
+           shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
+           L: wp.vec2d, bad_vertex: wp.array(dtype=wp.int32),
+           bad: wp.array(dtype=wp.int32)):
+    a = at(P, int(tri[t, 0]), shift[t, 0], L)
+    b = at(P, int(tri[t, 1]), shift[t, 1], L)
+    c = at(P, int(tri[t, 2]), shift[t, 2], L)
+    if orient_sign(a, b, c) != 1:
+        wp.atomic_add(bad, 0, 1)
+        for k in range(3):
+            bad_vertex[tri[t, k]] = 1
+
+
 @wp.kernel
 def check_triangles(tri: wp.array2d(dtype=wp.int32),
                     shift: wp.array2d(dtype=wp.vec2i),
@@ -389,14 +403,50 @@ def check_triangles(tri: wp.array2d(dtype=wp.int32),
                     bad: wp.array(dtype=wp.int32)):
     """One thread per triangle: count those not certainly positive
     (``bad[0]``) and mark their vertices (``bad_vertex``)."""
+    _check(wp.tid(), tri, shift, P, L, bad_vertex, bad)
+
+
+@wp.kernel
+def check_seeds(tri: wp.array2d(dtype=wp.int32),
+                shift: wp.array2d(dtype=wp.vec2i),
+                P: wp.array(dtype=wp.vec2d), L: wp.vec2d,
+                seeds: wp.array(dtype=wp.int32), sizes: wp.array(dtype=wp.int32),
+                bad_vertex: wp.array(dtype=wp.int32),
+                bad: wp.array(dtype=wp.int32), stride: int):
+    """`check_triangles` over the seeded triangles only (grid-stride over
+    ``seeds[:sizes[4]]``): after a seeded try every other triangle is
+    either unchanged with unmoved vertices (positive, as in the verified
+    triangulation the try started from) or made by a flip, which only
+    makes certainly positive triangles."""
+    j = wp.tid()
+    while j < sizes[4]:
+        _check(seeds[j], tri, shift, P, L, bad_vertex, bad)
+        j += stride
+
+
+@wp.kernel
+def seed_moved(tri: wp.array2d(dtype=wp.int32), delta: wp.array(dtype=wp.vec2d),
+               done_part: wp.array(dtype=wp.float64),
+               fraction: wp.array(dtype=wp.float64),
+               flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+               sizes: wp.array(dtype=wp.int32), seeds: wp.array(dtype=wp.int32),
+               cur: int):
+    """A try from a verified Delaunay triangulation (at the committed
+    fractions): only the triangles with a vertex that moves in this try
+    can lose the Delaunay condition or turn over, the others keep their
+    verdict. They go on worklist ``cur`` (the first round's) and on
+    ``seeds`` (``sizes[4]``, for `check_seeds`)."""
     t = wp.tid()
-    a = at(P, int(tri[t, 0]), shift[t, 0], L)
-    b = at(P, int(tri[t, 1]), shift[t, 1], L)
-    c = at(P, int(tri[t, 2]), shift[t, 2], L)
-    if orient_sign(a, b, c) != 1:
-        wp.atomic_add(bad, 0, 1)
-        for k in range(3):
-            bad_vertex[tri[t, k]] = 1
+    moved = bool(False)
+    for k in range(3):
+        v = int(tri[t, k])
+        d = delta[v]
+        if fraction[v] != done_part[v] and (d[0] != wp.float64(0.0)
+                                            or d[1] != wp.float64(0.0)):
+            moved = True
+    if moved:
+        _append(t, flag, lists, sizes, cur)
+        seeds[wp.atomic_add(sizes, 4, 1)] = t
 
 
 @wp.kernel
