@@ -96,6 +96,7 @@ class _Scratch:
         self.seeds = wp.zeros(t, dtype=wp.int32, device=dev)
         self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
         self.ring = 0  # the worklist the next round reads
+        self.launches: dict = {}  # `_round_launches`
         self.step = wp.zeros(v, dtype=wp.float64, device=dev)
         self.kept = (wp.zeros_like(m.tri), wp.zeros_like(m.twin),
                      wp.zeros_like(m.shift))  # the last valid connectivity
@@ -147,6 +148,38 @@ def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
     return int(rounds)
 
 
+def _round_launches(m: Mesh, P: wp.array, s: _Scratch) -> tuple:
+    """The launches of a flip round (`flip_mark` over every edge, over a
+    worklist, `flip_apply`, `finish_round`), recorded once per set of
+    arrays: a round then costs the host a few microseconds per launch
+    instead of packing every argument again (the rounds of a try are
+    launched whether or not the device finds them no-ops)."""
+    key = (m.tri.ptr, m.twin.ptr, m.shift.ptr, P.ptr, tuple(m.side),
+           str(m.device))
+    if key not in s.launches:
+        if len(s.launches) >= 8:  # a caller's buffers changed: forget
+            s.launches.clear()
+        t, dev = m.tri.shape[0], m.device
+        edges, tris = _threads(3 * t), _threads(t)
+
+        def mark(dim, first):
+            return wp.launch(
+                k.flip_mark, dim=dim, device=dev, record_cmd=True,
+                inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
+                        s.flag, s.lists, s.sizes, s.status, 0, 0, first,
+                        dim])
+        s.launches[key] = (
+            mark(3 * t, 1), mark(edges, 0),
+            wp.launch(k.flip_apply, dim=tris, device=dev, record_cmd=True,
+                      inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
+                              s.twin_new, s.lists, s.sizes, s.written,
+                              s.status, 0, 0, tris]),
+            wp.launch(k.finish_round, dim=tris, device=dev, record_cmd=True,
+                      inputs=[s.twin_new, m.twin, s.claim, s.flag, s.lists,
+                              s.sizes, s.written, s.status, 0, 0, tris]))
+    return s.launches[key]
+
+
 def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
                fresh: bool, seeded: bool = False) -> tuple[int, int, int]:
     """Up to ``rounds`` (at most `ROUNDS_PER_READ`) flip rounds at ``P``,
@@ -173,23 +206,15 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
                       inputs=[m.tri, s.delta, s.done_part, s.fraction,
                               s.flag, s.lists, s.sizes, s.seeds, s.ring])
     wp.copy(s.twin_new, m.twin)
-    edges, tris = _threads(3 * t), _threads(t)
+    tris = _threads(t)
+    mark_all, mark, apply, finish = _round_launches(m, P, s)
     for r in range(rounds):
-        first = int(fresh and not seeded and r == 0)  # all edges, no list
-        wp.launch(k.flip_mark, dim=3 * t if first else edges, device=dev,
-                  inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
-                          s.flag, s.lists, s.sizes, s.status, r, s.ring,
-                          first, 3 * t if first else edges])
-        wp.launch(k.flip_apply, dim=tris, device=dev,
-                  inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
-                          s.twin_new, s.lists, s.sizes, s.written, s.status,
-                          r, s.ring, tris])
-        # Copied back, not swapped: the mesh's arrays may be a caller's
-        # buffers (an XLA call's outputs), which must end up holding the
-        # result.
-        wp.launch(k.finish_round, dim=tris, device=dev,
-                  inputs=[s.twin_new, m.twin, s.claim, s.flag, s.lists,
-                          s.sizes, s.written, s.status, r, s.ring, tris])
+        first = fresh and not seeded and r == 0  # all edges, no worklist
+        for cmd, at in ((mark_all if first else mark, 11), (apply, 10),
+                        (finish, 8)):
+            cmd.set_param_at_index(at, r)
+            cmd.set_param_at_index(at + 1, s.ring)
+            cmd.launch()
         s.ring = (s.ring + 1) % 3  # the worklist this round filled
     s.bad_vertex.zero_()
     if seeded:

@@ -355,7 +355,8 @@ def finish_round(twin_new: wp.array2d(dtype=wp.int32),
     ``cur + 1``'s triangles and ``written``), the claims of worklist
     ``cur + 1`` back to `UNCLAIMED`, worklist ``cur``'s flags cleared, and
     worklist ``cur + 2`` (read two rounds ago) emptied for the next round
-    to fill."""
+    to fill. Copied, not swapped: ``twin`` may be a caller's buffer (an
+    XLA call's output), which must end up holding the result."""
     tid = wp.tid()
     if r > 0 and status[r] == 0:
         return
