@@ -97,6 +97,9 @@ class _Scratch:
         self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
         self.ring = 0  # the worklist the next round reads
         self.launches: dict = {}  # `_round_launches`
+        # Rows a flip changed since the last save (flags, list); size.
+        self.touched = wp.zeros((2, t), dtype=wp.int32, device=dev)
+        self.touched_size = wp.zeros(1, dtype=wp.int32, device=dev)
         self.step = wp.zeros(v, dtype=wp.float64, device=dev)
         self.kept = (wp.zeros_like(m.tri), wp.zeros_like(m.twin),
                      wp.zeros_like(m.shift))  # the last valid connectivity
@@ -176,7 +179,8 @@ def _round_launches(m: Mesh, P: wp.array, s: _Scratch) -> tuple:
                               s.status, 0, 0, tris]),
             wp.launch(k.finish_round, dim=tris, device=dev, record_cmd=True,
                       inputs=[s.twin_new, m.twin, s.claim, s.flag, s.lists,
-                              s.sizes, s.written, s.status, 0, 0, tris]))
+                              s.sizes, s.written, s.touched, s.touched_size,
+                              s.status, 0, 0, tris]))
     return s.launches[key]
 
 
@@ -211,7 +215,7 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     for r in range(rounds):
         first = fresh and not seeded and r == 0  # all edges, no worklist
         for cmd, at in ((mark_all if first else mark, 11), (apply, 10),
-                        (finish, 8)):
+                        (finish, 10)):
             cmd.set_param_at_index(at, r)
             cmd.set_param_at_index(at + 1, s.ring)
             cmd.launch()
@@ -279,13 +283,26 @@ class Maintenance:
 
 
 def _save(m: Mesh, kept) -> None:
+    """The whole mesh becomes the last valid triangulation; no row is
+    touched since."""
+    s = scratch(m)
     for dst, src in zip(kept, (m.tri, m.twin, m.shift)):
         wp.copy(dst, src)
+    s.touched[0].zero_()
+    s.touched_size.zero_()
 
 
-def _restore(m: Mesh, kept) -> None:
-    for dst, src in zip((m.tri, m.twin, m.shift), kept):
-        wp.copy(dst, src)
+def _copy_touched(m: Mesh, kept, *, keep: bool) -> None:
+    """``keep``: the rows the flips touched since the last save become the
+    last valid triangulation; else they go back to it (a try undone).
+    Every other row is the same in both: the cost is the tangle's."""
+    s = scratch(m)
+    t = m.tri.shape[0]
+    mesh = (m.tri, m.twin, m.shift)
+    src, dst = (mesh, kept) if keep else (kept, mesh)
+    wp.launch(k.copy_rows, dim=_threads(t), device=m.device,
+              inputs=[*src, *dst, s.touched, s.touched_size, _threads(t)])
+    s.touched_size.zero_()
 
 
 def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
@@ -296,7 +313,8 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     condition by flips from the current triangulation.
 
     Where a try leaves inverted triangles (a tangle flips cannot undo),
-    the mesh goes back to its last valid triangulation and the vertices of
+    the mesh goes back to its last valid triangulation (only the rows
+    the try's flips touched are copied back) and the vertices of
     those triangles halve their step along their move while every other
     vertex keeps its own; after a successful try the steps double again.
     So each try bisects every tangle of the mesh at once, and the
@@ -349,12 +367,12 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
             reads += 1
             if int(s.counter.numpy()[0]) == 0:
                 break
-            _save(m, s.kept)
+            _copy_touched(m, s.kept, keep=True)
             verified = True
             continue
         # bad_vertex marks the vertices of the triangles left inverted;
         # none (the rounds ran out) halves every step.
-        _restore(m, s.kept)
+        _copy_touched(m, s.kept, keep=False)
         splits += 1
         if splits >= max_splits:
             return Maintenance(False, flips, splits, tries, reads, seeded)

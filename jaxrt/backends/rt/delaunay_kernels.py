@@ -343,12 +343,21 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
                   status, r)
 
 
+@wp.func
+def _touch(t: int, touched: wp.array2d(dtype=wp.int32),
+           touched_size: wp.array(dtype=wp.int32)):
+    if wp.atomic_max(touched, 0, t, 1) == 0:
+        touched[1, wp.atomic_add(touched_size, 0, 1)] = t
+
+
 @wp.kernel
 def finish_round(twin_new: wp.array2d(dtype=wp.int32),
                  twin: wp.array2d(dtype=wp.int32),
                  claim: wp.array(dtype=wp.int32),
                  flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
                  sizes: wp.array(dtype=wp.int32), written: wp.array(dtype=wp.int32),
+                 touched: wp.array2d(dtype=wp.int32),
+                 touched_size: wp.array(dtype=wp.int32),
                  status: wp.array(dtype=wp.int32), r: int, cur: int, stride: int):
     """After round ``r`` (grid-stride, skipped once the batch is done):
     the rows it rewrote copied from ``twin_new`` to ``twin`` (worklist
@@ -356,7 +365,11 @@ def finish_round(twin_new: wp.array2d(dtype=wp.int32),
     ``cur + 1`` back to `UNCLAIMED`, worklist ``cur``'s flags cleared, and
     worklist ``cur + 2`` (read two rounds ago) emptied for the next round
     to fill. Copied, not swapped: ``twin`` may be a caller's buffer (an
-    XLA call's output), which must end up holding the result."""
+    XLA call's output), which must end up holding the result. Every row
+    copied (the only rows whose ``tri``, ``shift`` or ``twin`` a flip
+    changes) goes once on ``touched`` (row 0: flags, row 1: the list,
+    ``touched_size[0]`` its length), so a try is undone or kept by
+    copying those rows alone (`copy_rows`)."""
     tid = wp.tid()
     if r > 0 and status[r] == 0:
         return
@@ -375,10 +388,36 @@ def finish_round(twin_new: wp.array2d(dtype=wp.int32),
             claim[t] = UNCLAIMED
             for e in range(3):
                 twin[t, e] = twin_new[t, e]
+            _touch(t, touched, touched_size)
         if j < n_w:
             t = written[j]
             for e in range(3):
                 twin[t, e] = twin_new[t, e]
+            _touch(t, touched, touched_size)
+        j += stride
+
+
+@wp.kernel
+def copy_rows(src_tri: wp.array2d(dtype=wp.int32),
+              src_twin: wp.array2d(dtype=wp.int32),
+              src_shift: wp.array2d(dtype=wp.vec2i),
+              dst_tri: wp.array2d(dtype=wp.int32),
+              dst_twin: wp.array2d(dtype=wp.int32),
+              dst_shift: wp.array2d(dtype=wp.vec2i),
+              touched: wp.array2d(dtype=wp.int32),
+              touched_size: wp.array(dtype=wp.int32), stride: int):
+    """Grid-stride over the touched rows (`finish_round`): copy them from
+    ``src`` to ``dst`` (a try undone, or kept as the last valid
+    triangulation) and clear their flags; every other row is the same in
+    both. ``touched_size`` is reset by the caller after the launch."""
+    j = wp.tid()
+    while j < touched_size[0]:
+        t = touched[1, j]
+        for e in range(3):
+            dst_tri[t, e] = src_tri[t, e]
+            dst_twin[t, e] = src_twin[t, e]
+            dst_shift[t, e] = src_shift[t, e]
+        touched[0, t] = 0
         j += stride
 
 
