@@ -9,9 +9,10 @@ Flip rounds run in batches of ``ROUNDS_PER_READ`` launches with no host
 read in between: each round counts its flips on the device, a round after
 one that flipped nothing is a no-op (the device-side done flag), and only
 the triangles of the previous round's wanting edges are re-tested, from a
-compacted worklist (grid-stride launches of at most `STRIDE_THREADS`). The host reads one
-small status array per batch (the rounds' flips and the inverted triangles
-left), so a converged try costs one read whatever its number of rounds.
+compacted worklist (grid-stride launches of at most `STRIDE_THREADS`).
+The host reads one small status array per batch (the rounds' flips and
+the inverted triangles left), so a converged try costs one read whatever
+its number of rounds. Launches are recorded once and replayed.
 """
 from __future__ import annotations
 
@@ -97,6 +98,7 @@ class _Scratch:
         self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
         self.ring = 0  # the worklist the next round reads
         self.launches: dict = {}  # `_round_launches`
+        self.commands: dict = {}  # `_launch`
         # Rows a flip changed since the last save (flags, list); size.
         self.touched = wp.zeros((2, t), dtype=wp.int32, device=dev)
         self.touched_size = wp.zeros(1, dtype=wp.int32, device=dev)
@@ -149,6 +151,30 @@ def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
         raise ValueError(f"rounds_per_read={rounds}: pass 1 to "
                          f"{ROUNDS_PER_READ}.")
     return int(rounds)
+
+
+def _key(x):
+    if isinstance(x, wp.array):
+        return (x.ptr, x.shape)
+    if isinstance(x, (int, float, str)):
+        return x
+    return tuple(float(c) for c in x)  # a Warp vector
+
+
+def _launch(s: _Scratch, kernel, dim, device, inputs: list) -> None:
+    """``wp.launch`` of a maintenance kernel from a launch recorded once
+    per (kernel, dim, arguments): the tries of a step repeat the same
+    launches, and a recorded one costs the host a few microseconds
+    instead of packing every argument again."""
+    key = (kernel.key, dim, str(device), tuple(_key(x) for x in inputs))
+    cmd = s.commands.get(key)
+    if cmd is None:
+        if len(s.commands) >= 256:  # a caller's buffers changed: forget
+            s.commands.clear()
+        cmd = wp.launch(kernel, dim=dim, device=device, inputs=inputs,
+                        record_cmd=True)
+        s.commands[key] = cmd
+    cmd.launch()
 
 
 def _round_launches(m: Mesh, P: wp.array, s: _Scratch) -> tuple:
@@ -206,9 +232,9 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
         s.sizes.zero_()
         s.ring = 0
         if seeded:
-            wp.launch(k.seed_moved, dim=t, device=dev,
-                      inputs=[m.tri, s.delta, s.done_part, s.fraction,
-                              s.flag, s.lists, s.sizes, s.seeds, s.ring])
+            _launch(s, k.seed_moved, t, dev,
+                    [m.tri, s.delta, s.done_part, s.fraction, s.flag,
+                     s.lists, s.sizes, s.seeds, s.ring])
     wp.copy(s.twin_new, m.twin)
     tris = _threads(t)
     mark_all, mark, apply, finish = _round_launches(m, P, s)
@@ -222,12 +248,12 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
         s.ring = (s.ring + 1) % 3  # the worklist this round filled
     s.bad_vertex.zero_()
     if seeded:
-        wp.launch(k.check_seeds, dim=tris, device=dev,
-                  inputs=[m.tri, m.shift, P, m.L, s.seeds, s.sizes,
-                          s.bad_vertex, s.status, tris])
+        _launch(s, k.check_seeds, tris, dev,
+                [m.tri, m.shift, P, m.L, s.seeds, s.sizes, s.bad_vertex,
+                 s.status, tris])
     else:
-        wp.launch(k.check_triangles, dim=t, device=dev,
-                  inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
+        _launch(s, k.check_triangles, t, dev,
+                [m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
     st = s.status.numpy()
     per_round = st[1:1 + rounds]
     return int(per_round.sum()), int(per_round[-1]), int(st[0])
@@ -300,8 +326,8 @@ def _copy_touched(m: Mesh, kept, *, keep: bool) -> None:
     t = m.tri.shape[0]
     mesh = (m.tri, m.twin, m.shift)
     src, dst = (mesh, kept) if keep else (kept, mesh)
-    wp.launch(k.copy_rows, dim=_threads(t), device=m.device,
-              inputs=[*src, *dst, s.touched, s.touched_size, _threads(t)])
+    _launch(s, k.copy_rows, _threads(t), m.device,
+            [*src, *dst, s.touched, s.touched_size, _threads(t)])
     s.touched_size.zero_()
 
 
@@ -350,10 +376,8 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     while True:
         tries += 1
         seeded += verified
-        wp.launch(k.try_fraction, dim=v, device=dev,
-                  inputs=[s.done_part, s.step, s.fraction])
-        wp.launch(k.move_part, dim=v, device=dev,
-                  inputs=[m.position, s.delta, s.fraction, s.P])
+        _launch(s, k.try_fraction, v, dev, [s.done_part, s.step, s.fraction])
+        _launch(s, k.move_part, v, dev, [m.position, s.delta, s.fraction, s.P])
         f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds,
                                            rounds_per_read, seeded=verified)
         reads += r
@@ -362,8 +386,8 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
             if splits == 0:  # no step was ever halved: every move is whole
                 break
             s.counter.zero_()
-            wp.launch(k.commit_try, dim=v, device=dev,
-                      inputs=[s.done_part, s.step, s.fraction, s.counter, 2.0])
+            _launch(s, k.commit_try, v, dev,
+                    [s.done_part, s.step, s.fraction, s.counter, 2.0])
             reads += 1
             if int(s.counter.numpy()[0]) == 0:
                 break
@@ -376,8 +400,7 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
         splits += 1
         if splits >= max_splits:
             return Maintenance(False, flips, splits, tries, reads, seeded)
-        wp.launch(k.halve_steps, dim=v, device=dev,
-                  inputs=[s.step, s.bad_vertex, any_bad])
+        _launch(s, k.halve_steps, v, dev, [s.step, s.bad_vertex, any_bad])
     if m.periodic:
         wp.launch(k.wrap, dim=v, device=dev,
                   inputs=[m.position, s.delta, m.L, s.P, s.periods])
