@@ -640,20 +640,19 @@ def square_distance(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
 
 
 @wp.func
-def _parent(w: int, v: int, start: wp.array(dtype=wp.int32),
-            neighbours: wp.array(dtype=wp.int32), grid: wp.array(dtype=wp.vec2d),
-            L: wp.vec2d, periodic: int, n: int):
-    """The neighbour of w closest to v (ties to the lower id)."""
-    best = wp.float64(1.0e308)
-    parent = n
-    xv = grid[v]
+def _is_parent(x: int, dx: wp.float64, w: int, xv: wp.vec2d,
+               start: wp.array(dtype=wp.int32),
+               neighbours: wp.array(dtype=wp.int32),
+               grid: wp.array(dtype=wp.vec2d), L: wp.vec2d, periodic: int):
+    """Is x, a neighbour of w at ``dx`` from v (``xv = grid[v]``), w's
+    parent: the neighbour of w closest to v, ties to the lower id? Leaves
+    at the first neighbour that beats x."""
     for k in range(start[w], start[w + 1]):
         y = neighbours[k]
         d = square_distance(grid[y], xv, L, periodic)
-        if d < best or (d == best and y < parent):
-            best = d
-            parent = y
-    return parent
+        if d < dx or (d == dx and y < x):
+            return False
+    return True
 
 
 @wp.kernel
@@ -681,12 +680,16 @@ def radius_bfs(points: wp.array(dtype=wp.vec2d), grid: wp.array(dtype=wp.vec2d),
     total = int(1)
     j = int(0)
     xv = points[v]
+    gv = grid[v]
     while j < total and j < width:
         x = int(found[v, j])
         j += 1
+        dx = square_distance(grid[x], gv, L, periodic)
         for k in range(start[x], start[x + 1]):
             w = neighbours[k]
             if w == v:
+                continue
+            if not (square_distance(xv, points[w], L, periodic) < cutoff_sq):
                 continue
             # A repeated edge (a multi-edge of a tiny torus) is visited once.
             repeated = bool(False)
@@ -695,9 +698,8 @@ def radius_bfs(points: wp.array(dtype=wp.vec2d), grid: wp.array(dtype=wp.vec2d),
                     repeated = True
             if repeated:
                 continue
-            if not (square_distance(xv, points[w], L, periodic) < cutoff_sq):
-                continue
-            if _parent(w, v, start, neighbours, grid, L, periodic, n) != x:
+            if not _is_parent(x, dx, w, gv, start, neighbours, grid, L,
+                              periodic):
                 continue
             if total < width:
                 found[v, total] = w
