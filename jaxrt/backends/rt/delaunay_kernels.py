@@ -621,14 +621,27 @@ def degree_fill(tri: wp.array2d(dtype=wp.int32), n: int,
 def displacement(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
     """jax-md's ``periodic_displacement(side, xi - xj)`` on a torus
     (``xi - xj`` in free space), operation for operation (``jnp.mod`` is
-    fmod with a sign fix)."""
+    fmod with a sign fix). A float64 fmod is a slow loop on a GPU; for
+    ``-L < s < 2L`` (``s = xi - xj + L / 2``, every pair of wrapped
+    positions) its result is ``s``, ``s - L`` (exact: Sterbenz) or ``s``
+    then fixed to ``s + L``, computed here without it, bit for bit."""
     d = xi - xj
     if periodic != 0:
         for a in range(2):
-            half = L[a] * wp.float64(0.5)
-            r = wp.mod(d[a] + half, L[a])
-            if r != wp.float64(0.0) and r < wp.float64(0.0):
-                r = r + L[a]
+            side = L[a]
+            half = side * wp.float64(0.5)
+            s = d[a] + half
+            r = s
+            if s >= wp.float64(0.0) and s < side:
+                r = s
+            elif s >= side and s < side + side:
+                r = s - side
+            elif s < wp.float64(0.0) and s > -side:
+                r = s + side
+            else:
+                r = wp.mod(s, side)
+                if r != wp.float64(0.0) and r < wp.float64(0.0):
+                    r = r + side
             d[a] = r - half
     return d
 
