@@ -539,13 +539,15 @@ def commit_try(done_part: wp.array(dtype=wp.float64),
 
 @wp.kernel
 def halve_steps(step: wp.array(dtype=wp.float64),
-                bad_vertex: wp.array(dtype=wp.int32), any_bad: int):
+                bad_vertex: wp.array(dtype=wp.int32), any_bad: int,
+                shrink: wp.float64):
     """After a failed try: the vertices of the triangles left inverted
-    halve their step (all of them if none is marked); the others keep
-    theirs, so one try bisects every tangle of the mesh at once."""
+    scale their step by ``shrink`` (all of them if none is marked); the
+    others keep theirs, so one try bisects every tangle of the mesh at
+    once."""
     v = wp.tid()
     if any_bad == 0 or bad_vertex[v] != 0:
-        step[v] = step[v] * wp.float64(0.5)
+        step[v] = step[v] * shrink
 
 
 @wp.kernel
