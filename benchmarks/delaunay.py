@@ -33,7 +33,8 @@ during the timed loops) and ``splits_last``; for the Warp engine
 ``maintain_ms`` and ``bfs_ms``, its two phases timed apart (median over
 10 steps, outside JAX), with the maintenance's mean ``tries_per_step``,
 ``reads_per_step`` (host reads of device results), ``splits_per_step``
-(failed tries) and ``maintain_failed`` (steps whose repair gave up, each
+(failed tries), ``seeded_per_step`` (tries after a successful one, which
+test only the triangles of the vertices still moving) and ``maintain_failed`` (steps whose repair gave up, each
 then rebuilt on the host); ``overflow`` if any list
 overflowed during the loops (the row is then not valid).
 
@@ -113,10 +114,14 @@ def _list_fns(method: str, side: float, cutoff: float):
                                periodic=True)
 
 
-def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
+def warp_phases(traj, side: float, cutoff: float, width: int,
+                initial=None) -> dict:
     """The Warp engine's phases timed apart, outside JAX, on JAX's device:
     median ms per step of the maintenance (flips, with the flip counter
-    read back each round) and of the adjacency and BFS."""
+    read back each round) and of the adjacency and BFS. ``initial``:
+    numpy ``(position, tri, twin, shift)`` of a Delaunay triangulation at
+    ``traj[0]`` (the list's ``allocate`` made one: at 10^6 points a second
+    host triangulation costs many seconds), else one is made here."""
     import numpy as np
     import warp as wp
     import jax
@@ -124,10 +129,12 @@ def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
     from jaxrt.backends.rt import delaunay_engine as engine
     device = "cuda" if jax.default_backend() in ("gpu", "cuda") else "cpu"
     L = np.array([side, side])
-    out = host_triangulate(traj[0], L, cutoff)
-    m = engine.mesh(*out[:4], n=traj.shape[1], side=L, device=device)
+    if initial is None or not np.array_equal(initial[0], traj[0]):
+        initial = host_triangulate(traj[0], L, cutoff)[:4]
+    m = engine.mesh(*initial, n=traj.shape[1], side=L, device=device)
     engine.flip_to_delaunay(m)
     maintain, search, tries, reads, splits, failed = [], [], [], [], [], 0
+    seeded = []
     result = None
     for R in traj[1:]:
         target = wp.array(R, dtype=wp.vec2d, device=device)
@@ -143,6 +150,7 @@ def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
         tries.append(r.tries)
         reads.append(r.reads)
         splits.append(r.splits)
+        seeded.append(r.seeded)
         result = engine.radius_search(m, cutoff, width=width, points=target,
                                       out=result)
         wp.synchronize_device(device)
@@ -154,6 +162,7 @@ def warp_phases(traj, side: float, cutoff: float, width: int) -> dict:
             "tries_per_step": float(np.mean(tries)),
             "reads_per_step": float(np.mean(reads)),
             "splits_per_step": float(np.mean(splits)),
+            "seeded_per_step": float(np.mean(seeded)),
             "maintain_failed": failed}
 
 
@@ -173,6 +182,11 @@ def run_row(job: dict) -> dict:
     jax.block_until_ready(nbrs.idx)
     allocate_s = time.perf_counter() - t
     idx = np.asarray(nbrs.idx)
+    initial = None
+    if "engine=warp" in job["method"]:
+        st = nbrs.backend_state
+        initial = tuple(np.asarray(a) for a in (st.position, st.tri,
+                                                 st.twin, st.shift))
     k_measured = float(np.mean(np.sum(idx < job["N"], axis=1)))
     update = fns.update
 
@@ -214,7 +228,7 @@ def run_row(job: dict) -> dict:
         width = min(job["N"], 1 + int(np.max(np.sum(idx < job["N"], axis=1)))
                     + 16)
         row.update(warp_phases(traj[:min(len(traj), 11)], side, cutoff,
-                               width))
+                               width, initial))
     return row
 
 
@@ -235,7 +249,8 @@ def add_ratios(rows: list[dict]) -> None:
 COLUMNS = ["motion", "method", "N", "k_target", "k", "update_ms", "min_ms",
            "max_ms", "vs_cell", "vs_jax_md", "flips_per_step", "rebuilds",
            "splits_last", "maintain_ms", "bfs_ms", "tries_per_step",
-           "reads_per_step", "splits_per_step", "maintain_failed", "overflow", "allocate_s"]
+           "reads_per_step", "splits_per_step", "seeded_per_step",
+           "maintain_failed", "overflow", "allocate_s"]
 
 
 def main(argv=None) -> None:
@@ -261,6 +276,9 @@ def main(argv=None) -> None:
     parser.add_argument("--smoke", action="store_true",
                         help="end-to-end check: N = 400, k = 8, 3 steps, "
                         "1 repeat")
+    parser.add_argument("--reuse-worker", action="store_true",
+                        help="one worker for the rows while they succeed "
+                        "(its start-up paid once)")
     args = parser.parse_args(argv)
     if args.smoke:
         args.sizes, args.neighbours, args.repeats = [400], [8], 1
@@ -276,7 +294,8 @@ def main(argv=None) -> None:
             for n in args.sizes for k in args.neighbours
             for m in args.motions for meth in args.methods]
     _harness.run_jobs("delaunay:run_row", jobs, columns=COLUMNS,
-                      finish=add_ratios, **_harness.run_options(args))
+                      finish=add_ratios, reuse_worker=args.reuse_worker,
+                      **_harness.run_options(args))
 
 
 if __name__ == "__main__":

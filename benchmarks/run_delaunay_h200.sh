@@ -12,18 +12,23 @@
 #       1e6-boids   N = 10^6, Boids: warp engine, cell, jax-md (the XLA
 #                   engine did not finish 10^6 inside a 10-minute call)
 #       1e6-random  N = 10^6, random walk: the same methods
+#       1e6         N = 10^6, both motions, k = 8 first (then 64): the
+#                   rows in the order of their worth when the time is short
 #       smoke       N = 400, every method, 3 steps: the pipeline end to end
 # Each mode stays under ~9 minutes (--hard-stop). CSV:
 # benchmarks/results/<device>/ by default, or $OUT/delaunay_<mode>/ when $OUT
 # is set (the device run's output folder). Environment: STEPS, REPEATS,
-# PYTHON, METHODS (overrides the methods).
+# PYTHON, METHODS (overrides the methods), NEIGHBOURS (default "8 64"),
+# HARD_STOP (seconds, default 540), SIZES (overrides N: a CPU check of a
+# mode end to end, e.g. SIZES=500) and REUSE=1 (one worker for the rows
+# while they succeed: its start-up is paid once).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 export GIT_SHA=${GIT_SHA:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 PY=${PYTHON:-python3}
-MODE=${1:?usage: run_delaunay_h200.sh tests|smoke|1e4|1e5|1e6-boids|1e6-random}
+MODE=${1:?usage: run_delaunay_h200.sh tests|smoke|1e4|1e5|1e6|1e6-boids|1e6-random}
 ALL=(delaunay "delaunay[engine=warp]" cell jax-md)
 BIG=("delaunay[engine=warp]" cell jax-md)
 run() {  # name, sizes, motions, timeout per row, methods...
@@ -33,10 +38,12 @@ run() {  # name, sizes, motions, timeout per row, methods...
   if [[ -n ${METHODS:-} ]]; then read -r -a methods <<< "$METHODS"; fi
   local out=()
   if [[ -n ${OUT:-} ]]; then out=(--out "$OUT/delaunay_$name"); fi
-  $PY benchmarks/delaunay.py --name "delaunay_$name.csv" --sizes $sizes \
-    --motions $motions --neighbours 8 64 --methods "${methods[@]}" \
+  $PY benchmarks/delaunay.py --name "delaunay_$name.csv" --sizes ${SIZES:-$sizes} \
+    --motions $motions --neighbours ${NEIGHBOURS:-8 64} \
+    --methods "${methods[@]}" \
     --steps "${STEPS:-20}" --repeats "${REPEATS:-5}" \
-    --timeout "$row_timeout" --hard-stop 540 "${out[@]}"
+    --timeout "$row_timeout" --hard-stop "${HARD_STOP:-540}" "${out[@]}" \
+    ${REUSE:+--reuse-worker}
 }
 case $MODE in
   tests)
@@ -46,6 +53,7 @@ case $MODE in
   1e5) run 1e5 100000 "boids random" 240 "${ALL[@]}" ;;
   1e6-boids) run 1e6_boids 1000000 boids 400 "${BIG[@]}" ;;
   1e6-random) run 1e6_random 1000000 random 400 "${BIG[@]}" ;;
+  1e6) run 1e6 1000000 "boids random" 400 "${BIG[@]}" ;;
   smoke)
     $PY benchmarks/delaunay.py --smoke --name delaunay_smoke.csv \
       --out "${OUT:-/tmp}/delaunay_smoke" ;;

@@ -15,6 +15,7 @@ wp = pytest.importorskip("warp")
 
 from jaxrt.backends.delaunay import FRAME, host_triangulate  # noqa: E402
 from jaxrt.backends.rt import delaunay_engine as engine  # noqa: E402
+from jaxrt.backends.rt import delaunay_kernels as kernels  # noqa: E402
 
 # The engine runs where its users run it: on the GPU when one is visible.
 DEVICE = "cuda:0" if wp.is_cuda_available() else "cpu"
@@ -223,6 +224,35 @@ def test_tangling_moves_are_repaired_on_the_device_by_split_steps():
     assert splits > 0
 
 
+@pytest.mark.parametrize("periodic", [True, False])
+def test_tries_after_a_success_test_only_the_moving_vertices(periodic):
+    # Large moves: the first tries fail, one succeeds with the tangled
+    # vertices short of their move, and the tries after it start from that
+    # checked triangulation, testing and checking only the triangles of the
+    # vertices still moving (seeded). The end must still be exact, on a
+    # lattice with cocircular points moved off it partly.
+    rng = np.random.default_rng(5)
+    g = np.arange(16) * 0.625 + 0.3
+    pts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    side = SIDE if periodic else None
+    m = triangulate(pts, 1.0, side)
+    frame = m.position.numpy()[pts.shape[0]:]
+    seeded = 0
+    for _ in range(3):
+        move = 0.35 * rng.normal(size=pts.shape)
+        move[rng.random(len(pts)) < 0.3] = 0.0  # some stay on the lattice
+        pts = pts + move
+        pts = np.mod(pts, SIDE) if periodic else np.clip(pts, 0.05, 9.95)
+        target = np.concatenate([pts, frame])
+        r = engine.maintain(m, wp.array(target, dtype=wp.vec2d,
+                                        device=DEVICE))
+        assert r.ok
+        seeded += r.seeded
+        assert_delaunay(m)
+        assert pairs_of(m, 1.0, points=pts) == brute(pts, 1.0, side)
+    assert seeded > 0
+
+
 def test_free_space_repair_and_a_point_leaving_the_frame_rebuilds():
     rng = np.random.default_rng(8)
     pts = rng.uniform(0, 10, (200, 2))
@@ -319,3 +349,35 @@ def test_warp_and_xla_engines_give_the_same_lists(x64):
     stats = jaxrt.backends.delaunay.stats(lists["warp"])
     assert stats["flips_total"] > 0 and not stats["failed"]
     assert stats == jaxrt.backends.delaunay.stats(lists["xla"])
+
+
+@wp.kernel
+def _displacements(xi: wp.array(dtype=wp.vec2d), xj: wp.array(dtype=wp.vec2d),
+                   L: wp.vec2d, out: wp.array(dtype=wp.vec2d)):
+    t = wp.tid()
+    out[t] = kernels.displacement(xi[t], xj[t], L, 1)
+
+
+def test_periodic_displacement_is_jax_mds_bit_for_bit():
+    # The kernels' displacement skips the fmod where its result is known;
+    # it must still equal jnp.mod(d + L/2, L) - L/2 (numpy's np.mod, the
+    # same rounding) in every bit: wrapped positions, unwrapped ones (the
+    # fmod fallback), and at and near the edges s = -L, 0, L, 2L of the
+    # fast path.
+    rng = np.random.default_rng(3)
+    L = np.array([7.3, 10.0])
+    xi = rng.uniform(-3, 4, (4000, 2)) * L
+    xj = rng.uniform(0, 1, (4000, 2)) * L
+    xi[:2000] = rng.uniform(0, 1, (2000, 2)) * L  # wrapped pairs
+    edges = np.array([-1.0, 0.0, 1.0, 2.0])
+    edges = np.concatenate([edges, np.nextafter(edges, 9),
+                            np.nextafter(edges, -9)])
+    xj[:len(edges)] = 0.0
+    xi[:len(edges)] = edges[:, None] * L - L / 2  # s = d + L/2 at the edges
+    got = wp.zeros(len(xi), dtype=wp.vec2d, device=DEVICE)
+    wp.launch(_displacements, dim=len(xi), device=DEVICE,
+              inputs=[wp.array(xi, dtype=wp.vec2d, device=DEVICE),
+                      wp.array(xj, dtype=wp.vec2d, device=DEVICE),
+                      wp.vec2d(*L), got])
+    want = np.mod(xi - xj + L / 2, L) - L / 2
+    assert np.array_equal(got.numpy().view(np.int64), want.view(np.int64))

@@ -8,9 +8,11 @@ from scratch is the caller's (``rebuild``, e.g.
 Flip rounds run in batches of ``ROUNDS_PER_READ`` launches with no host
 read in between: each round counts its flips on the device, a round after
 one that flipped nothing is a no-op (the device-side done flag), and only
-the triangles the previous round flipped are re-tested. The host reads one
-small status array per batch (the rounds' flips and the inverted triangles
-left), so a converged try costs one read whatever its number of rounds.
+the triangles of the previous round's wanting edges are re-tested, from a
+compacted worklist (grid-stride launches of at most `STRIDE_THREADS`).
+The host reads one small status array per batch (the rounds' flips and
+the inverted triangles left), so a converged try costs one read whatever
+its number of rounds. Launches are recorded once and replayed.
 """
 from __future__ import annotations
 
@@ -82,13 +84,24 @@ class _Scratch:
     def __init__(self, m: Mesh):
         t, v, dev = m.tri.shape[0], m.position.shape[0], m.device
         self.want = wp.zeros(3 * t, dtype=wp.int32, device=dev)
-        self.claim = wp.zeros(t, dtype=wp.int32, device=dev)
+        self.claim = wp.full(t, k.UNCLAIMED, dtype=wp.int32, device=dev)
         self.twin_new = wp.zeros((t, 3), dtype=wp.int32, device=dev)
         self.counter = wp.zeros(1, dtype=wp.int32, device=dev)
         # status[0]: inverted triangles; status[1 + r]: flips of round r.
         self.status = wp.zeros(2 + ROUNDS_PER_READ, dtype=wp.int32, device=dev)
-        self.dirty = wp.zeros((2, t), dtype=wp.int32, device=dev)
-        self.parity = 0  # the dirty row the next round reads
+        # Three worklists of triangles (read, being filled, emptied) with
+        # their membership flags; sizes[3]: rows rewritten this round.
+        self.lists = wp.zeros((3, t), dtype=wp.int32, device=dev)
+        self.flag = wp.zeros((3, t), dtype=wp.int32, device=dev)
+        self.sizes = wp.zeros(5, dtype=wp.int32, device=dev)
+        self.seeds = wp.zeros(t, dtype=wp.int32, device=dev)
+        self.written = wp.zeros(2 * t + 4, dtype=wp.int32, device=dev)
+        self.ring = 0  # the worklist the next round reads
+        self.launches: dict = {}  # `_round_launches`
+        self.commands: dict = {}  # `_launch`
+        # Rows a flip changed since the last save (flags, list); size.
+        self.touched = wp.zeros((2, t), dtype=wp.int32, device=dev)
+        self.touched_size = wp.zeros(1, dtype=wp.int32, device=dev)
         self.step = wp.zeros(v, dtype=wp.float64, device=dev)
         self.kept = (wp.zeros_like(m.tri), wp.zeros_like(m.twin),
                      wp.zeros_like(m.shift))  # the last valid connectivity
@@ -116,6 +129,21 @@ def scratch(m: Mesh) -> _Scratch:
 
 
 ROUNDS_PER_READ = 16
+STRIDE_THREADS = 1 << 17
+"""Threads of a worklist launch (grid-stride): a round after the first
+costs its worklist (the tangle) plus one launch of this size, whatever the
+mesh's size; 2^17 threads keep an H200's SMs busy on a long list."""
+
+
+GROW, SHRINK = 2.0, 0.5
+"""A step's factor after a successful try, and a tangled vertex's after a
+failed one (measured on Boids and random walks: 4 and 1/4 in either place
+did not cut the tries)."""
+
+
+def _threads(work: int) -> int:
+    return max(1, min(work, STRIDE_THREADS))
+
 """Flip rounds launched between two host reads on a GPU. On the CPU a
 launch runs to completion before the next, so a read costs nothing and
 each round is read (a no-op round would cost a full pass there)."""
@@ -131,12 +159,73 @@ def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
     return int(rounds)
 
 
+def _key(x):
+    if isinstance(x, wp.array):
+        return (x.ptr, x.shape)
+    if isinstance(x, (int, float, str)):
+        return x
+    return tuple(float(c) for c in x)  # a Warp vector
+
+
+def _launch(s: _Scratch, kernel, dim, device, inputs: list) -> None:
+    """``wp.launch`` of a maintenance kernel from a launch recorded once
+    per (kernel, dim, arguments): the tries of a step repeat the same
+    launches, and a recorded one costs the host a few microseconds
+    instead of packing every argument again."""
+    key = (kernel.key, dim, str(device), tuple(_key(x) for x in inputs))
+    cmd = s.commands.get(key)
+    if cmd is None:
+        if len(s.commands) >= 256:  # a caller's buffers changed: forget
+            s.commands.clear()
+        cmd = wp.launch(kernel, dim=dim, device=device, inputs=inputs,
+                        record_cmd=True)
+        s.commands[key] = cmd
+    cmd.launch()
+
+
+def _round_launches(m: Mesh, P: wp.array, s: _Scratch) -> tuple:
+    """The launches of a flip round (`flip_mark` over every edge, over a
+    worklist, `flip_apply`, `finish_round`), recorded once per set of
+    arrays: a round then costs the host a few microseconds per launch
+    instead of packing every argument again (the rounds of a try are
+    launched whether or not the device finds them no-ops)."""
+    key = (m.tri.ptr, m.twin.ptr, m.shift.ptr, P.ptr, tuple(m.side),
+           str(m.device))
+    if key not in s.launches:
+        if len(s.launches) >= 8:  # a caller's buffers changed: forget
+            s.launches.clear()
+        t, dev = m.tri.shape[0], m.device
+        edges, tris = _threads(3 * t), _threads(t)
+
+        def mark(dim, first):
+            return wp.launch(
+                k.flip_mark, dim=dim, device=dev, record_cmd=True,
+                inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
+                        s.flag, s.lists, s.sizes, s.status, 0, 0, first,
+                        dim])
+        s.launches[key] = (
+            mark(3 * t, 1), mark(edges, 0),
+            wp.launch(k.flip_apply, dim=tris, device=dev, record_cmd=True,
+                      inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
+                              s.twin_new, s.lists, s.sizes, s.written,
+                              s.status, 0, 0, tris]),
+            wp.launch(k.finish_round, dim=tris, device=dev, record_cmd=True,
+                      inputs=[s.twin_new, m.twin, s.claim, s.flag, s.lists,
+                              s.sizes, s.written, s.touched, s.touched_size,
+                              s.status, 0, 0, tris]))
+    return s.launches[key]
+
+
 def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
-               fresh: bool) -> tuple[int, int, int]:
+               fresh: bool, seeded: bool = False) -> tuple[int, int, int]:
     """Up to ``rounds`` (at most `ROUNDS_PER_READ`) flip rounds at ``P``,
     then the validity check, with one host read at the end. ``fresh``: all
     triangles are tested in the first round (after a move); otherwise only
-    those the last batch's final round marked (its wanting edges'). Returns ``(flips, last,
+    those the last batch's final round marked (its wanting edges').
+    ``seeded`` (maintenance from a verified Delaunay triangulation at the
+    committed fractions, `maintain`): a fresh batch tests only the
+    triangles of the vertices that move (`delaunay_kernels.seed_moved`),
+    and every batch of the try checks only those. Returns ``(flips, last,
     bad)``: the flips, those of the last round run (0: converged), and the
     triangles not certainly positive (their vertices marked in the
     scratch's ``bad_vertex``)."""
@@ -145,26 +234,32 @@ def flip_batch(m: Mesh, P: wp.array, rounds: int, *,
     dev = m.device
     s.status.zero_()
     if fresh:
-        s.dirty.fill_(1)
+        s.flag.zero_()
+        s.sizes.zero_()
+        s.ring = 0
+        if seeded:
+            _launch(s, k.seed_moved, t, dev,
+                    [m.tri, s.delta, s.done_part, s.fraction, s.flag,
+                     s.lists, s.sizes, s.seeds, s.ring])
     wp.copy(s.twin_new, m.twin)
+    tris = _threads(t)
+    mark_all, mark, apply, finish = _round_launches(m, P, s)
     for r in range(rounds):
-        wp.launch(k.reset_claims, dim=t, device=dev,
-                  inputs=[s.claim, s.dirty, s.status, r, s.parity])
-        wp.launch(k.flip_mark, dim=3 * t, device=dev,
-                  inputs=[m.tri, m.twin, m.shift, P, m.L, s.want, s.claim,
-                          s.dirty, s.status, r, s.parity])
-        wp.launch(k.flip_apply, dim=3 * t, device=dev,
-                  inputs=[m.tri, m.twin, m.shift, s.want, s.claim,
-                          s.twin_new, s.status, r])
-        s.parity = 1 - s.parity  # the row this round marked
-        # Copied back, not swapped: the mesh's arrays may be a caller's
-        # buffers (an XLA call's outputs), which must end up holding the
-        # result.
-        wp.launch(k.copy_twins, dim=m.twin.shape, device=dev,
-                  inputs=[s.twin_new, m.twin, s.status, r])
+        first = fresh and not seeded and r == 0  # all edges, no worklist
+        for cmd, at in ((mark_all if first else mark, 11), (apply, 10),
+                        (finish, 10)):
+            cmd.set_param_at_index(at, r)
+            cmd.set_param_at_index(at + 1, s.ring)
+            cmd.launch()
+        s.ring = (s.ring + 1) % 3  # the worklist this round filled
     s.bad_vertex.zero_()
-    wp.launch(k.check_triangles, dim=t, device=dev,
-              inputs=[m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
+    if seeded:
+        _launch(s, k.check_seeds, tris, dev,
+                [m.tri, m.shift, P, m.L, s.seeds, s.sizes, s.bad_vertex,
+                 s.status, tris])
+    else:
+        _launch(s, k.check_triangles, t, dev,
+                [m.tri, m.shift, P, m.L, s.bad_vertex, s.status])
     st = s.status.numpy()
     per_round = st[1:1 + rounds]
     return int(per_round.sum()), int(per_round[-1]), int(st[0])
@@ -183,15 +278,17 @@ def flip_to_delaunay(m: Mesh, P: wp.array | None = None,
 
 
 def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int,
-                 per_read: int | None = None) -> tuple[int, int, bool, int]:
+                 per_read: int | None = None, seeded: bool = False
+                 ) -> tuple[int, int, bool, int]:
     """`flip_to_delaunay`: ``(flips, host reads, done, triangles not
-    certainly positive after the last batch)``."""
+    certainly positive after the last batch)``; ``seeded``: see
+    `flip_batch`."""
     per_read = rounds_per_read(m, per_read)
     flips = reads = 0
     left, fresh = max_rounds, True
     while left > 0:
         rounds = min(left, per_read)
-        f, last, bad = flip_batch(m, P, rounds, fresh=fresh)
+        f, last, bad = flip_batch(m, P, rounds, fresh=fresh, seeded=seeded)
         flips += f
         reads += 1
         left -= rounds
@@ -205,24 +302,39 @@ def _flip_rounds(m: Mesh, P: wp.array, max_rounds: int,
 class Maintenance:
     """What one `maintain` did: ``ok`` (False: the caller must rebuild;
     the mesh's positions are then unchanged, its triangles valid for part
-    of the move only), ``flips``, ``splits`` (failed tries), ``tries``
-    and ``reads`` (host reads of device results)."""
+    of the move only), ``flips``, ``splits`` (failed tries), ``tries``,
+    ``reads`` (host reads of device results) and ``seeded`` (tries that
+    tested only the triangles of their moving vertices)."""
 
     ok: bool
     flips: int
     splits: int
     tries: int = 0
     reads: int = 0
+    seeded: int = 0
 
 
 def _save(m: Mesh, kept) -> None:
+    """The whole mesh becomes the last valid triangulation; no row is
+    touched since."""
+    s = scratch(m)
     for dst, src in zip(kept, (m.tri, m.twin, m.shift)):
         wp.copy(dst, src)
+    s.touched[0].zero_()
+    s.touched_size.zero_()
 
 
-def _restore(m: Mesh, kept) -> None:
-    for dst, src in zip((m.tri, m.twin, m.shift), kept):
-        wp.copy(dst, src)
+def _copy_touched(m: Mesh, kept, *, keep: bool) -> None:
+    """``keep``: the rows the flips touched since the last save become the
+    last valid triangulation; else they go back to it (a try undone).
+    Every other row is the same in both: the cost is the tangle's."""
+    s = scratch(m)
+    t = m.tri.shape[0]
+    mesh = (m.tri, m.twin, m.shift)
+    src, dst = (mesh, kept) if keep else (kept, mesh)
+    _launch(s, k.copy_rows, _threads(t), m.device,
+            [*src, *dst, s.touched, s.touched_size, _threads(t)])
+    s.touched_size.zero_()
 
 
 def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
@@ -233,11 +345,15 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
     condition by flips from the current triangulation.
 
     Where a try leaves inverted triangles (a tangle flips cannot undo),
-    the mesh goes back to its last valid triangulation and the vertices of
+    the mesh goes back to its last valid triangulation (only the rows
+    the try's flips touched are copied back) and the vertices of
     those triangles halve their step along their move while every other
     vertex keeps its own; after a successful try the steps double again.
     So each try bisects every tangle of the mesh at once, and the
-    vertices away from tangles finish their move in the first try.
+    vertices away from tangles finish their move in the first successful
+    try; the tries after it start from that checked triangulation and
+    test only the triangles of the vertices still moving (a tangle's
+    neighbourhood), so they cost the tangle, not the mesh.
     ``max_splits`` caps the failed tries; past it ``ok`` is False.
     ``rounds_per_read``: see `rounds_per_read`.
     """
@@ -257,44 +373,48 @@ def maintain(m: Mesh, target: wp.array, *, max_flip_rounds: int = 64,
               inputs=[m.position, target, m.L, int(m.periodic), s.delta])
     s.done_part.zero_()
     s.step.fill_(1.0)
-    flips = splits = tries = 0
+    flips = splits = tries = seeded = 0
+    # Set once a try has succeeded: the kept triangulation is then a
+    # checked Delaunay one (at the committed fractions), and later tries
+    # test only the triangles of the vertices they move.
+    verified = False
     _save(m, s.kept)
     while True:
         tries += 1
-        wp.launch(k.try_fraction, dim=v, device=dev,
-                  inputs=[s.done_part, s.step, s.fraction])
-        wp.launch(k.move_part, dim=v, device=dev,
-                  inputs=[m.position, s.delta, s.fraction, s.P])
+        seeded += verified
+        _launch(s, k.try_fraction, v, dev, [s.done_part, s.step, s.fraction])
+        _launch(s, k.move_part, v, dev, [m.position, s.delta, s.fraction, s.P])
         f, r, done, any_bad = _flip_rounds(m, s.P, max_flip_rounds,
-                                           rounds_per_read)
+                                           rounds_per_read, seeded=verified)
         reads += r
         if done:
             flips += f
             if splits == 0:  # no step was ever halved: every move is whole
                 break
             s.counter.zero_()
-            wp.launch(k.commit_try, dim=v, device=dev,
-                      inputs=[s.done_part, s.step, s.fraction, s.counter, 2.0])
+            _launch(s, k.commit_try, v, dev,
+                    [s.done_part, s.step, s.fraction, s.counter, GROW])
             reads += 1
             if int(s.counter.numpy()[0]) == 0:
                 break
-            _save(m, s.kept)
+            _copy_touched(m, s.kept, keep=True)
+            verified = True
             continue
         # bad_vertex marks the vertices of the triangles left inverted;
         # none (the rounds ran out) halves every step.
-        _restore(m, s.kept)
+        _copy_touched(m, s.kept, keep=False)
         splits += 1
         if splits >= max_splits:
-            return Maintenance(False, flips, splits, tries, reads)
-        wp.launch(k.halve_steps, dim=v, device=dev,
-                  inputs=[s.step, s.bad_vertex, any_bad])
+            return Maintenance(False, flips, splits, tries, reads, seeded)
+        _launch(s, k.halve_steps, v, dev,
+                [s.step, s.bad_vertex, any_bad, SHRINK])
     if m.periodic:
         wp.launch(k.wrap, dim=v, device=dev,
                   inputs=[m.position, s.delta, m.L, s.P, s.periods])
         wp.launch(k.add_periods, dim=m.tri.shape, device=dev,
                   inputs=[m.tri, s.periods, m.shift])
     wp.copy(m.position, s.P)
-    return Maintenance(True, flips, splits, tries, reads)
+    return Maintenance(True, flips, splits, tries, reads, seeded)
 
 
 def adjacency(m: Mesh) -> tuple[wp.array, wp.array]:

@@ -17,17 +17,21 @@ engine's (`jaxrt.backends.delaunay.orient`, ``incircle``): an undecided
 in-circle test (cocircular points) means "no flip", an undecided
 orientation means "not a valid triangle".
 
-A flip round is two launches. `flip_mark`: one thread per half-edge ``h``
-with ``h < twin[h]`` (each interior edge once) tests its two triangles;
-an edge wants a flip where one of them is inverted or the in-circle test
-fails, provided both new triangles are positive, and then claims both
-triangles by an atomic min of its id. `flip_apply`: the edges that won
-both their triangles flip; no two flips of one round touch one triangle.
-Twins are written to a second buffer (``twin_new``, a copy of ``twin``),
-and each winner finds the new id of an outer half-edge with `_remap`,
-which reads only the round's claims and the old twins: so a flip next to
-another flip of the same round links to the other's new half-edges
-without any ordering between the threads.
+A flip round is three launches. `flip_mark` tests edges (all of them
+in the first round after a move; later, only the edges of the triangles on
+the round's worklist, in a grid-stride loop, so a round costs the tangle
+and not the mesh); an edge wants a flip where one of its triangles is
+inverted or the in-circle test fails, provided both new triangles are
+positive, and then claims both triangles by an atomic min of its id and
+appends them (once, by a flag) to the next worklist. `flip_apply`, over
+that worklist: the edges that won both their triangles flip; no two flips
+of one round touch one triangle. Twins are written to a second buffer
+(``twin_new``, equal to ``twin`` between rounds), and each winner finds
+the new id of an outer half-edge with `_remap`, which reads only the
+round's claims and the old twins: so a flip next to another flip of the
+same round links to the other's new half-edges without any ordering
+between the threads. `finish_round` copies the rewritten rows back,
+resets the claims and recycles the worklists.
 
 The BFS (`radius_bfs`, one thread per vertex) is the XLA engine's: from
 ``v``, a neighbour ``w`` of a found vertex ``x`` is taken when it is within
@@ -111,37 +115,32 @@ def _outside(x: int, t: int, u: int) -> bool:
     return x < 0 or (x // 3 != t and x // 3 != u)
 
 
-@wp.kernel
-def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
-              shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
-              L: wp.vec2d, want: wp.array(dtype=wp.int32),
-              claim: wp.array(dtype=wp.int32),
-              dirty: wp.array2d(dtype=wp.int32),
-              status: wp.array(dtype=wp.int32), r: int, cur: int):
-    """One thread per half-edge: does its edge want a flip (``want[h]``),
-    and if so claim both its triangles (``claim``: atomic min of ``h``,
-    reset to `UNCLAIMED` before the launch).
+@wp.func
+def _append(t: int, flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+            sizes: wp.array(dtype=wp.int32), k: int):
+    """Put triangle ``t`` on worklist ``k`` once (its flag deduplicates)."""
+    if wp.atomic_max(flag, k, t, 1) == 0:
+        slot = wp.atomic_add(sizes, k, 1)
+        lists[k, slot] = t
 
-    Round ``r`` of a batch launched without host reads: ``status[1 + r]``
-    counts its flips, and where round ``r - 1`` flipped nothing
-    (``status[r] == 0``) the round is a no-op (the device-side done flag).
-    Only edges of a triangle marked in ``dirty[cur]`` are tested: those
-    of the last round's wanting edges (flipped or not: an edge that lost a
-    claim must be tested again) and all of them after a move; an edge of
-    two unmarked triangles kept its verdict. The wanting edges mark their
-    triangles in ``dirty[1 - cur]`` (cleared by `reset_claims`)."""
-    h = wp.tid()
+
+@wp.func
+def _mark_edge(h: int, tri: wp.array2d(dtype=wp.int32),
+               twin: wp.array2d(dtype=wp.int32),
+               shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
+               L: wp.vec2d, want: wp.array(dtype=wp.int32),
+               claim: wp.array(dtype=wp.int32),
+               flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+               sizes: wp.array(dtype=wp.int32), cur: int, nxt: int, fresh: int):
     t = h // 3
     e = h - 3 * t
     want[h] = 0
-    if r > 0 and status[r] == 0:
-        return
     tw = int(twin[t, e])
-    if tw <= h:  # hull edge (-1), or the twin's thread tests this edge
+    if tw < 0:
         return
     u = tw // 3
-    if dirty[cur, t] == 0 and dirty[cur, u] == 0:
-        return
+    if tw <= h and (fresh != 0 or flag[cur, u] != 0):
+        return  # the twin's thread tests this edge
     m = tw - 3 * u
     e1 = (e + 1) % 3
     e2 = (e + 2) % 3
@@ -166,8 +165,53 @@ def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
         want[h] = 1
         wp.atomic_min(claim, t, h)
         wp.atomic_min(claim, u, h)
-        dirty[1 - cur, t] = 1
-        dirty[1 - cur, u] = 1
+        _append(t, flag, lists, sizes, nxt)
+        _append(u, flag, lists, sizes, nxt)
+
+
+@wp.kernel
+def flip_mark(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
+              shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
+              L: wp.vec2d, want: wp.array(dtype=wp.int32),
+              claim: wp.array(dtype=wp.int32),
+              flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+              sizes: wp.array(dtype=wp.int32),
+              status: wp.array(dtype=wp.int32), r: int, cur: int, fresh: int,
+              stride: int):
+    """Does an edge want a flip (``want[h]``), and if so claim both its
+    triangles (``claim``: atomic min of ``h``; every claim is `UNCLAIMED`
+    between rounds, see `finish_round`).
+
+    ``fresh`` (the first round after a move): one thread per half-edge
+    ``h`` with ``h < twin[h]``, every edge once. Otherwise a grid-stride
+    loop over the edges of the triangles of worklist ``cur`` (those of the
+    last round's wanting edges: flipped, or lost a claim and must be tested
+    again); an edge between two listed triangles is tested from its lower
+    half-edge, an edge of two unlisted triangles kept its verdict. So a
+    round costs the tangle, not the mesh. The wanting edges put both their
+    triangles on worklist ``(cur + 1) % 3``.
+
+    Round ``r`` of a batch launched without host reads: ``status[1 + r]``
+    counts its flips, and where round ``r - 1`` flipped nothing
+    (``status[r] == 0``) the round is a no-op (the device-side done flag).
+    """
+    tid = wp.tid()
+    if r > 0 and status[r] == 0:
+        return
+    nxt = (cur + 1) % 3
+    if tid == 0:
+        sizes[3] = 0  # the rows this round's flips rewrite (flip_apply)
+    total = 3 * tri.shape[0]
+    if fresh == 0:
+        total = 3 * sizes[cur]
+    j = tid
+    while j < total:
+        h = j
+        if fresh == 0:
+            h = 3 * lists[cur, j // 3] + j % 3
+        _mark_edge(h, tri, twin, shift, P, L, want, claim, flag, lists, sizes,
+                   cur, nxt, fresh)
+        j += stride
 
 
 @wp.func
@@ -207,7 +251,8 @@ def _remap(y: int, twin: wp.array2d(dtype=wp.int32),
 @wp.func
 def _link(twin_new: wp.array2d(dtype=wp.int32), slot: int, outer: int,
           twin: wp.array2d(dtype=wp.int32), want: wp.array(dtype=wp.int32),
-          claim: wp.array(dtype=wp.int32)):
+          claim: wp.array(dtype=wp.int32), sizes: wp.array(dtype=wp.int32),
+          written: wp.array(dtype=wp.int32)):
     """Join new half-edge ``slot`` and old outer half-edge ``outer``."""
     if outer < 0:
         twin_new[slot // 3, slot % 3] = -1
@@ -215,21 +260,15 @@ def _link(twin_new: wp.array2d(dtype=wp.int32), slot: int, outer: int,
     o = _remap(outer, twin, want, claim)
     twin_new[slot // 3, slot % 3] = o
     twin_new[o // 3, o % 3] = slot
+    written[wp.atomic_add(sizes, 3, 1)] = o // 3
 
 
-@wp.kernel
-def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
-               shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
-               claim: wp.array(dtype=wp.int32),
-               twin_new: wp.array2d(dtype=wp.int32),
-               status: wp.array(dtype=wp.int32), r: int):
-    """One thread per half-edge: the edges that won both triangles flip.
-    ``tri`` and ``shift`` are rewritten in place (each triangle by its one
-    winner), the twins into ``twin_new`` (a copy of ``twin``); the flip is
-    counted in ``status[1 + r]`` (see `flip_mark`)."""
-    h = wp.tid()
-    if not _won(h, twin, want, claim):
-        return
+@wp.func
+def _flip(h: int, tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
+          shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
+          claim: wp.array(dtype=wp.int32), twin_new: wp.array2d(dtype=wp.int32),
+          sizes: wp.array(dtype=wp.int32), written: wp.array(dtype=wp.int32),
+          status: wp.array(dtype=wp.int32), r: int):
     t = h // 3
     e = h - 3 * t
     tw = int(twin[t, e])
@@ -266,36 +305,134 @@ def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32)
     # New t = (p, b, q): edge 0 (b-q) was u's m1 (outside C), edge 2 (p-b)
     # t's e2 (outside B). New u = (q, c, p): edge 0 (c-p) was t's e1
     # (outside A), edge 2 (q-c) u's m2 (outside D). Edges 1: the diagonal.
-    _link(twin_new, 3 * t, C, twin, want, claim)
-    _link(twin_new, 3 * t + 2, B, twin, want, claim)
-    _link(twin_new, 3 * u, A, twin, want, claim)
-    _link(twin_new, 3 * u + 2, D, twin, want, claim)
+    _link(twin_new, 3 * t, C, twin, want, claim, sizes, written)
+    _link(twin_new, 3 * t + 2, B, twin, want, claim, sizes, written)
+    _link(twin_new, 3 * u, A, twin, want, claim, sizes, written)
+    _link(twin_new, 3 * u + 2, D, twin, want, claim, sizes, written)
     twin_new[t, 1] = 3 * u + 1
     twin_new[u, 1] = 3 * t + 1
     wp.atomic_add(status, 1 + r, 1)
 
 
 @wp.kernel
-def copy_twins(src: wp.array2d(dtype=wp.int32), dst: wp.array2d(dtype=wp.int32),
-               status: wp.array(dtype=wp.int32), r: int):
-    """``dst = src`` after round ``r``, skipped where the round flipped
-    nothing (then the two already agree)."""
-    t, e = wp.tid()
-    if status[1 + r] != 0:
-        dst[t, e] = src[t, e]
+def flip_apply(tri: wp.array2d(dtype=wp.int32), twin: wp.array2d(dtype=wp.int32),
+               shift: wp.array2d(dtype=wp.vec2i), want: wp.array(dtype=wp.int32),
+               claim: wp.array(dtype=wp.int32),
+               twin_new: wp.array2d(dtype=wp.int32),
+               lists: wp.array2d(dtype=wp.int32), sizes: wp.array(dtype=wp.int32),
+               written: wp.array(dtype=wp.int32),
+               status: wp.array(dtype=wp.int32), r: int, cur: int, stride: int):
+    """Grid-stride over worklist ``(cur + 1) % 3`` (every claimed
+    triangle): the edges that won both their triangles flip, each by the
+    thread of the triangle holding its half-edge. ``tri`` and ``shift``
+    are rewritten in place (each triangle by its one winner), the twins
+    into ``twin_new`` (equal to ``twin`` between rounds); the rows of
+    outer neighbours so rewritten go on ``written`` (``sizes[3]``) for
+    `finish_round`. The flip is counted in ``status[1 + r]``."""
+    tid = wp.tid()
+    if r > 0 and status[r] == 0:
+        return
+    nxt = (cur + 1) % 3
+    j = tid
+    while j < sizes[nxt]:
+        t = lists[nxt, j]
+        j += stride
+        h = int(claim[t])
+        if h // 3 == t and _won(h, twin, want, claim):
+            _flip(h, tri, twin, shift, want, claim, twin_new, sizes, written,
+                  status, r)
+
+
+@wp.func
+def _touch(t: int, touched: wp.array2d(dtype=wp.int32),
+           touched_size: wp.array(dtype=wp.int32)):
+    if wp.atomic_max(touched, 0, t, 1) == 0:
+        touched[1, wp.atomic_add(touched_size, 0, 1)] = t
 
 
 @wp.kernel
-def reset_claims(claim: wp.array(dtype=wp.int32),
-                 dirty: wp.array2d(dtype=wp.int32),
-                 status: wp.array(dtype=wp.int32), r: int, cur: int):
-    """Before round ``r``: claims back to `UNCLAIMED`, and the marks the
-    round will write (``dirty[1 - cur]``) cleared; skipped once the batch
-    is done (a no-op round claims and marks nothing)."""
-    t = wp.tid()
-    if r == 0 or status[r] != 0:
-        claim[t] = UNCLAIMED
-        dirty[1 - cur, t] = 0
+def finish_round(twin_new: wp.array2d(dtype=wp.int32),
+                 twin: wp.array2d(dtype=wp.int32),
+                 claim: wp.array(dtype=wp.int32),
+                 flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+                 sizes: wp.array(dtype=wp.int32), written: wp.array(dtype=wp.int32),
+                 touched: wp.array2d(dtype=wp.int32),
+                 touched_size: wp.array(dtype=wp.int32),
+                 status: wp.array(dtype=wp.int32), r: int, cur: int, stride: int):
+    """After round ``r`` (grid-stride, skipped once the batch is done):
+    the rows it rewrote copied from ``twin_new`` to ``twin`` (worklist
+    ``cur + 1``'s triangles and ``written``), the claims of worklist
+    ``cur + 1`` back to `UNCLAIMED`, worklist ``cur``'s flags cleared, and
+    worklist ``cur + 2`` (read two rounds ago) emptied for the next round
+    to fill. Copied, not swapped: ``twin`` may be a caller's buffer (an
+    XLA call's output), which must end up holding the result. Every row
+    copied (the only rows whose ``tri``, ``shift`` or ``twin`` a flip
+    changes) goes once on ``touched`` (row 0: flags, row 1: the list,
+    ``touched_size[0]`` its length), so a try is undone or kept by
+    copying those rows alone (`copy_rows`)."""
+    tid = wp.tid()
+    if r > 0 and status[r] == 0:
+        return
+    nxt = (cur + 1) % 3
+    if tid == 0:
+        sizes[(cur + 2) % 3] = 0
+    n_cur = sizes[cur]
+    n_nxt = sizes[nxt]
+    n_w = sizes[3]
+    j = tid
+    while j < n_cur or j < n_nxt or j < n_w:
+        if j < n_cur:
+            flag[cur, lists[cur, j]] = 0
+        if j < n_nxt:
+            t = lists[nxt, j]
+            claim[t] = UNCLAIMED
+            for e in range(3):
+                twin[t, e] = twin_new[t, e]
+            _touch(t, touched, touched_size)
+        if j < n_w:
+            t = written[j]
+            for e in range(3):
+                twin[t, e] = twin_new[t, e]
+            _touch(t, touched, touched_size)
+        j += stride
+
+
+@wp.kernel
+def copy_rows(src_tri: wp.array2d(dtype=wp.int32),
+              src_twin: wp.array2d(dtype=wp.int32),
+              src_shift: wp.array2d(dtype=wp.vec2i),
+              dst_tri: wp.array2d(dtype=wp.int32),
+              dst_twin: wp.array2d(dtype=wp.int32),
+              dst_shift: wp.array2d(dtype=wp.vec2i),
+              touched: wp.array2d(dtype=wp.int32),
+              touched_size: wp.array(dtype=wp.int32), stride: int):
+    """Grid-stride over the touched rows (`finish_round`): copy them from
+    ``src`` to ``dst`` (a try undone, or kept as the last valid
+    triangulation) and clear their flags; every other row is the same in
+    both. ``touched_size`` is reset by the caller after the launch."""
+    j = wp.tid()
+    while j < touched_size[0]:
+        t = touched[1, j]
+        for e in range(3):
+            dst_tri[t, e] = src_tri[t, e]
+            dst_twin[t, e] = src_twin[t, e]
+            dst_shift[t, e] = src_shift[t, e]
+        touched[0, t] = 0
+        j += stride
+
+
+@wp.func
+def _check(t: int, tri: wp.array2d(dtype=wp.int32),
+           shift: wp.array2d(dtype=wp.vec2i), P: wp.array(dtype=wp.vec2d),
+           L: wp.vec2d, bad_vertex: wp.array(dtype=wp.int32),
+           bad: wp.array(dtype=wp.int32)):
+    a = at(P, int(tri[t, 0]), shift[t, 0], L)
+    b = at(P, int(tri[t, 1]), shift[t, 1], L)
+    c = at(P, int(tri[t, 2]), shift[t, 2], L)
+    if orient_sign(a, b, c) != 1:
+        wp.atomic_add(bad, 0, 1)
+        for k in range(3):
+            bad_vertex[tri[t, k]] = 1
 
 
 @wp.kernel
@@ -306,14 +443,50 @@ def check_triangles(tri: wp.array2d(dtype=wp.int32),
                     bad: wp.array(dtype=wp.int32)):
     """One thread per triangle: count those not certainly positive
     (``bad[0]``) and mark their vertices (``bad_vertex``)."""
+    _check(wp.tid(), tri, shift, P, L, bad_vertex, bad)
+
+
+@wp.kernel
+def check_seeds(tri: wp.array2d(dtype=wp.int32),
+                shift: wp.array2d(dtype=wp.vec2i),
+                P: wp.array(dtype=wp.vec2d), L: wp.vec2d,
+                seeds: wp.array(dtype=wp.int32), sizes: wp.array(dtype=wp.int32),
+                bad_vertex: wp.array(dtype=wp.int32),
+                bad: wp.array(dtype=wp.int32), stride: int):
+    """`check_triangles` over the seeded triangles only (grid-stride over
+    ``seeds[:sizes[4]]``): after a seeded try every other triangle is
+    either unchanged with unmoved vertices (positive, as in the verified
+    triangulation the try started from) or made by a flip, which only
+    makes certainly positive triangles."""
+    j = wp.tid()
+    while j < sizes[4]:
+        _check(seeds[j], tri, shift, P, L, bad_vertex, bad)
+        j += stride
+
+
+@wp.kernel
+def seed_moved(tri: wp.array2d(dtype=wp.int32), delta: wp.array(dtype=wp.vec2d),
+               done_part: wp.array(dtype=wp.float64),
+               fraction: wp.array(dtype=wp.float64),
+               flag: wp.array2d(dtype=wp.int32), lists: wp.array2d(dtype=wp.int32),
+               sizes: wp.array(dtype=wp.int32), seeds: wp.array(dtype=wp.int32),
+               cur: int):
+    """A try from a verified Delaunay triangulation (at the committed
+    fractions): only the triangles with a vertex that moves in this try
+    can lose the Delaunay condition or turn over, the others keep their
+    verdict. They go on worklist ``cur`` (the first round's) and on
+    ``seeds`` (``sizes[4]``, for `check_seeds`)."""
     t = wp.tid()
-    a = at(P, int(tri[t, 0]), shift[t, 0], L)
-    b = at(P, int(tri[t, 1]), shift[t, 1], L)
-    c = at(P, int(tri[t, 2]), shift[t, 2], L)
-    if orient_sign(a, b, c) != 1:
-        wp.atomic_add(bad, 0, 1)
-        for k in range(3):
-            bad_vertex[tri[t, k]] = 1
+    moved = bool(False)
+    for k in range(3):
+        v = int(tri[t, k])
+        d = delta[v]
+        if fraction[v] != done_part[v] and (d[0] != wp.float64(0.0)
+                                            or d[1] != wp.float64(0.0)):
+            moved = True
+    if moved:
+        _append(t, flag, lists, sizes, cur)
+        seeds[wp.atomic_add(sizes, 4, 1)] = t
 
 
 @wp.kernel
@@ -366,13 +539,15 @@ def commit_try(done_part: wp.array(dtype=wp.float64),
 
 @wp.kernel
 def halve_steps(step: wp.array(dtype=wp.float64),
-                bad_vertex: wp.array(dtype=wp.int32), any_bad: int):
+                bad_vertex: wp.array(dtype=wp.int32), any_bad: int,
+                shrink: wp.float64):
     """After a failed try: the vertices of the triangles left inverted
-    halve their step (all of them if none is marked); the others keep
-    theirs, so one try bisects every tangle of the mesh at once."""
+    scale their step by ``shrink`` (all of them if none is marked); the
+    others keep theirs, so one try bisects every tangle of the mesh at
+    once."""
     v = wp.tid()
     if any_bad == 0 or bad_vertex[v] != 0:
-        step[v] = step[v] * wp.float64(0.5)
+        step[v] = step[v] * shrink
 
 
 @wp.kernel
@@ -448,14 +623,27 @@ def degree_fill(tri: wp.array2d(dtype=wp.int32), n: int,
 def displacement(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
     """jax-md's ``periodic_displacement(side, xi - xj)`` on a torus
     (``xi - xj`` in free space), operation for operation (``jnp.mod`` is
-    fmod with a sign fix)."""
+    fmod with a sign fix). A float64 fmod is a slow loop on a GPU; for
+    ``-L < s < 2L`` (``s = xi - xj + L / 2``, every pair of wrapped
+    positions) its result is ``s``, ``s - L`` (exact: Sterbenz) or ``s``
+    then fixed to ``s + L``, computed here without it, bit for bit."""
     d = xi - xj
     if periodic != 0:
         for a in range(2):
-            half = L[a] * wp.float64(0.5)
-            r = wp.mod(d[a] + half, L[a])
-            if r != wp.float64(0.0) and r < wp.float64(0.0):
-                r = r + L[a]
+            side = L[a]
+            half = side * wp.float64(0.5)
+            s = d[a] + half
+            r = s
+            if s >= wp.float64(0.0) and s < side:
+                r = s
+            elif s >= side and s < side + side:
+                r = s - side
+            elif s < wp.float64(0.0) and s > -side:
+                r = s + side
+            else:
+                r = wp.mod(s, side)
+                if r != wp.float64(0.0) and r < wp.float64(0.0):
+                    r = r + side
             d[a] = r - half
     return d
 
@@ -467,20 +655,19 @@ def square_distance(xi: wp.vec2d, xj: wp.vec2d, L: wp.vec2d, periodic: int):
 
 
 @wp.func
-def _parent(w: int, v: int, start: wp.array(dtype=wp.int32),
-            neighbours: wp.array(dtype=wp.int32), grid: wp.array(dtype=wp.vec2d),
-            L: wp.vec2d, periodic: int, n: int):
-    """The neighbour of w closest to v (ties to the lower id)."""
-    best = wp.float64(1.0e308)
-    parent = n
-    xv = grid[v]
+def _is_parent(x: int, dx: wp.float64, w: int, xv: wp.vec2d,
+               start: wp.array(dtype=wp.int32),
+               neighbours: wp.array(dtype=wp.int32),
+               grid: wp.array(dtype=wp.vec2d), L: wp.vec2d, periodic: int):
+    """Is x, a neighbour of w at ``dx`` from v (``xv = grid[v]``), w's
+    parent: the neighbour of w closest to v, ties to the lower id? Leaves
+    at the first neighbour that beats x."""
     for k in range(start[w], start[w + 1]):
         y = neighbours[k]
         d = square_distance(grid[y], xv, L, periodic)
-        if d < best or (d == best and y < parent):
-            best = d
-            parent = y
-    return parent
+        if d < dx or (d == dx and y < x):
+            return False
+    return True
 
 
 @wp.kernel
@@ -508,12 +695,16 @@ def radius_bfs(points: wp.array(dtype=wp.vec2d), grid: wp.array(dtype=wp.vec2d),
     total = int(1)
     j = int(0)
     xv = points[v]
+    gv = grid[v]
     while j < total and j < width:
         x = int(found[v, j])
         j += 1
+        dx = square_distance(grid[x], gv, L, periodic)
         for k in range(start[x], start[x + 1]):
             w = neighbours[k]
             if w == v:
+                continue
+            if not (square_distance(xv, points[w], L, periodic) < cutoff_sq):
                 continue
             # A repeated edge (a multi-edge of a tiny torus) is visited once.
             repeated = bool(False)
@@ -522,9 +713,8 @@ def radius_bfs(points: wp.array(dtype=wp.vec2d), grid: wp.array(dtype=wp.vec2d),
                     repeated = True
             if repeated:
                 continue
-            if not (square_distance(xv, points[w], L, periodic) < cutoff_sq):
-                continue
-            if _parent(w, v, start, neighbours, grid, L, periodic, n) != x:
+            if not _is_parent(x, dx, w, gv, start, neighbours, grid, L,
+                              periodic):
                 continue
             if total < width:
                 found[v, total] = w
