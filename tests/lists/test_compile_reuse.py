@@ -372,3 +372,15 @@ def test_eager_update_past_the_quick_size_on_a_cpu(monkeypatch):
     assert not bool(rebuilt.did_buffer_overflow)
     assert _pairs(nbrs) == _brute_force(position, side, 1.4)
     assert _pairs(rebuilt) == _brute_force(np.mod(far, side), side, 1.4)
+
+
+def test_cpu_compile_options_are_accepted_by_this_xla():
+    """`CPU_COMPILE_OPTIONS` (and the quick ones, which include them) are
+    given only where XLA knows them: an unknown option fails every CPU
+    ``allocate`` at compile time."""
+    from jaxrt.lists import metric
+    cpu = jax.devices("cpu")[0]
+    x = jax.device_put(np.float32(1.0), cpu)
+    for options in (metric.CPU_COMPILE_OPTIONS, metric.QUICK_COMPILE_OPTIONS):
+        assert float(jax.jit(lambda v: v * 2, compiler_options=options)(x)) == 2.0
+    assert set(metric.CPU_COMPILE_OPTIONS) <= set(metric.QUICK_COMPILE_OPTIONS)
