@@ -184,6 +184,9 @@ MAX_LIST_ENTRIES = 2 ** 31 - 1
 # XLA's options for programs run once or a few times at small N on a CPU
 # (`jaxrt.lists.metric.QUICK_COMPILE_OPTIONS`).
 QUICK_COMPILE_OPTIONS = _space.QUICK_COMPILE_OPTIONS
+# XLA's options for other programs a CPU runs eagerly
+# (`jaxrt.lists.metric.CPU_COMPILE_OPTIONS`).
+CPU_COMPILE_OPTIONS = _space.CPU_COMPILE_OPTIONS
 
 
 @dataclasses.dataclass(frozen=True)

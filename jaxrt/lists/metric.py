@@ -193,11 +193,32 @@ def lengths_from_origin(metric_sq, space: Space, q):
         space.from_grid(q)))
 
 
+def _jaxlib_version() -> tuple[int, ...]:
+    """``jaxlib``'s release as integers (``(0, 10, 1)``)."""
+    import jaxlib
+    parts = []
+    for part in jaxlib.__version__.split(".")[:3]:
+        if not part.isdigit():
+            break
+        parts.append(int(part))
+    return tuple(parts)
+
+
+# XLA's options for the programs a CPU runs eagerly (``allocate``'s and
+# an eager ``update``'s): its older fusion emitters compile the search's
+# gather- and bit-heavy programs in a half to three quarters of the time
+# of its newer (MLIR) ones, and their code runs as fast or faster.
+# An XLA without them refuses the option at compile time: it is given only
+# to the versions where it was measured (``jaxlib`` 0.10.x); others keep
+# XLA's defaults (slower compiles, the same programs' results).
+CPU_COMPILE_OPTIONS = ({"xla_cpu_use_fusion_emitters": False}
+                       if (0, 10, 1) <= _jaxlib_version() < (0, 11) else {})
 # XLA's options for programs that run once or a few times (``allocate``'s
 # measuring, an eager call's program) at small N on a CPU: the backend's
 # optimisation off compiles several times faster (a first ``allocate``'s
 # largest cost) and runs ~10x slower. ``jit`` by the caller is unaffected.
-QUICK_COMPILE_OPTIONS = {"xla_backend_optimization_level": 0}
+QUICK_COMPILE_OPTIONS = {**CPU_COMPILE_OPTIONS,
+                         "xla_backend_optimization_level": 0}
 
 
 def concrete(fn, *args, **kwargs):

@@ -851,6 +851,9 @@ _eager_update = jax.jit(_update_arrays, static_argnames=_UPDATE_STATIC)
 _eager_update_quick = jax.jit(
     _update_arrays, static_argnames=_UPDATE_STATIC,
     compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+_eager_update_cpu = jax.jit(
+    _update_arrays, static_argnames=_UPDATE_STATIC,
+    compiler_options=_backend.CPU_COMPILE_OPTIONS)
 
 
 class _Lists:
@@ -894,21 +897,28 @@ class _Lists:
         if self.shares_programs:
             self.eager_update = _eager_update
             self.eager_update_quick = _eager_update_quick
+            self.eager_update_cpu = _eager_update_cpu
         else:
             self.eager_update = jax.jit(_update_arrays,
                                         static_argnames=_UPDATE_STATIC)
             self.eager_update_quick = jax.jit(
                 _update_arrays, static_argnames=_UPDATE_STATIC,
                 compiler_options=_backend.QUICK_COMPILE_OPTIONS)
+            self.eager_update_cpu = jax.jit(
+                _update_arrays, static_argnames=_UPDATE_STATIC,
+                compiler_options=_backend.CPU_COMPILE_OPTIONS)
 
     def eager_program(self, position):
-        """`eager_update`, or for small N on a CPU `eager_update_quick`
+        """`eager_update` on an accelerator; on a CPU `eager_update_cpu`
+        (`CPU_COMPILE_OPTIONS`), or for small N `eager_update_quick`
         (compiled for compile speed: most of a first ``allocate``; its
         rebuilds stay many times faster than jax-md's eager update, and a
         caller's ``jit`` of ``update`` compiles its own program)."""
-        quick = (position.shape[0] <= _QUICK_EAGER_MAX_N
-                 and not _space.on_accelerator(position))
-        return self.eager_update_quick if quick else self.eager_update
+        if _space.on_accelerator(position):
+            return self.eager_update
+        if position.shape[0] <= _QUICK_EAGER_MAX_N:
+            return self.eager_update_quick
+        return self.eager_update_cpu
 
     def plan_build(self, n: int, dtype, query: Query, capacity: Capacity,
                    sizes: dict[str, int], limit: int) -> Capacity | None:

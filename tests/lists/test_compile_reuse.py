@@ -345,3 +345,42 @@ def _edges(nbrs):
     i, j = np.asarray(nbrs.idx)
     n = nbrs.reference_position.shape[0]
     return sorted((int(a), int(b)) for a, b in zip(i, j) if a < n)
+
+
+def test_eager_update_past_the_quick_size_on_a_cpu(monkeypatch):
+    """Past `_QUICK_EAGER_MAX_N` a CPU's eager ``update`` (and ``allocate``,
+    which builds through it) runs the program compiled with
+    `CPU_COMPILE_OPTIONS`: it is taken, compiled once for both, and its
+    lists are exact before and after a rebuild."""
+    from jaxrt.lists import neighbors
+    if jax.default_backend() != "cpu":
+        pytest.skip("the CPU's program")
+    monkeypatch.setattr(neighbors, "_QUICK_EAGER_MAX_N", 8)
+    position, side = _system(n=60, seed=5)
+    # A displacement of its own: this factory's programs are new.
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4)
+    lists = fns.allocate.__self__
+    before = lists.eager_update_cpu._cache_size()
+    nbrs = fns.allocate(position)
+    assert lists.eager_update_cpu._cache_size() == before + 1
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+    compiles = _count_compiles()
+    rebuilt = nbrs.update(far)
+    assert len(compiles) == 0, compiles
+    assert not bool(nbrs.did_buffer_overflow)
+    assert not bool(rebuilt.did_buffer_overflow)
+    assert _pairs(nbrs) == _brute_force(position, side, 1.4)
+    assert _pairs(rebuilt) == _brute_force(np.mod(far, side), side, 1.4)
+
+
+def test_cpu_compile_options_are_accepted_by_this_xla():
+    """`CPU_COMPILE_OPTIONS` (and the quick ones, which include them) are
+    given only where XLA knows them: an unknown option fails every CPU
+    ``allocate`` at compile time."""
+    from jaxrt.lists import metric
+    cpu = jax.devices("cpu")[0]
+    x = jax.device_put(np.float32(1.0), cpu)
+    for options in (metric.CPU_COMPILE_OPTIONS, metric.QUICK_COMPILE_OPTIONS):
+        assert float(jax.jit(lambda v: v * 2, compiler_options=options)(x)) == 2.0
+    assert set(metric.CPU_COMPILE_OPTIONS) <= set(metric.QUICK_COMPILE_OPTIONS)

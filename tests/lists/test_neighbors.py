@@ -443,7 +443,8 @@ def test_large_lists_are_built_at_their_exact_sizes(monkeypatch):
     # one's compiles (its displacement is new, so are its programs).
     def compiled():
         return (lists.eager_update._cache_size()
-                + lists.eager_update_quick._cache_size(),
+                + lists.eager_update_quick._cache_size()
+                + lists.eager_update_cpu._cache_size(),
                 lists.build._cache_size())
     (updates, builds) = compiled()
     capacities = set()
