@@ -11,6 +11,15 @@ import functools
 from typing import Callable
 
 import jax
+import jax.numpy
+
+
+def under_trace() -> bool:
+    """Is a trace under way (inside a caller's ``jit``, ``scan``...)? A
+    jitted call there is nested, and JAX refuses compile options on a
+    nested ``jit``: programs compiled with options are for eager calls
+    only. A fresh array is a tracer exactly under a trace."""
+    return isinstance(jax.numpy.zeros(()), jax.core.Tracer)
 
 
 @functools.cache

@@ -42,6 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt import platforms
+
 # Off-diagonal Gram entries below this (relative) count as zero.
 _DIAGONAL_TOLERANCE = 2.0 ** -20
 # Model and metric may differ by rounding: this much relative, plus ulps of
@@ -228,7 +230,7 @@ def concrete(fn, *args, **kwargs):
     compiled on its own, dozens of programs) only under a trace. On a
     CPU the model's programs (run once per ``allocate``) are compiled for
     compile speed (`QUICK_COMPILE_OPTIONS`)."""
-    if fn in _QUICK and _on_cpu_only(args, kwargs):
+    if fn in _QUICK and _on_cpu_only(args, kwargs) and not platforms.under_trace():
         fn = _QUICK[fn]
     out = fn(*args, **kwargs)
     if any(isinstance(x, jax.core.Tracer)

@@ -70,7 +70,7 @@ from jax_md import space
 from jax_md.partition import (NeighborList, NeighborListFns,
                               NeighborListFormat, PartitionError)
 
-from jaxrt import backends
+from jaxrt import backends, platforms
 from jaxrt.backends import contract as _backend
 from jaxrt.lists import metric as _space
 from jaxrt.backends.contract import (Capacity, Geometry, MetricSq, Query,
@@ -913,8 +913,10 @@ class _Lists:
         (`CPU_COMPILE_OPTIONS`), or for small N `eager_update_quick`
         (compiled for compile speed: most of a first ``allocate``; its
         rebuilds stay many times faster than jax-md's eager update, and a
-        caller's ``jit`` of ``update`` compiles its own program)."""
-        if _space.on_accelerator(position):
+        caller's ``jit`` of ``update`` compiles its own program). Concrete
+        arrays inside a caller's trace get `eager_update`: JAX refuses
+        compile options on a nested ``jit``."""
+        if _space.on_accelerator(position) or platforms.under_trace():
             return self.eager_update
         if position.shape[0] <= _QUICK_EAGER_MAX_N:
             return self.eager_update_quick

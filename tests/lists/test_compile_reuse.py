@@ -384,3 +384,27 @@ def test_cpu_compile_options_are_accepted_by_this_xla():
     for options in (metric.CPU_COMPILE_OPTIONS, metric.QUICK_COMPILE_OPTIONS):
         assert float(jax.jit(lambda v: v * 2, compiler_options=options)(x)) == 2.0
     assert set(metric.CPU_COMPILE_OPTIONS) <= set(metric.QUICK_COMPILE_OPTIONS)
+
+
+@pytest.mark.parametrize("quick_max_n", [4096, 8])
+def test_concrete_arrays_inside_a_callers_jit(monkeypatch, quick_max_n):
+    """``update`` and the list-free checks called inside a caller's ``jit``
+    on arrays captured from outside (concrete, no tracer among them): the
+    CPU's compile options are refused on a nested ``jit``, so the plain
+    program runs there, and the list equals the eager one."""
+    from jaxrt.lists import neighbors
+    monkeypatch.setattr(neighbors, "_QUICK_EAGER_MAX_N", quick_max_n)
+    position, side = _system(n=40, seed=7)
+    displacement, _ = space.periodic(side)
+    fns = jaxrt.neighbor_list(displacement, side, 1.0, 0.4)
+    nbrs = fns.allocate(position)
+    far = jax.block_until_ready(position + jnp.asarray([0.5, -0.3]))
+
+    @jax.jit
+    def captured(_):
+        return nbrs.update(far).idx
+
+    idx = np.asarray(captured(0))
+    eager = nbrs.update(far)
+    np.testing.assert_array_equal(idx, np.asarray(eager.idx))
+    assert _pairs(eager) == _brute_force(np.mod(far, side), side, 1.4)

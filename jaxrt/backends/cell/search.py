@@ -1244,7 +1244,8 @@ class Cell:
         # Counting runs on the engine the search will use (the portable
         # path at N = 1e6 would compile and run XLA's largest program).
         platform = _platform_of(position)
-        quick = platform == "cpu" and n <= _QUICK_MAX_N
+        quick = (platform == "cpu" and n <= _QUICK_MAX_N
+                 and not platforms.under_trace())
         fixed = _fixed_grid(n, geometry, query)
         longest, tol = (_run_sizes_quick if quick else _run_sizes_fast)(
             position, geometry, query, not fixed)
