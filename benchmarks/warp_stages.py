@@ -58,38 +58,23 @@ VARIANTS = (("generic", False, False, 256), ("static", True, False, 256),
 FLOPS_CANDIDATE, FLOPS_PAIR = 9, 35
 
 
-def candidates(position, keys, grid, cells, r_cutoff, prune=False,
-               sample=4096):
+def candidates(keys, cells, sample=4096):
     """Mean candidates per particle of the walk's stencil (the kernel's
     rows and x ranges, periodic axes with images) over ``sample`` sorted
     particles, from the cell-start table's counts."""
     import numpy as np
     n = len(keys)
     nx, ny, nz, ax, ay, az = (int(c) for c in cells)
-    origin, width = grid[0], grid[1]
     counts = np.bincount(keys, minlength=nx * ny * nz).reshape(nz, ny, nx)
     rng = np.random.default_rng(0)
     total = 0
     picks = rng.choice(n, min(sample, n), replace=False)
     for i in picks:
-        p, k = position[i], int(keys[i])
+        k = int(keys[i])
         cx, cy, cz = k % nx, (k // nx) % ny, k // (nx * ny)
         for dz in range(-az, az + 1):
-            lo = origin[2] + (cz + dz) * width[2]
-            gz = max(0.0, lo - p[2], p[2] - lo - width[2]) if prune else 0.0
             for dy in range(-ay, ay + 1):
-                lo = origin[1] + (cy + dy) * width[1]
-                gy = max(0.0, lo - p[1], p[1] - lo - width[1]) if prune \
-                    else 0.0
-                rem = r_cutoff ** 2 - gy * gy - gz * gz
-                if rem <= 0:
-                    continue
-                xl, xh = cx - ax, cx + ax
-                if prune:
-                    e = math.sqrt(rem)
-                    xl = max(xl, math.floor((p[0] - e - origin[0]) / width[0]))
-                    xh = min(xh, math.floor((p[0] + e - origin[0]) / width[0]))
-                for x in range(xl, xh + 1):
+                for x in range(cx - ax, cx + ax + 1):
                     total += counts[(cz + dz) % nz, (cy + dy) % ny, x % nx]
     return total / len(picks)
 
@@ -239,8 +224,8 @@ def measure(n_target, args, rows, device_columns):
     walk(VARIANTS[-1], flags | wk.COUNT)
     wp.synchronize_device(device)
     hits = float(np.mean(count.numpy()))
-    pos, key = position.numpy(), keys.numpy()[:n]
-    cand = candidates(pos, key, g, cells, params.r_cutoff)
+    key = keys.numpy()[:n]
+    cand = candidates(key, cells)
     passes = math.ceil(end_bit / 8)
     model = {
         "bin": (12 + 20) * n, "sort": (4 + passes * 16) * n,

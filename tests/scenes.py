@@ -21,11 +21,14 @@ def fluid(n_side=6, dim=3, density=0.8, seed=0, jitter=0.15):
     return (g + rng.uniform(-jitter, jitter, g.shape) * a) % side, side
 
 
-def slab_displacement(side):
-    """Periodic on x and y, a wall (free) on z."""
+def slab_displacement(side, periodic_axes=2):
+    """Periodic on the first ``periodic_axes`` axes (x and y by default),
+    free on the others."""
+    k = periodic_axes
+
     def displacement(a, b, **unused):
         d = a - b
-        return d.at[:2].set(jnp.mod(d[:2] + side / 2, side) - side / 2)
+        return d.at[:k].set(jnp.mod(d[:k] + side / 2, side) - side / 2)
     return displacement
 
 

@@ -21,8 +21,8 @@ _CAPABILITIES = frozenset(f.name for f in dataclasses.fields(Capabilities)
 class BySize:
     """``small`` for lists of at most ``max_small`` particles, ``large``
     for larger ones, as a `jaxrt.backends.Backend` (``"auto"``'s on a CPU:
-    all pairs for small N, where their program compiles in a fraction of
-    the cell list's time and rebuilds as fast).
+    all pairs for small N, whose program is smaller to compile than the
+    cell list's).
 
     Its capabilities are ``large``'s: ``small`` must serve every list that
     ``large`` serves, exactly (``"brute"`` does for ``"cell"``: any metric,

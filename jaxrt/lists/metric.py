@@ -230,14 +230,12 @@ def concrete(fn, *args, **kwargs):
     compiled on its own, dozens of programs) only under a trace. On a
     CPU the model's programs (run once per ``allocate``) are compiled for
     compile speed (`QUICK_COMPILE_OPTIONS`)."""
-    if fn in _QUICK and _on_cpu_only(args, kwargs) and not platforms.under_trace():
-        fn = _QUICK[fn]
-    out = fn(*args, **kwargs)
-    if any(isinstance(x, jax.core.Tracer)
-           for x in jax.tree_util.tree_leaves(out)):
+    if platforms.under_trace():
         with jax.ensure_compile_time_eval():
-            out = fn(*args, **kwargs)
-    return out
+            return fn(*args, **kwargs)
+    if fn in _QUICK and _on_cpu_only(args, kwargs):
+        fn = _QUICK[fn]
+    return fn(*args, **kwargs)
 
 
 def _off_diagonal(g, xp):

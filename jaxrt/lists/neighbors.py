@@ -846,14 +846,20 @@ def _update_arrays(position, idx, reference, code, state, force, radii,
 
 
 _UPDATE_STATIC = ("program", "capacity", "given_radii")
+
+
+def _eager_updates():
+    """`_update_arrays` jitted three ways: plain (accelerators), for
+    compile speed (`QUICK_COMPILE_OPTIONS`) and with `CPU_COMPILE_OPTIONS`
+    (see `_Lists.eager_program`)."""
+    return tuple(jax.jit(_update_arrays, static_argnames=_UPDATE_STATIC,
+                         compiler_options=options)
+                 for options in ({}, _backend.QUICK_COMPILE_OPTIONS,
+                                 _backend.CPU_COMPILE_OPTIONS))
+
+
 # Eager updates of every factory whose programs are shared (`_Lists`).
-_eager_update = jax.jit(_update_arrays, static_argnames=_UPDATE_STATIC)
-_eager_update_quick = jax.jit(
-    _update_arrays, static_argnames=_UPDATE_STATIC,
-    compiler_options=_backend.QUICK_COMPILE_OPTIONS)
-_eager_update_cpu = jax.jit(
-    _update_arrays, static_argnames=_UPDATE_STATIC,
-    compiler_options=_backend.CPU_COMPILE_OPTIONS)
+_SHARED_EAGER_UPDATES = _eager_updates()
 
 
 class _Lists:
@@ -879,8 +885,8 @@ class _Lists:
         # Factories of equal arguments share their compiled programs (a
         # second `neighbor_list` compiles nothing), except where the
         # searcher holds per-factory state: its programs stay its own.
-        self.shares_programs = self.builds_as_update
-        self.build = (_shared_build if self.shares_programs else _make_build)(
+        shares_programs = self.builds_as_update
+        self.build = (_shared_build if shares_programs else _make_build)(
             self.searcher, settings.custom_mask_function)
         # Per (N, dtype, query): the capacities allocate's build has been
         # compiled for, newest last.
@@ -894,25 +900,14 @@ class _Lists:
         # functions at every call and recompiled the search each time.
         # ``allocate`` builds through it too (``force``: rebuild whatever
         # moved), so that the first ``update`` compiles nothing.
-        if self.shares_programs:
-            self.eager_update = _eager_update
-            self.eager_update_quick = _eager_update_quick
-            self.eager_update_cpu = _eager_update_cpu
-        else:
-            self.eager_update = jax.jit(_update_arrays,
-                                        static_argnames=_UPDATE_STATIC)
-            self.eager_update_quick = jax.jit(
-                _update_arrays, static_argnames=_UPDATE_STATIC,
-                compiler_options=_backend.QUICK_COMPILE_OPTIONS)
-            self.eager_update_cpu = jax.jit(
-                _update_arrays, static_argnames=_UPDATE_STATIC,
-                compiler_options=_backend.CPU_COMPILE_OPTIONS)
+        (self.eager_update, self.eager_update_quick,
+         self.eager_update_cpu) = (_SHARED_EAGER_UPDATES if shares_programs
+                                   else _eager_updates())
 
     def eager_program(self, position):
         """`eager_update` on an accelerator; on a CPU `eager_update_cpu`
         (`CPU_COMPILE_OPTIONS`), or for small N `eager_update_quick`
-        (compiled for compile speed: most of a first ``allocate``; its
-        rebuilds stay many times faster than jax-md's eager update, and a
+        (compiled for compile speed: most of a first ``allocate``; a
         caller's ``jit`` of ``update`` compiles its own program). Concrete
         arrays inside a caller's trace get `eager_update`: JAX refuses
         compile options on a nested ``jit``."""
@@ -1489,17 +1484,16 @@ def choose_backend(*, platform: str, has_radii: bool = False,
       LJ step and faster for an SPH step, and it needs no Warp.
       `delaunay` (2D) was slower than `cell` in every case measured, and
       `spheres` / `squares` slower than `bvh` in every seed-study
-      configuration, so neither is ever chosen; nor is `brute` (no table
-      measures it against `cell`).
+      configuration, so neither is ever chosen; nor is ``"brute"`` here
+      (small lists on a CPU reach it through `BySize`, below).
 
     Dimension does not enter: no table shows a different winner for 2D.
-    On a CPU, lists of at most 256 particles of a ``"cell"`` choice are
-    searched by ``"brute"`` (`jaxrt.backends.BySize`, picked at each
-    ``allocate`` by N): all pairs compile several times faster there, and
-    rebuild as fast, which makes a small system's first ``allocate`` and
-    ``update`` quicker than jax-md's. Args: ``platform``: ``jax.default_backend()``
-    (``"cpu"``, ``"gpu"``/``"cuda"``, ``"tpu"``); ``has_radii``: radii given
-    at construction; ``warp``: Warp's backends are installed.
+    On a CPU the caller wraps a ``"cell"`` choice in `jaxrt.backends.BySize`,
+    which searches lists of at most ``_BRUTE_MAX_N_CPU`` particles with
+    ``"brute"`` (all pairs: a smaller program to compile at ``allocate``).
+    Args: ``platform``: ``jax.default_backend()`` (``"cpu"``,
+    ``"gpu"``/``"cuda"``, ``"tpu"``); ``has_radii``: radii given at
+    construction; ``warp``: Warp's backends are installed.
     """
     if has_radii and platform == "cpu" and warp:
         return "bvh"

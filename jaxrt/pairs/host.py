@@ -12,8 +12,9 @@ import numpy as np
 from jaxrt.pairs.bits import ErrorBit
 
 
-def _lex_positive(s):
-    """bool ``(...)``: ``s`` (int ``(..., 3)``) lexicographically > 0."""
+def lex_positive(s):
+    """bool ``(...)``: ``s`` (int ``(..., 3)``, numpy or JAX)
+    lexicographically > 0."""
     return (s[..., 0] > 0) | ((s[..., 0] == 0) & (
         (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
 
@@ -26,7 +27,7 @@ def _host_stencil(reach):
     every = np.array(list(itertools.product(
         *(range(-k, k + 1) for k in reach))), np.int32)
     every.flags.writeable = False
-    lex = _lex_positive(every)
+    lex = lex_positive(every)
     return every, lex, int(np.argmin(np.abs(every).sum(axis=1)))
 
 
@@ -109,7 +110,7 @@ def search_small_host(positions, mask, h, hinv, cutoff, species, *,
         keep &= real[:, None, None] & real[None, :, None]
     atoms = np.arange(n)
     if half:
-        lex = _lex_positive(s) if moved else lex_every
+        lex = lex_positive(s) if moved else lex_every
         zeros = np.zeros(len(every), bool)
         zeros[zero] = True
         same = atoms[:, None, None] == atoms[None, :, None]

@@ -65,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
+from jaxrt.pairs.host import lex_positive
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -151,12 +152,6 @@ def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
         return every
     first = np.array([next((v for v in o if v != 0), 0) for o in every])
     return every[first >= 0]
-
-
-def _lex_positive(s):
-    """bool ``(...)``: ``s`` (int ``(..., 3)``) lexicographically > 0."""
-    return (s[..., 0] > 0) | ((s[..., 0] == 0) & (
-        (s[..., 1] > 0) | ((s[..., 1] == 0) & (s[..., 2] > 0))))
 
 
 def _exclusive_prefix(x):
@@ -432,7 +427,7 @@ def _candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             once = ~(own[k] & (p == rank_i))
             if half:
                 j = b.order[p]
-                once = once & ((i < j) | ((i == j) & _lex_positive(s)))
+                once = once & ((i < j) | ((i == j) & lex_positive(s)))
         if brute:  # runs hold padding atoms (not sorted out)
             once = once & b.real[p]
         return (dist < limit) & once
@@ -601,7 +596,7 @@ def _pair_rows(found, per_atom, out, binned, *, half, n_graph):
     per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
     if half:
         # The representative: i < j, or i == j and S > 0.
-        swap = (j < i) | ((j == i) & ~_lex_positive(s))
+        swap = (j < i) | ((j == i) & ~lex_positive(s))
         rows = jnp.concatenate([
             jnp.stack([jnp.where(swap, j, i), jnp.where(swap, i, j)], axis=1),
             jnp.where(swap[:, None], -s, s)], axis=1)

@@ -30,6 +30,7 @@ from jax_md import partition, space
 from jaxrt.backends import Cell
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           acceleration_fused, density_fused, sph)
+from scenes import slab_displacement
 
 SLOW = pytest.mark.slow
 RTOL = 1e-12
@@ -59,18 +60,10 @@ def fluid(n_side, dim, dx=1.0, seed=0, jitter=0.2):
     return (g + rng.uniform(-jitter, jitter, g.shape) * dx) % side, side
 
 
-def slab_displacement(side):
-    """Periodic on x, free on the other axes."""
-    def displacement(a, b, **unused):
-        d = a - b
-        return d.at[:1].set(jnp.mod(d[:1] + side / 2, side) - side / 2)
-    return displacement
-
-
 GEOMETRIES = {
     "periodic": lambda side, dim: (space.periodic(side)[0], side, None),
     "free": lambda side, dim: (space.free()[0], None, None),
-    "slab": lambda side, dim: (slab_displacement(side), side,
+    "slab": lambda side, dim: (slab_displacement(side, 1), side,
                                (True,) + (False,) * (dim - 1)),
 }
 

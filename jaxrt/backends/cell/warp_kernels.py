@@ -34,8 +34,8 @@ import warp as wp
 # kept as loops: the unrolled walk took minutes to compile for the CPU.
 # Fast math on CUDA: float32 reciprocals and divisions approximate to 2 ulp
 # (as Triton's), well inside the float32 tolerances of the tests.
-wp.set_module_options({"enable_backward": False, "max_unroll": 1,
-                       "fast_math": True})
+_OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
+wp.set_module_options(_OPTIONS)
 
 # Grid rows (`lj_sums`' ``grid``): origin, cell width, box side per axis.
 ORIGIN, WIDTH, SIDE = 0, 1, 2
@@ -206,8 +206,6 @@ def _pair_functions(scalar):
     return lj, lj_forces, x_ranges, row, rounded
 
 
-# Module options of the lazily built walks (`walk_kernel`).
-_OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
 # The flag bits a walk may fix at compile time.
 STATIC_BITS = HAS_RADII | DERIVATIVES | COUNT
 

@@ -129,6 +129,9 @@ def scratch(m: Mesh) -> _Scratch:
 
 
 ROUNDS_PER_READ = 16
+"""Flip rounds launched between two host reads on a GPU. On the CPU a
+launch runs to completion before the next, so a read costs nothing and
+each round is read (a no-op round would cost a full pass there)."""
 STRIDE_THREADS = 1 << 17
 """Threads of a worklist launch (grid-stride): a round after the first
 costs its worklist (the tangle) plus one launch of this size, whatever the
@@ -143,10 +146,6 @@ did not cut the tries)."""
 
 def _threads(work: int) -> int:
     return max(1, min(work, STRIDE_THREADS))
-
-"""Flip rounds launched between two host reads on a GPU. On the CPU a
-launch runs to completion before the next, so a read costs nothing and
-each round is read (a no-op round would cost a full pass there)."""
 
 
 def rounds_per_read(m: Mesh, rounds: int | None = None) -> int:
