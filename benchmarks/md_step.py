@@ -193,12 +193,27 @@ def lj_step(label: str, n: int, job: dict) -> dict:
             return (state, nbrs.update(state.position)), None
         return lax.scan(step, carry, None, length=steps)[0]
 
-    timing, (_, nbrs) = _harness.time_carry(
+    timing, (state_after, nbrs) = _harness.time_carry(
         run, (state, nbrs), repeats=job["repeats"], warmup=job["warmup"],
         per_call=steps)
     if nbrs.did_buffer_overflow:
         raise RuntimeError("LJ list overflowed during timing")
+    # How often the skin forced a search, from one more (untimed) call: the
+    # largest displacement among more particles crosses half the skin
+    # sooner, a cost that grows faster than N.
+    @jax.jit
+    def count(carry):
+        def step(carry, _):
+            state, nbrs = carry
+            state = apply(state, neighbor=nbrs)
+            new = nbrs.update(state.position)
+            moved = jnp.any(new.reference_position != nbrs.reference_position)
+            return (state, new), moved
+        return jnp.sum(lax.scan(step, carry, None, length=steps)[1])
+
+    rebuilds = int(count((state_after, nbrs)))
     return {"N": n, "k": round(float(mean_neighbours(nbrs, n)), 2),
+            "rebuilds_per_step": round(rebuilds / steps, 3),
             **timing.columns()}
 
 
