@@ -44,13 +44,17 @@ input (``same_pairs``): the sorted (i, j, shift) sets must be equal, except
 pairs whose float64 length is within a rounding tolerance of the cutoff
 (``boundary`` counts those); anything else makes the row ``error`` with
 the reason instead of a time. A row whose library is not installed is
-``skipped`` with the reason.
+``skipped`` with the reason. With nvalchemi-toolkit-ops 0.5.0 and Warp
+1.19 the batch atom-centric path (what ``auto`` runs under jit) fails: one
+of its kernels is registered with its arrays as static jit arguments (the
+row says so); the pair-centric batch path does not use that kernel.
 
     python benchmarks/pairs.py                    # CPU: 1e3..1e5, all CPU methods
     python benchmarks/pairs.py --sizes 1000000 --methods jaxrt vesin matscipy
     python benchmarks/pairs.py --gpu              # CUDA: jaxrt, nvalchemiops (torch, jax), 1e3..1e6
     python benchmarks/pairs.py --quick            # smoke: N = 1000, 8x32, 2 repeats
-    python benchmarks/pairs.py --gpu --batches 256x32 64x128
+    python benchmarks/pairs.py --gpu --sizes --batches 256x32 64x128  # batches only
+    python benchmarks/pairs.py --gpu --batches    # single systems only
 """
 from __future__ import annotations
 
@@ -537,6 +541,8 @@ def run_row(job: dict) -> dict:
     n = len(inputs[0])
     row = {"N": n, "k": round(pairs / n, 1), "pairs": pairs,
            "time_ms": timing.median_ms, **timing.columns()}
+    if method.startswith("nvalchemiops"):
+        row["nvalchemiops"] = _version("nvalchemi-toolkit-ops")
     if method.startswith("nvalchemiops") and job.get("check", True):
         first = timing.first
         if method == "nvalchemiops":  # torch tensors
