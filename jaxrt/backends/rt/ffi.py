@@ -1087,14 +1087,16 @@ _GRAPH_MODES = {"none": wp.JaxCallableGraphMode.NONE,
                 "warp": wp.JaxCallableGraphMode.WARP}
 
 
-def _cell_lj_callable(vector, graph: str, walk: str = "thread"):
+def _cell_lj_callable(vector, graph: str, walk: str = "thread",
+                      cluster_size: int = 8):
     """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
     positions of type ``vector``; ``graph``: who captures its launches in a
     CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
     host); ``walk``: "thread", or "cluster" (`jaxrt.backends.cell.
-    warp_cluster.lj_sums`, three more scratch outputs)."""
+    warp_cluster.lj_sums`, three more scratch outputs) of ``cluster_size``
+    particles."""
     from jaxrt.backends.cell import warp_cluster, warp_kernels
-    key = (vector, graph, walk)
+    key = (vector, graph, walk, cluster_size)
     if key in _CELL_LJ_CALLABLES:
         return _CELL_LJ_CALLABLES[key]
     scalar = warp_kernels.scalar_of(vector)
@@ -1140,7 +1142,8 @@ def _cell_lj_callable(vector, graph: str, walk: str = "thread"):
                              d_epsilon=d_epsilon, count=count, keys=keys,
                              values=values, wrapped=wrapped, start=start,
                              position=position, radius=radius, counts=counts,
-                             offsets=offsets, clusters=clusters)
+                             offsets=offsets, clusters=clusters,
+                             size=cluster_size)
 
     function = cluster_sums if walk == "cluster" else sums
     function.__module__ = warp_kernels.__name__  # see _aabb_callables
@@ -1156,7 +1159,8 @@ CELL_WALKS = ("thread", "cluster")
 
 
 def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
-                 table: int, graph: str = "none", walk: str = "thread"):
+                 table: int, graph: str = "none", walk: str = "thread",
+                 cluster_size: int = 8):
     """The per-particle LJ sums of `jaxrt.backends.cell.warp_kernels.lj_sums`
     in one call.
 
@@ -1175,7 +1179,9 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
         ``"warp"`` (Warp captures them, reused for the same buffers).
       walk: static, ``"thread"`` (a thread per particle) or ``"cluster"``
         (a thread per cluster of a cell's particles,
-        `jaxrt.backends.cell.warp_cluster`): the same sums.
+        `jaxrt.backends.cell.warp_cluster`): the same sums;
+      cluster_size: static, the cluster walk's particles per cluster
+        (`jaxrt.backends.cell.warp_cluster.SIZES`).
     Returns:
       ``(forces (N, 3) in the caller's order, energy (N,), d_sigma (N,),
       d_epsilon (N,), count int32 (N,))``: per particle (sorted order for
@@ -1193,14 +1199,15 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
     # it now, not inside the callback (where a graph capture may be open).
     if walk == "cluster":
         kernel = warp_cluster.cluster_kernel(
-            scalar, flags, unroll=wp.get_device(device).is_cuda)
+            scalar, flags, size=cluster_size,
+            unroll=wp.get_device(device).is_cuda)
         wp.load_module(kernel.module, device=device,
                        block_dim=warp_cluster.CLUSTER_BLOCK)
     else:
         kernel = warp_kernels.walk_kernel(scalar, flags)
         wp.load_module(kernel.module, device=device,
                        block_dim=warp_kernels.WALK_BLOCK)
-    call = _cell_lj_callable(vector, graph, walk)
+    call = _cell_lj_callable(vector, graph, walk, cluster_size)
     has_radii = bool(flags & warp_kernels.HAS_RADII)
     dims = {"forces": (n, 3), "energy": (n,), "d_sigma": (n,),
             "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
@@ -1208,7 +1215,7 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
             "position": (n, 3), "radius": (n if has_radii else 1,)}
     if walk == "cluster":
         dims.update(counts=(table + 1,), offsets=(table + 1,), clusters=(
-            warp_cluster.bound(n, table, warp_cluster.CLUSTER_SIZE) + 1,))
+            warp_cluster.bound(n, table, cluster_size) + 1,))
     outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),
                 int(flags), output_dims=dims)
     return tuple(outs[:5])

@@ -363,10 +363,11 @@ class CellSums(_Backend):
     graph: str = "none"
     reach: tuple = (4, 2)
     # ``kernel="warp"``: "thread", a thread per particle walks its stencil;
-    # "cluster", a thread per cluster of up to 8 particles of one cell
-    # walks their common stencil once (`jaxrt.backends.cell.warp_cluster`).
-    # The same sums.
+    # "cluster", a thread per cluster of up to ``cluster_size`` particles
+    # of one cell walks their common stencil once
+    # (`jaxrt.backends.cell.warp_cluster`). The same sums.
     walk: str = "thread"
+    cluster_size: int = 8
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
@@ -387,6 +388,9 @@ class CellSums(_Backend):
             raise ValueError(f"Cell(walk={self.walk!r}) is the Warp engine's "
                              f"option; kernel={self.kernel!r} takes "
                              "walk='thread' (or use kernel='warp').")
+        if self.cluster_size not in (1, 2, 4, 8, 16):
+            raise ValueError(f"Cell(cluster_size={self.cluster_size!r}): "
+                             "choose 1, 2, 4, 8 or 16.")
         if self.runs not in ("kernel", "stored"):
             raise ValueError(f"Cell(runs={self.runs!r}): choose 'kernel' or "
                              "'stored'.")
@@ -406,7 +410,7 @@ class CellSums(_Backend):
             forces, e, ds, de, c = warp_cell.walk(
                 R3, sigma, epsilon, radii, params, derivatives=derivatives,
                 count=count, graph=self.graph, reach=self.reach,
-                walk=self.walk)
+                walk=self.walk, cluster_size=self.cluster_size)
             return FusedSums(_total(e) / 2, forces, jnp.sum(ds) / 2,
                              jnp.sum(de) / 2, jnp.sum(c) / 2,
                              jnp.zeros((), jnp.int32))
