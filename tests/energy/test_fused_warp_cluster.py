@@ -57,18 +57,20 @@ def same(a, b, rtol=E_RTOL):
         close(a, b, rtol)
 
 
-def engines(geometry, side, reach, **kw):
+def engines(geometry, side, reach, cluster_size=8, **kw):
     """(cluster, thread, brute) energies for one box."""
     displacement, box, periodic = GEOMETRIES[geometry](side)
-    backends = (CellSums(kernel="warp", reach=reach, walk="cluster"),
+    backends = (CellSums(kernel="warp", reach=reach, walk="cluster",
+                         cluster_size=cluster_size),
                 CellSums(kernel="warp", reach=reach), "brute")
     return tuple(lennard_jones_fused(displacement, box, backend=b,
                                      periodic=periodic, **kw)
                  for b in backends)
 
 
-def check(R, geometry, side, reach, **kw):
-    cluster, thread, brute = engines(geometry, side, reach, **kw)
+def check(R, geometry, side, reach, cluster_size=8, **kw):
+    cluster, thread, brute = engines(geometry, side, reach, cluster_size,
+                                     **kw)
     s, u, t = cluster.sums(R), thread.sums(R), brute.sums(R)
     assert int(s.count) == int(u.count) == int(t.count)
     for name in ("energy", "forces", "d_sigma", "d_epsilon"):
@@ -99,8 +101,9 @@ def test_small_periodic_boxes_alias_no_pair(x64, side_over_cutoff, reach):
     check(R, "periodic", side, reach)
 
 
-@pytest.mark.parametrize("reach", REACHES)
-def test_crowded_cells_coincident_and_cutoff_pairs(x64, reach):
+@pytest.mark.parametrize("reach, cluster_size", [((4, 2), 8), ((1, 1), 8),
+                                                 ((1, 1), 4), ((2, 1), 16)])
+def test_crowded_cells_coincident_and_cutoff_pairs(x64, reach, cluster_size):
     """Cells of up to ~40 particles (clusters of 8 and a remainder), five
     copies of one point, a pair exactly at the cutoff, one inside the
     switch and one across the x face."""
@@ -112,7 +115,7 @@ def test_crowded_cells_coincident_and_cutoff_pairs(x64, reach):
                         [1.0, 8.0, 1.0], [2.2, 8.0, 1.0],  # in the switch
                         [9.9, 3.0, 8.0], [0.3, 3.0, 8.0]])  # across x
     R = jnp.asarray(np.concatenate([crowd, fixed]))
-    _, brute, s = check(R, "periodic", side, reach)
+    _, brute, s = check(R, "periodic", side, reach, cluster_size)
     # The crowd's pairs, the 10 coincident ones, the switch and face pairs.
     d = crowd[:, None] - crowd[None]
     crowd_pairs = (np.sum((np.sum(d * d, -1) < 2.5 ** 2)) - 60) // 2
@@ -153,6 +156,8 @@ def test_walk_option_refused_off_the_warp_engine():
         CellSums(kernel="xla", walk="cluster")
     with pytest.raises(ValueError, match="walk='tiles'"):
         CellSums(kernel="warp", walk="tiles")
+    with pytest.raises(ValueError, match="cluster_size=3"):
+        CellSums(kernel="warp", walk="cluster", cluster_size=3)
     with pytest.raises(ValueError, match="size=3"):
         warp_cluster.cluster_kernel(wp.float32, 0, size=3)
 
