@@ -65,10 +65,11 @@ FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"
 # fused:cell[warp-rXY-cK-G]: the Warp engine (CellSums(kernel="warp")) with
 # its stencil's reach X along x and Y across (cells bound / reach wide),
 # cK its cluster walk with K particles per cluster (CellSums(walk=
-# "cluster", cluster_size=K); without it the thread walk) and G the CUDA
-# graph's capture (none, jax, warp; ffi.cell_lj_sums).
-_WARP = re.compile(
-    r"cell\[warp(?:-r(\d)(\d))?(?:-c(\d+))?(?:-(none|jax|warp))?\]")
+# "cluster", cluster_size=K); nK the warp-cooperative one, walk="native";
+# without either the thread walk) and G the CUDA graph's capture (none,
+# jax, warp; ffi.cell_lj_sums).
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-([cn])(\d+))?"
+                   r"(?:-(none|jax|warp))?\]")
 
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
@@ -233,9 +234,10 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
     elif _WARP.fullmatch(backend):
         from jaxrt.energy.listfree.lj import CellSums
-        x, y, size, graph = _WARP.fullmatch(backend).groups()
+        x, y, kind, size, graph = _WARP.fullmatch(backend).groups()
         reach = (int(x), int(y)) if x else CellSums.reach
-        walk = dict(walk="cluster", cluster_size=int(size)) if size else {}
+        walk = dict(walk="cluster" if kind == "c" else "native",
+                    cluster_size=int(size)) if size else {}
         backend = CellSums(kernel="warp", graph=graph or "none", reach=reach,
                            **walk)
     elif _LAUNCH.fullmatch(backend):

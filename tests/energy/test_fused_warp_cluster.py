@@ -278,3 +278,105 @@ def test_radii_and_generic_flags_equal_the_thread_walk():
     for key, outputs in runs.items():
         for a, b in zip(outputs, reference):
             np.testing.assert_array_equal(a, b, err_msg=str(key))
+
+
+# --- The warp-cooperative walk (walk="native"). ---------------------------
+
+def _native_one_lane(points, side, scalar, radii=None):
+    """The native kernel built for one lane (clusters of one) on Warp's
+    CPU: its chunks, ballots and survivor loop with a lone lane's
+    shuffles; outputs as `_direct`'s."""
+    n = len(points)
+    runs = _direct(points, side, True, scalar, radii=radii)
+    m = max(1, int(side // 2.5))
+    table = m ** 3
+    np_scalar = np.float32 if scalar == wp.float32 else np.float64
+    v3 = wp.types.vector(3, scalar)
+    flags = wk.COUNT | wk.DERIVATIVES | 7 * wk.PERIODIC
+    if radii is not None:
+        flags |= wk.HAS_RADII
+    params = np.zeros(wk.N_PARAMS)
+    params[[wk.SIGMA, wk.EPSILON, wk.R_ONSET, wk.R_CUTOFF]] = 1, 1, 2, 2.5
+    e = lambda k, t: wp.empty(k, dtype=t, device="cpu")  # noqa: E731
+    a = lambda x: wp.array(np.asarray(x, np_scalar), device="cpu")  # noqa: E731
+    o = dict(forces=e(n, v3), energy=e(n, scalar), d_sigma=e(n, scalar),
+             d_epsilon=e(n, scalar), count=e(n, wp.int32),
+             keys=e(2 * n, wp.int32), values=e(2 * n, wp.int32),
+             wrapped=e(n, v3), start=e(table + 1, wp.int32),
+             position=e(n, v3), radius=e(n if radii is not None else 1,
+                                          scalar))
+    points_w = wp.array(np.asarray(points, np_scalar), dtype=v3, device="cpu")
+    radii_w = a(np.ones(1) if radii is None else radii)
+    grid = wp.array(np.stack([np.zeros(3), np.full(3, side / m),
+                              np.full(3, side)]).astype(np_scalar),
+                    dtype=v3, device="cpu")
+    cells = wp.array(np.asarray([m, m, m, 1, 1, 1], np.int32), device="cpu")
+    params_w = a(params)
+    wk.prepare(points_w, radii_w, grid, cells, flags,
+               **{k: o[k] for k in ("keys", "values", "wrapped", "start",
+                                    "position", "radius")})
+    counts, offsets = e(table + 1, wp.int32), e(table + 1, wp.int32)
+    clusters = e(warp_cluster.bound(n, table, 1) + 1, wp.int32)
+    warp_cluster.build_clusters(o["start"], counts, offsets, clusters, n=n,
+                                size=1)
+    walk = warp_cluster.native_kernel(scalar, flags, size=1, lanes=1)
+    warp_cluster.launch_native(
+        walk, size=1, lanes=1, offsets=offsets, clusters=clusters,
+        grid=grid, cells=cells, params=params_w, flags=flags,
+        **{k: o[k] for k in ("position", "keys", "values", "radius", "start",
+                             "forces", "energy", "d_sigma", "d_epsilon",
+                             "count")})
+    native = [o[k].numpy() for k in ("forces", "energy", "d_sigma",
+                                     "d_epsilon", "count")]
+    return native, runs["thread"]
+
+
+@pytest.mark.parametrize("scalar", [wp.float32, wp.float64])
+def test_native_walk_on_one_lane_equals_the_thread_walk(scalar):
+    """The warp-cooperative kernel on one lane: every candidate in the
+    thread walk's order, so its outputs equal the thread walk's bit for
+    bit (its cross-lane shuffles are not exercised: CUDA only)."""
+    rng = np.random.default_rng(9)
+    points = np.concatenate([rng.uniform(0, 9.0, (300, 3)),
+                             rng.uniform(1.0, 2.0, (30, 3))])
+    native, thread = _native_one_lane(points, 9.0, scalar)
+    assert int(thread[4].sum()) > 0
+    for a, b in zip(native, thread):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(4)
+    radii = rng.uniform(0.8, 2.5, len(points))
+    native, thread = _native_one_lane(points, 9.0, scalar, radii=radii)
+    for a, b in zip(native, thread):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_native_walk_sizes_refused():
+    with pytest.raises(ValueError, match="size=3"):
+        warp_cluster.native_kernel(wp.float32, 0, size=3)
+    with pytest.raises(ValueError, match="lanes=8"):
+        warp_cluster.native_kernel(wp.float32, 0, size=1, lanes=8)
+
+
+@pytest.mark.parametrize("reach", [(1, 1), (2, 1)])
+def test_native_walk_matches_brute(x64, reach):
+    """walk="native": on CUDA the warp-cooperative walk (the thread walk's
+    terms in another order: float64 tolerances), on the CPU the cluster
+    walk."""
+    R, side = fluid()
+    R = jnp.asarray(R)
+    displacement, box, periodic = GEOMETRIES["periodic"](side)
+    native = lennard_jones_fused(
+        displacement, box, periodic=periodic,
+        backend=CellSums(kernel="warp", reach=reach, walk="native"))
+    brute = lennard_jones_fused(displacement, box, periodic=periodic,
+                                backend="brute")
+    s, t = native.sums(R), brute.sums(R)
+    assert int(s.count) == int(t.count) > 0
+    close(s.energy, t.energy, E_RTOL)
+    close(s.forces, t.forces, F_RTOL)
+    close(s.d_sigma, t.d_sigma, E_RTOL)
+    close(s.d_epsilon, t.d_epsilon, E_RTOL)
+    R32 = jnp.asarray(R, jnp.float32)
+    e, g = jax.value_and_grad(native)(R32)
+    np.testing.assert_allclose(float(e), float(t.energy), rtol=1e-4)
+    close(-g, t.forces, 2e-3)

@@ -1092,9 +1092,9 @@ def _cell_lj_callable(vector, graph: str, walk: str = "thread",
     """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
     positions of type ``vector``; ``graph``: who captures its launches in a
     CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
-    host); ``walk``: "thread", or "cluster" (`jaxrt.backends.cell.
-    warp_cluster.lj_sums`, three more scratch outputs) of ``cluster_size``
-    particles."""
+    host); ``walk``: "thread", or "cluster" / "native" (`jaxrt.backends.
+    cell.warp_cluster.lj_sums`, three more scratch outputs) of
+    ``cluster_size`` particles."""
     from jaxrt.backends.cell import warp_cluster, warp_kernels
     key = (vector, graph, walk, cluster_size)
     if key in _CELL_LJ_CALLABLES:
@@ -1143,19 +1143,19 @@ def _cell_lj_callable(vector, graph: str, walk: str = "thread",
                              values=values, wrapped=wrapped, start=start,
                              position=position, radius=radius, counts=counts,
                              offsets=offsets, clusters=clusters,
-                             size=cluster_size)
+                             size=cluster_size, native=walk == "native")
 
-    function = cluster_sums if walk == "cluster" else sums
+    function = sums if walk == "thread" else cluster_sums
     function.__module__ = warp_kernels.__name__  # see _aabb_callables
     mode = _GRAPH_MODES[graph]
     _CELL_LJ_CALLABLES[key] = wp.jax_callable(
-        function, num_outputs=14 if walk == "cluster" else 11,
+        function, num_outputs=11 if walk == "thread" else 14,
         graph_mode=mode, vmap_method="sequential")
     return _CELL_LJ_CALLABLES[key]
 
 
 # `cell_lj_sums`' walks.
-CELL_WALKS = ("thread", "cluster")
+CELL_WALKS = ("thread", "cluster", "native")
 
 
 def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
@@ -1179,7 +1179,9 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
         ``"warp"`` (Warp captures them, reused for the same buffers).
       walk: static, ``"thread"`` (a thread per particle) or ``"cluster"``
         (a thread per cluster of a cell's particles,
-        `jaxrt.backends.cell.warp_cluster`): the same sums;
+        `jaxrt.backends.cell.warp_cluster`): the same sums; ``"native"``
+        (on CUDA a warp per cluster, its lanes sharing the candidates by
+        shuffles; elsewhere ``"cluster"``): the same sums to rounding;
       cluster_size: static, the cluster walk's particles per cluster
         (`jaxrt.backends.cell.warp_cluster.SIZES`).
     Returns:
@@ -1197,10 +1199,14 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
     device = _warp_device()
     # The walk lives in a module of its own, built for these flags: load
     # it now, not inside the callback (where a graph capture may be open).
-    if walk == "cluster":
+    cuda = wp.get_device(device).is_cuda
+    if walk == "native" and cuda:
+        kernel = warp_cluster.native_kernel(scalar, flags, size=cluster_size)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_cluster.NATIVE_BLOCK)
+    elif walk != "thread":
         kernel = warp_cluster.cluster_kernel(
-            scalar, flags, size=cluster_size,
-            unroll=wp.get_device(device).is_cuda)
+            scalar, flags, size=cluster_size, unroll=cuda)
         wp.load_module(kernel.module, device=device,
                        block_dim=warp_cluster.CLUSTER_BLOCK)
     else:
@@ -1213,7 +1219,7 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
             "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
             "values": (2 * n,), "wrapped": (n, 3), "start": (table + 1,),
             "position": (n, 3), "radius": (n if has_radii else 1,)}
-    if walk == "cluster":
+    if walk != "thread":
         dims.update(counts=(table + 1,), offsets=(table + 1,), clusters=(
             warp_cluster.bound(n, table, cluster_size) + 1,))
     outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),

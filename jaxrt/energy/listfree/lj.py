@@ -365,7 +365,9 @@ class CellSums(_Backend):
     # ``kernel="warp"``: "thread", a thread per particle walks its stencil;
     # "cluster", a thread per cluster of up to ``cluster_size`` particles
     # of one cell walks their common stencil once
-    # (`jaxrt.backends.cell.warp_cluster`). The same sums.
+    # (`jaxrt.backends.cell.warp_cluster`). The same sums. "native": on
+    # CUDA a warp per cluster sharing the candidates by shuffles (the same
+    # sums to rounding), elsewhere "cluster".
     walk: str = "thread"
     cluster_size: int = 8
 
@@ -381,9 +383,9 @@ class CellSums(_Backend):
         if self.newton and self.tile:
             raise ValueError(f"Cell(newton=True, tile={self.tile}): newton "
                              "needs the thread walk (tile=0).")
-        if self.walk not in ("thread", "cluster"):
-            raise ValueError(f"Cell(walk={self.walk!r}): choose 'thread' or "
-                             "'cluster'.")
+        if self.walk not in ("thread", "cluster", "native"):
+            raise ValueError(f"Cell(walk={self.walk!r}): choose 'thread', "
+                             "'cluster' or 'native'.")
         if self.walk != "thread" and self.kernel != "warp":
             raise ValueError(f"Cell(walk={self.walk!r}) is the Warp engine's "
                              f"option; kernel={self.kernel!r} takes "
