@@ -28,7 +28,8 @@ default, and ``--only`` takes Sparse as well):
                                     bvh or brute; cell is the Pallas kernel
                                     on CUDA; cell[warp] or cell[kernel=warp]
                                     the Warp engine, cell[warp-rXY-cK-G]
-                                    with its reach, cluster walk and graph
+                                    with its reach, cluster walk (nK: the
+                                    warp-cooperative one) and graph
                                     capture), forces
                                     from its custom_vjp, the same NVE step
 A label in ``--only`` without ``/`` selects both formats.

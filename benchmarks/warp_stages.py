@@ -25,7 +25,10 @@ times its table (counts, scan, starts), ``walk clusterK`` a thread per
 cluster of up to K particles of one cell (static flags, hoisted terms,
 loops over the cluster unrolled on CUDA), ``noprune`` without the
 cluster's bounding-box test; its rows give the clusters' number and mean
-size. Cells are ``bound / reach`` wide (``--reach X Y``: X along x, Y
+size. ``walk nativeK`` (CUDA only): a warp per cluster of K, its
+candidates compacted by a ballot and shuffled to the lanes
+(`warp_cluster.native_kernel`; the sums agree to rounding, so ``same`` is
+usually False and ``max_rel`` small). Cells are ``bound / reach`` wide (``--reach X Y``: X along x, Y
 across): the cluster walk needs several particles per cell (reach 1 1 or
 2 1), the thread walk prefers small cells (4 2, the default).
 
@@ -72,6 +75,9 @@ CLUSTER_VARIANTS = (("cluster8", 8, True, 64),
                     ("cluster8 noprune", 8, False, 64),
                     ("cluster8 b128", 8, True, 128), ("cluster4", 4, True, 64),
                     ("cluster16", 16, True, 64))
+# The warp-cooperative walk's (CUDA only): (label, size, block_dim).
+NATIVE_VARIANTS = (("native8", 8, 128), ("native8 b256", 8, 256),
+                   ("native4", 4, 128), ("native16", 16, 128))
 
 
 def candidates(keys, cells, sample=4096):
@@ -133,7 +139,8 @@ def measure(n_target, args, rows, device_columns):
     k = wk.KERNELS[wp.float32]
     end_bit = max(1, int(table).bit_length())
     # The cluster walk's tables, one set per cluster size.
-    sizes = sorted({v[1] for v in CLUSTER_VARIANTS})
+    natives = NATIVE_VARIANTS if cuda else ()
+    sizes = sorted({v[1] for v in CLUSTER_VARIANTS + natives})
     counts = empty(table + 1, wp.int32)
     tables = {size: (empty(table + 1, wp.int32),
                      empty(wc.bound(n, table, size) + 1, wp.int32))
@@ -143,7 +150,20 @@ def measure(n_target, args, rows, device_columns):
         offs, clusters = tables[size]
         wc.build_clusters(start, counts, offs, clusters, n=n, size=size)
 
+    def native_walk(variant, walk_flags=flags):
+        _, size, block = variant
+        kernel = wc.native_kernel(wp.float32, walk_flags, size=size)
+        offs, clusters = tables[size]
+        wc.launch_native(kernel, position=position, keys=keys, values=values,
+                         radius=radius, start=start, offsets=offs,
+                         clusters=clusters, grid=grid_w, cells=cells_w,
+                         params=params_w, flags=walk_flags, forces=forces,
+                         energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
+                         count=count, size=size, block_dim=block)
+
     def cluster_walk(variant, walk_flags=flags):
+        if len(variant) == 3:
+            return native_walk(variant, walk_flags)
         _, size, prune, block = variant
         kernel = wc.cluster_kernel(wp.float32, walk_flags, size=size,
                                    prune=prune, unroll=cuda)
@@ -182,7 +202,7 @@ def measure(n_target, args, rows, device_columns):
     for size in sizes:
         if size != wc.CLUSTER_SIZE:
             stages[f"clusters{size}"] = (lambda size=size: build(size))
-    for v in CLUSTER_VARIANTS:
+    for v in CLUSTER_VARIANTS + natives:
         stages["walk " + v[0]] = (lambda v=v: cluster_walk(v))
 
     def timed_pass():
@@ -221,8 +241,8 @@ def measure(n_target, args, rows, device_columns):
                 samples[name].append(ms)
         if rep == 0:
             # Each variant's forces against the first's, bit for bit.
-            for v in VARIANTS + CLUSTER_VARIANTS:
-                (cluster_walk if v in CLUSTER_VARIANTS else walk)(v)
+            for v in VARIANTS + CLUSTER_VARIANTS + natives:
+                (walk if v in VARIANTS else cluster_walk)(v)
                 f = forces.numpy()
                 if reference is None:
                     reference = f
@@ -334,8 +354,8 @@ def measure(n_target, args, rows, device_columns):
             row["same"], row["max_rel"] = same[label]
             row["bytes"] = model["walk"]
             row["flops"] = n * (cand * FLOPS_CANDIDATE + hits * FLOPS_PAIR)
-            size = next((v[1] for v in CLUSTER_VARIANTS if v[0] == label),
-                        None)
+            size = next((v[1] for v in CLUSTER_VARIANTS + NATIVE_VARIANTS
+                         if v[0] == label), None)
             if size is not None:
                 row["clusters"], row["per_cluster"] = cluster_stats[size]
         elif base.startswith("clusters"):
