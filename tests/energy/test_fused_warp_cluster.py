@@ -151,6 +151,30 @@ def test_float32_within_tolerance_and_jit(x64):
     close(-g, t.forces, 2e-3)
 
 
+@pytest.mark.parametrize("walk", ["cluster", "native"])
+def test_jit_scan_and_2d(x64, walk):
+    from jax_md import space
+    R, side = fluid(n_side=10, dim=2)
+    R = jnp.asarray(R)
+    displacement, shift = space.periodic(side)
+    cluster = lennard_jones_fused(displacement, side, backend=CellSums(
+        kernel="warp", reach=(1, 1), walk=walk))
+    thread = lennard_jones_fused(displacement, side, backend=CellSums(
+        kernel="warp", reach=(1, 1)))
+    brute = lennard_jones_fused(displacement, side, backend="brute")
+    close(jax.jit(cluster)(R), brute(R), E_RTOL)
+
+    def descend(R, _):
+        R = shift(R, -1e-4 * jax.grad(cluster)(R))
+        return R, cluster(R)
+
+    R_end, energies = jax.jit(lambda R: jax.lax.scan(descend, R, None,
+                                                     length=5))(R)
+    close(energies[-1], brute(R_end), E_RTOL)
+    same(jax.grad(cluster)(R_end), jax.grad(thread)(R_end), F_RTOL)
+    assert np.all(np.diff(np.asarray(energies)) < 0)
+
+
 def test_walk_option_refused_off_the_warp_engine():
     with pytest.raises(ValueError, match="walk='cluster'"):
         CellSums(kernel="xla", walk="cluster")
