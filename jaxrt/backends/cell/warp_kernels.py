@@ -102,9 +102,10 @@ def _scalar_kernels(scalar):
     return dict(bin_particles=bin_particles, gather=gather)
 
 
-def _pair_functions(scalar):
+def pair_functions(scalar):
     """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
-    row, rounded)."""
+    row, rounded); the cluster walk (`jaxrt.backends.cell.warp_cluster`)
+    shares them, so that both add the same terms."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -219,7 +220,7 @@ def _walk_kernel(scalar, static_bits, hoist):
     terms by `lj_forces`, their constants computed once per particle.
     """
     vector = wp.types.vector(3, scalar)
-    lj, lj_forces, x_ranges, row, rounded = _pair_functions(scalar)
+    lj, lj_forces, x_ranges, row, rounded = pair_functions(scalar)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
     fast = bool(hoist) and not generic and not fixed & HAS_RADII
@@ -373,6 +374,26 @@ def scalar_of(vector) -> type:
     return vector._wp_scalar_type_
 
 
+def prepare(points, radii, grid, cells, flags: int, *, keys, values,
+            wrapped, start, position, radius) -> None:
+    """`lj_sums`' steps 1 to 4 (bin, sort, cell table, gather), the
+    arrays as `lj_sums`' (``points``' length above zero): every walk
+    starts from them."""
+    n = points.shape[0]
+    device = points.device
+    k = KERNELS[scalar_of(points.dtype)]
+    table = start.shape[0] - 1
+    wp.launch(k["bin_particles"], dim=n, device=device,
+              inputs=[points, grid, cells, flags, wrapped, keys, values])
+    wp.utils.radix_sort_pairs(keys, values, n,
+                              end_bit=max(1, int(table).bit_length()))
+    wp.launch(cell_table, dim=n + 1, device=device,
+              inputs=[keys, n, table, start])
+    wp.launch(k["gather"], dim=n, device=device,
+              inputs=[values, wrapped, radii, flags & HAS_RADII, position,
+                      radius])
+
+
 def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
             energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
             position, radius, specialize: bool = True,
@@ -402,17 +423,8 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     if n == 0:
         return
     device = points.device
-    k = KERNELS[scalar_of(points.dtype)]
-    table = start.shape[0] - 1
-    wp.launch(k["bin_particles"], dim=n, device=device,
-              inputs=[points, grid, cells, flags, wrapped, keys, values])
-    wp.utils.radix_sort_pairs(keys, values, n,
-                              end_bit=max(1, int(table).bit_length()))
-    wp.launch(cell_table, dim=n + 1, device=device,
-              inputs=[keys, n, table, start])
-    wp.launch(k["gather"], dim=n, device=device,
-              inputs=[values, wrapped, radii, flags & HAS_RADII, position,
-                      radius])
+    prepare(points, radii, grid, cells, flags, keys=keys, values=values,
+            wrapped=wrapped, start=start, position=position, radius=radius)
     walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
                        hoist=hoist)
     wp.launch(walk, dim=n, device=device, block_dim=block_dim,

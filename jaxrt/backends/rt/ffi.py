@@ -1087,13 +1087,16 @@ _GRAPH_MODES = {"none": wp.JaxCallableGraphMode.NONE,
                 "warp": wp.JaxCallableGraphMode.WARP}
 
 
-def _cell_lj_callable(vector, graph: str):
+def _cell_lj_callable(vector, graph: str, walk: str = "thread",
+                      cluster_size: int = 8):
     """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
     positions of type ``vector``; ``graph``: who captures its launches in a
     CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
-    host)."""
-    from jaxrt.backends.cell import warp_kernels
-    key = (vector, graph)
+    host); ``walk``: "thread", or "cluster" / "native" (`jaxrt.backends.
+    cell.warp_cluster.lj_sums`, three more scratch outputs) of
+    ``cluster_size`` particles."""
+    from jaxrt.backends.cell import warp_cluster, warp_kernels
+    key = (vector, graph, walk, cluster_size)
     if key in _CELL_LJ_CALLABLES:
         return _CELL_LJ_CALLABLES[key]
     scalar = warp_kernels.scalar_of(vector)
@@ -1115,15 +1118,49 @@ def _cell_lj_callable(vector, graph: str):
                              values=values, wrapped=wrapped, start=start,
                              position=position, radius=radius)
 
-    sums.__module__ = warp_kernels.__name__  # see _aabb_callables
+    def cluster_sums(points: wp.array(dtype=vector),
+                     radii: wp.array(dtype=scalar),
+                     grid: wp.array(dtype=vector),
+                     cells: wp.array(dtype=wp.int32),
+                     params: wp.array(dtype=scalar), flags: wp.int32,
+                     forces: wp.array(dtype=vector),
+                     energy: wp.array(dtype=scalar),
+                     d_sigma: wp.array(dtype=scalar),
+                     d_epsilon: wp.array(dtype=scalar),
+                     count: wp.array(dtype=wp.int32),
+                     keys: wp.array(dtype=wp.int32),
+                     values: wp.array(dtype=wp.int32),
+                     wrapped: wp.array(dtype=vector),
+                     start: wp.array(dtype=wp.int32),
+                     position: wp.array(dtype=vector),
+                     radius: wp.array(dtype=scalar),
+                     counts: wp.array(dtype=wp.int32),
+                     offsets: wp.array(dtype=wp.int32),
+                     clusters: wp.array(dtype=wp.int32)):
+        warp_cluster.lj_sums(points, radii, grid, cells, params, int(flags),
+                             forces=forces, energy=energy, d_sigma=d_sigma,
+                             d_epsilon=d_epsilon, count=count, keys=keys,
+                             values=values, wrapped=wrapped, start=start,
+                             position=position, radius=radius, counts=counts,
+                             offsets=offsets, clusters=clusters,
+                             size=cluster_size, native=walk == "native")
+
+    function = sums if walk == "thread" else cluster_sums
+    function.__module__ = warp_kernels.__name__  # see _aabb_callables
     mode = _GRAPH_MODES[graph]
     _CELL_LJ_CALLABLES[key] = wp.jax_callable(
-        sums, num_outputs=11, graph_mode=mode, vmap_method="sequential")
+        function, num_outputs=11 if walk == "thread" else 14,
+        graph_mode=mode, vmap_method="sequential")
     return _CELL_LJ_CALLABLES[key]
 
 
+# `cell_lj_sums`' walks.
+CELL_WALKS = ("thread", "cluster", "native")
+
+
 def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
-                 table: int, graph: str = "none"):
+                 table: int, graph: str = "none", walk: str = "thread",
+                 cluster_size: int = 8):
     """The per-particle LJ sums of `jaxrt.backends.cell.warp_kernels.lj_sums`
     in one call.
 
@@ -1140,26 +1177,51 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
         ``"jax"`` (JAX captures the launches in its graphs: fails inside
         ``lax.scan`` on the H200 measured, "operation not supported"),
         ``"warp"`` (Warp captures them, reused for the same buffers).
+      walk: static, ``"thread"`` (a thread per particle) or ``"cluster"``
+        (a thread per cluster of a cell's particles,
+        `jaxrt.backends.cell.warp_cluster`): the same sums; ``"native"``
+        (on CUDA a warp per cluster, its lanes sharing the candidates by
+        shuffles; elsewhere ``"cluster"``): the same sums to rounding;
+      cluster_size: static, the cluster walk's particles per cluster
+        (`jaxrt.backends.cell.warp_cluster.SIZES`).
     Returns:
       ``(forces (N, 3) in the caller's order, energy (N,), d_sigma (N,),
       d_epsilon (N,), count int32 (N,))``: per particle (sorted order for
       all but the forces), each pair in both of its particles' sums.
     """
-    from jaxrt.backends.cell import warp_kernels
+    from jaxrt.backends.cell import warp_cluster, warp_kernels
+    if walk not in CELL_WALKS:
+        raise ValueError(f"cell_lj_sums(walk={walk!r}): choose one of "
+                         f"{CELL_WALKS}.")
     n = points.shape[0]
     vector = _vector_of(points)
+    scalar = warp_kernels.scalar_of(vector)
+    device = _warp_device()
     # The walk lives in a module of its own, built for these flags: load
     # it now, not inside the callback (where a graph capture may be open).
-    walk = warp_kernels.walk_kernel(warp_kernels.scalar_of(vector), flags)
-    wp.load_module(walk.module, device=_warp_device(),
-                   block_dim=warp_kernels.WALK_BLOCK)
-    call = _cell_lj_callable(vector, graph)
+    cuda = wp.get_device(device).is_cuda
+    if walk == "native" and cuda:
+        kernel = warp_cluster.native_kernel(scalar, flags, size=cluster_size)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_cluster.NATIVE_BLOCK)
+    elif walk != "thread":
+        kernel = warp_cluster.cluster_kernel(
+            scalar, flags, size=cluster_size, unroll=cuda)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_cluster.CLUSTER_BLOCK)
+    else:
+        kernel = warp_kernels.walk_kernel(scalar, flags)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_kernels.WALK_BLOCK)
+    call = _cell_lj_callable(vector, graph, walk, cluster_size)
     has_radii = bool(flags & warp_kernels.HAS_RADII)
+    dims = {"forces": (n, 3), "energy": (n,), "d_sigma": (n,),
+            "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
+            "values": (2 * n,), "wrapped": (n, 3), "start": (table + 1,),
+            "position": (n, 3), "radius": (n if has_radii else 1,)}
+    if walk != "thread":
+        dims.update(counts=(table + 1,), offsets=(table + 1,), clusters=(
+            warp_cluster.bound(n, table, cluster_size) + 1,))
     outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),
-                int(flags), output_dims={
-                    "forces": (n, 3), "energy": (n,), "d_sigma": (n,),
-                    "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
-                    "values": (2 * n,), "wrapped": (n, 3),
-                    "start": (table + 1,), "position": (n, 3),
-                    "radius": (n if has_radii else 1,)})
+                int(flags), output_dims=dims)
     return tuple(outs[:5])

@@ -81,14 +81,15 @@ def grid(R3: Array, params: Params, reach=(1, 1, 1)
 
 def walk(R3: Array, sigma, epsilon, radii, params: Params, *,
          derivatives: bool = True, count: bool = True, graph: str = "none",
-         reach=(1, 1)):
+         reach=(1, 1), walk: str = "thread", cluster_size: int = 8):
     """Per-particle sums ``(forces (N, 3), energy, d_sigma, d_epsilon,
     count)`` as `jaxrt.energy.listfree.lj.CellSums`' walks return them,
     forces in the caller's order, each pair in both of its particles'
     sums (the count zero unless ``count``). Non-finite positions give garbage sums (the caller poisons
     them), never an access out of bounds. ``reach``: static, the
     stencil's reach in cells along x and across (cells ``bound / reach``
-    wide); ``graph``: `jaxrt.backends.rt.ffi.cell_lj_sums`'."""
+    wide); ``graph``, ``walk``, ``cluster_size``:
+    `jaxrt.backends.rt.ffi.cell_lj_sums`'."""
     reach = (reach[0], reach[1], reach[1])
     flat = _flat(params)
     reach = tuple(1 if f else r for r, f in zip(reach, flat))
@@ -108,5 +109,6 @@ def walk(R3: Array, sigma, epsilon, radii, params: Params, *,
     cuts = jnp.zeros((1,), dtype) if radii is None else radii.astype(dtype)
     forces, e, ds, de, c = ffi.cell_lj_sums(R3, cuts, g, cells, packed,
                                             flags=flags, table=table,
-                                            graph=graph)
+                                            graph=graph, walk=walk,
+                                            cluster_size=cluster_size)
     return forces, e, ds, de, c.astype(dtype)
