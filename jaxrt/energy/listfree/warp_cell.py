@@ -71,6 +71,15 @@ def grid(R3: Array, params: Params, reach=(1, 1, 1)
         # margin covers the rounding of the root).
         shrink = jnp.maximum(1.0, (product / budget) ** (1.0 / k) * 1.001)
         ideal = jnp.where(free, jnp.maximum(1, jnp.floor(ideal / shrink)), 1)
+        # An axis held at one cell (a flat cloud) shrinks no further, so
+        # the others may still overflow: cap each free axis in turn by
+        # what the others leave (after one pass the product fits).
+        counts = [ideal[a].astype(jnp.int32) for a in range(3)]
+        for a in range(3):
+            others = math.prod(counts[b] for b in range(3) if b != a)
+            counts[a] = jnp.where(free[a], jnp.maximum(1, jnp.minimum(
+                counts[a], budget // others)), counts[a])
+        ideal = jnp.stack(counts)
     fixed_cells = jnp.asarray([max(c, 1) for c in fixed], jnp.int32)
     cells = jnp.where(free, ideal.astype(jnp.int32), fixed_cells)
     side = jnp.asarray(params.side, dtype)
