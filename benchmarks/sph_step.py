@@ -21,8 +21,9 @@ Setup labels (``--list`` prints the defaults):
                            (the arrays), cell[pallas] (the kernel; CUDA
                            only), cell[auto] (= cell), cell[warp] (the
                            Warp engine: one sort, a walk per pass; CPU or
-                           CUDA), cell[warp-rXY] (its stencil's reach X
-                           cells along x, Y across; default 42) or brute
+                           CUDA), cell[warp-rXY-G] (its stencil's reach X
+                           cells along x, Y across, default 42; G the
+                           CUDA graph capture: none, jax or warp) or brute
 
 ``walk``: the program a fused row's cell walk ran (``pallas``, ``xla``
 or ``warp``; ``brute``). The default rows compare, in one run, the list step
@@ -63,10 +64,11 @@ LIST_BACKENDS = ("cell",)
 # fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
 FUSED_BACKENDS = ("cell", "cell[xla]", "cell[pallas]", "cell[auto]",
                   "cell[warp]", "brute")
-# fused:cell[warp-rXY]: the Warp engine with its stencil's reach X cells
-# along x and Y across (cells support / reach wide; CellSums(kernel="warp",
-# reach=(X, Y))); cell[warp] takes the default.
-_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?\]")
+# fused:cell[warp-rXY-G]: the Warp engine with its stencil's reach X cells
+# along x and Y across (cells support / reach wide) and G the CUDA graph's
+# capture (none, jax, warp; ffi.cell_sph_step): CellSums(kernel="warp",
+# reach=(X, Y), graph=G); cell[warp] takes the defaults.
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-(none|jax|warp))?\]")
 DEFAULT = [f"list:{b}/{f}" for b in LIST_BACKENDS for f in FORMATS] + [
     "fused:cell", "fused:cell[xla]"]
 
@@ -115,9 +117,10 @@ def fused_backend(backend: str):
     if m:
         import jaxrt
         from jaxrt.energy.listfree.lj import CellSums
-        if not m[1]:
+        if not m[1] and not m[3]:
             return jaxrt.backends.Cell(kernel="warp")
-        return CellSums(kernel="warp", reach=(int(m[1]), int(m[2])))
+        reach = (int(m[1]), int(m[2])) if m[1] else CellSums.reach
+        return CellSums(kernel="warp", reach=reach, graph=m[3] or "none")
     return _harness.backend(backend)
 
 

@@ -294,3 +294,15 @@ def test_bad_positions_raise(x64):
         accel(R.at[3, 1].set(jnp.nan), V)
     out = jax.jit(accel)(R.at[3, 1].set(jnp.inf), V)
     assert np.all(np.isnan(np.asarray(out.pressure)))
+
+
+def test_second_derivatives_raise(x64):
+    from jaxrt.energy import HigherOrderError
+    R, V, _, displacement, box, periodic = system(3, "periodic", 6)
+    accel = acceleration_fused(displacement, box, KERNEL[3], EOS,
+                               backend=WARP)
+
+    def loss(R):
+        return jnp.sum(accel(R, V).total ** 2)
+    with pytest.raises(HigherOrderError):
+        jax.hessian(loss)(R[:, :]).block_until_ready()

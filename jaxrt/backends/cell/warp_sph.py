@@ -10,6 +10,8 @@ atomics, the sums written in the sorted order.
 
 * `density_sums`: ``sum_{j != i} m_j W(|r_ij|)`` (the self term is the
   caller's).
+* `step_sums`: a whole step in one pipeline: the sort, the density
+  walk, the self term and Tait's equation of state, the force walk.
 * `force_sums`: the symmetric pressure term ``-sum_j m_j (q_i + q_j)
   grad_i W_ij`` (``q = P / rho^2``) and Monaghan's viscosity ``-sum_j m_j
   Pi_ij grad_i W_ij``, with per-particle velocities, masses, densities,
@@ -34,7 +36,10 @@ KINDS = ("cubic_spline", "quintic_spline", "wendland_c2", "wendland_c4")
 # ``norm_w = sigma_d / h^dim``, then the viscosity's alpha, beta and
 # epsilon (the forces only).
 H, SUPPORT, NORM_W, ALPHA, BETA, EPSILON = range(6)
-N_PARAMS = 6
+# `step_sums` only: the self term's ``W(0)``, then Tait's ``rho0``,
+# ``c0``, ``gamma`` and ``B = rho0 c0^2 / gamma``.
+W0, RHO0, C0, GAMMA, B = range(6, 11)
+N_PARAMS = 11
 
 # Fast math off: the pair terms cancel (pressures of ~10^3 summing to O(1))
 # and the tests hold float32 to the list path's tolerances.
@@ -85,8 +90,8 @@ def _shape_function(scalar, kind: str):
 
 
 def _walks(scalar, kind: str):
-    """``(density_walk, force_walk)`` for positions of ``scalar`` and the
-    kernel ``kind``."""
+    """``(density_walk, force_walk, gather, state)`` for positions of
+    ``scalar`` and the kernel ``kind`` (`step_sums`' kernels)."""
     vector = wp.types.vector(3, scalar)
     x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
     shape = _shape_function(scalar, kind)
@@ -164,6 +169,7 @@ def _walks(scalar, kind: str):
                    rho: wp.array(dtype=scalar),
                    q: wp.array(dtype=scalar),
                    sound: wp.array(dtype=scalar),
+                   values: wp.array(dtype=wp.int32), scatter: int,
                    pressure: wp.array(dtype=vector),
                    viscosity: wp.array(dtype=vector)):
         i = wp.tid()
@@ -234,10 +240,43 @@ def _walks(scalar, kind: str):
                                                         + beta * mu * mu
                                                         ) / rho_mean
                                                 acc_v = acc_v - (mj * visc) * grad_w
-        pressure[i] = acc_p
-        viscosity[i] = acc_v
+        out = i
+        if scatter != 0:
+            out = values[i]
+        pressure[out] = acc_p
+        viscosity[out] = acc_v
 
-    return density_walk, force_walk
+    @wp.kernel(module="unique", module_options=_OPTIONS)
+    def gather(values: wp.array(dtype=wp.int32),
+               velocity: wp.array(dtype=vector),
+               mass: wp.array(dtype=scalar),
+               velocity_sorted: wp.array(dtype=vector),
+               mass_sorted: wp.array(dtype=scalar)):
+        i = wp.tid()
+        j = values[i]
+        velocity_sorted[i] = velocity[j]
+        mass_sorted[i] = mass[j]
+
+    @wp.kernel(module="unique", module_options=_OPTIONS)
+    def state(values: wp.array(dtype=wp.int32),
+              params: wp.array(dtype=scalar),
+              mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar),
+              q: wp.array(dtype=scalar), sound: wp.array(dtype=scalar),
+              density: wp.array(dtype=scalar)):
+        # The self term, then `jaxrt.energy.sph.Tait`'s pressure and
+        # sound speed (their expressions), in place on ``rho``.
+        i = wp.tid()
+        r = rho[i] + mass[i] * params[W0]
+        rho[i] = r
+        ratio = r / params[RHO0]
+        gamma = params[GAMMA]
+        p = params[B] * (wp.pow(ratio, gamma) - scalar(1.0))
+        q[i] = p / (r * r)
+        sound[i] = params[C0] * wp.pow(ratio, (gamma - scalar(1.0))
+                                       / scalar(2.0))
+        density[values[i]] = r
+
+    return density_walk, force_walk, gather, state
 
 
 _WALKS: dict = {}
@@ -245,8 +284,8 @@ BLOCK = warp_kernels.WALK_BLOCK
 
 
 def walks(scalar, kind: str):
-    """``(density_walk, force_walk)`` for ``scalar`` positions and the
-    kernel ``kind`` (one of `KINDS`), built (and compiled) on first use."""
+    """`_walks`' kernels for ``scalar`` positions and the kernel ``kind``
+    (one of `KINDS`), built (and compiled) on first use."""
     key = (scalar, kind)
     if key not in _WALKS:
         _WALKS[key] = _walks(scalar, kind)
@@ -288,4 +327,47 @@ def force_sums(kind: str, position, keys, start, grid, cells, params,
     walk = walks(warp_kernels.scalar_of(position.dtype), kind)[1]
     wp.launch(walk, dim=n, device=position.device, block_dim=BLOCK,
               inputs=[position, keys, start, grid, cells, params, flags,
-                      velocity, mass, rho, q, sound, pressure, viscosity])
+                      velocity, mass, rho, q, sound, keys, 0, pressure,
+                      viscosity])
+
+
+def step_sums(kind: str, points, velocity, mass, radii, grid, cells, params,
+              flags: int, *, keys, values, wrapped, start, position, radius,
+              velocity_sorted, mass_sorted, rho, q, sound, pressure,
+              viscosity, density) -> None:
+    """A whole SPH step's sums in one pipeline: `warp_kernels.sort_cells`,
+    the density walk, the self term and Tait's equation of state per
+    particle, the force walk.
+
+    Args:
+      kind: one of `KINDS`.
+      points, velocity: vec3 ``(N,)``; mass: scalar ``(N,)``; the
+        caller's order.
+      radii: scalar ``(1,)`` (unused; the sort's signature).
+      grid, cells, flags: as `warp_kernels.sort_cells`'; params: scalar
+        ``(N_PARAMS,)``, every row.
+      keys ... radius: `warp_kernels.sort_cells`' scratch;
+        velocity_sorted, mass_sorted, rho, q, sound: scratch ``(N,)``.
+      pressure, viscosity: vec3 ``(N,)`` out, density: scalar ``(N,)``
+        out, the caller's order.
+    """
+    n = points.shape[0]
+    if n == 0:
+        return
+    device = points.device
+    warp_kernels.sort_cells(points, radii, grid, cells, flags, keys=keys,
+                            values=values, wrapped=wrapped, start=start,
+                            position=position, radius=radius)
+    density_walk, force_walk, gather, state = walks(
+        warp_kernels.scalar_of(points.dtype), kind)
+    wp.launch(gather, dim=n, device=device, block_dim=BLOCK,
+              inputs=[values, velocity, mass, velocity_sorted, mass_sorted])
+    wp.launch(density_walk, dim=n, device=device, block_dim=BLOCK,
+              inputs=[position, keys, start, grid, cells, params, flags,
+                      mass_sorted, rho])
+    wp.launch(state, dim=n, device=device, block_dim=BLOCK,
+              inputs=[values, params, mass_sorted, rho, q, sound, density])
+    wp.launch(force_walk, dim=n, device=device, block_dim=BLOCK,
+              inputs=[position, keys, start, grid, cells, params, flags,
+                      velocity_sorted, mass_sorted, rho, q, sound, values, 1,
+                      pressure, viscosity])

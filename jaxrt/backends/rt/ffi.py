@@ -1311,3 +1311,77 @@ def cell_sph_forces(position, keys, start, grid, cells, params, velocity,
         int(flags), *jax.lax.stop_gradient((velocity, mass, rho, q, sound)),
         output_dims={"pressure": (n, 3), "viscosity": (n, 3)})
     return pressure, viscosity
+
+
+def _cell_sph_step_callable(vector, kind: str, graph: str):
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    key = ("step", vector, kind, graph)
+    if key in _CELL_SPH_CALLABLES:
+        return _CELL_SPH_CALLABLES[key]
+    scalar = warp_kernels.scalar_of(vector)
+
+    def step(points: wp.array(dtype=vector),
+             velocity: wp.array(dtype=vector), mass: wp.array(dtype=scalar),
+             radii: wp.array(dtype=scalar), grid: wp.array(dtype=vector),
+             cells: wp.array(dtype=wp.int32), params: wp.array(dtype=scalar),
+             flags: wp.int32, keys: wp.array(dtype=wp.int32),
+             values: wp.array(dtype=wp.int32),
+             wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
+             position: wp.array(dtype=vector),
+             radius: wp.array(dtype=scalar),
+             velocity_sorted: wp.array(dtype=vector),
+             mass_sorted: wp.array(dtype=scalar),
+             rho: wp.array(dtype=scalar), q: wp.array(dtype=scalar),
+             sound: wp.array(dtype=scalar),
+             pressure: wp.array(dtype=vector),
+             viscosity: wp.array(dtype=vector),
+             density: wp.array(dtype=scalar)):
+        warp_sph.step_sums(
+            kind, points, velocity, mass, radii, grid, cells, params,
+            int(flags), keys=keys, values=values, wrapped=wrapped,
+            start=start, position=position, radius=radius,
+            velocity_sorted=velocity_sorted, mass_sorted=mass_sorted,
+            rho=rho, q=q, sound=sound, pressure=pressure,
+            viscosity=viscosity, density=density)
+
+    step.__module__ = warp_sph.__name__  # see _aabb_callables
+    _CELL_SPH_CALLABLES[key] = wp.jax_callable(
+        step, num_outputs=14, graph_mode=_GRAPH_MODES[graph],
+        vmap_method="sequential")
+    return _CELL_SPH_CALLABLES[key]
+
+
+def cell_sph_step(points, velocity, mass, grid, cells, params, *,
+                  flags: int, table: int, kind: str, graph: str = "none"):
+    """`jaxrt.backends.cell.warp_sph.step_sums` in one call: a whole SPH
+    step's sums (sort, densities, Tait, forces).
+
+    Args:
+      points, velocity: float32 or float64 ``(N, 3)``; mass: ``(N,)``;
+        grid, cells, table, flags: as `cell_sort`'s; params:
+        ``(warp_sph.N_PARAMS,)``, every row; kind: static, one of
+        `jaxrt.backends.cell.warp_sph.KINDS`; graph: static, as
+        `cell_lj_sums`'.
+    Returns:
+      ``(pressure (N, 3), viscosity (N, 3), density (N,))``, the caller's
+      order.
+    """
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    n = points.shape[0]
+    vector = _vector_of(points)
+    for walk in warp_sph.walks(warp_kernels.scalar_of(vector), kind):
+        wp.load_module(walk.module, device=_warp_device(),
+                       block_dim=warp_sph.BLOCK)
+    call = _cell_sph_step_callable(vector, kind, graph)
+    radii = jnp.zeros((1,), points.dtype)
+    flags = int(flags) & ~warp_kernels.HAS_RADII
+    outs = call(*jax.lax.stop_gradient((points, velocity, mass, radii, grid,
+                                        cells, params)), flags,
+                output_dims={
+                    "keys": (2 * n,), "values": (2 * n,), "wrapped": (n, 3),
+                    "start": (table + 1,), "position": (n, 3),
+                    "radius": (1,), "velocity_sorted": (n, 3),
+                    "mass_sorted": (n,), "rho": (n,), "q": (n,),
+                    "sound": (n,), "pressure": (n, 3), "viscosity": (n, 3),
+                    "density": (n,)})
+    return tuple(outs[-3:])

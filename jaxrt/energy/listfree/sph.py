@@ -107,6 +107,7 @@ WALKS = CELL_KERNELS + ("warp",)
 # The Warp engine's stencil reach in cells (along x, across), the
 # Lennard-Jones engine's default.
 WARP_REACH = tuple(CellSums.reach)
+_WARP_DEFAULT = (WARP_REACH, "none")
 
 _HIGHER_ORDER = (
     "density_fused / acceleration_fused are differentiable once (their "
@@ -624,14 +625,14 @@ class _WarpPass:
         from jaxrt.energy.listfree import warp_cell
         return warp_cell.sort(_pad3(R), self.params, self.reach)
 
-    def __call__(self, data: dict, theta: dict, state) -> tuple:
-        """The pass's sums, sorted order (``data`` sorted as ``state``)."""
+    def constants(self, theta: dict, dtype, dim: int,
+                  eos: _sph.Tait | None = None) -> Array:
+        """`jaxrt.backends.cell.warp_sph`'s params ``(N_PARAMS,)`` in
+        ``dtype``: theta's ``h`` (``alpha``, ``beta``: 0 if absent) and,
+        for a whole step, the self term and ``eos``' constants."""
         from jaxrt.backends.cell import warp_sph
-        from jaxrt.energy.listfree import warp_cell
-        R = data["R"]
-        dtype, dim = R.dtype, R.shape[1]
         h = jnp.asarray(theta["h"], dtype)
-        values = [None] * warp_sph.N_PARAMS
+        values = [0] * warp_sph.N_PARAMS
         values[warp_sph.H] = h
         # `jaxrt.energy.sph.Kernel.w`'s expressions, evaluated once.
         values[warp_sph.SUPPORT] = self.support * h
@@ -640,7 +641,22 @@ class _WarpPass:
         values[warp_sph.ALPHA] = theta.get("alpha", 0)
         values[warp_sph.BETA] = theta.get("beta", 0)
         values[warp_sph.EPSILON] = self.epsilon
-        constants = jnp.stack([jnp.asarray(v, dtype) for v in values])
+        if eos is not None:
+            values[warp_sph.W0] = _sph.KERNELS[self.kind](h, dim=dim).w(
+                jnp.zeros((), dtype))
+            values[warp_sph.RHO0] = eos.rho0
+            values[warp_sph.C0] = eos.c0
+            values[warp_sph.GAMMA] = eos.gamma
+            # `jaxrt.energy.sph.Tait.pressure`'s B.
+            values[warp_sph.B] = eos.rho0 * eos.c0 ** 2 / eos.gamma
+        return jnp.stack([jnp.asarray(v, dtype) for v in values])
+
+    def __call__(self, data: dict, theta: dict, state) -> tuple:
+        """The pass's sums, sorted order (``data`` sorted as ``state``)."""
+        from jaxrt.energy.listfree import warp_cell
+        R = data["R"]
+        dtype, dim = R.dtype, R.shape[1]
+        constants = self.constants(theta, dtype, dim)
         if self.which == "density":
             return (warp_cell.sph_density(state, self.params, self.reach,
                                           self.kind, constants, data["m"]),)
@@ -648,6 +664,43 @@ class _WarpPass:
             state, self.params, self.reach, self.kind, constants,
             _pad3(data["V"]), data["m"], data["rho"], data["q"], data["c"])
         return pressure[:, :dim], viscosity[:, :dim]
+
+
+def _warp_step(warp: _WarpPass, reference: Callable, h0: float,
+               graph: str) -> Callable:
+    """``step(R, V, h, m, eos, alpha, beta) -> Acceleration``: a whole
+    step's sums in one Warp call (`jaxrt.energy.listfree.warp_cell.sph_step`:
+    the sort, densities, Tait, forces), in R's dtype, ``m`` ``(N,)``. Its
+    VJP is ``reference``'s (the same step on the cell walk, recomputed:
+    the Warp kernels compute values only)."""
+    from jaxrt.energy.listfree import warp_cell
+
+    def values(R, V, h, m, eos, a, b):
+        dtype, dim = R.dtype, R.shape[1]
+        constants = warp.constants(dict(h=h, alpha=a, beta=b), dtype, dim,
+                                   eos)
+        pressure, viscosity, rho = warp_cell.sph_step(
+            _pad3(R), _pad3(V.astype(dtype)), m, warp.params, warp.reach,
+            warp.kind, constants, graph)
+        out = _poison((pressure[:, :dim], viscosity[:, :dim], rho), R,
+                      jnp.asarray(h, dtype), h0)
+        return _sph.Acceleration(*out)
+
+    @jax.custom_vjp
+    def step(R, V, h, m, eos, a, b):
+        return values(R, V, h, m, eos, a, b)
+
+    def forward(*args):
+        args = _first_order_only(args)
+        return values(*args), args
+
+    def backward(args, g):
+        def plain(R, V, h, m, eos, a, b):
+            return reference(R, V, None, None, h, m, eos, a, b)
+        return jax.vjp(plain, *args)[1](g)
+
+    step.defvjp(forward, backward)
+    return step
 
 
 def _pad3(x: Array) -> Array:
@@ -697,8 +750,8 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
 
 
 def _traversal(backend) -> tuple[str, str, tuple]:
-    """``backend=`` -> ``(name, walk, reach)`` of `_PairSum` (``reach``:
-    the Warp engine's stencil, `_WarpPass`), as
+    """``backend=`` -> ``(name, walk, (reach, graph))`` of `_PairSum` (the
+    Warp engine's stencil reach and graph capture, `_WarpPass`), as
     `jaxrt.energy.listfree.lj._backend` parses the LJ energy's: ``"cell"`` is
     ``Cell(kernel="auto")``; a `jaxrt.backends.Cell` picks the walk (its
     own checks reject an unknown ``kernel``; `jaxrt.energy.listfree.lj.CellSums`'s,
@@ -710,12 +763,12 @@ def _traversal(backend) -> tuple[str, str, tuple]:
                 f"backend=Cell(radius_classes={backend.radius_classes!r}): "
                 "the SPH walks use one grid of the kernel's support; leave "
                 "radius_classes at None.")
-        return "cell", CellSums(kernel=backend.kernel).kernel, WARP_REACH
+        return "cell", CellSums(kernel=backend.kernel).kernel, _WARP_DEFAULT
     if isinstance(backend, CellSums) and backend.kernel == "warp":
-        # The Warp engine's stencil (benchmarks tune it).
-        return "cell", "warp", tuple(backend.reach)
+        # The Warp engine's stencil and graph capture (benchmarks tune them).
+        return "cell", "warp", (tuple(backend.reach), backend.graph)
     if isinstance(backend, str) and backend in BACKENDS:
-        return backend, "auto" if backend == "cell" else "xla", WARP_REACH
+        return backend, "auto" if backend == "cell" else "xla", _WARP_DEFAULT
     raise ValueError(f"backend={backend!r} is not known; choose one of "
                      f"{BACKENDS}, or jaxrt.backends.Cell(kernel=...) with "
                      f"kernel one of {WALKS} (the cell walk's "
@@ -838,7 +891,7 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
       differentiated). The result is in R's dtype; ``jax.grad`` through it
       runs a second walk (first order only).
     """
-    name, walk, reach = _traversal(backend)
+    name, walk, (reach, _) = _traversal(backend)
     grid, h0 = _grid(displacement, box, kernel, periodic)
     warp = (_WarpPass.make("density", kernel, grid, reach)
             if walk == "warp" else None)
@@ -863,6 +916,48 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
         return rho
 
     return density_fn
+
+
+def _cell_step(engine: _PairSum, rho_core: Callable, h0: float) -> Callable:
+    """``step(R, V, rho, pressure, h, m, eos, alpha, beta) ->
+    Acceleration`` on ``engine``'s walks (``rho`` / ``pressure`` None:
+    the summation densities by ``rho_core``, Tait's pressures): one sort,
+    both walks in its order."""
+    sums = engine.make()
+
+    def compute(R, V, rho, pressure, h, m, state, a, b):
+        dtype, n = R.dtype, R.shape[0]
+
+        h = jnp.asarray(h, dtype)
+        m = _column(m, n, dtype)
+        V = V.astype(dtype)
+        cells = engine.cells(R)
+        given = [None if x is None else _column(x, n, dtype)
+                 for x in (rho, pressure)]
+        if cells is not None:
+            # Both walks in the sorted order: the densities feed the second
+            # walk without a round trip through the caller's order.
+            order, runs, images = cells
+            R, V, m = R[order], V[order], m[order]
+            given = [None if x is None else x[order] for x in given]
+            cells = (None, runs, images)
+        rho, pressure = given
+        if rho is None:
+            rho = rho_core(R, h, m, cells)
+        if pressure is None:
+            pressure = state.pressure(rho)
+        c = state.sound_speed(rho).astype(dtype)
+        data = dict(R=R, V=V, rho=rho, q=pressure / rho ** 2, c=c, m=m)
+        theta = dict(h=h, alpha=jnp.asarray(a, dtype),
+                     beta=jnp.asarray(b, dtype))
+        acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
+        out = _sph.Acceleration(acc_p, acc_v, rho)
+        if cells is not None:
+            inverse = jnp.zeros((n,), jnp.int32).at[order].set(
+                jnp.arange(n, dtype=jnp.int32))
+            out = jax.tree_util.tree_map(lambda x: x[inverse], out)
+        return out
+    return compute
 
 
 def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
@@ -899,7 +994,7 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
         v = concrete(value)
         if v is not None and (v.ndim or v < 0):
             raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
-    name, walk, reach = _traversal(backend)
+    name, walk, (reach, graph) = _traversal(backend)
     grid, h0 = _grid(displacement, box, kernel, periodic)
     warps = ((_WarpPass.make("density", kernel, grid, reach),
               _WarpPass.make("forces", kernel, grid, reach, float(epsilon)))
@@ -910,41 +1005,26 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
                              h0)
     engine = _PairSum(_acceleration_pair(kernel, float(epsilon)), grid,
                       name, walk, warp=warps[1])
-    sums = engine.make()
     defaults = dict(mass=mass, eos=eos, alpha=alpha, beta=beta)
+    cell_step = _cell_step(engine, rho_core, h0)
+    whole_step = None
+    if walk == "warp":
+        # Densities, Tait and forces in one Warp call where the densities
+        # and pressures are the step's own; the cell walk ("auto") gives
+        # its VJP.
+        plain = dataclasses.replace(density_engine, walk="auto", warp=None)
+        whole_step = _warp_step(warps[1], _cell_step(
+            dataclasses.replace(engine, walk="auto", warp=None),
+            _density_core(plain.make(), plain, kernel, h0), h0), h0, graph)
 
     @jax.jit
     def compute(R, V, rho, pressure, h, m, state, a, b):
-        dtype, n = R.dtype, R.shape[0]
-        h = jnp.asarray(h, dtype)
-        m = _column(m, n, dtype)
-        V = V.astype(dtype)
-        cells = engine.cells(R)
-        given = [None if x is None else _column(x, n, dtype)
-                 for x in (rho, pressure)]
-        if cells is not None:
-            # Both walks in the sorted order: the densities feed the second
-            # walk without a round trip through the caller's order.
-            order, runs, images = cells
-            R, V, m = R[order], V[order], m[order]
-            given = [None if x is None else x[order] for x in given]
-            cells = (None, runs, images)
-        rho, pressure = given
-        if rho is None:
-            rho = rho_core(R, h, m, cells)
-        if pressure is None:
-            pressure = state.pressure(rho)
-        c = state.sound_speed(rho).astype(dtype)
-        data = dict(R=R, V=V, rho=rho, q=pressure / rho ** 2, c=c, m=m)
-        theta = dict(h=h, alpha=jnp.asarray(a, dtype),
-                     beta=jnp.asarray(b, dtype))
-        acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
-        out = _sph.Acceleration(acc_p, acc_v, rho)
-        if cells is not None:
-            inverse = jnp.zeros((n,), jnp.int32).at[order].set(
-                jnp.arange(n, dtype=jnp.int32))
-            out = jax.tree_util.tree_map(lambda x: x[inverse], out)
-        return out
+        if whole_step is not None and rho is None and pressure is None:
+            dtype, n = R.dtype, R.shape[0]
+            return whole_step(R, V, jnp.asarray(h, dtype), _column(m, n, dtype),
+                              state, jnp.asarray(a, dtype),
+                              jnp.asarray(b, dtype))
+        return cell_step(R, V, rho, pressure, h, m, state, a, b)
 
     def accel_fn(R: Array, V: Array, *, rho: Array | None = None,
                  pressure: Array | None = None, h: Array | None = None,

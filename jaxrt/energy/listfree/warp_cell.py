@@ -201,3 +201,22 @@ def sph_forces(state: Sorted, params: Params, reach, kind: str,
     return ffi.cell_sph_forces(state.position, state.keys, state.start,
                                state.grid, state.cells, constants, V3, mass,
                                rho, q, sound, flags=flags, kind=kind)
+
+
+def sph_step(R3: Array, V3: Array, mass: Array, params: Params, reach,
+             kind: str, constants: Array, graph: str = "none"
+             ) -> tuple[Array, Array, Array]:
+    """A whole SPH step's sums in one call
+    (`jaxrt.backends.rt.ffi.cell_sph_step`): ``(pressure (N, 3),
+    viscosity (N, 3), density (N,))`` accelerations and summation
+    densities, the caller's order. ``R3``, ``V3`` float ``(N, 3)``,
+    ``mass`` ``(N,)``; ``constants``: every row of
+    `jaxrt.backends.cell.warp_sph`'s params; the rest as `sort`'s and
+    `sph_density`'s."""
+    n = R3.shape[0]
+    reach = stencil_reach(params, reach)
+    R3 = finite(jax.lax.stop_gradient(R3))
+    g, cells, table = grid(R3, params, reach)
+    return ffi.cell_sph_step(R3, V3, mass, g, cells, constants,
+                             flags=periodic_flags(n, params, reach),
+                             table=table, kind=kind, graph=graph)
