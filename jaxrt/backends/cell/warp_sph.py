@@ -92,9 +92,16 @@ def _shape_function(scalar, kind: str):
 def _walks(scalar, kind: str):
     """``(density_walk, force_walk, gather, state)`` for positions of
     ``scalar`` and the kernel ``kind`` (`step_sums`' kernels)."""
+    shape = _shape_function(scalar, kind)
+    return (_density_walk(scalar, shape), _force_walk(scalar, shape)
+            ) + _step_kernels(scalar)
+
+
+def _density_walk(scalar, shape):
+    """The density walk for ``scalar`` positions and ``shape``
+    (`_shape_function`)."""
     vector = wp.types.vector(3, scalar)
     x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
-    shape = _shape_function(scalar, kind)
     SIDE = warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
@@ -156,6 +163,16 @@ def _walks(scalar, kind: str):
                                             total = total + mass[j] * (
                                                 norm_w * f)
         rho[i] = total
+
+    return density_walk
+
+
+def _force_walk(scalar, shape):
+    """The force walk for ``scalar`` positions and ``shape``
+    (`_shape_function`)."""
+    vector = wp.types.vector(3, scalar)
+    x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
+    SIDE = warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def force_walk(position: wp.array(dtype=vector),
@@ -246,6 +263,15 @@ def _walks(scalar, kind: str):
         pressure[out] = acc_p
         viscosity[out] = acc_v
 
+    return force_walk
+
+
+def _step_kernels(scalar):
+    """``(gather, state)`` of `step_sums` for ``scalar``: the velocities
+    and masses in the sorted order; the self term and the equation of
+    state per particle."""
+    vector = wp.types.vector(3, scalar)
+
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def gather(values: wp.array(dtype=wp.int32),
                velocity: wp.array(dtype=vector),
@@ -276,7 +302,7 @@ def _walks(scalar, kind: str):
                                        / scalar(2.0))
         density[values[i]] = r
 
-    return density_walk, force_walk, gather, state
+    return gather, state
 
 
 _WALKS: dict = {}
