@@ -1344,7 +1344,9 @@ def _cell_sph_step_callable(vector, kind: str, graph: str):
             rho=rho, q=q, sound=sound, pressure=pressure,
             viscosity=viscosity, density=density)
 
-    step.__module__ = warp_sph.__name__  # see _aabb_callables
+    # See _aabb_callables: the sort's kernels' module, loaded before each
+    # call (the walks' own modules are loaded when the call is traced).
+    step.__module__ = warp_kernels.__name__
     _CELL_SPH_CALLABLES[key] = wp.jax_callable(
         step, num_outputs=14, graph_mode=_GRAPH_MODES[graph],
         vmap_method="sequential")

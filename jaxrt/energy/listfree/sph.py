@@ -34,6 +34,19 @@ Backends (``backend=``):
   elsewhere; the arrays take minimum images of the caller's).
   `acceleration_fused` sorts once and walks twice (densities, then
   forces); each VJP walks once more, the same way.
+* ``Cell(kernel="warp")``: the Warp engine
+  (`jaxrt.energy.listfree.warp_cell`, kernels in
+  `jaxrt.backends.cell.warp_sph`; CPU or CUDA): the Lennard-Jones
+  engine's bin, radix sort, cell table and gather, then a thread per
+  sorted particle for each pass. ``accel_fn`` without ``rho`` /
+  ``pressure`` is one call (sort, density walk, self term and Tait per
+  particle, force walk); with them, and ``density_fn``, one call sorts
+  and one more per walk. Its pair terms are the others' written out
+  (the kernels' ``f'`` by hand), so the results agree to rounding. Its
+  VJPs are the cell walk's (``"auto"``) on the same positions: a
+  gradient recomputes the step there. ``jaxrt.energy.listfree.lj.CellSums(
+  kernel="warp", reach=..., graph=...)`` sets its stencil and graph
+  capture.
 * ``"brute"``: all pairs in row blocks, O(N^2); the reference.
 
 Cost. A walk evaluates, per particle, one candidate of each stencil row (3
@@ -880,8 +893,9 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
         ``jaxrt.backends.Cell(kernel=...)``: the cell walk as the CUDA
         kernel (``"pallas"``), as array programs (``"xla"``), the kernel
         on CUDA and the arrays elsewhere (``"auto"``, what ``"cell"``
-        is), or the kernel in Pallas' interpreter (``"interpret"``,
-        tests). All agree to rounding.
+        is), the kernel in Pallas' interpreter (``"interpret"``,
+        tests), or the Warp engine (``"warp"``, module docstring). All
+        agree to rounding.
       periodic: bool or one per axis; None infers it from ``displacement``.
 
     Returns:
