@@ -154,14 +154,12 @@ def test_radii_and_parameter_gradients(x64):
         close(g, jax.grad(lambda v: brute(R, **{name: v}))(value), E_RTOL)
 
 
-def test_lists_and_sph_refuse_the_warp_engine():
+def test_sph_refuses_the_warp_engine():
+    # (Lists take it: tests/lists/test_warp_rows.py.)
     from jaxrt.energy.listfree.sph import density_fused
     from jaxrt.energy import sph
     R, side = fluid(n_side=7)
     displacement, _ = space.periodic(side)
-    nfn = jaxrt.neighbor_list(displacement, side, 2.5, backend=WARP)
-    with pytest.raises(ValueError, match="kernel='warp'"):
-        nfn.allocate(jnp.asarray(R, jnp.float32))
     with pytest.raises(ValueError, match="kernel='warp'"):
         density_fused(displacement, side,
                       sph.kernel("cubic_spline", 1.0, dim=3), backend=WARP)
