@@ -103,22 +103,22 @@ def _rows_kernel(scalar):
                                                rounded(d[1], side[1], ry),
                                                rounded(d[2], side[2], rz))
                                     d2 = wp.dot(d, d)
-                                    theirs = values[j]
-                                    keep = d2 < outer_sq
-                                    if mask_self != 0 and j == i:
-                                        keep = False
-                                    if lower_only != 0 and theirs >= me:
-                                        keep = False
-                                    if keep:
-                                        if d2 < inner_sq:
-                                            if hits < row_width:
-                                                rows[row_base + hits] = theirs
-                                            hits = hits + 1
-                                        else:
-                                            if near < shell:
-                                                shells[shell_base + near] = (
-                                                    theirs)
-                                            near = near + 1
+                                    # The caller's index is loaded only for
+                                    # the few candidates that are kept.
+                                    if d2 < outer_sq and (
+                                            mask_self == 0 or j != i):
+                                        theirs = values[j]
+                                        if lower_only == 0 or theirs < me:
+                                            if d2 < inner_sq:
+                                                if hits < row_width:
+                                                    rows[row_base + hits] = (
+                                                        theirs)
+                                                hits = hits + 1
+                                            else:
+                                                if near < shell:
+                                                    shells[shell_base
+                                                           + near] = theirs
+                                                near = near + 1
         # The rest of the row is padding (N), as every list pads.
         for k in range(wp.min(hits, row_width), row_width):
             rows[row_base + k] = n
