@@ -101,6 +101,31 @@ def test_per_axis_periodic_box():
                 True)
 
 
+def test_fractional_coordinates_in_an_orthorhombic_box():
+    box = jnp.diag(jnp.asarray([6.0, 7.0, 5.0]))
+    frac = uniform(20, 250, 1.0)
+    displacement = space.periodic_general(box, fractional_coordinates=True)[0]
+    warp, xla = both(displacement, box, frac, 1.4,
+                     fractional_coordinates=True)
+    got = row_sets(warp)
+    assert got == row_sets(xla)
+    assert got == brute_rows(frac * jnp.diag(box), 1.4, jnp.diag(box), True)
+
+
+def test_vmap_over_systems_equals_separate_calls():
+    side = 5.0
+    fns = jaxrt.neighbor_list(space.periodic(side)[0], side, 1.1,
+                              backend=WARP, capacity_multiplier=2.0)
+    Rs = uniform(14, 300, side).reshape(3, 100, 3)
+    nbrs = fns.allocate(Rs[0])
+    batch = jax.vmap(fns.update, in_axes=(0, None))(Rs, nbrs)
+    assert not np.any(np.asarray(batch.did_buffer_overflow))
+    for b in range(3):
+        one = fns.update(Rs[b], nbrs)
+        assert np.array_equal(np.asarray(batch.idx[b]), np.asarray(one.idx))
+        assert row_sets(one) == brute_rows(Rs[b], 1.1, side, True)
+
+
 def test_free_box_clustered_and_spread():
     # Two clusters far apart: the free axes span them, their cells
     # coarsened to fit the table.

@@ -1220,7 +1220,13 @@ def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
     table = _table_size(n)
     grid, cells = _warp_grid(cart, geometry, query, table)
-    inner_sq, outer_sq = _thresholds(cart, geometry, query, position)
+    # The walk's coordinates reach a side on periodic axes (wrapped there):
+    # its rounding is bounded as `_walk`'s, whose wrapped positions the
+    # tolerance sees.
+    periodic = jnp.asarray(query.periodic)
+    reach = jnp.concatenate([cart, jnp.where(periodic, geometry.side, 0)[
+        None].astype(cart.dtype)])
+    inner_sq, outer_sq = _thresholds(reach, geometry, query, position)
     flags = warp_rows.MASK_SELF if query.mask_self else 0
     flags |= warp_rows.LOWER_ONLY if _lower_only(query) else 0
     for a, p in enumerate(query.periodic):
