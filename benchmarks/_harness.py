@@ -723,6 +723,7 @@ _SHORTHAND = {("cell", "auto"): {"kernel": "auto"},
               ("cell", "pallas"): {"kernel": "pallas"},
               ("cell", "xla"): {"kernel": "xla"},
               ("cell", "interpret"): {"kernel": "interpret"},
+              ("cell", "warp"): {"kernel": "warp"},
               ("bvh", "unsorted"): {"sort": False},
               ("bvh", "sorted"): {"sort": True},
               ("bvh", "always-rebuild"): {"policy": "rebuild"}}

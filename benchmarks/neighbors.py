@@ -25,15 +25,19 @@ timed calls (`jaxrt.backends.rt.ffi.update_counts`: build / rebuild / refit).
 Methods are backend labels (`_harness.parse_backend`): ``cell``,
 ``cell[xla]`` (the portable array programs), ``cell[pallas]`` (the GPU
 kernel, `jaxrt.backends.cell.kernel`), ``cell[interpret]`` (that kernel in Pallas'
-interpreter), ``bvh``, ``bvh[unsorted]``, ... passed as
+interpreter), ``cell[warp]`` (the Warp walk, `jaxrt.backends.cell.warp_rows`;
+CPU or CUDA), ``bvh``, ``bvh[unsorted]``, ... passed as
 ``backend=jaxrt.backends.Cell(kernel="xla")`` etc.; ``jax-md`` is
-``jax_md.partition.neighbor_list``. Rows of ``cell`` that run the kernel
-(on a GPU, or ``cell[interpret]``) say whether their list equals the
-``cell[xla]`` list (``same_as_xla``: sorted rows compared entry by entry).
+``jax_md.partition.neighbor_list``. Rows of ``cell`` that run a kernel
+(on a GPU, ``cell[interpret]`` or ``cell[warp]``) say whether their list
+equals the ``cell[xla]`` list (``same_as_xla``: sorted rows compared entry
+by entry).
 
     python benchmarks/neighbors.py                 # CPU sizes
     python benchmarks/neighbors.py --sizes 1000000 --sphere-n 1000000 \\
         --backends "cell[pallas]" "cell[xla]" bvh  # the H200 rows
+    python benchmarks/neighbors.py --sizes 1000000 --scenes uniform \\
+        --backends "cell[warp]" "cell[pallas]"     # Warp walk vs Pallas
     python benchmarks/neighbors.py --quick         # CPU smoke, N = 2000
 """
 from __future__ import annotations
@@ -148,8 +152,8 @@ def run_row(job: dict) -> dict:
         del other
     same_as_xla = None
     kernel = opts.get("kernel", "auto")
-    if name == "cell" and kernel != "xla" and (dev.platform != "cpu"
-                                               or kernel == "interpret"):
+    if name == "cell" and kernel != "xla" and (
+            dev.platform != "cpu" or kernel in ("interpret", "warp")):
         got = np.sort(np.asarray(last.idx), axis=1)
         portable = _list_fns("cell[xla]", disp, side, cutoff)
         want = np.asarray(jax.jit(portable.update)(inputs[0], nbrs).idx)
@@ -195,7 +199,7 @@ def main(argv=None) -> None:
                         choices=["uniform", "sphere"])
     parser.add_argument("--backends", nargs="+", default=["cell"],
                         help="backend labels: cell, cell[xla], cell[pallas], "
-                        "bvh, bvh[unsorted], ...")
+                        "cell[warp], bvh, bvh[unsorted], ...")
     parser.add_argument("--no-jax-md", action="store_true")
     parser.add_argument("--quick", action="store_true",
                         help="CPU smoke: N = 2000, cell and jax-md, 3 repeats")

@@ -154,15 +154,6 @@ def test_radii_and_parameter_gradients(x64):
         close(g, jax.grad(lambda v: brute(R, **{name: v}))(value), E_RTOL)
 
 
-def test_lists_refuse_the_warp_engine():
-    # (SPH takes it: tests/energy/test_sph_fused_warp.py.)
-    R, side = fluid(n_side=7)
-    displacement, _ = space.periodic(side)
-    nfn = jaxrt.neighbor_list(displacement, side, 2.5, backend=WARP)
-    with pytest.raises(ValueError, match="kernel='warp'"):
-        nfn.allocate(jnp.asarray(R, jnp.float32))
-
-
 @pytest.mark.parametrize("reach", [(1, 1), (4, 2)])
 def test_flat_free_cloud_fits_the_table(x64, reach):
     """A free 3D cloud flat along z (one cell there): the other free axes'

@@ -1087,10 +1087,28 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
         periodic=query.periodic, mask_self=query.mask_self,
         lower_only=_lower_only(query), row_width=row_width, shell=shell,
         interpret=interpret)
-    width = rows.shape[1]
+    return _append_shell(position, metric_sq, rows, count, shells,
+                         shell_count, shell_rows=shell_rows, query=query)
 
-    # The shell, decided by the caller's metric for the few particles that
-    # have one, and appended to their rows.
+
+def _append_shell(position, metric_sq: MetricSq, rows, count, shells,
+                  shell_count, *, shell_rows: int, query: Query):
+    """The shell pairs of a kernel's candidate pass, decided by the
+    caller's metric for the few particles that have any, appended to their
+    rows.
+
+    Args:
+      position: float ``(N, dim)`` in the caller's coordinates.
+      rows, count, shells, shell_count: a kernel's four outputs in the
+        caller's order (`_cell_kernel.candidate_rows`'): int32 ``(N, W)``,
+        ``(N,)``, ``(N, S)``, ``(N,)``.
+      shell_rows: static, most particles whose shells are decided.
+    Returns:
+      As `_visit`: rows, counts, int32 ``(2,)`` shell sizes, bool overflow.
+    """
+    n = position.shape[0]
+    shell = shells.shape[1]
+    width = rows.shape[1]
     has_shell = shell_count > 0
     at = _first_true(has_shell, shell_rows)
     real = at < n
@@ -1112,6 +1130,123 @@ def _walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     return rows, count, shell_sizes, overflow
 
 
+# The Warp walk's reach in cells (along x, across): cells ``cutoff / 4``
+# wide along x and ``cutoff / 2`` across, as the list-free sums' Warp walk
+# (`jaxrt.energy.listfree.lj.CellSums.reach`).
+_WARP_REACH = (4, 2)
+
+
+def _warp_grid(cart, geometry: Geometry, query: Query, table: int,
+               reach: tuple[int, int] = _WARP_REACH):
+    """The Warp pipeline's grid (`jaxrt.backends.rt.ffi.cell_lj_sums`'
+    ``grid`` and ``cells``) for a list.
+
+    Cells are at least ``cutoff (1 + _CELL_MARGIN) / reach`` wide: the box
+    divided evenly on periodic axes, the particles' span from its minimum
+    on free ones; axes past ``dim`` have one cell. Where that makes more
+    than ``table`` cells, all axes are coarsened together (a few unrolled
+    steps, no device loop), and a grid still too large becomes one cell
+    per axis (every pair a candidate: slower, the same list).
+
+    Args:
+      cart: float ``(N, dim)`` finite Cartesian positions (unwrapped).
+      table: static, the most cells.
+    Returns:
+      float ``(3, 3)`` origin, cell width, side (1 on free axes) per axis;
+      int32 ``(6,)`` cells per axis then the reach per axis.
+    """
+    dim = query.dim
+    dtype = cart.dtype
+    periodic = np.array(list(query.periodic) + [False] * (3 - dim))
+    real = np.arange(3) < dim
+    side = jnp.pad(geometry.side.astype(dtype), (0, 3 - dim),
+                   constant_values=1)
+    lo = jnp.pad(jnp.min(cart, axis=0), (0, 3 - dim))
+    hi = jnp.pad(jnp.max(cart, axis=0), (0, 3 - dim))
+    reach3 = np.array([reach[0], reach[1], reach[1]])
+    reach3 = np.where(real, reach3, 1)
+    min_size = (query.cutoff * (1.0 + _CELL_MARGIN) / reach3).astype(
+        np.float64)
+    extent = jnp.where(periodic, side, hi - lo)
+
+    def cells_at(factor):  # float (3,)
+        size = min_size * factor
+        n = jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
+                      jnp.floor(extent / size) + 1)
+        return jnp.where(real, n, 1)
+
+    # The product is compared in floats: keep a margin below the table.
+    budget = table * (1 - 2.0 ** -10)
+    factor = jnp.ones((), dtype)
+    for _ in range(6):
+        product = jnp.prod(cells_at(factor))
+        factor = jnp.where(product > budget, factor * jnp.maximum(
+            1.25, (product / budget) ** (1.0 / dim)), factor)
+    n = cells_at(factor)
+    n = jnp.where(jnp.prod(n) > budget, 1, n)
+    width = jnp.where(periodic, extent / n,
+                      jnp.maximum(min_size * factor, extent / n))
+    origin = jnp.where(periodic | ~real, 0, lo)
+    grid = jnp.stack([origin, width, jnp.where(periodic, side, 1)]).astype(
+        dtype)
+    cells = jnp.concatenate([n.astype(jnp.int32),
+                             jnp.asarray(reach3, jnp.int32)])
+    return grid, cells
+
+
+@functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
+                                             "row_width", "query"))
+def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
+               shell_rows, row_width, query: Query):
+    """`_walk` on the Warp pipeline (`jaxrt.backends.cell.warp_rows`, one
+    call of `jaxrt.backends.rt.ffi.cell_candidate_rows`): its own grid
+    (`_warp_grid`), the same thresholds and shell decision, so the same
+    sets; rows in the walk's order.
+
+    Returns:
+      As `_visit`: rows int32 ``(N, max(row_width, 1))``, counts int32
+      ``(N,)``, int32 ``(2,)`` shell sizes, bool scalar overflow.
+    """
+    from jaxrt.backends.cell import warp_rows
+    from jaxrt.backends.rt import ffi
+    n, dim = position.shape
+    row_width, shell = max(row_width, 1), max(shell, 1)
+    if n == 0:
+        empty = jnp.zeros((0,), jnp.int32)
+        return (jnp.zeros((0, row_width), jnp.int32), empty,
+                jnp.zeros((2,), jnp.int32), jnp.zeros((), bool))
+    cart = geometry.grid_coordinates(position)
+    # NaN positions are reported by the front; keep them from poisoning keys.
+    cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
+    table = _table_size(n)
+    grid, cells = _warp_grid(cart, geometry, query, table)
+    # The walk's coordinates reach a side on periodic axes (wrapped there):
+    # its rounding is bounded as `_walk`'s, whose wrapped positions the
+    # tolerance sees.
+    periodic = jnp.asarray(query.periodic)
+    reach = jnp.concatenate([cart, jnp.where(periodic, geometry.side, 0)[
+        None].astype(cart.dtype)])
+    inner_sq, outer_sq = _thresholds(reach, geometry, query, position)
+    flags = warp_rows.MASK_SELF if query.mask_self else 0
+    flags |= warp_rows.LOWER_ONLY if _lower_only(query) else 0
+    for a, p in enumerate(query.periodic):
+        flags |= (warp_rows.PERIODIC << a) if p else 0
+    points = jnp.pad(cart, [(0, 0), (0, 3 - dim)])
+    rows, count, shells, shell_count = ffi.cell_candidate_rows(
+        points, grid, cells, jnp.stack([inner_sq, outer_sq]).astype(
+            cart.dtype), flags=flags, table=table, row_width=row_width,
+        shell=shell)
+    return _append_shell(position, metric_sq, rows, count, shells,
+                         shell_count, shell_rows=shell_rows, query=query)
+
+
+def _warp_fits(n: int, row_width: int, shell: int) -> bool:
+    """Whether the Warp walk's int32 outputs can be addressed (Warp's
+    offsets are 32-bit byte offsets)."""
+    from jaxrt.backends.rt import ffi
+    return n * max(row_width, shell, 1) <= ffi.MAX_LIST_ENTRIES
+
+
 _KERNELS = ("auto", "pallas", "xla", "interpret", "warp")
 
 
@@ -1128,10 +1263,13 @@ class Cell:
         ``"pallas"``: the kernel, or an error at ``allocate`` where it
         cannot run. ``"xla"``: the windows everywhere. ``"interpret"``:
         the kernel in Pallas' interpreter (tests on CPUs). All four find
-        the same pairs. ``"warp"``: only for the
-        list-free energies (`jaxrt.energy.lennard_jones_fused`,
-        `jaxrt.energy.density_fused`, `jaxrt.energy.acceleration_fused`:
-        their Warp engine); lists refuse it.
+        the same pairs. ``"warp"``: the Warp pipeline of
+        `jaxrt.backends.cell.warp_rows` (CPU or CUDA; also the engine of the
+        list-free energies `jaxrt.energy.lennard_jones_fused`,
+        `jaxrt.energy.density_fused` and `jaxrt.energy.acceleration_fused`),
+        the same pairs, for orthorhombic and free boxes with the Euclidean
+        metric and no radii; an error at ``allocate`` elsewhere. Its rows
+        hold each particle's neighbours in the order its walk meets them.
       radius_classes: with per-particle radii (``radii=``), how many radius
         classes get a grid each (`jaxrt.backends.cell.radius_classes`): None, as many as
         the radii at ``allocate`` need; 1, one grid of cells of the largest
@@ -1167,7 +1305,7 @@ class Cell:
                 "radius).")
 
     def _check_radii_kernel(self):
-        if self.kernel in ("pallas", "interpret"):
+        if self.kernel in ("pallas", "interpret", "warp"):
             raise ValueError(
                 f"Cell(kernel={self.kernel!r}) has no per-particle radii: "
                 "lists with radii= run on the radius classes of "
@@ -1175,9 +1313,10 @@ class Cell:
 
     def _engine(self, n: int, row_width: int, shell: int, query: Query,
                 platform: str | None) -> str:
-        """``"kernel"``, ``"interpret"``, ``"portable"`` or ``"lowering"``
-        (the kernel on CUDA, else portable, decided where the program is
-        lowered); ``platform``: where an eager call runs, None under jit.
+        """``"kernel"``, ``"interpret"``, ``"portable"``, ``"warp"`` or
+        ``"lowering"`` (the kernel on CUDA, else portable, decided where
+        the program is lowered); ``platform``: where an eager call runs,
+        None under jit.
 
         Raises:
           ValueError: ``kernel`` names the kernel where it cannot serve.
@@ -1185,11 +1324,22 @@ class Cell:
         if self.kernel == "xla":
             return "portable"
         if self.kernel == "warp":
-            raise ValueError(
-                "Cell(kernel='warp') is the engine of the list-free "
-                "sums (jaxrt.energy.lennard_jones_fused, density_fused, "
-                "acceleration_fused); a neighbour list uses "
-                "Cell(kernel='auto'), 'pallas' or 'xla'.")
+            why = None
+            if query.decide_by_metric:
+                why = ("the caller's metric decides every pair here (a "
+                       "triclinic box, or a metric that is not the "
+                       "Euclidean minimum image), and the Warp walk "
+                       "computes its own distances")
+            elif query.dim > 3:
+                why = f"the Warp walk is for 1 to 3 dimensions, not {query.dim}"
+            elif not _warp_fits(n, row_width, shell):
+                why = (f"N x row width = {n} x {max(row_width, shell)} is "
+                       "past Warp's int32 offsets")
+            if why is not None:
+                raise ValueError(
+                    f"Cell(kernel='warp') cannot serve this list: {why}. "
+                    "Use Cell(kernel='auto') or Cell(kernel='xla').")
+            return "warp"
         why = None
         if query.decide_by_metric:
             why = ("the caller's metric decides every pair here (a triclinic "
@@ -1230,6 +1380,8 @@ class Cell:
 
         if engine == "portable":
             return portable()
+        if engine == "warp":
+            return _warp_walk(position, geometry, metric_sq, **options)
         if engine == "interpret":
             return _walk(position, geometry, metric_sq, interpret=True,
                          **options)

@@ -3,7 +3,10 @@ and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_lj_sums` puts
 `lj_sums` behind a JAX call).
 
 The pipeline, one launch each (`lj_sums`; steps 1 to 4 are `sort_cells`,
-which the SPH walks of `jaxrt.backends.cell.warp_sph` share):
+which the SPH walks (`jaxrt.backends.cell.warp_sph`), the cluster walk
+(`jaxrt.backends.cell.warp_cluster`) and the neighbour lists' walk
+(`jaxrt.backends.cell.warp_rows`) share with the stencil's functions,
+`stencil_functions`):
 
 1. ``bin_particles``: each particle wrapped into the box on periodic axes,
    its cell's row-major key (x fastest) and its index.
@@ -37,6 +40,8 @@ import warp as wp
 # (as Triton's), well inside the float32 tolerances of the tests.
 _OPTIONS = {"enable_backward": False, "max_unroll": 1, "fast_math": True}
 wp.set_module_options(_OPTIONS)
+# The same options, for walks built in other modules.
+MODULE_OPTIONS = _OPTIONS
 
 # Grid rows (`lj_sums`' ``grid``): origin, cell width, box side per axis.
 ORIGIN, WIDTH, SIDE = 0, 1, 2

@@ -1449,3 +1449,79 @@ def cell_sph_step(points, velocity, mass, grid, cells, params, *,
                     "sound": (n,), "pressure": (n, 3), "viscosity": (n, 3),
                     "density": (n,)})
     return tuple(outs[-3:])
+
+
+# The cell list's candidate rows on the same grid (`jaxrt.backends.cell.warp_rows`).
+_CELL_ROWS_CALLABLES: dict = {}
+
+
+def _cell_rows_callable(vector):
+    """The jax callable of `jaxrt.backends.cell.warp_rows.candidate_rows`
+    for positions of type ``vector``."""
+    from jaxrt.backends.cell import warp_kernels, warp_rows
+    if vector in _CELL_ROWS_CALLABLES:
+        return _CELL_ROWS_CALLABLES[vector]
+    scalar = warp_kernels.scalar_of(vector)
+
+    def walk(points: wp.array(dtype=vector), grid: wp.array(dtype=vector),
+             cells: wp.array(dtype=wp.int32),
+             thresholds: wp.array(dtype=scalar), flags: wp.int32,
+             row_width: wp.int32, shell: wp.int32,
+             rows: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+             shells: wp.array(dtype=wp.int32),
+             shell_count: wp.array(dtype=wp.int32),
+             keys: wp.array(dtype=wp.int32), values: wp.array(dtype=wp.int32),
+             wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
+             position: wp.array(dtype=vector),
+             radius: wp.array(dtype=scalar)):
+        warp_rows.candidate_rows(
+            points, grid, cells, thresholds, int(flags),
+            row_width=int(row_width), shell=int(shell), rows=rows,
+            count=count, shells=shells, shell_count=shell_count, keys=keys,
+            values=values, wrapped=wrapped, start=start, position=position,
+            radius=radius)
+
+    walk.__module__ = warp_rows.__name__  # see _aabb_callables
+    _CELL_ROWS_CALLABLES[vector] = wp.jax_callable(
+        walk, num_outputs=10, graph_mode=wp.JaxCallableGraphMode.NONE,
+        vmap_method="sequential")
+    return _CELL_ROWS_CALLABLES[vector]
+
+
+def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
+                        table: int, row_width: int, shell: int):
+    """The cell list's candidate pass on the Warp grid
+    (`jaxrt.backends.cell.warp_rows.candidate_rows`) in one call.
+
+    Args:
+      points: float32 or float64 ``(N, 3)`` Cartesian positions.
+      grid, cells, table: as `cell_lj_sums`'.
+      thresholds: float ``(2,)``, points' dtype: the squared distances
+        below which a pair is sure, and below which it is in the shell.
+      flags: static int, `jaxrt.backends.cell.warp_rows`' bits.
+      row_width, shell: static widths (>= 1) of the rows and shells.
+    Returns:
+      In the caller's order: int32 ``(N, row_width)`` rows (sure pairs,
+      padded with N), int32 ``(N,)`` their exact counts, int32 ``(N,
+      shell)`` shell pairs (valid up to the count), int32 ``(N,)`` their
+      exact counts.
+    """
+    from jaxrt.backends.cell import warp_kernels, warp_rows
+    n = points.shape[0]
+    vector = _vector_of(points)
+    # The walk lives in a module of its own: load it now, not inside the
+    # callback.
+    walk = warp_rows.rows_kernel(warp_kernels.scalar_of(vector))
+    wp.load_module(walk.module, device=_warp_device(),
+                   block_dim=warp_rows.WALK_BLOCK)
+    call = _cell_rows_callable(vector)
+    outs = call(*jax.lax.stop_gradient((points, grid, cells, thresholds)),
+                int(flags), int(row_width), int(shell), output_dims={
+                    "rows": (n * row_width,), "count": (n,),
+                    "shells": (n * shell,), "shell_count": (n,),
+                    "keys": (2 * n,), "values": (2 * n,), "wrapped": (n, 3),
+                    "start": (table + 1,), "position": (n, 3),
+                    "radius": (1,)})
+    rows, count, shells, shell_count = outs[:4]
+    return (rows.reshape(n, row_width), count, shells.reshape(n, shell),
+            shell_count)

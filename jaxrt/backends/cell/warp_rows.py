@@ -1,0 +1,177 @@
+"""Warp kernels of the cell list's candidate pass (``Cell(kernel="warp")``):
+Warp and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_candidate_rows`
+puts `candidate_rows` behind a JAX call).
+
+The particles are binned, sorted and gathered by the list-free sums'
+pipeline (`jaxrt.backends.cell.warp_kernels.sort_cells`); then a
+thread per sorted particle walks the same stencil as their walk
+(`jaxrt.backends.cell.warp_kernels.stencil_functions`) and, instead of
+summing, makes the three-way split of the other candidate passes
+(`jaxrt.backends.cell.kernel.candidate_rows`), with the thresholds it is
+given: a pair surely within the cutoff (``d2 < inner_sq``) is appended to
+the particle's row, a pair within the tolerance of it (``d2 < outer_sq``)
+to its shell buffer, which the caller's metric decides afterwards, and
+the rest are dropped. Rows and shells hold caller's indices and are
+written at the particle's caller's index; within a row the neighbours are
+in the order the walk meets them (stencil rows z, then y, then x cells
+ascending; within a cell, the sort's order), not sorted.
+
+Counts are exact past the buffers' widths: a row or shell that does not
+fit keeps its first ``width`` entries, and its count tells the caller.
+"""
+
+import warp as wp
+
+from jaxrt.backends.cell import warp_kernels
+
+# `candidate_rows`' ``flags`` bits, besides warp_kernels.PERIODIC << axis:
+# skip the particle itself; keep only partners of lower caller's index
+# (OrderedSparse's half rows).
+MASK_SELF = 64
+LOWER_ONLY = 128
+PERIODIC = warp_kernels.PERIODIC
+# ``thresholds``' entries.
+INNER_SQ, OUTER_SQ = 0, 1
+# Threads per block of the walk (as the sums' walk).
+WALK_BLOCK = warp_kernels.WALK_BLOCK
+
+
+def _rows_kernel(scalar):
+    """The walk that writes rows, for positions of ``scalar``."""
+    vector = wp.types.vector(3, scalar)
+    x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
+    grid_side = warp_kernels.SIDE
+
+    @wp.kernel(module="unique", module_options=warp_kernels.MODULE_OPTIONS)
+    def rows_walk(position: wp.array(dtype=vector),
+                  keys: wp.array(dtype=wp.int32),
+                  values: wp.array(dtype=wp.int32),
+                  start: wp.array(dtype=wp.int32),
+                  grid: wp.array(dtype=vector),
+                  cells: wp.array(dtype=wp.int32),
+                  thresholds: wp.array(dtype=scalar), flags: int,
+                  row_width: int, shell: int,
+                  rows: wp.array(dtype=wp.int32),
+                  count: wp.array(dtype=wp.int32),
+                  shells: wp.array(dtype=wp.int32),
+                  shell_count: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        n = position.shape[0]
+        mask_self = flags & MASK_SELF
+        lower_only = flags & LOWER_ONLY
+        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
+        nx, ny, nz = cells[0], cells[1], cells[2]
+        ax, ay, az = cells[3], cells[4], cells[5]
+        side = grid[grid_side]
+        inner_sq = thresholds[INNER_SQ]
+        outer_sq = thresholds[OUTER_SQ]
+        # Rounded axes: periodic ones with too few cells for images.
+        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
+        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
+        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
+        key = keys[i]
+        cx = key % nx
+        cy = (key / nx) % ny
+        cz = key / (nx * ny)
+        p = position[i]
+        me = values[i]
+        row_base = me * row_width
+        shell_base = me * shell
+        hits = int(0)
+        near = int(0)
+        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
+        for dz in range(-az, az + 1):
+            z, oz, okz = row(cz, dz, nz, pz, az)
+            if okz:
+                for dy in range(-ay, ay + 1):
+                    y, oy, oky = row(cy, dy, ny, py, ay)
+                    if oky:
+                        base = nx * (y + ny * z)
+                        for part in range(2):
+                            lo = wp.where(part == 0, lo0, lo1)
+                            hi = wp.where(part == 0, hi0, hi1)
+                            ox = wp.where(part == 0, ox0, ox1)
+                            if hi >= lo:
+                                shift = vector(scalar(ox) * side[0],
+                                               scalar(oy) * side[1],
+                                               scalar(oz) * side[2])
+                                q = p - shift
+                                for j in range(start[base + lo],
+                                               start[base + hi + 1]):
+                                    d = q - position[j]
+                                    d = vector(rounded(d[0], side[0], rx),
+                                               rounded(d[1], side[1], ry),
+                                               rounded(d[2], side[2], rz))
+                                    d2 = wp.dot(d, d)
+                                    # The caller's index is loaded only for
+                                    # the few candidates that are kept.
+                                    if d2 < outer_sq and (
+                                            mask_self == 0 or j != i):
+                                        theirs = values[j]
+                                        if lower_only == 0 or theirs < me:
+                                            if d2 < inner_sq:
+                                                if hits < row_width:
+                                                    rows[row_base + hits] = (
+                                                        theirs)
+                                                hits = hits + 1
+                                            else:
+                                                if near < shell:
+                                                    shells[shell_base
+                                                           + near] = theirs
+                                                near = near + 1
+        # The rest of the row is padding (N), as every list pads.
+        for k in range(wp.min(hits, row_width), row_width):
+            rows[row_base + k] = n
+        count[me] = hits
+        shell_count[me] = near
+
+    return rows_walk
+
+
+_WALKS: dict = {}
+
+
+def rows_kernel(scalar):
+    """The row-writing walk for positions of ``scalar``, built on first
+    use (a module of its own: load it before a graph capture)."""
+    if scalar not in _WALKS:
+        _WALKS[scalar] = _rows_kernel(scalar)
+    return _WALKS[scalar]
+
+
+def candidate_rows(points, grid, cells, thresholds, flags: int, *,
+                   row_width: int, shell: int, rows, count, shells,
+                   shell_count, keys, values, wrapped, start, position,
+                   radius, block_dim: int = WALK_BLOCK) -> None:
+    """Sort the particles by cell and write every particle's candidate rows
+    (the module docstring), on ``points``' device.
+
+    Args:
+      points: vec3 ``(N,)`` Cartesian positions (padding axes all equal).
+      grid, cells: as `jaxrt.backends.cell.warp_kernels.lj_sums`' (cells
+        at least the shell's outer radius over the axis' reach wide).
+      thresholds: scalar ``(2,)``: `INNER_SQ`, `OUTER_SQ`.
+      flags: `MASK_SELF`, `LOWER_ONLY`, ``PERIODIC << axis``.
+      row_width, shell: the widths (>= 1) of the rows and shell buffers.
+      rows: int32 ``(N * row_width,)`` out: row ``i`` (caller's index) at
+        ``i * row_width``, caller's indices of the sure pairs, then ``N``;
+        count: int32 ``(N,)`` out, their exact numbers; shells: int32
+        ``(N * shell,)`` out, the shell pairs (valid up to the count);
+        shell_count: int32 ``(N,)`` out, their exact numbers.
+      keys, values, wrapped, start, position, radius: scratch, as
+        `jaxrt.backends.cell.warp_kernels.lj_sums`' (``radius``: ``(1,)``).
+      block_dim: the walk's threads per block.
+    """
+    n = points.shape[0]
+    if n == 0:
+        return
+    # The sort reads only the periodic bits (no radii here).
+    warp_kernels.sort_cells(
+        points, radius, grid, cells, flags & (7 * PERIODIC), keys=keys,
+        values=values, wrapped=wrapped, start=start, position=position,
+        radius=radius)
+    walk = rows_kernel(warp_kernels.scalar_of(points.dtype))
+    wp.launch(walk, dim=n, device=points.device, block_dim=block_dim,
+              inputs=[position, keys, values, start, grid, cells, thresholds,
+                      flags, row_width, shell, rows, count, shells,
+                      shell_count])
