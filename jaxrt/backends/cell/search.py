@@ -1128,9 +1128,10 @@ class Cell:
         ``"pallas"``: the kernel, or an error at ``allocate`` where it
         cannot run. ``"xla"``: the windows everywhere. ``"interpret"``:
         the kernel in Pallas' interpreter (tests on CPUs). All four find
-        the same pairs. ``"warp"``: only for
-        `jaxrt.energy.lennard_jones_fused` (its Warp engine); lists refuse
-        it.
+        the same pairs. ``"warp"``: only for the
+        list-free energies (`jaxrt.energy.lennard_jones_fused`,
+        `jaxrt.energy.density_fused`, `jaxrt.energy.acceleration_fused`:
+        their Warp engine); lists refuse it.
       radius_classes: with per-particle radii (``radii=``), how many radius
         classes get a grid each (`jaxrt.backends.cell.radius_classes`): None, as many as
         the radii at ``allocate`` need; 1, one grid of cells of the largest
@@ -1186,8 +1187,9 @@ class Cell:
         if self.kernel == "warp":
             raise ValueError(
                 "Cell(kernel='warp') is the engine of the list-free "
-                "Lennard-Jones sums (jaxrt.energy.lennard_jones_fused); a "
-                "neighbour list uses Cell(kernel='auto'), 'pallas' or 'xla'.")
+                "sums (jaxrt.energy.lennard_jones_fused, density_fused, "
+                "acceleration_fused); a neighbour list uses "
+                "Cell(kernel='auto'), 'pallas' or 'xla'.")
         why = None
         if query.decide_by_metric:
             why = ("the caller's metric decides every pair here (a triclinic "

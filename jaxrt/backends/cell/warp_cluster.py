@@ -363,9 +363,9 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     n = points.shape[0]
     if n == 0:
         return
-    wk.prepare(points, radii, grid, cells, flags, keys=keys, values=values,
-               wrapped=wrapped, start=start, position=position,
-               radius=radius)
+    wk.sort_cells(points, radii, grid, cells, flags, keys=keys,
+                  values=values, wrapped=wrapped, start=start,
+                  position=position, radius=radius)
     build_clusters(start, counts, offsets, clusters, n=n, size=size)
     walk = cluster_kernel(wk.scalar_of(points.dtype), flags, size=size,
                           prune=prune, unroll=points.device.is_cuda,

@@ -2,7 +2,8 @@
 and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_lj_sums` puts
 `lj_sums` behind a JAX call).
 
-The pipeline, one launch each (`lj_sums`):
+The pipeline, one launch each (`lj_sums`; steps 1 to 4 are `sort_cells`,
+which the SPH walks of `jaxrt.backends.cell.warp_sph` share):
 
 1. ``bin_particles``: each particle wrapped into the box on periodic axes,
    its cell's row-major key (x fastest) and its index.
@@ -104,8 +105,9 @@ def _scalar_kernels(scalar):
 
 def pair_functions(scalar):
     """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
-    row, rounded); the cluster walk (`jaxrt.backends.cell.warp_cluster`)
-    shares them, so that both add the same terms."""
+    row, rounded), the last three `stencil_functions`'; the cluster walk
+    (`jaxrt.backends.cell.warp_cluster`) shares them, so that both add the
+    same terms."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -159,6 +161,16 @@ def pair_functions(scalar):
                 - scalar(2.0) * dswitch * epsilon * lj_unit,
                 switch * epsilon * repulsion, switch * lj_unit)
 
+    return (lj, lj_forces) + stencil_functions(scalar)
+
+
+def stencil_functions(scalar):
+    """The stencil walk's functions for ``scalar``, shared by every
+    walk over the grid (`_walk_kernel`, `jaxrt.backends.cell.warp_sph`):
+    ``x_ranges`` (the x cells of a row as up to two ranges with images),
+    ``row`` (a y / z row's cell, image and validity), ``rounded`` (a
+    difference to its minimum image on rounded axes)."""
+
     @wp.func
     def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
         # The stencil's x cells as up to two ranges [lo, hi] with images
@@ -204,7 +216,7 @@ def pair_functions(scalar):
             return d - side * wp.round(d / side)
         return d
 
-    return lj, lj_forces, x_ranges, row, rounded
+    return x_ranges, row, rounded
 
 
 # The flag bits a walk may fix at compile time.
@@ -374,12 +386,19 @@ def scalar_of(vector) -> type:
     return vector._wp_scalar_type_
 
 
-def prepare(points, radii, grid, cells, flags: int, *, keys, values,
-            wrapped, start, position, radius) -> None:
-    """`lj_sums`' steps 1 to 4 (bin, sort, cell table, gather), the
-    arrays as `lj_sums`' (``points``' length above zero): every walk
-    starts from them."""
+def sort_cells(points, radii, grid, cells, flags: int, *, keys, values,
+               wrapped, start, position, radius) -> None:
+    """Steps 1 to 4 of the module docstring (bin, sort, cell table,
+    gather) on ``points``' device: what every walk over the grid reads.
+
+    Args: as `lj_sums`' (``flags``: `HAS_RADII` and ``PERIODIC << axis``
+    are read). Fills ``keys[:N]`` (sorted cell keys), ``values[:N]`` (the
+    caller's index of each sorted particle), ``start``, ``position``
+    (wrapped, sorted) and, with radii, ``radius`` (sorted).
+    """
     n = points.shape[0]
+    if n == 0:
+        return
     device = points.device
     k = KERNELS[scalar_of(points.dtype)]
     table = start.shape[0] - 1
@@ -423,8 +442,8 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     if n == 0:
         return
     device = points.device
-    prepare(points, radii, grid, cells, flags, keys=keys, values=values,
-            wrapped=wrapped, start=start, position=position, radius=radius)
+    sort_cells(points, radii, grid, cells, flags, keys=keys, values=values,
+               wrapped=wrapped, start=start, position=position, radius=radius)
     walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
                        hoist=hoist)
     wp.launch(walk, dim=n, device=device, block_dim=block_dim,

@@ -299,7 +299,8 @@ class _Brute(_Backend):
 
 
 CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
-# The LJ sums' kernels: those of the SPH walks too, and the Warp engine.
+# The LJ sums' kernels (the SPH walks' too): the cell walks and the Warp
+# engine.
 LJ_CELL_KERNELS = CELL_KERNELS + ("warp",)
 
 
