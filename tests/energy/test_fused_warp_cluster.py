@@ -337,9 +337,9 @@ def _native_one_lane(points, side, scalar, radii=None):
                     dtype=v3, device="cpu")
     cells = wp.array(np.asarray([m, m, m, 1, 1, 1], np.int32), device="cpu")
     params_w = a(params)
-    wk.prepare(points_w, radii_w, grid, cells, flags,
-               **{k: o[k] for k in ("keys", "values", "wrapped", "start",
-                                    "position", "radius")})
+    wk.sort_cells(points_w, radii_w, grid, cells, flags,
+                  **{k: o[k] for k in ("keys", "values", "wrapped", "start",
+                                       "position", "radius")})
     counts, offsets = e(table + 1, wp.int32), e(table + 1, wp.int32)
     clusters = e(warp_cluster.bound(n, table, 1) + 1, wp.int32)
     warp_cluster.build_clusters(o["start"], counts, offsets, clusters, n=n,

@@ -192,7 +192,7 @@ def _cluster_kernel(scalar, static_bits, hoist, size, prune, unroll):
     sums_t = wp.types.vector(size, scalar)
     hits_t = wp.types.vector(size, wp.int32)
     points_t = wp.types.matrix((size, 3), scalar)
-    _, _, x_ranges, row, _ = wk.pair_functions(scalar)
+    x_ranges, row, _ = wk.stencil_functions(scalar)
     near, difference, terms = cluster_functions(scalar, static_bits, hoist)
     load = _cluster_load(scalar, size)
     fixed = -1 if static_bits is None else int(static_bits)

@@ -212,7 +212,7 @@ def _native_kernel(scalar, static_bits, hoist, size, lanes):
     ``scalar``; ``static_bits``/``hoist`` as `warp_kernels.walk_kernel`'s,
     ``size`` particles per cluster, ``lanes`` threads per cluster."""
     vector = wp.types.vector(3, scalar)
-    _, _, x_ranges, row, _ = wk.pair_functions(scalar)
+    x_ranges, row, _ = wk.stencil_functions(scalar)
     near, difference, terms = wc.cluster_functions(scalar, static_bits,
                                                    hoist)
     box, survivor, reduce_slots = _lane_functions(scalar, size, lanes)
@@ -382,9 +382,9 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
                    counts=counts, offsets=offsets, clusters=clusters,
                    size=size, specialize=specialize, hoist=hoist)
         return
-    wk.prepare(points, radii, grid, cells, flags, keys=keys, values=values,
-               wrapped=wrapped, start=start, position=position,
-               radius=radius)
+    wk.sort_cells(points, radii, grid, cells, flags, keys=keys,
+                  values=values, wrapped=wrapped, start=start,
+                  position=position, radius=radius)
     wc.build_clusters(start, counts, offsets, clusters, n=n, size=size)
     walk = native_kernel(wk.scalar_of(points.dtype), flags, size=size,
                          specialize=specialize, hoist=hoist)
