@@ -13,7 +13,7 @@ bounding box are skipped before that (``prune``). Each particle adds the
 same terms in the same order as in the thread walk, so the sums are the
 thread walk's (bit for bit where the compiler contracts both alike).
 
-The pipeline after `jaxrt.backends.cell.warp_kernels.prepare` (bin, sort,
+The pipeline after `jaxrt.backends.cell.warp_kernels.sort_cells` (bin, sort,
 cell table, gather):
 
 1. ``cluster_counts``: clusters per cell, ``ceil(n_c / size)``.
