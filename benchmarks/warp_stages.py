@@ -27,7 +27,7 @@ loops over the cluster unrolled on CUDA), ``noprune`` without the
 cluster's bounding-box test; its rows give the clusters' number and mean
 size. ``walk nativeK`` (CUDA only): a warp per cluster of K, its
 candidates compacted by a ballot and shuffled to the lanes
-(`warp_cluster.native_kernel`; the sums agree to rounding, so ``same`` is
+(`warp_cluster_native.native_kernel`; the sums agree to rounding, so ``same`` is
 usually False and ``max_rel`` small). Cells are ``bound / reach`` wide (``--reach X Y``: X along x, Y
 across): the cluster walk needs several particles per cell (reach 1 1 or
 2 1), the thread walk prefers small cells (4 2, the default).
@@ -108,6 +108,7 @@ def measure(n_target, args, rows, device_columns):
     import warp as wp
     import roofline
     from jaxrt.backends.cell import warp_cluster as wc
+    from jaxrt.backends.cell import warp_cluster_native as wcn
     from jaxrt.backends.cell import warp_kernels as wk
     from jaxrt.energy.listfree import warp_cell
 
@@ -152,9 +153,9 @@ def measure(n_target, args, rows, device_columns):
 
     def native_walk(variant, walk_flags=flags):
         _, size, block = variant
-        kernel = wc.native_kernel(wp.float32, walk_flags, size=size)
+        kernel = wcn.native_kernel(wp.float32, walk_flags, size=size)
         offs, clusters = tables[size]
-        wc.launch_native(kernel, position=position, keys=keys, values=values,
+        wcn.launch(kernel, position=position, keys=keys, values=values,
                          radius=radius, start=start, offsets=offs,
                          clusters=clusters, grid=grid_w, cells=cells_w,
                          params=params_w, flags=walk_flags, forces=forces,

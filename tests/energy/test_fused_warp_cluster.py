@@ -29,6 +29,7 @@ wp = pytest.importorskip("warp")
 
 import jaxrt  # noqa: E402
 from jaxrt.backends.cell import warp_cluster, warp_kernels as wk  # noqa: E402
+from jaxrt.backends.cell import warp_cluster_native  # noqa: E402
 from jaxrt.energy import lennard_jones_fused  # noqa: E402
 from jaxrt.energy.listfree.lj import CellSums  # noqa: E402
 
@@ -337,14 +338,14 @@ def _native_one_lane(points, side, scalar, radii=None):
     cells = wp.array(np.asarray([m, m, m, 1, 1, 1], np.int32), device="cpu")
     params_w = a(params)
     wk.sort_cells(points_w, radii_w, grid, cells, flags,
-               **{k: o[k] for k in ("keys", "values", "wrapped", "start",
-                                    "position", "radius")})
+                  **{k: o[k] for k in ("keys", "values", "wrapped", "start",
+                                       "position", "radius")})
     counts, offsets = e(table + 1, wp.int32), e(table + 1, wp.int32)
     clusters = e(warp_cluster.bound(n, table, 1) + 1, wp.int32)
     warp_cluster.build_clusters(o["start"], counts, offsets, clusters, n=n,
                                 size=1)
-    walk = warp_cluster.native_kernel(scalar, flags, size=1, lanes=1)
-    warp_cluster.launch_native(
+    walk = warp_cluster_native.native_kernel(scalar, flags, size=1, lanes=1)
+    warp_cluster_native.launch(
         walk, size=1, lanes=1, offsets=offsets, clusters=clusters,
         grid=grid, cells=cells, params=params_w, flags=flags,
         **{k: o[k] for k in ("position", "keys", "values", "radius", "start",
@@ -376,9 +377,9 @@ def test_native_walk_on_one_lane_equals_the_thread_walk(scalar):
 
 def test_native_walk_sizes_refused():
     with pytest.raises(ValueError, match="size=3"):
-        warp_cluster.native_kernel(wp.float32, 0, size=3)
+        warp_cluster_native.native_kernel(wp.float32, 0, size=3)
     with pytest.raises(ValueError, match="lanes=8"):
-        warp_cluster.native_kernel(wp.float32, 0, size=1, lanes=8)
+        warp_cluster_native.native_kernel(wp.float32, 0, size=1, lanes=8)
 
 
 @pytest.mark.parametrize("reach", [(1, 1), (2, 1)])

@@ -1093,9 +1093,10 @@ def _cell_lj_callable(vector, graph: str, walk: str = "thread",
     positions of type ``vector``; ``graph``: who captures its launches in a
     CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
     host); ``walk``: "thread", or "cluster" / "native" (`jaxrt.backends.
-    cell.warp_cluster.lj_sums`, three more scratch outputs) of
-    ``cluster_size`` particles."""
-    from jaxrt.backends.cell import warp_cluster, warp_kernels
+    cell.warp_cluster.lj_sums`, `jaxrt.backends.cell.warp_cluster_native.
+    lj_sums`: three more scratch outputs) of ``cluster_size`` particles."""
+    from jaxrt.backends.cell import (warp_cluster, warp_cluster_native,
+                                     warp_kernels)
     key = (vector, graph, walk, cluster_size)
     if key in _CELL_LJ_CALLABLES:
         return _CELL_LJ_CALLABLES[key]
@@ -1137,13 +1138,13 @@ def _cell_lj_callable(vector, graph: str, walk: str = "thread",
                      counts: wp.array(dtype=wp.int32),
                      offsets: wp.array(dtype=wp.int32),
                      clusters: wp.array(dtype=wp.int32)):
-        warp_cluster.lj_sums(points, radii, grid, cells, params, int(flags),
-                             forces=forces, energy=energy, d_sigma=d_sigma,
-                             d_epsilon=d_epsilon, count=count, keys=keys,
-                             values=values, wrapped=wrapped, start=start,
-                             position=position, radius=radius, counts=counts,
-                             offsets=offsets, clusters=clusters,
-                             size=cluster_size, native=walk == "native")
+        engine = warp_cluster_native if walk == "native" else warp_cluster
+        engine.lj_sums(points, radii, grid, cells, params, int(flags),
+                       forces=forces, energy=energy, d_sigma=d_sigma,
+                       d_epsilon=d_epsilon, count=count, keys=keys,
+                       values=values, wrapped=wrapped, start=start,
+                       position=position, radius=radius, counts=counts,
+                       offsets=offsets, clusters=clusters, size=cluster_size)
 
     function = sums if walk == "thread" else cluster_sums
     function.__module__ = warp_kernels.__name__  # see _aabb_callables
@@ -1189,7 +1190,8 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
       d_epsilon (N,), count int32 (N,))``: per particle (sorted order for
       all but the forces), each pair in both of its particles' sums.
     """
-    from jaxrt.backends.cell import warp_cluster, warp_kernels
+    from jaxrt.backends.cell import (warp_cluster, warp_cluster_native,
+                                     warp_kernels)
     if walk not in CELL_WALKS:
         raise ValueError(f"cell_lj_sums(walk={walk!r}): choose one of "
                          f"{CELL_WALKS}.")
@@ -1201,9 +1203,10 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
     # it now, not inside the callback (where a graph capture may be open).
     cuda = wp.get_device(device).is_cuda
     if walk == "native" and cuda:
-        kernel = warp_cluster.native_kernel(scalar, flags, size=cluster_size)
+        kernel = warp_cluster_native.native_kernel(scalar, flags,
+                                                   size=cluster_size)
         wp.load_module(kernel.module, device=device,
-                       block_dim=warp_cluster.NATIVE_BLOCK)
+                       block_dim=warp_cluster_native.BLOCK)
     elif walk != "thread":
         kernel = warp_cluster.cluster_kernel(
             scalar, flags, size=cluster_size, unroll=cuda)
