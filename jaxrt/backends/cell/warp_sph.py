@@ -125,6 +125,8 @@ def _density_walk(scalar, shape):
         ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
+        # Per-pair divisions by h as products (a rounding apart).
+        inv_h = scalar(1.0) / h
         support = params[SUPPORT]
         norm_w = params[NORM_W]
         support2 = support * support
@@ -165,7 +167,7 @@ def _density_walk(scalar, shape):
                                         r = wp.sqrt(d2)
                                         # `jaxrt.energy.sph`'s cut, r < support h.
                                         if r < support:
-                                            f, df = shape(r / h)
+                                            f, df = shape(r * inv_h)
                                             total = total + mass[j] * (
                                                 norm_w * f)
         if step == 0:
@@ -218,6 +220,8 @@ def _force_walk(scalar, shape):
         ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
+        # Per-pair divisions by h as products (a rounding apart).
+        inv_h = scalar(1.0) / h
         support = params[SUPPORT]
         norm_w = params[NORM_W]
         alpha, beta = params[ALPHA], params[BETA]
@@ -265,8 +269,8 @@ def _force_walk(scalar, shape):
                                     if d2 < support2 and d2 > scalar(0.0):
                                         r = wp.sqrt(d2)
                                         if r < support:
-                                            f, df = shape(r / h)
-                                            dw = norm_w * (df / h)
+                                            f, df = shape(r * inv_h)
+                                            dw = norm_w * (df * inv_h)
                                             grad_w = (dw / r) * d
                                             mj = mass[j]
                                             acc_p = acc_p - (mj * (
