@@ -23,7 +23,8 @@ Setup labels (``--list`` prints the defaults):
                            Warp engine: one sort, a walk per pass; CPU or
                            CUDA), cell[warp-rXY-G] (its stencil's reach X
                            cells along x, Y across, default 42; G the
-                           CUDA graph capture: none, jax or warp) or brute
+                           CUDA graph capture: none, jax or warp, the
+                           last two CUDA only) or brute
 
 ``walk``: the program a fused row's cell walk ran (``pallas``, ``xla``
 or ``warp``; ``brute``). The default rows compare, in one run, the list step
@@ -44,8 +45,9 @@ acceleration; ~1e-6 in float32).
     python benchmarks/sph_step.py --n 1000000 --only list:cell/OrderedSparse \\
         fused:cell[xla] fused:cell[pallas]                  # a GPU, side by side
     python benchmarks/sph_step.py --quick               # CPU smoke
-    python benchmarks/sph_step.py --n 1000000 --dim 3 --only \
-        list:cell/Dense list:cell/OrderedSparse fused:cell fused:cell[warp]
+    python -m benchmarks.sph_step --n 100000 --dim 3 --only list:cell/Dense \
+        list:cell/OrderedSparse "fused:cell[pallas]" "fused:cell[warp]" \
+        "fused:cell[warp-r42-warp]"                   # a GPU, the Warp engine
 """
 from __future__ import annotations
 

@@ -11,7 +11,8 @@ atomics, the sums written in the sorted order.
 * `density_sums`: ``sum_{j != i} m_j W(|r_ij|)`` (the self term is the
   caller's).
 * `step_sums`: a whole step in one pipeline: the sort, the density
-  walk, the self term and Tait's equation of state, the force walk.
+  walk (with each particle's self term and Tait's equation of state),
+  the force walk.
 * `force_sums`: the symmetric pressure term ``-sum_j m_j (q_i + q_j)
   grad_i W_ij`` (``q = P / rho^2``) and Monaghan's viscosity ``-sum_j m_j
   Pi_ij grad_i W_ij``, with per-particle velocities, masses, densities,
@@ -90,11 +91,10 @@ def _shape_function(scalar, kind: str):
 
 
 def _walks(scalar, kind: str):
-    """``(density_walk, force_walk, gather, state)`` for positions of
-    ``scalar`` and the kernel ``kind`` (`step_sums`' kernels)."""
+    """``(density_walk, force_walk)`` for positions of ``scalar`` and the
+    kernel ``kind``."""
     shape = _shape_function(scalar, kind)
-    return (_density_walk(scalar, shape), _force_walk(scalar, shape)
-            ) + _step_kernels(scalar)
+    return _density_walk(scalar, shape), _force_walk(scalar, shape)
 
 
 def _density_walk(scalar, shape):
@@ -111,14 +111,22 @@ def _density_walk(scalar, shape):
                      grid: wp.array(dtype=vector),
                      cells: wp.array(dtype=wp.int32),
                      params: wp.array(dtype=scalar), flags: int,
-                     mass: wp.array(dtype=scalar),
-                     rho: wp.array(dtype=scalar)):
+                     mass: wp.array(dtype=scalar), step: int,
+                     values: wp.array(dtype=wp.int32),
+                     velocity: wp.array(dtype=vector),
+                     velocity_sorted: wp.array(dtype=vector),
+                     rho: wp.array(dtype=scalar),
+                     q: wp.array(dtype=scalar),
+                     sound: wp.array(dtype=scalar),
+                     density: wp.array(dtype=scalar)):
         i = wp.tid()
         px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
         nx, ny, nz = cells[0], cells[1], cells[2]
         ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
+        # Per-pair divisions by h as products (a rounding apart).
+        inv_h = scalar(1.0) / h
         support = params[SUPPORT]
         norm_w = params[NORM_W]
         support2 = support * support
@@ -159,10 +167,27 @@ def _density_walk(scalar, shape):
                                         r = wp.sqrt(d2)
                                         # `jaxrt.energy.sph`'s cut, r < support h.
                                         if r < support:
-                                            f, df = shape(r / h)
+                                            f, df = shape(r * inv_h)
                                             total = total + mass[j] * (
                                                 norm_w * f)
-        rho[i] = total
+        if step == 0:
+            rho[i] = total
+        else:
+            # A whole step (`step_sums`): this particle's self term,
+            # `jaxrt.energy.sph.Tait`'s pressure and sound speed (their
+            # expressions), its density in the caller's order and its
+            # velocity in the sorted one, for the force walk.
+            r = total + mass[i] * params[W0]
+            rho[i] = r
+            ratio = r / params[RHO0]
+            gamma = params[GAMMA]
+            pressure = params[B] * (wp.pow(ratio, gamma) - scalar(1.0))
+            q[i] = pressure / (r * r)
+            sound[i] = params[C0] * wp.pow(ratio, (gamma - scalar(1.0))
+                                           / scalar(2.0))
+            j = values[i]
+            density[j] = r
+            velocity_sorted[i] = velocity[j]
 
     return density_walk
 
@@ -195,6 +220,8 @@ def _force_walk(scalar, shape):
         ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
+        # Per-pair divisions by h as products (a rounding apart).
+        inv_h = scalar(1.0) / h
         support = params[SUPPORT]
         norm_w = params[NORM_W]
         alpha, beta = params[ALPHA], params[BETA]
@@ -242,8 +269,8 @@ def _force_walk(scalar, shape):
                                     if d2 < support2 and d2 > scalar(0.0):
                                         r = wp.sqrt(d2)
                                         if r < support:
-                                            f, df = shape(r / h)
-                                            dw = norm_w * (df / h)
+                                            f, df = shape(r * inv_h)
+                                            dw = norm_w * (df * inv_h)
                                             grad_w = (dw / r) * d
                                             mj = mass[j]
                                             acc_p = acc_p - (mj * (
@@ -266,52 +293,13 @@ def _force_walk(scalar, shape):
     return force_walk
 
 
-def _step_kernels(scalar):
-    """``(gather, state)`` of `step_sums` for ``scalar``: the velocities
-    and masses in the sorted order; the self term and the equation of
-    state per particle."""
-    vector = wp.types.vector(3, scalar)
-
-    @wp.kernel(module="unique", module_options=_OPTIONS)
-    def gather(values: wp.array(dtype=wp.int32),
-               velocity: wp.array(dtype=vector),
-               mass: wp.array(dtype=scalar),
-               velocity_sorted: wp.array(dtype=vector),
-               mass_sorted: wp.array(dtype=scalar)):
-        i = wp.tid()
-        j = values[i]
-        velocity_sorted[i] = velocity[j]
-        mass_sorted[i] = mass[j]
-
-    @wp.kernel(module="unique", module_options=_OPTIONS)
-    def state(values: wp.array(dtype=wp.int32),
-              params: wp.array(dtype=scalar),
-              mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar),
-              q: wp.array(dtype=scalar), sound: wp.array(dtype=scalar),
-              density: wp.array(dtype=scalar)):
-        # The self term, then `jaxrt.energy.sph.Tait`'s pressure and
-        # sound speed (their expressions), in place on ``rho``.
-        i = wp.tid()
-        r = rho[i] + mass[i] * params[W0]
-        rho[i] = r
-        ratio = r / params[RHO0]
-        gamma = params[GAMMA]
-        p = params[B] * (wp.pow(ratio, gamma) - scalar(1.0))
-        q[i] = p / (r * r)
-        sound[i] = params[C0] * wp.pow(ratio, (gamma - scalar(1.0))
-                                       / scalar(2.0))
-        density[values[i]] = r
-
-    return gather, state
-
-
 _WALKS: dict = {}
 BLOCK = warp_kernels.WALK_BLOCK
 
 
 def walks(scalar, kind: str):
-    """`_walks`' kernels for ``scalar`` positions and the kernel ``kind``
-    (one of `KINDS`), built (and compiled) on first use."""
+    """``(density_walk, force_walk)`` for ``scalar`` positions and the
+    kernel ``kind`` (one of `KINDS`), built (and compiled) on first use."""
     key = (scalar, kind)
     if key not in _WALKS:
         _WALKS[key] = _walks(scalar, kind)
@@ -335,9 +323,11 @@ def density_sums(kind: str, position, keys, start, grid, cells, params,
     if n == 0:
         return
     walk = walks(warp_kernels.scalar_of(position.dtype), kind)[0]
+    # The step's outputs are not written (step 0): any arrays of their
+    # types.
     wp.launch(walk, dim=n, device=position.device, block_dim=BLOCK,
               inputs=[position, keys, start, grid, cells, params, flags,
-                      mass, rho])
+                      mass, 0, keys, position, position, rho, rho, rho, rho])
 
 
 def force_sums(kind: str, position, keys, start, grid, cells, params,
@@ -357,23 +347,24 @@ def force_sums(kind: str, position, keys, start, grid, cells, params,
                       viscosity])
 
 
-def step_sums(kind: str, points, velocity, mass, radii, grid, cells, params,
-              flags: int, *, keys, values, wrapped, start, position, radius,
-              velocity_sorted, mass_sorted, rho, q, sound, pressure,
+def step_sums(kind: str, points, velocity, mass, grid, cells, params,
+              flags: int, *, keys, values, wrapped, start, position,
+              mass_sorted, velocity_sorted, rho, q, sound, pressure,
               viscosity, density) -> None:
-    """A whole SPH step's sums in one pipeline: `warp_kernels.sort_cells`,
-    the density walk, the self term and Tait's equation of state per
-    particle, the force walk.
+    """A whole SPH step's sums in one pipeline: `warp_kernels.sort_cells`
+    (the masses gathered as its radii), the density walk (each particle
+    then adds its self term, evaluates Tait's equation of state and
+    gathers its velocity), the force walk.
 
     Args:
       kind: one of `KINDS`.
       points, velocity: vec3 ``(N,)``; mass: scalar ``(N,)``; the
         caller's order.
-      radii: scalar ``(1,)`` (unused; the sort's signature).
-      grid, cells, flags: as `warp_kernels.sort_cells`'; params: scalar
-        ``(N_PARAMS,)``, every row.
-      keys ... radius: `warp_kernels.sort_cells`' scratch;
-        velocity_sorted, mass_sorted, rho, q, sound: scratch ``(N,)``.
+      grid, cells, flags: as `warp_kernels.sort_cells`' (``HAS_RADII``
+        is set here); params: scalar ``(N_PARAMS,)``, every row.
+      keys, values, wrapped, start, position: `warp_kernels.sort_cells`'
+        scratch; mass_sorted, rho, q, sound: scalar ``(N,)`` scratch,
+        velocity_sorted vec3 ``(N,)`` scratch.
       pressure, viscosity: vec3 ``(N,)`` out, density: scalar ``(N,)``
         out, the caller's order.
     """
@@ -381,18 +372,16 @@ def step_sums(kind: str, points, velocity, mass, radii, grid, cells, params,
     if n == 0:
         return
     device = points.device
-    warp_kernels.sort_cells(points, radii, grid, cells, flags, keys=keys,
+    warp_kernels.sort_cells(points, mass, grid, cells,
+                            flags | warp_kernels.HAS_RADII, keys=keys,
                             values=values, wrapped=wrapped, start=start,
-                            position=position, radius=radius)
-    density_walk, force_walk, gather, state = walks(
-        warp_kernels.scalar_of(points.dtype), kind)
-    wp.launch(gather, dim=n, device=device, block_dim=BLOCK,
-              inputs=[values, velocity, mass, velocity_sorted, mass_sorted])
+                            position=position, radius=mass_sorted)
+    density_walk, force_walk = walks(warp_kernels.scalar_of(points.dtype),
+                                     kind)
     wp.launch(density_walk, dim=n, device=device, block_dim=BLOCK,
               inputs=[position, keys, start, grid, cells, params, flags,
-                      mass_sorted, rho])
-    wp.launch(state, dim=n, device=device, block_dim=BLOCK,
-              inputs=[values, params, mass_sorted, rho, q, sound, density])
+                      mass_sorted, 1, values, velocity, velocity_sorted, rho,
+                      q, sound, density])
     wp.launch(force_walk, dim=n, device=device, block_dim=BLOCK,
               inputs=[position, keys, start, grid, cells, params, flags,
                       velocity_sorted, mass_sorted, rho, q, sound, values, 1,

@@ -1387,33 +1387,31 @@ def _cell_sph_step_callable(vector, kind: str, graph: str):
 
     def step(points: wp.array(dtype=vector),
              velocity: wp.array(dtype=vector), mass: wp.array(dtype=scalar),
-             radii: wp.array(dtype=scalar), grid: wp.array(dtype=vector),
-             cells: wp.array(dtype=wp.int32), params: wp.array(dtype=scalar),
-             flags: wp.int32, keys: wp.array(dtype=wp.int32),
+             grid: wp.array(dtype=vector), cells: wp.array(dtype=wp.int32),
+             params: wp.array(dtype=scalar), flags: wp.int32,
+             keys: wp.array(dtype=wp.int32),
              values: wp.array(dtype=wp.int32),
              wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
              position: wp.array(dtype=vector),
-             radius: wp.array(dtype=scalar),
-             velocity_sorted: wp.array(dtype=vector),
              mass_sorted: wp.array(dtype=scalar),
+             velocity_sorted: wp.array(dtype=vector),
              rho: wp.array(dtype=scalar), q: wp.array(dtype=scalar),
              sound: wp.array(dtype=scalar),
              pressure: wp.array(dtype=vector),
              viscosity: wp.array(dtype=vector),
              density: wp.array(dtype=scalar)):
         warp_sph.step_sums(
-            kind, points, velocity, mass, radii, grid, cells, params,
-            int(flags), keys=keys, values=values, wrapped=wrapped,
-            start=start, position=position, radius=radius,
-            velocity_sorted=velocity_sorted, mass_sorted=mass_sorted,
-            rho=rho, q=q, sound=sound, pressure=pressure,
-            viscosity=viscosity, density=density)
+            kind, points, velocity, mass, grid, cells, params, int(flags),
+            keys=keys, values=values, wrapped=wrapped, start=start,
+            position=position, mass_sorted=mass_sorted,
+            velocity_sorted=velocity_sorted, rho=rho, q=q, sound=sound,
+            pressure=pressure, viscosity=viscosity, density=density)
 
     # See _aabb_callables: the sort's kernels' module, loaded before each
     # call (the walks' own modules are loaded when the call is traced).
     step.__module__ = warp_kernels.__name__
     _CELL_SPH_CALLABLES[key] = wp.jax_callable(
-        step, num_outputs=14, graph_mode=_GRAPH_MODES[graph],
+        step, num_outputs=13, graph_mode=_GRAPH_MODES[graph],
         vmap_method="sequential")
     return _CELL_SPH_CALLABLES[key]
 
@@ -1440,16 +1438,15 @@ def cell_sph_step(points, velocity, mass, grid, cells, params, *,
         wp.load_module(walk.module, device=_warp_device(),
                        block_dim=warp_sph.BLOCK)
     call = _cell_sph_step_callable(vector, kind, graph)
-    radii = jnp.zeros((1,), points.dtype)
     flags = int(flags) & ~warp_kernels.HAS_RADII
-    outs = call(*jax.lax.stop_gradient((points, velocity, mass, radii, grid,
-                                        cells, params)), flags,
+    outs = call(*jax.lax.stop_gradient((points, velocity, mass, grid, cells,
+                                        params)), flags,
                 output_dims={
                     "keys": (2 * n,), "values": (2 * n,), "wrapped": (n, 3),
                     "start": (table + 1,), "position": (n, 3),
-                    "radius": (1,), "velocity_sorted": (n, 3),
-                    "mass_sorted": (n,), "rho": (n,), "q": (n,),
-                    "sound": (n,), "pressure": (n, 3), "viscosity": (n, 3),
+                    "mass_sorted": (n,), "velocity_sorted": (n, 3),
+                    "rho": (n,), "q": (n,), "sound": (n,),
+                    "pressure": (n, 3), "viscosity": (n, 3),
                     "density": (n,)})
     return tuple(outs[-3:])
 
