@@ -234,7 +234,7 @@ def _graph_mask(graph_mask, n_graph: int):
 def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
                 graph_mask=None, capacity=None, max_shift=None, species=None,
                 half: bool = False, self_interaction: bool = False,
-                backend: str = "auto") -> BatchPairs:
+                backend: str = "auto", max_nodes=None) -> BatchPairs:
     """The pairs of every system of a flat batch (module docstring).
 
     Args:
@@ -251,6 +251,11 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
       capacity: static total edges; None (eager only): sized exactly.
       max_shift: static reach, as `jaxrt.pairs` (needed with traced cells).
       species, half, self_interaction, backend: as `jaxrt.pairs`.
+      max_nodes: static int or None: at most this many atoms in any system
+        (jraph's padded node budget per graph); each system is then
+        searched as one dense block (every atom against every atom of its
+        system in every image), which is faster for small systems. A
+        system with more atoms sets ``ErrorBit.MAX_NODES``. None: cells.
     Returns:
       `BatchPairs` (numpy arrays from an eager call, as `jaxrt.pairs`). An
       eager call raises `jaxrt.PairsError` on an incomplete list; under
@@ -270,7 +275,8 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
     pbc, periodic = _pbc(pbc, cell is not None, n_graph)
     graph_mask = _graph_mask(graph_mask, n_graph)
     capacity = checks.check_capacity(capacity)
-    options = dict(half=bool(half), self_interaction=bool(self_interaction))
+    options = dict(half=bool(half), self_interaction=bool(self_interaction),
+                   max_nodes=_max_nodes(max_nodes))
     concrete = all(checks.is_concrete(x) for x in (
         positions, n_node, cut, species, cells, pbc, graph_mask))
     if concrete:
@@ -289,6 +295,8 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
     else:
         shift = checks.check_max_shift(max_shift, periodic)
     brute, reach, chunk = checks.plan(n, periodic, shift, backend)
+    if options["max_nodes"]:
+        reach = tuple(shift)  # dense blocks: every image within the reach
     return _call(positions, n_node, cells, pbc, graph_mask, cut, species,
                  periodic=periodic, reach=reach, brute=brute, chunk=chunk,
                  capacity=capacity, **options)
@@ -316,6 +324,18 @@ def _call(positions, n_node, cells, pbc, graph_mask, cut, species, *,
                       n_edge=n_edge.astype(jnp.int32),
                       n_node=jnp.asarray(n_node, jnp.int32), count=total,
                       overflow=error != 0, error=error)
+
+
+def _max_nodes(max_nodes) -> int:
+    """The static ``max_nodes`` option as the program's int (0: off)."""
+    if max_nodes is None:
+        return 0
+    if isinstance(max_nodes, (bool, np.bool_)) or not isinstance(
+            max_nodes, (int, np.integer)) or max_nodes < 1:
+        raise ValueError(f"jaxrt.pairs_batch: max_nodes={max_nodes!r}: pass "
+                         f"a positive int (the most atoms of one system), "
+                         f"or None.")
+    return int(max_nodes)
 
 
 def _batch_reach(cells, pbc, graph_mask, radius, periodic):
@@ -365,6 +385,8 @@ def _prepare(positions, n_node, cells, pbc, periodic, graph_mask, radius,
     brute, reach, chunk = checks.plan(
         padded[0].shape[0], periodic, shift, backend,
         candidates=int(np.sum(counts.astype(np.int64) ** 2)))
+    if options["max_nodes"]:
+        reach = tuple(shift)  # dense blocks: every image within the reach
     # The guess at the padded size (shared by batches of one bucket).
     guess = guess * padded[0].shape[0] / max(int(counts.sum()), 1)
     return padded, dict(periodic=periodic, reach=reach, brute=brute,

@@ -21,6 +21,7 @@ class ErrorBit(Bits):
     MAX_SHIFT = 2
     NONFINITE_POSITION = 4
     SINGULAR_CELL = 8
+    MAX_NODES = 16
 
 
 MESSAGES = {
