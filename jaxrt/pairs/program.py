@@ -736,38 +736,41 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
     bit = jnp.arange(_WORD, dtype=jnp.uint32)
     packed = jnp.sum(jnp.where(keep, jnp.uint32(1) << bit, jnp.uint32(0)),
                      axis=-1, dtype=jnp.uint32)           # (G, M, K, W)
-    below = (jnp.uint32(1) << bit) - jnp.uint32(1)
-    in_word = _popcount(packed[..., None] & below)         # (G, M, K, W, 32)
     per_word = _popcount(packed).reshape(g * m, k_offsets * words)
-    word_before = _triangular_dot(per_word.astype(jnp.float32),
-                                  strict=True).astype(jnp.int32)
-    per_atom = jnp.sum(per_word, axis=1, dtype=jnp.int32)  # (G M,)
     if self_interaction:
-        selfs = _self_mask(fr.real, cut, species)[at].reshape(-1) & \
-            real.reshape(-1)
+        selfs = _self_mask(fr.real, cut, species)[at] & real
     else:
-        selfs = jnp.zeros((g * m,), bool)
-    degree = per_atom + selfs.astype(jnp.int32)
-    atom_first = _prefix_sum(degree, jnp.float64) - degree
-    place = (atom_first + selfs.astype(jnp.int32))[:, None] + word_before
-    place = place.reshape(g, m, k_offsets, words, 1) + in_word
-    place = jnp.where(keep, place, capacity).reshape(-1)
-    code = jnp.full((capacity,), -1, jnp.int32).at[place].set(
-        jnp.arange(place.shape[0], dtype=jnp.int32), mode="drop")
-    if self_interaction:
-        flat = jnp.arange(g * m, dtype=jnp.int32)
-        self_code = ((flat * k_offsets + own) * words * _WORD
-                     + flat % m)
-        code = code.at[jnp.where(selfs, atom_first, capacity)].set(
-            self_code, mode="drop")
-    # Decode (g, i slot, k, j slot) of each stored row.
-    stored = code >= 0
-    c = jnp.where(stored, code, 0)
-    sj = c % (words * _WORD)
-    rest = c // (words * _WORD)
-    k = rest % k_offsets
-    row_atom = rest // k_offsets                          # g M + i slot
+        selfs = jnp.zeros((g, m), bool)
+    # Each atom's row of counts: its self pair, then its words; row r of
+    # the list is in the word whose running count first passes r.
+    counts = jnp.concatenate([selfs.reshape(-1, 1).astype(jnp.int32),
+                              per_word], axis=1)
+    width = counts.shape[1]
+    ends = _prefix_sum(counts.reshape(-1), jnp.float64)
+    degree = jnp.sum(counts, axis=1, dtype=jnp.int32)
+    r = jnp.arange(capacity, dtype=jnp.int32)
+    stored = r < ends[-1]
+    wid = jnp.minimum(jnp.searchsorted(ends, r, side="right"),
+                      ends.shape[0] - 1).astype(jnp.int32)
+    rank = r - (ends[wid] - counts.reshape(-1)[wid])
+    row_atom = wid // width                               # g M + i slot
+    col = wid - row_atom * width
+    is_self = col == 0
+    word = jnp.maximum(col - 1, 0)
+    k = word // words
+    bits = packed.reshape(-1)[row_atom * (k_offsets * words) + word]
+    # The rank-th set bit of the word: the largest b with fewer than
+    # rank + 1 set bits below it.
+    b = jnp.zeros((capacity,), jnp.uint32)
+    for step in (16, 8, 4, 2, 1):
+        cand = b + jnp.uint32(step)
+        below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
+        b = jnp.where(below <= rank, cand, b)
     gi = row_atom // m
+    si = row_atom - gi * m
+    sj = jnp.where(is_self, si, (word - k * words) * _WORD + b.astype(
+        jnp.int32))
+    k = jnp.where(is_self, own, k)
     w_flat = w.reshape(-1, 3)
     shift = o[k] + w_flat[row_atom] - w_flat[gi * m + jnp.minimum(sj, m - 1)]
     i = idx.reshape(-1)[row_atom]
