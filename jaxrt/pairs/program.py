@@ -75,6 +75,9 @@ BRUTE_ONE_STEP = 2 ** 16
 # A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
 CELLS_PER_ATOM = 4
 CELLS_PER_SYSTEM = 64
+# Dense blocks up to this many candidates in all (their flat index is an
+# int32, their keep bits one array); past it the cells search the batch.
+DENSE_MOST = 2 ** 28
 
 
 def shift_vectors(s, h):
@@ -810,7 +813,8 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
         on the host).
       max_nodes: static; positive (with ``sort``): every system has at
         most this many atoms and is searched as one dense block
-        (`_dense_rows`, with the stencil ``reach``); 0: cells.
+        (`_dense_rows`, with the stencil ``reach``) unless the blocks hold
+        more than ``DENSE_MOST`` candidates; 0: cells.
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -820,7 +824,8 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     radius = cut if species is None else jnp.max(cut)
     pbc = jnp.asarray(pbc, bool) & np.array(periodic)
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
-    if max_nodes > 0 and sort:
+    if max_nodes > 0 and sort and n_graph * max_nodes * max_nodes * \
+            offsets(reach, True).shape[0] <= DENSE_MOST:
         rows, total, per_system, error = _dense_rows(
             positions, graph, mask, cells.astype(dtype), pbc, cut, species,
             radius, reach=reach, max_nodes=max_nodes, n_graph=n_graph,

@@ -96,7 +96,7 @@ def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
     got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
                             max_nodes=m, **batch.kwargs)
     cells = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                              **batch.kwargs)
+                              max_nodes=0, **batch.kwargs)
     assert int(got.error) == 0
     want = [ase_set(a) for a in systems]
     assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 3
@@ -144,7 +144,8 @@ def test_dense_half_lists_self_pairs_and_species(x64, half):
               **batch.kwargs)
     got = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
                             max_nodes=9, **kw)
-    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs, **kw)
+    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
+                              max_nodes=0, **kw)
     for a, edges in zip(systems, per_system(got, batch.n_node, 2)):
         want = ase_set(a, cutoffs, self_interaction=True)
         if half:
@@ -172,7 +173,28 @@ def test_dense_flags_a_system_larger_than_max_nodes(x64):
         got.check()
     with pytest.raises(ValueError, match="max_nodes"):
         jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                          max_nodes=0, **batch.kwargs)
+                          max_nodes=-1, **batch.kwargs)
+
+
+def test_sizes_choose_dense_blocks_for_small_systems_only(x64):
+    small = jaxrt.batch_from_ase(mixed()[:-1], pad=False)
+    sizes = jaxrt.pairs_batch_sizes(small.positions, small.n_node, CUTOFF,
+                                    **small.kwargs)
+    assert sizes.max_shift == (2, 2, 2)
+    assert sizes.kwargs["max_nodes"] == 12  # 9 atoms (bucket 12) x 125
+    thin = jaxrt.batch_from_ase(mixed(), pad=False)
+    sizes_thin = jaxrt.pairs_batch_sizes(thin.positions, thin.n_node,
+                                         CUTOFF, **thin.kwargs)
+    assert sizes_thin.max_shift == (4, 4, 4)
+    assert sizes_thin.max_nodes == 0  # 12 x 729 images: cells
+    big = jaxrt.batch_from_ase([bulk("Cu", "fcc", a=3.61, cubic=True)
+                                .repeat((4, 4, 4))], pad=False)
+    sizes_big = jaxrt.pairs_batch_sizes(big.positions, big.n_node, CUTOFF,
+                                        **big.kwargs)
+    assert sizes_big.max_nodes == 0  # 256 atoms x 27 images: cells
+    assert sizes.merge(sizes_big).max_nodes == 0
+    assert jaxrt.pairs_sizes(big.positions, CUTOFF,
+                             cell=big.cell[0]).max_nodes is None
 
 
 def test_dense_capacity_overflow_keeps_exact_counts(x64):
