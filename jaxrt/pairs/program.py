@@ -49,6 +49,12 @@ How it searches (the search of one system is the same with one graph):
    were found in); each atom's self pair, when asked for, is put before its
    pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
+**Dense blocks** (``max_nodes > 0``, sorted lists of flat batches of small
+systems): steps 3-5 are replaced by `_dense_rows`: each system is one
+block of ``max_nodes`` slots, every atom against every atom of its system
+in every image of the reach, decided as in step 5 all at once (no cells,
+no runs, no gather per candidate), the rows found by counting kept bits.
+
 ``brute=True`` is the same program with one cell per system: every atom
 of a system is a candidate of every atom of it, in every image.
 `jaxrt.pairs.host` decides every candidate of one small system at once

@@ -221,3 +221,17 @@ def test_dense_too_short_reach_is_flagged(x64):
         r, batch.n_node, CUTOFF, capacity=512, max_shift=1, max_nodes=2,
         **batch.kwargs))(batch.positions)
     assert int(got.error) & int(ErrorBit.MAX_SHIFT)
+
+
+def test_float32_dense_equals_the_cells():
+    # float32 (x64 off): both searches decide with the same expression in
+    # the same dtype, so the edge sets are equal, not only close.
+    systems = mixed()[:-1]
+    batch = jaxrt.batch_from_ase(systems, pad=False)
+    r = np.asarray(batch.positions, np.float32)
+    kw = dict(batch.kwargs, cell=np.asarray(batch.cell, np.float32))
+    dense = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=9, **kw)
+    cells = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=0, **kw)
+    assert per_system(dense, batch.n_node, len(systems)) == per_system(
+        cells, batch.n_node, len(systems))
+    np.testing.assert_array_equal(dense.n_edge, cells.n_edge)
