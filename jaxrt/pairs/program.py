@@ -672,6 +672,11 @@ def _popcount(x):
     return jax.lax.population_count(x).astype(jnp.int32)
 
 
+def _running_max(x):
+    """int32 ``(n,)`` inclusive running maximum of int32 ``(n,)`` ``x``."""
+    return jax.lax.associative_scan(jnp.maximum, x)
+
+
 def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
                 reach, max_nodes, n_graph, completed, half,
                 self_interaction, capacity):
@@ -759,9 +764,15 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
     degree = jnp.sum(counts, axis=1, dtype=jnp.int32)
     r = jnp.arange(capacity, dtype=jnp.int32)
     stored = r < ends[-1]
-    wid = jnp.minimum(jnp.searchsorted(ends, r, side="right"),
-                      ends.shape[0] - 1).astype(jnp.int32)
-    rank = r - (ends[wid] - counts.reshape(-1)[wid])
+    # Each nonempty word marks its first row; a row's word is the last mark
+    # at or before it (a running maximum: no search per row).
+    flat_counts = counts.reshape(-1)
+    word_start = ends - flat_counts
+    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
+        flat_counts > 0, word_start, capacity)].set(
+            jnp.arange(ends.shape[0], dtype=jnp.int32), mode="drop")
+    wid = _running_max(marks)
+    rank = r - word_start[wid]
     row_atom = wid // width                               # g M + i slot
     col = wid - row_atom * width
     is_self = col == 0
