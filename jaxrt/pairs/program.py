@@ -687,11 +687,12 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
     (the wraps as in step 2), in the brute force's order (``i``, then
     ``o``, then ``j``).
 
-    A kept candidate's place is its atom's first row, plus its atom's self
-    pair, plus the kept before it in the atom's row: the row is read as
-    32-bit words (population counts), so no prefix sum runs over the
-    candidates. Only the flat index of each kept candidate is scattered;
-    the rows are decoded from it at the capacity's size.
+    The decisions are packed into 32-bit words (``j`` by 32); the running
+    count over each atom's self pair and words places the words, and each
+    of the ``capacity`` rows finds its word (the last word starting at or
+    before it: marks and a running maximum) and its bit (the word's set
+    bit of its rank, by population counts): nothing runs over the
+    candidates but the decision, nothing is scattered per candidate.
 
     Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``, the
     count, the count per system and the error bits (a system with more
