@@ -35,7 +35,9 @@ Methods:
 Batches (``system`` = GxM): G periodic fcc-like systems of M atoms each
 (M/4 conventional cells, lattice constant 3.5..4.1 Å per system, each axis
 strained by up to 3 %, rattled by 0.05 Å), cutoff 5 Å, as one flat batch:
-jaxrt.pairs_batch under jit (static sizes from jaxrt.pairs_batch_sizes),
+jaxrt.pairs_batch under jit (static sizes from jaxrt.pairs_batch_sizes:
+small systems are searched as dense blocks), jaxrt[cells] the same with
+max_nodes=0 (the cell search),
 nvalchemiops[jax-jit] batch_cell_list (batch_idx and batch_ptr), vesin
 looping over the systems.
 
@@ -74,8 +76,9 @@ NVAL_JIT = "nvalchemiops[jax-jit]"
 NVAL_PC = "nvalchemiops[jax-jit-pc]"
 GPU_METHODS = ["jaxrt", "jaxrt[eager]", "nvalchemiops", "nvalchemiops[jax]",
                NVAL_JIT, NVAL_PC]
-BATCH_METHODS = ["jaxrt", "vesin", NVAL_JIT, NVAL_PC]
-CPU_BATCH_METHODS = ["jaxrt", "vesin"]
+CELLS = "jaxrt[cells]"
+BATCH_METHODS = ["jaxrt", CELLS, "vesin", NVAL_JIT, NVAL_PC]
+CPU_BATCH_METHODS = ["jaxrt", CELLS, "vesin"]
 GPU_BATCH_METHODS = ["jaxrt", NVAL_JIT, NVAL_PC]
 BATCHES = ["256x32", "64x128"]
 
@@ -356,15 +359,16 @@ def _nval_jit(inputs, cell, dtype, pair_centric: bool):
     return (lambda x: f(x, c, p)), xs, None, _count_matrix
 
 
-def _jaxrt_batch(inputs, n_node, cells, dtype):
+def _jaxrt_batch(inputs, n_node, cells, dtype, by_cells: bool = False):
     import jax
     import jax.numpy as jnp
     import jaxrt
     xs = [jnp.asarray(x, dtype) for x in inputs]
     c = jnp.asarray(cells, dtype)
     sizes = jaxrt.pairs_batch_sizes(xs[0], n_node, CUTOFF, cell=c)
+    kwargs = dict(sizes.kwargs, max_nodes=0) if by_cells else sizes.kwargs
     f = jax.jit(lambda x, n, c: jaxrt.pairs_batch(x, n, CUTOFF, cell=c,
-                                                  **sizes.kwargs))
+                                                  **kwargs))
     nn = jnp.asarray(n_node)
 
     def count(out):
@@ -507,8 +511,9 @@ def run_row(job: dict) -> dict:
         jitter = __import__("numpy").random.default_rng(1)
         inputs = [pos] + [pos + jitter.normal(0, 1e-3, pos.shape)
                           for _ in range(2)]
-        if method == "jaxrt":
-            call, xs, sync, count = _jaxrt_batch(inputs, n_node, cells, dtype)
+        if method in ("jaxrt", CELLS):
+            call, xs, sync, count = _jaxrt_batch(inputs, n_node, cells, dtype,
+                                                 method == CELLS)
         elif method == "vesin":
             call, xs, sync, count = _vesin_batch(inputs, n_node, cells)
         elif method in (NVAL_JIT, NVAL_PC):
@@ -586,7 +591,7 @@ def main(argv=None) -> None:
                         f"M a multiple of 4); default {' '.join(BATCHES)}; "
                         "none: single systems only")
     parser.add_argument("--methods", nargs="+", default=None,
-                        choices=CPU_METHODS + GPU_METHODS[2:])
+                        choices=CPU_METHODS + GPU_METHODS[2:] + [CELLS])
     parser.add_argument("--dtype", default="float64",
                         choices=["float32", "float64"],
                         help="jaxrt's and nvalchemiops' dtype (ASE, matscipy "

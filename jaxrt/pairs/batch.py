@@ -234,7 +234,7 @@ def _graph_mask(graph_mask, n_graph: int):
 def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
                 graph_mask=None, capacity=None, max_shift=None, species=None,
                 half: bool = False, self_interaction: bool = False,
-                backend: str = "auto") -> BatchPairs:
+                backend: str = "auto", max_nodes=None) -> BatchPairs:
     """The pairs of every system of a flat batch (module docstring).
 
     Args:
@@ -251,6 +251,13 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
       capacity: static total edges; None (eager only): sized exactly.
       max_shift: static reach, as `jaxrt.pairs` (needed with traced cells).
       species, half, self_interaction, backend: as `jaxrt.pairs`.
+      max_nodes: static int: positive, at most this many atoms in any
+        system, each system then searched as one dense block (every atom
+        against every atom of its system in every image of the reach),
+        faster than cells for small systems (a system with more atoms sets
+        ``ErrorBit.MAX_NODES``); 0: cells. None: eager calls choose (dense
+        blocks for small systems), under ``jit`` cells;
+        `jaxrt.pairs_batch_sizes` gives it.
     Returns:
       `BatchPairs` (numpy arrays from an eager call, as `jaxrt.pairs`). An
       eager call raises `jaxrt.PairsError` on an incomplete list; under
@@ -270,7 +277,8 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
     pbc, periodic = _pbc(pbc, cell is not None, n_graph)
     graph_mask = _graph_mask(graph_mask, n_graph)
     capacity = checks.check_capacity(capacity)
-    options = dict(half=bool(half), self_interaction=bool(self_interaction))
+    options = dict(half=bool(half), self_interaction=bool(self_interaction),
+                   max_nodes=_max_nodes(max_nodes))
     concrete = all(checks.is_concrete(x) for x in (
         positions, n_node, cut, species, cells, pbc, graph_mask))
     if concrete:
@@ -289,6 +297,9 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
     else:
         shift = checks.check_max_shift(max_shift, periodic)
     brute, reach, chunk = checks.plan(n, periodic, shift, backend)
+    options["max_nodes"] = options["max_nodes"] or 0
+    if options["max_nodes"]:
+        reach = tuple(shift)  # dense blocks: every image within the reach
     return _call(positions, n_node, cells, pbc, graph_mask, cut, species,
                  periodic=periodic, reach=reach, brute=brute, chunk=chunk,
                  capacity=capacity, **options)
@@ -316,6 +327,18 @@ def _call(positions, n_node, cells, pbc, graph_mask, cut, species, *,
                       n_edge=n_edge.astype(jnp.int32),
                       n_node=jnp.asarray(n_node, jnp.int32), count=total,
                       overflow=error != 0, error=error)
+
+
+def _max_nodes(max_nodes):
+    """The static ``max_nodes`` option checked: an int >= 0, or None."""
+    if max_nodes is None:
+        return None
+    if isinstance(max_nodes, (bool, np.bool_)) or not isinstance(
+            max_nodes, (int, np.integer)) or max_nodes < 0:
+        raise ValueError(f"jaxrt.pairs_batch: max_nodes={max_nodes!r}: pass "
+                         f"an int, the most atoms of one system (0: search "
+                         f"by cells), or None.")
+    return int(max_nodes)
 
 
 def _batch_reach(cells, pbc, graph_mask, radius, periodic):
@@ -365,6 +388,11 @@ def _prepare(positions, n_node, cells, pbc, periodic, graph_mask, radius,
     brute, reach, chunk = checks.plan(
         padded[0].shape[0], periodic, shift, backend,
         candidates=int(np.sum(counts.astype(np.int64) ** 2)))
+    if options["max_nodes"] is None:
+        options = dict(options, max_nodes=checks.dense_nodes(
+            int(np.max(counts, initial=0)), shift))
+    if options["max_nodes"]:
+        reach = tuple(shift)  # dense blocks: every image within the reach
     # The guess at the padded size (shared by batches of one bucket).
     guess = guess * padded[0].shape[0] / max(int(counts.sum()), 1)
     return padded, dict(periodic=periodic, reach=reach, brute=brute,
@@ -441,5 +469,8 @@ def pairs_batch_sizes(positions, n_node, cutoff, *, cell=None, pbc=None,
                             "jaxrt.pairs_batch_sizes")[0]
     shift = _batch_reach(cells, p, _graph_mask(graph_mask, n_graph), radius,
                          periodic)
+    counts = np.where(_graph_mask(graph_mask, n_graph), np.asarray(n_node),
+                      0)
     return PairSizes(capacity=checks.bucket(int(result.count)),
-                     max_shift=shift)
+                     max_shift=shift, max_nodes=checks.dense_nodes(
+                         int(np.max(counts, initial=0)), shift))

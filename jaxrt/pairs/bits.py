@@ -21,6 +21,7 @@ class ErrorBit(Bits):
     MAX_SHIFT = 2
     NONFINITE_POSITION = 4
     SINGULAR_CELL = 8
+    MAX_NODES = 16
 
 
 MESSAGES = {
@@ -34,6 +35,9 @@ MESSAGES = {
                                  "its pairs are missing",
     ErrorBit.SINGULAR_CELL: "the cell is singular or not finite, or has a "
                             "zero row on a periodic axis",
+    ErrorBit.MAX_NODES: "a system has more atoms than max_nodes (its pairs "
+                        "are missing): pass a larger max_nodes= (at least "
+                        "the largest n_node)",
 }
 
 

@@ -369,6 +369,22 @@ def is_small(n: int, max_shift) -> bool:
     return n * n * math.prod(2 * r + 1 for r in max_shift) <= SMALL_CANDIDATES
 
 
+# A flat batch's systems are searched as dense blocks (every atom against
+# every atom of its system, in every image of the reach) while each atom has
+# at most this many candidates; past it the cells read fewer (on a CPU the
+# two cross between 128 and 256 atoms of fcc at reach 1).
+DENSE_CANDIDATES = 2 ** 12
+
+
+def dense_nodes(largest: int, max_shift) -> int:
+    """The static ``max_nodes`` of dense blocks for systems of at most
+    ``largest`` atoms (rounded up by `bucket`), or 0 where cells are the
+    better search."""
+    m = bucket(largest)
+    images = math.prod(2 * r + 1 for r in max_shift)
+    return m if m * images <= DENSE_CANDIDATES else 0
+
+
 def plan(n: int, pbc, max_shift, backend: str, candidates=None):
     """``(brute, reach, chunk)`` static options of the program (``chunk``:
     candidates per step). ``candidates``: the brute force's atom pairs

@@ -49,6 +49,12 @@ How it searches (the search of one system is the same with one graph):
    were found in); each atom's self pair, when asked for, is put before its
    pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
+**Dense blocks** (``max_nodes > 0``, sorted lists of flat batches of small
+systems): steps 3-5 are replaced by `_dense_rows`: each system is one
+block of ``max_nodes`` slots, every atom against every atom of its system
+in every image of the reach, decided as in step 5 all at once (no cells,
+no runs, no gather per candidate), the rows found by counting kept bits.
+
 ``brute=True`` is the same program with one cell per system: every atom
 of a system is a candidate of every atom of it, in every image.
 `jaxrt.pairs.host` decides every candidate of one small system at once
@@ -75,6 +81,9 @@ BRUTE_ONE_STEP = 2 ** 16
 # A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
 CELLS_PER_ATOM = 4
 CELLS_PER_SYSTEM = 64
+# Dense blocks up to this many candidates in all (their flat index is an
+# int32, their keep bits one array); past it the cells search the batch.
+DENSE_MOST = 2 ** 28
 
 
 def shift_vectors(s, h):
@@ -308,9 +317,23 @@ def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
     return start, length, order, rank
 
 
-def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
-         n_graph, completed, full) -> _Binned:
-    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+class _Frame(NamedTuple):
+    """Steps 1-2: the completed cells, the real atoms, the wraps."""
+    error: jax.Array      # int32 bits so far
+    real: jax.Array       # bool (N,)
+    graph: jax.Array      # int32 (N,) clipped to [0, G)
+    unclipped: jax.Array  # int32 (N,) as given
+    h: jax.Array          # (G, 3, 3) completed cells
+    bad_cell: jax.Array   # bool (G,)
+    h_height: jax.Array   # (G, 3)
+    count: jax.Array      # int32 (G,) real atoms per system
+    pbc_a: jax.Array      # bool (N, 3)
+    w: jax.Array          # float (N, 3) whole cells each atom was moved by
+    fw: jax.Array         # float (N, 3) wrapped fractional positions
+
+
+def _frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
+    """Steps 1-2 of the module docstring (step 1 unless ``completed``)."""
     n, dtype = positions.shape[0], positions.dtype
     r = jax.lax.stop_gradient(positions)
     h = jax.lax.stop_gradient(cells)
@@ -336,7 +359,17 @@ def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv_a, axis=1)
     w = jnp.where(pbc_a, jnp.floor(f), 0)
     fw = f - w
+    return _Frame(error, real, graph, unclipped, h, bad_cell, h_height,
+                  count, pbc_a, w, fw)
 
+
+def _bin(positions, graph, mask, cells, pbc, radius, *, reach, brute,
+         n_graph, completed, full) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+    n = positions.shape[0]
+    (error, real, graph, unclipped, h, bad_cell, h_height, count, pbc_a, w,
+     fw) = _frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
+                  completed=completed)
     grid_cells, origin, width, base = _grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
     # The reach covers the cutoff unless the cell is too short for it.
@@ -631,13 +664,154 @@ def _self_rows(selfs, graph, n_graph):
         selfs.astype(jnp.int32), graph, n_graph)
 
 
+_WORD = 32
+
+
+def _popcount(x):
+    """int32 set bits of uint32 ``x`` (elementwise)."""
+    return jax.lax.population_count(x).astype(jnp.int32)
+
+
+def _running_max(x):
+    """int32 ``(n,)`` inclusive running maximum of int32 ``(n,)`` ``x``."""
+    return jax.lax.associative_scan(jnp.maximum, x)
+
+
+def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
+                reach, max_nodes, n_graph, completed, half,
+                self_interaction, capacity):
+    """The sorted rows of a batch of small systems, each system one dense
+    block: atom ``i`` against every atom ``j`` of its system in every
+    image ``o`` of the stencil, ``(G, M, K, M)`` candidates decided at once
+    (no cells, no runs, no per-candidate gathers), ``S = o + w[i] - w[j]``
+    (the wraps as in step 2), in the brute force's order (``i``, then
+    ``o``, then ``j``).
+
+    The decisions are packed into 32-bit words (``j`` by 32); the running
+    count over each atom's self pair and words places the words, and each
+    of the ``capacity`` rows finds its word (the last word starting at or
+    before it: marks and a running maximum) and its bit (the word's set
+    bit of its rank, by population counts): nothing runs over the
+    candidates but the decision, nothing is scattered per candidate.
+
+    Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``, the
+    count, the count per system and the error bits (a system with more
+    than ``max_nodes`` atoms sets ``MAX_NODES``).
+    """
+    n, dtype = positions.shape[0], positions.dtype
+    g, m = n_graph, max_nodes
+    fr = _frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
+                completed=completed)
+    stencil = offsets(reach, full=True)
+    k_offsets = stencil.shape[0]
+    own = int(np.argmin(np.abs(stencil).sum(axis=1)))
+    # Each system's atoms are contiguous (a flat batch): slot = a - first.
+    sizes = jnp.zeros((g,), jnp.int32).at[fr.unclipped].add(1, mode="drop")
+    first = _exclusive_prefix(sizes)
+    slot = jnp.arange(n, dtype=jnp.int32) - first[fr.graph]
+    error = fr.error | jnp.where(jnp.any(fr.real & (slot >= m)),
+                                 int(ErrorBit.MAX_NODES), 0)
+    short = jnp.any(pbc & (radius / fr.h_height > np.array(reach)),
+                    axis=-1) & (fr.count > 0) & ~fr.bad_cell
+    error = error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
+    slots = jnp.arange(m, dtype=jnp.int32)
+    idx = first[:, None] + slots
+    present = slots < sizes[:, None]
+    at = jnp.where(present, idx, 0)
+    real = present & fr.real[at]                                  # (G, M)
+    p = positions[at]
+    w = fr.w[at].astype(jnp.int32)
+    o = jnp.asarray(stencil)
+    # On a free axis only the zero offset (its wrap is 0).
+    allowed = jnp.all(pbc[:, None, :] | (o == 0)[None], axis=-1)  # (G, K)
+    s = (o[None, None, :, None, :] + w[:, :, None, None, :]
+         - w[:, None, None, :, :])                          # (G, M, K, M, 3)
+    diff = p[:, None, :, :] - p[:, :, None, :]              # (G, Mi, Mj, 3)
+    d = diff[:, :, None] + shift_vectors(
+        s.astype(dtype), fr.h[:, None, None, None])
+    dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                    + d[..., 2] * d[..., 2])
+    if species is None:
+        limit = cut
+    else:
+        sp = species[at]
+        limit = cut.at[sp[:, :, None], sp[:, None, :]].get(
+            mode="fill", fill_value=0)[:, :, None, :]
+    same = (slots[:, None] == slots[None, :])[None, :, None, :]
+    not_self = ~(same & (jnp.arange(k_offsets) == own)[None, None, :, None])
+    keep = ((dist < limit) & real[:, :, None, None] & real[:, None, None, :]
+            & allowed[:, None, :, None] & not_self)
+    if half:
+        before = (slots[:, None] < slots[None, :])[None, :, None, :]
+        keep = keep & (before | (same & lex_positive(s)))
+    # Words of 32 slots: in-word ranks and word counts by population count.
+    words = -(-m // _WORD)
+    keep = jnp.pad(keep, ((0, 0), (0, 0), (0, 0), (0, words * _WORD - m)))
+    keep = keep.reshape(g, m, k_offsets, words, _WORD)
+    bit = jnp.arange(_WORD, dtype=jnp.uint32)
+    packed = jnp.sum(jnp.where(keep, jnp.uint32(1) << bit, jnp.uint32(0)),
+                     axis=-1, dtype=jnp.uint32)           # (G, M, K, W)
+    per_word = _popcount(packed).reshape(g * m, k_offsets * words)
+    if self_interaction:
+        selfs = _self_mask(fr.real, cut, species)[at] & real
+    else:
+        selfs = jnp.zeros((g, m), bool)
+    # Each atom's row of counts: its self pair, then its words; row r of
+    # the list is in the word whose running count first passes r.
+    counts = jnp.concatenate([selfs.reshape(-1, 1).astype(jnp.int32),
+                              per_word], axis=1)
+    width = counts.shape[1]
+    ends = _prefix_sum(counts.reshape(-1), jnp.float64)
+    degree = jnp.sum(counts, axis=1, dtype=jnp.int32)
+    r = jnp.arange(capacity, dtype=jnp.int32)
+    stored = r < ends[-1]
+    # Each nonempty word marks its first row; a row's word is the last mark
+    # at or before it (a running maximum: no search per row).
+    flat_counts = counts.reshape(-1)
+    word_start = ends - flat_counts
+    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
+        flat_counts > 0, word_start, capacity)].set(
+            jnp.arange(ends.shape[0], dtype=jnp.int32), mode="drop")
+    wid = _running_max(marks)
+    rank = r - word_start[wid]
+    row_atom = wid // width                               # g M + i slot
+    col = wid - row_atom * width
+    is_self = col == 0
+    word = jnp.maximum(col - 1, 0)
+    k = word // words
+    bits = packed.reshape(-1)[row_atom * (k_offsets * words) + word]
+    # The rank-th set bit of the word: the largest b with fewer than
+    # rank + 1 set bits below it.
+    b = jnp.zeros((capacity,), jnp.uint32)
+    for step in (16, 8, 4, 2, 1):
+        cand = b + jnp.uint32(step)
+        below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
+        b = jnp.where(below <= rank, cand, b)
+    gi = row_atom // m
+    si = row_atom - gi * m
+    sj = jnp.where(is_self, si, (word - k * words) * _WORD + b.astype(
+        jnp.int32))
+    k = jnp.where(is_self, own, k)
+    w_flat = w.reshape(-1, 3)
+    shift = o[k] + w_flat[row_atom] - w_flat[gi * m + jnp.minimum(sj, m - 1)]
+    i = idx.reshape(-1)[row_atom]
+    j = first[gi] + sj
+    rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
+    rows = jnp.where(stored[:, None], rows,
+                     jnp.array([n, n, 0, 0, 0], jnp.int32))
+    total = jnp.sum(degree, dtype=jnp.int32)
+    per_system = jnp.sum(degree.reshape(g, m), axis=1, dtype=jnp.int32)
+    return rows, total, per_system, error
+
+
 @functools.partial(jax.jit, static_argnames=(
     "periodic", "reach", "capacity", "brute", "chunk", "half", "sort",
-    "self_interaction", "n_graph", "completed"))
+    "self_interaction", "n_graph", "completed", "max_nodes"))
 def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
            periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
            brute: bool, chunk: int, half: bool, sort: bool,
-           self_interaction: bool, n_graph: int, completed: bool = False):
+           self_interaction: bool, n_graph: int, completed: bool = False,
+           max_nodes: int = 0):
     """The pairs of a flat batch (module docstring).
 
     Args:
@@ -655,6 +829,10 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
       capacity: static rows; 0 counts only.
       completed: static; the cells have no zero rows to complete (checked
         on the host).
+      max_nodes: static; positive (with ``sort``): every system has at
+        most this many atoms and is searched as one dense block
+        (`_dense_rows`, with the stencil ``reach``) unless the blocks hold
+        more than ``DENSE_MOST`` candidates; 0: cells.
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -663,6 +841,16 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     cut = jnp.asarray(cutoff, dtype)
     radius = cut if species is None else jnp.max(cut)
     pbc = jnp.asarray(pbc, bool) & np.array(periodic)
+    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    if max_nodes > 0 and sort and n_graph * max_nodes * max_nodes * \
+            offsets(reach, True).shape[0] <= DENSE_MOST:
+        rows, total, per_system, error = _dense_rows(
+            positions, graph, mask, cells.astype(dtype), pbc, cut, species,
+            radius, reach=reach, max_nodes=max_nodes, n_graph=n_graph,
+            completed=completed, half=half,
+            self_interaction=self_interaction, capacity=capacity)
+        return _finish(rows, total, per_system, error, pad_index, n=n,
+                       capacity=capacity)
     binned = _bin(positions, graph, mask, cells.astype(dtype), pbc, radius,
                   reach=reach, brute=brute, n_graph=n_graph,
                   completed=completed, full=sort)
@@ -696,10 +884,15 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
             rows = jnp.concatenate([rows, jnp.broadcast_to(
                 pad, (max(capacity - rows.shape[0], 0), 5))])
         rows = rows[:capacity]
+    return _finish(rows, total, per_system, binned.error, pad_index, n=n,
+                   capacity=capacity)
+
+
+def _finish(rows, total, per_system, error, pad_index, *, n, capacity):
+    """Padding rows set to ``pad_index``, the capacity's bit."""
     padding = rows[:, 0] >= n
     fill = jnp.concatenate([jnp.broadcast_to(pad_index, (2,)).astype(
         jnp.int32), jnp.zeros((3,), jnp.int32)])
     rows = jnp.where(padding[:, None], fill, rows)
-    error = binned.error | jnp.where(total > capacity,
-                                     int(ErrorBit.CAPACITY), 0)
+    error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
     return rows, total, per_system, error.astype(jnp.int32)

@@ -179,19 +179,33 @@ class PairSizes:
     Attributes:
       capacity: the most pairs of any system measured.
       max_shift: per axis, the stencil reach the cells need (0 on free axes).
+      max_nodes: flat batches (`jaxrt.pairs_batch_sizes`) only: the most
+        atoms of one system, where its systems are small enough to be
+        searched as dense blocks; 0 where cells are faster; None (single
+        systems): not passed.
     """
 
     capacity: int
     max_shift: tuple[int, int, int]
+    max_nodes: int | None = None
 
     @property
     def kwargs(self) -> dict:
-        return {"capacity": self.capacity, "max_shift": self.max_shift}
+        out = {"capacity": self.capacity, "max_shift": self.max_shift}
+        if self.max_nodes is not None:
+            out["max_nodes"] = self.max_nodes
+        return out
 
     def merge(self, other: "PairSizes") -> "PairSizes":
-        """Sizes that fit both (the larger of each)."""
-        return PairSizes(max(self.capacity, other.capacity), tuple(
-            max(a, b) for a, b in zip(self.max_shift, other.max_shift)))
+        """Sizes that fit both (the larger of each; dense blocks only where
+        both have them and the larger still suits them)."""
+        shift = tuple(max(a, b) for a, b in zip(self.max_shift,
+                                                 other.max_shift))
+        nodes = None
+        if self.max_nodes is not None or other.max_nodes is not None:
+            a, b = self.max_nodes or 0, other.max_nodes or 0
+            nodes = checks.dense_nodes(max(a, b), shift) if a and b else 0
+        return PairSizes(max(self.capacity, other.capacity), shift, nodes)
 
 
 def _inputs(positions, cutoff, cell, pbc, mask, species, traced_ok=False):
