@@ -1196,7 +1196,9 @@ def _cell_rows_callable(vector, graph: str):
             values=values, wrapped=wrapped, start=start, position=position,
             radius=radius)
 
-    walk.__module__ = warp_rows.__name__  # see _aabb_callables
+    # The sort's kernels' module (see _aabb_callables); the walk's own
+    # module is loaded by cell_candidate_rows.
+    walk.__module__ = warp_kernels.__name__
     _CELL_ROWS_CALLABLES[key] = wp.jax_callable(
         walk, num_outputs=10, graph_mode=_GRAPH_MODES[graph],
         vmap_method="sequential")
