@@ -27,8 +27,10 @@ default, and ``--only`` takes Sparse as well):
                                     (backend cell, cell[xla], cell[pallas],
                                     bvh or brute; cell is the Pallas kernel
                                     on CUDA; cell[warp] or cell[kernel=warp]
-                                    the Warp engine, cell[warp-rXY-G] with
-                                    its reach and graph capture), forces
+                                    the Warp engine, cell[warp-rXY-cK-G]
+                                    with its reach, cluster walk (nK: the
+                                    warp-cooperative one) and graph
+                                    capture), forces
                                     from its custom_vjp, the same NVE step
 A label in ``--only`` without ``/`` selects both formats.
 
@@ -61,10 +63,14 @@ FUSED_BACKENDS = ("cell", "cell[xla]", "bvh")
 FUSED_OPTIONS = {"cell[xla]": ("cell", "xla"), "cell[pallas]": ("cell", "pallas"),
                  "cell[auto]": ("cell", "auto"), "cell[warp]": ("cell", "warp"),
                  "cell[kernel=warp]": ("cell", "warp")}
-# fused:cell[warp-rXY-G]: the Warp engine (CellSums(kernel="warp")) with
-# its stencil's reach X along x and Y across (cells bound / reach wide) and
-# G the CUDA graph's capture (none, jax, warp; ffi.cell_lj_sums).
-_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-(none|jax|warp))?\]")
+# fused:cell[warp-rXY-cK-G]: the Warp engine (CellSums(kernel="warp")) with
+# its stencil's reach X along x and Y across (cells bound / reach wide),
+# cK its cluster walk with K particles per cluster (CellSums(walk=
+# "cluster", cluster_size=K); nK the warp-cooperative one, walk="native";
+# without either the thread walk) and G the CUDA graph's capture (none,
+# jax, warp; ffi.cell_lj_sums).
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-([cn])(\d+))?"
+                   r"(?:-(none|jax|warp))?\]")
 
 
 # fused:cell[32x4x32]: the kernel with that launch: particles and warps per
@@ -229,9 +235,12 @@ def _fused_lj_step(label, n, box, R, disp, shift, job) -> dict:
         backend = Cell(kernel=FUSED_OPTIONS[backend][1])
     elif _WARP.fullmatch(backend):
         from jaxrt.energy.listfree.lj import CellSums
-        x, y, graph = _WARP.fullmatch(backend).groups()
+        x, y, kind, size, graph = _WARP.fullmatch(backend).groups()
         reach = (int(x), int(y)) if x else CellSums.reach
-        backend = CellSums(kernel="warp", graph=graph or "none", reach=reach)
+        walk = dict(walk="cluster" if kind == "c" else "native",
+                    cluster_size=int(size)) if size else {}
+        backend = CellSums(kernel="warp", graph=graph or "none", reach=reach,
+                           **walk)
     elif _LAUNCH.fullmatch(backend):
         backend = launched(backend)
     energy_fn = lennard_jones_fused(disp, box, r_onset=2.0, r_cutoff=2.5,

@@ -19,10 +19,14 @@ Setup labels (``--list`` prints the defaults):
                            then forces); <backend> cell (the Pallas kernel
                            on CUDA, array programs elsewhere), cell[xla]
                            (the arrays), cell[pallas] (the kernel; CUDA
-                           only), cell[auto] (= cell) or brute
+                           only), cell[auto] (= cell), cell[warp] (the
+                           Warp engine: one sort, a walk per pass; CPU or
+                           CUDA), cell[warp-rXY-G] (its stencil's reach X
+                           cells along x, Y across, default 42; G the
+                           CUDA graph capture: none, jax or warp) or brute
 
-``walk``: the program a fused row's cell walk ran (``pallas`` or
-``xla``; ``brute``). The default rows compare, in one run, the list step
+``walk``: the program a fused row's cell walk ran (``pallas``, ``xla``
+or ``warp``; ``brute``). The default rows compare, in one run, the list step
 with the list-free step as the kernel and as array programs (on a CPU
 ``fused:cell`` is the arrays too).
 ``k``: mean list neighbours (support + skin), of the list after the
@@ -40,10 +44,13 @@ acceleration; ~1e-6 in float32).
     python benchmarks/sph_step.py --n 1000000 --only list:cell/OrderedSparse \\
         fused:cell[xla] fused:cell[pallas]                  # a GPU, side by side
     python benchmarks/sph_step.py --quick               # CPU smoke
+    python benchmarks/sph_step.py --n 1000000 --dim 3 --only \
+        list:cell/Dense list:cell/OrderedSparse fused:cell fused:cell[warp]
 """
 from __future__ import annotations
 
 import os
+import re
 import sys
 import warnings
 
@@ -56,7 +63,12 @@ FORMATS = ("Dense", "OrderedSparse")
 LIST_BACKENDS = ("cell",)
 # fused:cell is Cell(kernel="auto"): the Pallas kernel on CUDA.
 FUSED_BACKENDS = ("cell", "cell[xla]", "cell[pallas]", "cell[auto]",
-                  "brute")
+                  "cell[warp]", "brute")
+# fused:cell[warp-rXY-G]: the Warp engine with its stencil's reach X cells
+# along x and Y across (cells support / reach wide) and G the CUDA graph's
+# capture (none, jax, warp; ffi.cell_sph_step): CellSums(kernel="warp",
+# reach=(X, Y), graph=G); cell[warp] takes the defaults.
+_WARP = re.compile(r"cell\[warp(?:-r(\d)(\d))?(?:-(none|jax|warp))?\]")
 DEFAULT = [f"list:{b}/{f}" for b in LIST_BACKENDS for f in FORMATS] + [
     "fused:cell", "fused:cell[xla]"]
 
@@ -68,7 +80,7 @@ def parse_label(label: str) -> tuple[str, str, str | None]:
     ``"fused:cell"`` -> (``"fused"``, ``"cell"``, None)."""
     kind, sep, rest = label.partition(":")
     if kind == "fused" and sep:
-        if rest not in FUSED_BACKENDS:
+        if rest not in FUSED_BACKENDS and not _WARP.fullmatch(rest):
             raise ValueError(f"setup {label!r}: fused:<backend> takes "
                              f"{FUSED_BACKENDS}")
         return "fused", rest, None
@@ -87,6 +99,8 @@ def walk_of(backend: str) -> str:
     """The program a fused row's walk runs here: ``pallas``, ``xla``,
     ``interpret`` or ``brute``."""
     import jax
+    if _WARP.fullmatch(backend):
+        return "warp"
     name, opts = _harness.parse_backend(backend)
     if name == "brute":
         return "brute"
@@ -94,6 +108,20 @@ def walk_of(backend: str) -> str:
     if kernel == "auto":
         return "pallas" if jax.default_backend() in ("gpu", "cuda") else "xla"
     return kernel
+
+
+def fused_backend(backend: str):
+    """``backend=`` of a fused row's label (``cell[warp-rXY]``: the Warp
+    engine with that reach)."""
+    m = _WARP.fullmatch(backend)
+    if m:
+        import jaxrt
+        from jaxrt.energy.listfree.lj import CellSums
+        if not m[1] and not m[3]:
+            return jaxrt.backends.Cell(kernel="warp")
+        reach = (int(m[1]), int(m[2])) if m[1] else CellSums.reach
+        return CellSums(kernel="warp", reach=reach, graph=m[3] or "none")
+    return _harness.backend(backend)
 
 
 def fluid(n: int, dim: int, seed: int = 0):
@@ -189,8 +217,7 @@ def run_row(job: dict) -> dict:
         return {**row, **timing.columns()}
 
     fused = acceleration_fused(disp, side, kernel, eos, mass=mass,
-                               alpha=alpha,
-                               backend=_harness.backend(backend))
+                               alpha=alpha, backend=fused_backend(backend))
     row["walk"] = walk_of(backend)
 
     @jax.jit

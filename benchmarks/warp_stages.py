@@ -22,6 +22,18 @@ threads per block. ``same`` says whether the variant's forces equal the
 first variant's bit for bit (``max_rel``: else their largest difference
 over the largest force).
 
+The cluster walk (`jaxrt.backends.cell.warp_cluster`): ``clusters``
+times its table (counts, scan, starts), ``walk clusterK`` a thread per
+cluster of up to K particles of one cell (static flags, hoisted terms,
+loops over the cluster unrolled on CUDA), ``noprune`` without the
+cluster's bounding-box test; its rows give the clusters' number and mean
+size. ``walk nativeK`` (CUDA only): a warp per cluster of K, its
+candidates compacted by a ballot and shuffled to the lanes
+(`warp_cluster_native.native_kernel`; the sums agree to rounding, so ``same`` is
+usually False and ``max_rel`` small). Cells are ``bound / reach`` wide (``--reach X Y``: X along x, Y
+across): the cluster walk needs several particles per cell (reach 1 1 or
+2 1), the thread walk prefers small cells (4 2, the default).
+
 Roofline columns per row: ``bytes`` and ``flops`` counted per stage (the
 model below), ``floor_ms`` the larger of bytes over ``--bandwidth`` and
 flops over ``--flops``, ``of_floor`` the time over it. The walk's
@@ -32,6 +44,7 @@ kernel's count.
     GIT_SHA=$(git rev-parse --short HEAD) python benchmarks/warp_stages.py \\
         --n 1000000 10000000 --out benchmarks/results/h200/warp_stages_SHA
     python benchmarks/warp_stages.py --n 4096 --repeats 3 --warmup 1  # CPU
+    python benchmarks/warp_stages.py --reach 1 1 --n 1000000  # clusters
 """
 from __future__ import annotations
 
@@ -60,6 +73,15 @@ ROW_WIDTH, SHELL_WIDTH = 96, 8
 # Flops of the walk: a candidate's difference, square and test; a pair's
 # Lennard-Jones terms inside the switch (reciprocal, powers, force, sums).
 FLOPS_CANDIDATE, FLOPS_PAIR = 9, 35
+# The cluster walk's variants: (label, particles per cluster, prune,
+# block_dim).
+CLUSTER_VARIANTS = (("cluster8", 8, True, 64),
+                    ("cluster8 noprune", 8, False, 64),
+                    ("cluster8 b128", 8, True, 128), ("cluster4", 4, True, 64),
+                    ("cluster16", 16, True, 64))
+# The warp-cooperative walk's (CUDA only): (label, size, block_dim).
+NATIVE_VARIANTS = (("native8", 8, 128), ("native8 b256", 8, 256),
+                   ("native4", 4, 128), ("native16", 16, 128))
 
 
 def candidates(keys, cells, sample=4096):
@@ -89,6 +111,8 @@ def measure(n_target, args, rows, device_columns):
     import numpy as np
     import warp as wp
     import roofline
+    from jaxrt.backends.cell import warp_cluster as wc
+    from jaxrt.backends.cell import warp_cluster_native as wcn
     from jaxrt.backends.cell import warp_kernels as wk
     from jaxrt.backends.cell import warp_rows as wr
     from jaxrt.energy.listfree import warp_cell
@@ -96,7 +120,7 @@ def measure(n_target, args, rows, device_columns):
     R, box, _ = roofline._system(n_target, jnp.float32)
     n = R.shape[0]
     params = roofline._grid(box)
-    reach = (4, 2, 2)
+    reach = (args.reach[0], args.reach[1], args.reach[1])
     g, cells, table = warp_cell.grid(R, params, reach)
     g, cells = np.asarray(g, np.float32), np.asarray(cells, np.int32)
     device = "cuda:0" if wp.is_cuda_available() else "cpu"
@@ -120,6 +144,42 @@ def measure(n_target, args, rows, device_columns):
     start, radius = empty(table + 1, wp.int32), empty(1, wp.float32)
     k = wk.KERNELS[wp.float32]
     end_bit = max(1, int(table).bit_length())
+    # The cluster walk's tables, one set per cluster size.
+    natives = NATIVE_VARIANTS if cuda else ()
+    sizes = sorted({v[1] for v in CLUSTER_VARIANTS + natives})
+    counts = empty(table + 1, wp.int32)
+    tables = {size: (empty(table + 1, wp.int32),
+                     empty(wc.bound(n, table, size) + 1, wp.int32))
+              for size in sizes}
+
+    def build(size):
+        offs, clusters = tables[size]
+        wc.build_clusters(start, counts, offs, clusters, n=n, size=size)
+
+    def native_walk(variant, walk_flags=flags):
+        _, size, block = variant
+        kernel = wcn.native_kernel(wp.float32, walk_flags, size=size)
+        offs, clusters = tables[size]
+        wcn.launch(kernel, position=position, keys=keys, values=values,
+                         radius=radius, start=start, offsets=offs,
+                         clusters=clusters, grid=grid_w, cells=cells_w,
+                         params=params_w, flags=walk_flags, forces=forces,
+                         energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
+                         count=count, size=size, block_dim=block)
+
+    def cluster_walk(variant, walk_flags=flags):
+        if len(variant) == 3:
+            return native_walk(variant, walk_flags)
+        _, size, prune, block = variant
+        kernel = wc.cluster_kernel(wp.float32, walk_flags, size=size,
+                                   prune=prune, unroll=cuda)
+        offs, clusters = tables[size]
+        wc.launch_walk(kernel, position=position, keys=keys, values=values,
+                       radius=radius, start=start, offsets=offs,
+                       clusters=clusters, grid=grid_w, cells=cells_w,
+                       params=params_w, flags=walk_flags, forces=forces,
+                       energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
+                       count=count, size=size, block_dim=block)
 
     def walk(variant, walk_flags=flags):
         _, specialize, hoist, block = variant
@@ -144,6 +204,12 @@ def measure(n_target, args, rows, device_columns):
     }
     for v in VARIANTS:
         stages["walk " + v[0]] = (lambda v=v: walk(v))
+    stages["clusters"] = lambda: build(wc.CLUSTER_SIZE)
+    for size in sizes:
+        if size != wc.CLUSTER_SIZE:
+            stages[f"clusters{size}"] = (lambda size=size: build(size))
+    for v in CLUSTER_VARIANTS + natives:
+        stages["walk " + v[0]] = (lambda v=v: cluster_walk(v))
 
     # The neighbour lists' walk (`warp_rows`) on the same sorted grid: the
     # sums' stencil, writing rows of ROW_WIDTH and shells of SHELL_WIDTH.
@@ -197,8 +263,8 @@ def measure(n_target, args, rows, device_columns):
                 samples[name].append(ms)
         if rep == 0:
             # Each variant's forces against the first's, bit for bit.
-            for v in VARIANTS:
-                walk(v)
+            for v in VARIANTS + CLUSTER_VARIANTS + natives:
+                (walk if v in VARIANTS else cluster_walk)(v)
                 f = forces.numpy()
                 if reference is None:
                     reference = f
@@ -244,13 +310,45 @@ def measure(n_target, args, rows, device_columns):
         samples[f"pipeline ({label})"] = whole
         samples[f"host enqueue ({label})"] = host
 
+    # The cluster walk's pipeline, as ffi.cell_lj_sums(walk="cluster")
+    # launches it (clusters of wc.CLUSTER_SIZE).
+    def cluster_pipeline():
+        offs, clusters = tables[wc.CLUSTER_SIZE]
+        wc.lj_sums(points, radii, grid_w, cells_w, params_w, flags,
+                   forces=forces, energy=energy, d_sigma=d_sigma,
+                   d_epsilon=d_epsilon, count=count, keys=keys, values=values,
+                   wrapped=wrapped, start=start, position=position,
+                   radius=radius, counts=counts, offsets=offs,
+                   clusters=clusters)
+    whole = []
+    for rep in range(args.warmup + args.repeats):
+        wp.synchronize_device(device)
+        if cuda:
+            walk(VARIANTS[0])  # busy, as in timed_pass
+            a, b = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
+            wp.record_event(a)
+        t0 = time.perf_counter()
+        cluster_pipeline()
+        if cuda:
+            wp.record_event(b)
+        wp.synchronize_device(device)
+        if rep >= args.warmup:
+            whole.append(wp.get_event_elapsed_time(a, b) if cuda
+                         else 1e3 * (time.perf_counter() - t0))
+    samples["pipeline (cluster lj_sums)"] = whole
+
     # The JAX call as the MD step makes it (grid in JAX, then the FFI).
     jwalk = jax.jit(lambda R: warp_cell.walk(
         R, 1.0, 1.0, None, params, derivatives=False, count=False,
-        reach=(4, 2))[0])
+        reach=tuple(args.reach))[0])
     t = _harness.time_calls(jwalk, [R], repeats=args.repeats,
                             warmup=args.warmup)
     timing_jax = t
+    jcluster = jax.jit(lambda R: warp_cell.walk(
+        R, 1.0, 1.0, None, params, derivatives=False, count=False,
+        reach=tuple(args.reach), walk="cluster")[0])
+    timing_cluster = _harness.time_calls(jcluster, [R], repeats=args.repeats,
+                                         warmup=args.warmup)
 
     # Work counts for the roofline.
     walk(VARIANTS[-1], flags | wk.COUNT)
@@ -258,6 +356,11 @@ def measure(n_target, args, rows, device_columns):
     hits = float(np.mean(count.numpy()))
     key = keys.numpy()[:n]
     cand = candidates(key, cells)
+    cluster_stats = {}
+    for size in sizes:
+        build(size)
+        total = int(tables[size][0].numpy()[-1])
+        cluster_stats[size] = (total, n / max(total, 1))
     passes = math.ceil(end_bit / 8)
     model = {
         "bin": (12 + 20) * n, "sort": (4 + passes * 16) * n,
@@ -265,8 +368,11 @@ def measure(n_target, args, rows, device_columns):
         # positions, key, index read; force (scattered), three sums and a
         # count written; the table's run bounds mostly from cache.
         "walk": (12 + 8 + 12 + 16) * n,
+        # counts written, scanned (read, written), starts read and written.
+        "clusters": 4 * 5 * (table + 1) + 4 * n,
     }
-    common = {"N": n, "dtype": "float32", "table": table, "cells":
+    common = {"N": n, "dtype": "float32", "table": table,
+              "reach": " ".join(str(r) for r in reach), "cells":
               " ".join(str(int(c)) for c in cells[:3]), "hits": hits,
               **device_columns, **_harness.host_provenance(),
               "git_sha": _harness.git_sha()}
@@ -281,6 +387,12 @@ def measure(n_target, args, rows, device_columns):
             row["same"], row["max_rel"] = same[label]
             row["bytes"] = model["walk"]
             row["flops"] = n * (cand * FLOPS_CANDIDATE + hits * FLOPS_PAIR)
+            size = next((v[1] for v in CLUSTER_VARIANTS + NATIVE_VARIANTS
+                         if v[0] == label), None)
+            if size is not None:
+                row["clusters"], row["per_cluster"] = cluster_stats[size]
+        elif base.startswith("clusters"):
+            row["bytes"], row["flops"] = model["clusters"], 0
         elif base in model:
             row["bytes"], row["flops"] = model[base], 0
         if "bytes" in row:
@@ -294,8 +406,13 @@ def measure(n_target, args, rows, device_columns):
                              if "same" in row else ""), flush=True)
     rows.append({"stage": "jax walk (jit, grid + ffi)",
                  **timing_jax.columns(), **common})
+    rows.append({"stage": "jax cluster walk (jit, grid + ffi)",
+                 **timing_cluster.columns(), **common})
     print(f"N {n:9d} {'jax walk':24s} {timing_jax.median_ms:9.4f} ms; "
           f"candidates {cand}, hits {hits:.2f}", flush=True)
+    print(f"N {n:9d} {'jax cluster walk':24s} "
+          f"{timing_cluster.median_ms:9.4f} ms; clusters (number, mean "
+          f"size) {cluster_stats}", flush=True)
 
 
 def main(argv=None) -> None:
@@ -303,6 +420,10 @@ def main(argv=None) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, nargs="+", default=[1_000_000])
+    parser.add_argument("--reach", type=int, nargs=2, default=[4, 2],
+                        metavar=("X", "YZ"),
+                        help="the stencil's reach in cells along x and "
+                        "across (cells bound / reach wide)")
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--bandwidth", type=float, default=4.8e12,

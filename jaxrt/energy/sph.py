@@ -84,6 +84,11 @@ class _Kernel:
                        "particle spacing.")
 
     @property
+    def normalisation(self) -> float:
+        """``sigma_d`` of ``W = sigma_d / h**dim * f(r / h)`` (a float)."""
+        return self._normalisation[self.dim]
+
+    @property
     def cutoff(self) -> Array:
         """Support radius ``support * h``: ``W(r) = 0`` for ``r >= cutoff``."""
         return self.support * self.h

@@ -154,12 +154,22 @@ def test_radii_and_parameter_gradients(x64):
         close(g, jax.grad(lambda v: brute(R, **{name: v}))(value), E_RTOL)
 
 
-def test_sph_refuses_the_warp_engine():
-    # (Lists take it: tests/lists/test_warp_rows.py.)
-    from jaxrt.energy.listfree.sph import density_fused
-    from jaxrt.energy import sph
-    R, side = fluid(n_side=7)
-    displacement, _ = space.periodic(side)
-    with pytest.raises(ValueError, match="kernel='warp'"):
-        density_fused(displacement, side,
-                      sph.kernel("cubic_spline", 1.0, dim=3), backend=WARP)
+@pytest.mark.parametrize("reach", [(1, 1), (4, 2)])
+def test_flat_free_cloud_fits_the_table(x64, reach):
+    """A free 3D cloud flat along z (one cell there): the other free axes'
+    cells still fit the cell table (the even coarsening alone overflowed
+    it, writing past the table), and the sums stay right."""
+    from jaxrt.energy.listfree import warp_cell
+    from jaxrt.energy.listfree.lj import Params
+    rng = np.random.default_rng(4)
+    R = np.concatenate([rng.uniform(0, 12, (60, 2)), np.zeros((60, 1))], 1)
+    R = jnp.asarray(R)
+    params = Params(0.0, 1.0, 1.0, (False,) * 3, (1.0,) * 3, 3)
+    _, cells, table = warp_cell.grid(
+        R, params, warp_cell.stencil_reach(params, reach))
+    assert int(np.prod(np.asarray(cells[:3]))) <= table
+    displacement, _ = space.free()
+    got, ref = (lennard_jones_fused(displacement, None, backend=b)
+                for b in (CellSums(kernel="warp", reach=reach), "brute"))
+    close(got(R), ref(R), E_RTOL)
+    close(jax.grad(got)(R), jax.grad(ref)(R), F_RTOL)

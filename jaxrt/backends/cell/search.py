@@ -1265,11 +1265,12 @@ class Cell:
         cannot run. ``"xla"``: the windows everywhere. ``"interpret"``:
         the kernel in Pallas' interpreter (tests on CPUs). All four find
         the same pairs. ``"warp"``: the Warp pipeline of
-        `jaxrt.backends.cell.warp_rows` (CPU or CUDA; the engine of
-        `jaxrt.energy.lennard_jones_fused` too), the same pairs, for
-        orthorhombic and free boxes with the Euclidean metric and no
-        radii; an error at ``allocate`` elsewhere. Its rows hold each
-        particle's neighbours in the order its walk meets them.
+        `jaxrt.backends.cell.warp_rows` (CPU or CUDA; also the engine of the
+        list-free energies `jaxrt.energy.lennard_jones_fused`,
+        `jaxrt.energy.density_fused` and `jaxrt.energy.acceleration_fused`),
+        the same pairs, for orthorhombic and free boxes with the Euclidean
+        metric and no radii; an error at ``allocate`` elsewhere. Its rows
+        hold each particle's neighbours in the order its walk meets them.
       radius_classes: with per-particle radii (``radii=``), how many radius
         classes get a grid each (`jaxrt.backends.cell.radius_classes`): None, as many as
         the radii at ``allocate`` need; 1, one grid of cells of the largest

@@ -2,7 +2,11 @@
 and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_lj_sums` puts
 `lj_sums` behind a JAX call).
 
-The pipeline, one launch each (`lj_sums`):
+The pipeline, one launch each (`lj_sums`; steps 1 to 4 are `sort_cells`,
+which the SPH walks (`jaxrt.backends.cell.warp_sph`), the cluster walk
+(`jaxrt.backends.cell.warp_cluster`) and the neighbour lists' walk
+(`jaxrt.backends.cell.warp_rows`) share with the stencil's functions,
+`stencil_functions`):
 
 1. ``bin_particles``: each particle wrapped into the box on periodic axes,
    its cell's row-major key (x fastest) and its index.
@@ -26,9 +30,6 @@ wide, and the stencil spans ``2 a + 1`` cells. On a periodic axis with
 image (the neighbour row's shift by a box side); with fewer, the stencil
 keeps each distinct cell once and the difference is rounded to its minimum
 image (exact, as the cutoff is below half the side).
-
-Steps 1 to 4 (`sort_particles`) and the stencil (`stencil_functions`) are
-shared with the neighbour lists' walk, `jaxrt.backends.cell.warp_rows`.
 """
 
 import warp as wp
@@ -107,71 +108,11 @@ def _scalar_kernels(scalar):
     return dict(bin_particles=bin_particles, gather=gather)
 
 
-_STENCILS: dict = {}
-
-
-def stencil_functions(scalar):
-    """The stencil's functions for positions of ``scalar`` (shared by every
-    walk over the sorted grid): ``x_ranges(c, reach, n, periodic, rounded)``,
-    the stencil's x cells as up to two ranges with their images;
-    ``row(c, d, n, periodic, reach)``, the (cell, image, valid) of stencil
-    row ``c + d`` on one axis; ``rounded(d, side, on)``, a difference
-    rounded to its minimum image where ``on``."""
-    if scalar in _STENCILS:
-        return _STENCILS[scalar]
-
-    @wp.func
-    def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
-        # The stencil's x cells as up to two ranges [lo, hi] with images
-        # (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range.
-        lo0 = wp.max(c - reach, 0)
-        hi0 = wp.min(c + reach, n - 1)
-        ox0 = 0
-        hi1 = -1
-        ox1 = 0
-        if periodic != 0:
-            if rounded != 0:
-                lo0 = 0
-                hi0 = n - 1
-            elif c - reach < 0:
-                lo0 = c - reach + n
-                hi0 = n - 1
-                ox0 = -1
-                hi1 = c + reach
-            elif c + reach >= n:
-                lo0 = c - reach
-                hi0 = n - 1
-                hi1 = c + reach - n
-                ox1 = 1
-        return lo0, hi0, ox0, 0, hi1, ox1
-
-    @wp.func
-    def row(c: int, d: int, n: int, periodic: int, reach: int):
-        # (cell, image, valid) of the stencil row ``c + d`` on one axis.
-        t = c + d
-        if periodic == 0:
-            return t, 0, t >= 0 and t < n
-        if n < 2 * reach + 1:  # each distinct cell once, differences rounded
-            return (t + reach * n) % n, 0, d + reach < n
-        if t < 0:
-            return t + n, -1, True
-        if t >= n:
-            return t - n, 1, True
-        return t, 0, True
-
-    @wp.func
-    def rounded(d: scalar, side: scalar, on: int):
-        if on != 0:
-            return d - side * wp.round(d / side)
-        return d
-
-    _STENCILS[scalar] = (x_ranges, row, rounded)
-    return _STENCILS[scalar]
-
-
-def _pair_functions(scalar):
+def pair_functions(scalar):
     """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
-    row, rounded), the last three `stencil_functions`'."""
+    row, rounded), the last three `stencil_functions`'; the cluster walk
+    (`jaxrt.backends.cell.warp_cluster`) shares them, so that both add the
+    same terms."""
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -225,8 +166,62 @@ def _pair_functions(scalar):
                 - scalar(2.0) * dswitch * epsilon * lj_unit,
                 switch * epsilon * repulsion, switch * lj_unit)
 
-    x_ranges, row, rounded = stencil_functions(scalar)
-    return lj, lj_forces, x_ranges, row, rounded
+    return (lj, lj_forces) + stencil_functions(scalar)
+
+
+def stencil_functions(scalar):
+    """The stencil walk's functions for ``scalar``, shared by every
+    walk over the grid (`_walk_kernel`, `jaxrt.backends.cell.warp_sph`):
+    ``x_ranges`` (the x cells of a row as up to two ranges with images),
+    ``row`` (a y / z row's cell, image and validity), ``rounded`` (a
+    difference to its minimum image on rounded axes)."""
+
+    @wp.func
+    def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
+        # The stencil's x cells as up to two ranges [lo, hi] with images
+        # (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range.
+        lo0 = wp.max(c - reach, 0)
+        hi0 = wp.min(c + reach, n - 1)
+        ox0 = 0
+        hi1 = -1
+        ox1 = 0
+        if periodic != 0:
+            if rounded != 0:
+                lo0 = 0
+                hi0 = n - 1
+            elif c - reach < 0:
+                lo0 = c - reach + n
+                hi0 = n - 1
+                ox0 = -1
+                hi1 = c + reach
+            elif c + reach >= n:
+                lo0 = c - reach
+                hi0 = n - 1
+                hi1 = c + reach - n
+                ox1 = 1
+        return lo0, hi0, ox0, 0, hi1, ox1
+
+    @wp.func
+    def row(c: int, d: int, n: int, periodic: int, reach: int):
+        # (cell, image, valid) of the stencil row ``c + d`` on one axis.
+        t = c + d
+        if periodic == 0:
+            return t, 0, t >= 0 and t < n
+        if n < 2 * reach + 1:  # each distinct cell once, differences rounded
+            return (t + reach * n) % n, 0, d + reach < n
+        if t < 0:
+            return t + n, -1, True
+        if t >= n:
+            return t - n, 1, True
+        return t, 0, True
+
+    @wp.func
+    def rounded(d: scalar, side: scalar, on: int):
+        if on != 0:
+            return d - side * wp.round(d / side)
+        return d
+
+    return x_ranges, row, rounded
 
 
 # The flag bits a walk may fix at compile time.
@@ -242,7 +237,7 @@ def _walk_kernel(scalar, static_bits, hoist):
     terms by `lj_forces`, their constants computed once per particle.
     """
     vector = wp.types.vector(3, scalar)
-    lj, lj_forces, x_ranges, row, rounded = _pair_functions(scalar)
+    lj, lj_forces, x_ranges, row, rounded = pair_functions(scalar)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
     fast = bool(hoist) and not generic and not fixed & HAS_RADII
@@ -396,6 +391,33 @@ def scalar_of(vector) -> type:
     return vector._wp_scalar_type_
 
 
+def sort_cells(points, radii, grid, cells, flags: int, *, keys, values,
+               wrapped, start, position, radius) -> None:
+    """Steps 1 to 4 of the module docstring (bin, sort, cell table,
+    gather) on ``points``' device: what every walk over the grid reads.
+
+    Args: as `lj_sums`' (``flags``: `HAS_RADII` and ``PERIODIC << axis``
+    are read). Fills ``keys[:N]`` (sorted cell keys), ``values[:N]`` (the
+    caller's index of each sorted particle), ``start``, ``position``
+    (wrapped, sorted) and, with radii, ``radius`` (sorted).
+    """
+    n = points.shape[0]
+    if n == 0:
+        return
+    device = points.device
+    k = KERNELS[scalar_of(points.dtype)]
+    table = start.shape[0] - 1
+    wp.launch(k["bin_particles"], dim=n, device=device,
+              inputs=[points, grid, cells, flags, wrapped, keys, values])
+    wp.utils.radix_sort_pairs(keys, values, n,
+                              end_bit=max(1, int(table).bit_length()))
+    wp.launch(cell_table, dim=n + 1, device=device,
+              inputs=[keys, n, table, start])
+    wp.launch(k["gather"], dim=n, device=device,
+              inputs=[values, wrapped, radii, flags & HAS_RADII, position,
+                      radius])
+
+
 def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
             energy, d_sigma, d_epsilon, count, keys, values, wrapped, start,
             position, radius, specialize: bool = True,
@@ -425,41 +447,11 @@ def lj_sums(points, radii, grid, cells, params, flags: int, *, forces,
     if n == 0:
         return
     device = points.device
-    sort_particles(points, radii, grid, cells, flags, keys=keys,
-                   values=values, wrapped=wrapped, start=start,
-                   position=position, radius=radius)
+    sort_cells(points, radii, grid, cells, flags, keys=keys, values=values,
+               wrapped=wrapped, start=start, position=position, radius=radius)
     walk = walk_kernel(scalar_of(points.dtype), flags, specialize=specialize,
                        hoist=hoist)
     wp.launch(walk, dim=n, device=device, block_dim=block_dim,
               inputs=[position, keys, values, radius, start, grid, cells,
                       params, flags, forces, energy, d_sigma, d_epsilon,
                       count])
-
-
-def sort_particles(points, radii, grid, cells, flags: int, *, keys, values,
-                   wrapped, start, position, radius) -> None:
-    """Steps 1 to 4 of the module docstring (bin, sort, cell table,
-    gather), on ``points``' device: what every walk over the sorted grid
-    reads.
-
-    Args: as `lj_sums`' (only ``flags``' `HAS_RADII` and `PERIODIC` bits
-    are read). On return ``keys[:N]`` are the sorted cell keys,
-    ``values[:N]`` the caller's index of each sorted particle, ``start``
-    the cell table, ``position`` (and ``radius`` with radii) in sorted
-    order.
-    """
-    n = points.shape[0]
-    if n == 0:
-        return
-    device = points.device
-    k = KERNELS[scalar_of(points.dtype)]
-    table = start.shape[0] - 1
-    wp.launch(k["bin_particles"], dim=n, device=device,
-              inputs=[points, grid, cells, flags, wrapped, keys, values])
-    wp.utils.radix_sort_pairs(keys, values, n,
-                              end_bit=max(1, int(table).bit_length()))
-    wp.launch(cell_table, dim=n + 1, device=device,
-              inputs=[keys, n, table, start])
-    wp.launch(k["gather"], dim=n, device=device,
-              inputs=[values, wrapped, radii, flags & HAS_RADII, position,
-                      radius])

@@ -3,7 +3,7 @@ Warp and NumPy only (no JAX; `jaxrt.backends.rt.ffi.cell_candidate_rows`
 puts `candidate_rows` behind a JAX call).
 
 The particles are binned, sorted and gathered by the list-free sums'
-pipeline (`jaxrt.backends.cell.warp_kernels.sort_particles`); then a
+pipeline (`jaxrt.backends.cell.warp_kernels.sort_cells`); then a
 thread per sorted particle walks the same stencil as their walk
 (`jaxrt.backends.cell.warp_kernels.stencil_functions`) and, instead of
 summing, makes the three-way split of the other candidate passes
@@ -166,7 +166,7 @@ def candidate_rows(points, grid, cells, thresholds, flags: int, *,
     if n == 0:
         return
     # The sort reads only the periodic bits (no radii here).
-    warp_kernels.sort_particles(
+    warp_kernels.sort_cells(
         points, radius, grid, cells, flags & (7 * PERIODIC), keys=keys,
         values=values, wrapped=wrapped, start=start, position=position,
         radius=radius)

@@ -1087,13 +1087,17 @@ _GRAPH_MODES = {"none": wp.JaxCallableGraphMode.NONE,
                 "warp": wp.JaxCallableGraphMode.WARP}
 
 
-def _cell_lj_callable(vector, graph: str):
+def _cell_lj_callable(vector, graph: str, walk: str = "thread",
+                      cluster_size: int = 8):
     """The jax callable of `jaxrt.backends.cell.warp_kernels.lj_sums` for
     positions of type ``vector``; ``graph``: who captures its launches in a
     CUDA graph (`_GRAPH_MODES`; nothing in the pipeline reads back to the
-    host)."""
-    from jaxrt.backends.cell import warp_kernels
-    key = (vector, graph)
+    host); ``walk``: "thread", or "cluster" / "native" (`jaxrt.backends.
+    cell.warp_cluster.lj_sums`, `jaxrt.backends.cell.warp_cluster_native.
+    lj_sums`: three more scratch outputs) of ``cluster_size`` particles."""
+    from jaxrt.backends.cell import (warp_cluster, warp_cluster_native,
+                                     warp_kernels)
+    key = (vector, graph, walk, cluster_size)
     if key in _CELL_LJ_CALLABLES:
         return _CELL_LJ_CALLABLES[key]
     scalar = warp_kernels.scalar_of(vector)
@@ -1115,15 +1119,49 @@ def _cell_lj_callable(vector, graph: str):
                              values=values, wrapped=wrapped, start=start,
                              position=position, radius=radius)
 
-    sums.__module__ = warp_kernels.__name__  # see _aabb_callables
+    def cluster_sums(points: wp.array(dtype=vector),
+                     radii: wp.array(dtype=scalar),
+                     grid: wp.array(dtype=vector),
+                     cells: wp.array(dtype=wp.int32),
+                     params: wp.array(dtype=scalar), flags: wp.int32,
+                     forces: wp.array(dtype=vector),
+                     energy: wp.array(dtype=scalar),
+                     d_sigma: wp.array(dtype=scalar),
+                     d_epsilon: wp.array(dtype=scalar),
+                     count: wp.array(dtype=wp.int32),
+                     keys: wp.array(dtype=wp.int32),
+                     values: wp.array(dtype=wp.int32),
+                     wrapped: wp.array(dtype=vector),
+                     start: wp.array(dtype=wp.int32),
+                     position: wp.array(dtype=vector),
+                     radius: wp.array(dtype=scalar),
+                     counts: wp.array(dtype=wp.int32),
+                     offsets: wp.array(dtype=wp.int32),
+                     clusters: wp.array(dtype=wp.int32)):
+        engine = warp_cluster_native if walk == "native" else warp_cluster
+        engine.lj_sums(points, radii, grid, cells, params, int(flags),
+                       forces=forces, energy=energy, d_sigma=d_sigma,
+                       d_epsilon=d_epsilon, count=count, keys=keys,
+                       values=values, wrapped=wrapped, start=start,
+                       position=position, radius=radius, counts=counts,
+                       offsets=offsets, clusters=clusters, size=cluster_size)
+
+    function = sums if walk == "thread" else cluster_sums
+    function.__module__ = warp_kernels.__name__  # see _aabb_callables
     mode = _GRAPH_MODES[graph]
     _CELL_LJ_CALLABLES[key] = wp.jax_callable(
-        sums, num_outputs=11, graph_mode=mode, vmap_method="sequential")
+        function, num_outputs=11 if walk == "thread" else 14,
+        graph_mode=mode, vmap_method="sequential")
     return _CELL_LJ_CALLABLES[key]
 
 
+# `cell_lj_sums`' walks.
+CELL_WALKS = ("thread", "cluster", "native")
+
+
 def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
-                 table: int, graph: str = "none"):
+                 table: int, graph: str = "none", walk: str = "thread",
+                 cluster_size: int = 8):
     """The per-particle LJ sums of `jaxrt.backends.cell.warp_kernels.lj_sums`
     in one call.
 
@@ -1140,29 +1178,280 @@ def cell_lj_sums(points, radii, grid, cells, params, *, flags: int,
         ``"jax"`` (JAX captures the launches in its graphs: fails inside
         ``lax.scan`` on the H200 measured, "operation not supported"),
         ``"warp"`` (Warp captures them, reused for the same buffers).
+      walk: static, ``"thread"`` (a thread per particle) or ``"cluster"``
+        (a thread per cluster of a cell's particles,
+        `jaxrt.backends.cell.warp_cluster`): the same sums; ``"native"``
+        (on CUDA a warp per cluster, its lanes sharing the candidates by
+        shuffles; elsewhere ``"cluster"``): the same sums to rounding;
+      cluster_size: static, the cluster walk's particles per cluster
+        (`jaxrt.backends.cell.warp_cluster.SIZES`).
     Returns:
       ``(forces (N, 3) in the caller's order, energy (N,), d_sigma (N,),
       d_epsilon (N,), count int32 (N,))``: per particle (sorted order for
       all but the forces), each pair in both of its particles' sums.
     """
-    from jaxrt.backends.cell import warp_kernels
+    from jaxrt.backends.cell import (warp_cluster, warp_cluster_native,
+                                     warp_kernels)
+    if walk not in CELL_WALKS:
+        raise ValueError(f"cell_lj_sums(walk={walk!r}): choose one of "
+                         f"{CELL_WALKS}.")
     n = points.shape[0]
     vector = _vector_of(points)
+    scalar = warp_kernels.scalar_of(vector)
+    device = _warp_device()
     # The walk lives in a module of its own, built for these flags: load
     # it now, not inside the callback (where a graph capture may be open).
-    walk = warp_kernels.walk_kernel(warp_kernels.scalar_of(vector), flags)
-    wp.load_module(walk.module, device=_warp_device(),
-                   block_dim=warp_kernels.WALK_BLOCK)
-    call = _cell_lj_callable(vector, graph)
+    cuda = wp.get_device(device).is_cuda
+    if walk == "native" and cuda:
+        kernel = warp_cluster_native.native_kernel(scalar, flags,
+                                                   size=cluster_size)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_cluster_native.BLOCK)
+    elif walk != "thread":
+        kernel = warp_cluster.cluster_kernel(
+            scalar, flags, size=cluster_size, unroll=cuda)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_cluster.CLUSTER_BLOCK)
+    else:
+        kernel = warp_kernels.walk_kernel(scalar, flags)
+        wp.load_module(kernel.module, device=device,
+                       block_dim=warp_kernels.WALK_BLOCK)
+    call = _cell_lj_callable(vector, graph, walk, cluster_size)
     has_radii = bool(flags & warp_kernels.HAS_RADII)
+    dims = {"forces": (n, 3), "energy": (n,), "d_sigma": (n,),
+            "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
+            "values": (2 * n,), "wrapped": (n, 3), "start": (table + 1,),
+            "position": (n, 3), "radius": (n if has_radii else 1,)}
+    if walk != "thread":
+        dims.update(counts=(table + 1,), offsets=(table + 1,), clusters=(
+            warp_cluster.bound(n, table, cluster_size) + 1,))
     outs = call(*jax.lax.stop_gradient((points, radii, grid, cells, params)),
-                int(flags), output_dims={
-                    "forces": (n, 3), "energy": (n,), "d_sigma": (n,),
-                    "d_epsilon": (n,), "count": (n,), "keys": (2 * n,),
-                    "values": (2 * n,), "wrapped": (n, 3),
-                    "start": (table + 1,), "position": (n, 3),
-                    "radius": (n if has_radii else 1,)})
+                int(flags), output_dims=dims)
     return tuple(outs[:5])
+
+
+# ---------------------------------------------------------------------------
+# The list-free SPH sums on the same grid: the sort
+# (`jaxrt.backends.cell.warp_kernels.sort_cells`) in one call, each walk
+# (`jaxrt.backends.cell.warp_sph`) in one more, so that the densities go
+# through the equation of state in JAX between them.
+
+_CELL_SPH_CALLABLES: dict = {}
+
+
+def _cell_sort_callable(vector):
+    from jaxrt.backends.cell import warp_kernels
+    key = ("sort", vector)
+    if key in _CELL_SPH_CALLABLES:
+        return _CELL_SPH_CALLABLES[key]
+    scalar = warp_kernels.scalar_of(vector)
+
+    def sort(points: wp.array(dtype=vector), radii: wp.array(dtype=scalar),
+             grid: wp.array(dtype=vector), cells: wp.array(dtype=wp.int32),
+             flags: wp.int32, keys: wp.array(dtype=wp.int32),
+             values: wp.array(dtype=wp.int32),
+             wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
+             position: wp.array(dtype=vector),
+             radius: wp.array(dtype=scalar)):
+        warp_kernels.sort_cells(points, radii, grid, cells, int(flags),
+                                keys=keys, values=values, wrapped=wrapped,
+                                start=start, position=position, radius=radius)
+
+    sort.__module__ = warp_kernels.__name__  # see _aabb_callables
+    _CELL_SPH_CALLABLES[key] = wp.jax_callable(
+        sort, num_outputs=6, graph_mode=wp.JaxCallableGraphMode.NONE,
+        vmap_method="sequential")
+    return _CELL_SPH_CALLABLES[key]
+
+
+def cell_sort(points, grid, cells, *, flags: int, table: int):
+    """`jaxrt.backends.cell.warp_kernels.sort_cells` in one call (no radii).
+
+    Args:
+      points: float32 or float64 ``(N, 3)``; grid, cells, table: as
+        `cell_lj_sums`'; flags: static, ``PERIODIC << axis`` bits.
+    Returns:
+      ``(keys int32 (2N,), values int32 (2N,), start int32 (table + 1,),
+      position (N, 3))``: the sorted cell keys and caller's indices (the
+      first N entries), the cell-start table, the wrapped positions in
+      the sorted order.
+    """
+    from jaxrt.backends.cell import warp_kernels
+    n = points.shape[0]
+    call = _cell_sort_callable(_vector_of(points))
+    radii = jnp.zeros((1,), points.dtype)
+    flags = int(flags) & ~warp_kernels.HAS_RADII
+    keys, values, _, start, position, _ = call(
+        *jax.lax.stop_gradient((points, radii, grid, cells)), flags,
+        output_dims={"keys": (2 * n,), "values": (2 * n,),
+                     "wrapped": (n, 3), "start": (table + 1,),
+                     "position": (n, 3), "radius": (1,)})
+    return keys, values, start, position
+
+
+def _cell_sph_callable(vector, kind: str, which: str):
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    key = (which, vector, kind)
+    if key in _CELL_SPH_CALLABLES:
+        return _CELL_SPH_CALLABLES[key]
+    scalar = warp_kernels.scalar_of(vector)
+    if which == "density":
+        def call(position: wp.array(dtype=vector),
+                 keys: wp.array(dtype=wp.int32),
+                 start: wp.array(dtype=wp.int32),
+                 grid: wp.array(dtype=vector),
+                 cells: wp.array(dtype=wp.int32),
+                 params: wp.array(dtype=scalar), flags: wp.int32,
+                 mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar)):
+            warp_sph.density_sums(kind, position, keys, start, grid, cells,
+                                  params, int(flags), mass, rho)
+        outputs = 1
+    else:
+        def call(position: wp.array(dtype=vector),
+                 keys: wp.array(dtype=wp.int32),
+                 start: wp.array(dtype=wp.int32),
+                 grid: wp.array(dtype=vector),
+                 cells: wp.array(dtype=wp.int32),
+                 params: wp.array(dtype=scalar), flags: wp.int32,
+                 velocity: wp.array(dtype=vector),
+                 mass: wp.array(dtype=scalar), rho: wp.array(dtype=scalar),
+                 q: wp.array(dtype=scalar), sound: wp.array(dtype=scalar),
+                 pressure: wp.array(dtype=vector),
+                 viscosity: wp.array(dtype=vector)):
+            warp_sph.force_sums(kind, position, keys, start, grid, cells,
+                                params, int(flags), velocity, mass, rho, q,
+                                sound, pressure, viscosity)
+        outputs = 2
+    call.__module__ = warp_sph.__name__  # see _aabb_callables
+    _CELL_SPH_CALLABLES[key] = wp.jax_callable(
+        call, num_outputs=outputs, graph_mode=wp.JaxCallableGraphMode.NONE,
+        vmap_method="sequential")
+    return _CELL_SPH_CALLABLES[key]
+
+
+def _load_sph_walk(vector, kind: str, which: int) -> None:
+    """Load a walk's module now, not inside the callback (see
+    `cell_lj_sums`)."""
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    walk = warp_sph.walks(warp_kernels.scalar_of(vector), kind)[which]
+    wp.load_module(walk.module, device=_warp_device(),
+                   block_dim=warp_sph.BLOCK)
+
+
+def cell_sph_density(position, keys, start, grid, cells, params, mass, *,
+                     flags: int, kind: str):
+    """`jaxrt.backends.cell.warp_sph.density_sums` in one call.
+
+    Args:
+      position, keys, start: `cell_sort`'s (sorted order); grid, cells:
+        the sort's; params: ``(warp_sph.N_PARAMS,)`` in the positions'
+        dtype; mass: ``(N,)`` sorted; flags: static, the sort's; kind:
+        static, one of `jaxrt.backends.cell.warp_sph.KINDS`.
+    Returns:
+      ``(N,)`` per sorted particle, ``sum_{j != i} m_j W(r_ij)``.
+    """
+    n = position.shape[0]
+    vector = _vector_of(position)
+    _load_sph_walk(vector, kind, 0)
+    (rho,) = _cell_sph_callable(vector, kind, "density")(
+        *jax.lax.stop_gradient((position, keys, start, grid, cells, params)),
+        int(flags), jax.lax.stop_gradient(mass), output_dims={"rho": (n,)})
+    return rho
+
+
+def cell_sph_forces(position, keys, start, grid, cells, params, velocity,
+                    mass, rho, q, sound, *, flags: int, kind: str):
+    """`jaxrt.backends.cell.warp_sph.force_sums` in one call.
+
+    Args: as `cell_sph_density`'s, and ``velocity`` ``(N, 3)``, ``mass``,
+    ``rho``, ``q`` (``P / rho^2``), ``sound`` ``(N,)``, all sorted.
+    Returns:
+      ``(pressure (N, 3), viscosity (N, 3))`` per sorted particle.
+    """
+    n = position.shape[0]
+    vector = _vector_of(position)
+    _load_sph_walk(vector, kind, 1)
+    pressure, viscosity = _cell_sph_callable(vector, kind, "forces")(
+        *jax.lax.stop_gradient((position, keys, start, grid, cells, params)),
+        int(flags), *jax.lax.stop_gradient((velocity, mass, rho, q, sound)),
+        output_dims={"pressure": (n, 3), "viscosity": (n, 3)})
+    return pressure, viscosity
+
+
+def _cell_sph_step_callable(vector, kind: str, graph: str):
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    key = ("step", vector, kind, graph)
+    if key in _CELL_SPH_CALLABLES:
+        return _CELL_SPH_CALLABLES[key]
+    scalar = warp_kernels.scalar_of(vector)
+
+    def step(points: wp.array(dtype=vector),
+             velocity: wp.array(dtype=vector), mass: wp.array(dtype=scalar),
+             radii: wp.array(dtype=scalar), grid: wp.array(dtype=vector),
+             cells: wp.array(dtype=wp.int32), params: wp.array(dtype=scalar),
+             flags: wp.int32, keys: wp.array(dtype=wp.int32),
+             values: wp.array(dtype=wp.int32),
+             wrapped: wp.array(dtype=vector), start: wp.array(dtype=wp.int32),
+             position: wp.array(dtype=vector),
+             radius: wp.array(dtype=scalar),
+             velocity_sorted: wp.array(dtype=vector),
+             mass_sorted: wp.array(dtype=scalar),
+             rho: wp.array(dtype=scalar), q: wp.array(dtype=scalar),
+             sound: wp.array(dtype=scalar),
+             pressure: wp.array(dtype=vector),
+             viscosity: wp.array(dtype=vector),
+             density: wp.array(dtype=scalar)):
+        warp_sph.step_sums(
+            kind, points, velocity, mass, radii, grid, cells, params,
+            int(flags), keys=keys, values=values, wrapped=wrapped,
+            start=start, position=position, radius=radius,
+            velocity_sorted=velocity_sorted, mass_sorted=mass_sorted,
+            rho=rho, q=q, sound=sound, pressure=pressure,
+            viscosity=viscosity, density=density)
+
+    # See _aabb_callables: the sort's kernels' module, loaded before each
+    # call (the walks' own modules are loaded when the call is traced).
+    step.__module__ = warp_kernels.__name__
+    _CELL_SPH_CALLABLES[key] = wp.jax_callable(
+        step, num_outputs=14, graph_mode=_GRAPH_MODES[graph],
+        vmap_method="sequential")
+    return _CELL_SPH_CALLABLES[key]
+
+
+def cell_sph_step(points, velocity, mass, grid, cells, params, *,
+                  flags: int, table: int, kind: str, graph: str = "none"):
+    """`jaxrt.backends.cell.warp_sph.step_sums` in one call: a whole SPH
+    step's sums (sort, densities, Tait, forces).
+
+    Args:
+      points, velocity: float32 or float64 ``(N, 3)``; mass: ``(N,)``;
+        grid, cells, table, flags: as `cell_sort`'s; params:
+        ``(warp_sph.N_PARAMS,)``, every row; kind: static, one of
+        `jaxrt.backends.cell.warp_sph.KINDS`; graph: static, as
+        `cell_lj_sums`'.
+    Returns:
+      ``(pressure (N, 3), viscosity (N, 3), density (N,))``, the caller's
+      order.
+    """
+    from jaxrt.backends.cell import warp_kernels, warp_sph
+    n = points.shape[0]
+    vector = _vector_of(points)
+    for walk in warp_sph.walks(warp_kernels.scalar_of(vector), kind):
+        wp.load_module(walk.module, device=_warp_device(),
+                       block_dim=warp_sph.BLOCK)
+    call = _cell_sph_step_callable(vector, kind, graph)
+    radii = jnp.zeros((1,), points.dtype)
+    flags = int(flags) & ~warp_kernels.HAS_RADII
+    outs = call(*jax.lax.stop_gradient((points, velocity, mass, radii, grid,
+                                        cells, params)), flags,
+                output_dims={
+                    "keys": (2 * n,), "values": (2 * n,), "wrapped": (n, 3),
+                    "start": (table + 1,), "position": (n, 3),
+                    "radius": (1,), "velocity_sorted": (n, 3),
+                    "mass_sorted": (n,), "rho": (n,), "q": (n,),
+                    "sound": (n,), "pressure": (n, 3), "viscosity": (n, 3),
+                    "density": (n,)})
+    return tuple(outs[-3:])
 
 
 # The cell list's candidate rows on the same grid (`jaxrt.backends.cell.warp_rows`).

@@ -299,7 +299,8 @@ class _Brute(_Backend):
 
 
 CELL_KERNELS = ("auto", "pallas", "xla", "interpret")
-# The LJ sums' kernels: those of the SPH walks too, and the Warp engine.
+# The LJ sums' kernels (the SPH walks' too): the cell walks and the Warp
+# engine.
 LJ_CELL_KERNELS = CELL_KERNELS + ("warp",)
 
 
@@ -362,6 +363,14 @@ class CellSums(_Backend):
     # md_step_warp_*).
     graph: str = "none"
     reach: tuple = (4, 2)
+    # ``kernel="warp"``: "thread", a thread per particle walks its stencil;
+    # "cluster", a thread per cluster of up to ``cluster_size`` particles
+    # of one cell walks their common stencil once
+    # (`jaxrt.backends.cell.warp_cluster`). The same sums. "native": on
+    # CUDA a warp per cluster sharing the candidates by shuffles (the same
+    # sums to rounding), elsewhere "cluster".
+    walk: str = "thread"
+    cluster_size: int = 8
 
     def __post_init__(self):
         from jaxrt.backends.cell import kernel as _cell_kernel
@@ -375,6 +384,16 @@ class CellSums(_Backend):
         if self.newton and self.tile:
             raise ValueError(f"Cell(newton=True, tile={self.tile}): newton "
                              "needs the thread walk (tile=0).")
+        if self.walk not in ("thread", "cluster", "native"):
+            raise ValueError(f"Cell(walk={self.walk!r}): choose 'thread', "
+                             "'cluster' or 'native'.")
+        if self.walk != "thread" and self.kernel != "warp":
+            raise ValueError(f"Cell(walk={self.walk!r}) is the Warp engine's "
+                             f"option; kernel={self.kernel!r} takes "
+                             "walk='thread' (or use kernel='warp').")
+        if self.cluster_size not in (1, 2, 4, 8, 16):
+            raise ValueError(f"Cell(cluster_size={self.cluster_size!r}): "
+                             "choose 1, 2, 4, 8 or 16.")
         if self.runs not in ("kernel", "stored"):
             raise ValueError(f"Cell(runs={self.runs!r}): choose 'kernel' or "
                              "'stored'.")
@@ -393,7 +412,8 @@ class CellSums(_Backend):
             from jaxrt.energy.listfree import warp_cell
             forces, e, ds, de, c = warp_cell.walk(
                 R3, sigma, epsilon, radii, params, derivatives=derivatives,
-                count=count, graph=self.graph, reach=self.reach)
+                count=count, graph=self.graph, reach=self.reach,
+                walk=self.walk, cluster_size=self.cluster_size)
             return FusedSums(_total(e) / 2, forces, jnp.sum(ds) / 2,
                              jnp.sum(de) / 2, jnp.sum(c) / 2,
                              jnp.zeros((), jnp.int32))

@@ -34,6 +34,19 @@ Backends (``backend=``):
   elsewhere; the arrays take minimum images of the caller's).
   `acceleration_fused` sorts once and walks twice (densities, then
   forces); each VJP walks once more, the same way.
+* ``Cell(kernel="warp")``: the Warp engine
+  (`jaxrt.energy.listfree.warp_cell`, kernels in
+  `jaxrt.backends.cell.warp_sph`; CPU or CUDA): the Lennard-Jones
+  engine's bin, radix sort, cell table and gather, then a thread per
+  sorted particle for each pass. ``accel_fn`` without ``rho`` /
+  ``pressure`` is one call (sort, density walk, self term and Tait per
+  particle, force walk); with them, and ``density_fn``, one call sorts
+  and one more per walk. Its pair terms are the others' written out
+  (the kernels' ``f'`` by hand), so the results agree to rounding. Its
+  VJPs are the cell walk's (``"auto"``) on the same positions: a
+  gradient recomputes the step there. ``jaxrt.energy.listfree.lj.CellSums(
+  kernel="warp", reach=..., graph=...)`` sets its stencil and graph
+  capture.
 * ``"brute"``: all pairs in row blocks, O(N^2); the reference.
 
 Cost. A walk evaluates, per particle, one candidate of each stencil row (3
@@ -94,15 +107,20 @@ import numpy as np
 from jaxrt.energy import sph as _sph
 from jaxrt.energy.checks import concrete
 from jaxrt.energy.keywords import reject_unknown
-from jaxrt.energy.listfree.lj import (CELL_KERNELS, FusedInputError, Params,
-                                periodicity, box_sides, static_params,
-                                cell_runs, first_order_only, walk_runs)
+from jaxrt.energy.listfree.lj import (CELL_KERNELS, CellSums,
+                                      FusedInputError, Params, periodicity,
+                                      box_sides, static_params, cell_runs,
+                                      first_order_only, walk_runs)
 
 Array = jax.Array
 
 BACKENDS = ("cell", "brute")
 # The cell walk's programs (``jaxrt.backends.Cell(kernel=...)``).
-WALKS = CELL_KERNELS
+WALKS = CELL_KERNELS + ("warp",)
+# The Warp engine's stencil reach in cells (along x, across), the
+# Lennard-Jones engine's default.
+WARP_REACH = tuple(CellSums.reach)
+_WARP_DEFAULT = (WARP_REACH, "none")
 
 _HIGHER_ORDER = (
     "density_fused / acceleration_fused are differentiable once (their "
@@ -241,15 +259,20 @@ class _PairSum:
     backend: str
     walk: str = "xla"
     block: int | None = None
+    warp: "_WarpPass | None" = None
 
     def cells(self, R: Array):
         """The sorted grid of R (None for brute), shared by the walks of
         one configuration: ``(order, runs, images)``, runs ``(R, N)``,
         images the kernel's (`jaxrt.energy.listfree.lj.RunImages`, sorted order).
         With ``order`` None, the data are already in the sorted order (and
-        the sums come back in it)."""
+        the sums come back in it). The Warp engine's: ``(order, sorted,
+        None)``, ``sorted`` a `jaxrt.energy.listfree.warp_cell.Sorted`."""
         if self.backend == "brute":
             return None
+        if self.walk == "warp":
+            state = self.warp.sort(R)
+            return state.order, state, None
         order, runs, images = cell_runs(jax.lax.stop_gradient(R), self.grid)
         return order, type(runs)(*(x.T for x in runs)), images
 
@@ -361,8 +384,21 @@ class _PairSum:
 
     # The sums and their VJP.
 
+    def _warp_forward(self, data, theta, cells):
+        """The Warp engine's pass over its sort (`_WarpPass`)."""
+        order, state, _ = cells
+        if order is not None:
+            data = {k: v[order] for k, v in data.items()}
+        out = self.warp(jax.lax.stop_gradient(data),
+                        jax.lax.stop_gradient(theta), state)
+        if order is not None:
+            out = tuple(jnp.zeros_like(o).at[order].set(o) for o in out)
+        return out
+
     def _forward(self, data, theta, cells):
         grid, pair = self.grid, self.pair
+        if cells is not None and self.walk == "warp":
+            return self._warp_forward(data, theta, cells)
 
         def portable():
             table, layout = _pack(data)
@@ -405,6 +441,12 @@ class _PairSum:
 
     def _backward(self, data, theta, cells, g):
         grid, pair = self.grid, self.pair
+        if cells is not None and self.walk == "warp":
+            # The Warp walks compute values only: the VJP is the cell
+            # walk's ("auto": the Pallas kernel on CUDA, arrays elsewhere)
+            # on jaxrt's grid of the same positions, in the data's order.
+            other = dataclasses.replace(self, walk="auto", warp=None)
+            return other._backward(data, theta, other.cells(data["R"]), g)
 
         def portable():
             table, layout = _pack(data)
@@ -558,6 +600,128 @@ class _Columns:
 
 
 # ---------------------------------------------------------------------------
+# The Warp engine's passes (``Cell(kernel="warp")``).
+
+
+@dataclasses.dataclass(frozen=True)
+class _WarpPass:
+    """One pass of `jaxrt.energy.listfree.warp_cell`'s SPH walks over its
+    sort: ``which`` ``"density"`` (`_density_pair`'s sums) or ``"forces"``
+    (`_acceleration_pair`'s), the kernel by name, the grid padded to 3
+    axes (`Params.dim` the caller's), the stencil's ``reach``."""
+
+    which: str
+    kind: str
+    params: Params
+    reach: tuple
+    support: float
+    epsilon: float = 0.0
+
+    @classmethod
+    def make(cls, which: str, kernel: _sph.Kernel, grid: Params,
+             reach: tuple, epsilon: float = 0.0) -> "_WarpPass":
+        from jaxrt.backends.cell import warp_sph
+        kind = {c: n for n, c in _sph.KERNELS.items()}.get(type(kernel))
+        if kind not in warp_sph.KINDS:
+            raise ValueError(
+                f"backend=Cell(kernel='warp') has no {type(kernel).__name__}"
+                f" kernel; use one of jaxrt.energy.sph.KERNELS "
+                f"({warp_sph.KINDS}), or Cell(kernel='auto').")
+        dim = len(grid.side)
+        params = Params(grid.r_onset, grid.r_cutoff, grid.bound,
+                        tuple(grid.periodic) + (False,) * (3 - dim),
+                        tuple(grid.side) + (1.0,) * (3 - dim), dim)
+        return cls(which, kind, params, tuple(reach), float(kernel.support),
+                   float(epsilon))
+
+    def sort(self, R: Array):
+        from jaxrt.energy.listfree import warp_cell
+        return warp_cell.sort(_pad3(R), self.params, self.reach)
+
+    def constants(self, theta: dict, dtype, dim: int,
+                  eos: _sph.Tait | None = None) -> Array:
+        """`jaxrt.backends.cell.warp_sph`'s params ``(N_PARAMS,)`` in
+        ``dtype``: theta's ``h`` (``alpha``, ``beta``: 0 if absent) and,
+        for a whole step, the self term and ``eos``' constants."""
+        from jaxrt.backends.cell import warp_sph
+        h = jnp.asarray(theta["h"], dtype)
+        values = [0] * warp_sph.N_PARAMS
+        values[warp_sph.H] = h
+        # `jaxrt.energy.sph.Kernel.w`'s expressions, evaluated once.
+        values[warp_sph.SUPPORT] = self.support * h
+        values[warp_sph.NORM_W] = _sph.KERNELS[self.kind](
+            1.0, dim=dim).normalisation / h ** dim
+        values[warp_sph.ALPHA] = theta.get("alpha", 0)
+        values[warp_sph.BETA] = theta.get("beta", 0)
+        values[warp_sph.EPSILON] = self.epsilon
+        if eos is not None:
+            values[warp_sph.W0] = _sph.KERNELS[self.kind](h, dim=dim).w(
+                jnp.zeros((), dtype))
+            values[warp_sph.RHO0] = eos.rho0
+            values[warp_sph.C0] = eos.c0
+            values[warp_sph.GAMMA] = eos.gamma
+            # `jaxrt.energy.sph.Tait.pressure`'s B.
+            values[warp_sph.B] = eos.rho0 * eos.c0 ** 2 / eos.gamma
+        return jnp.stack([jnp.asarray(v, dtype) for v in values])
+
+    def __call__(self, data: dict, theta: dict, state) -> tuple:
+        """The pass's sums, sorted order (``data`` sorted as ``state``)."""
+        from jaxrt.energy.listfree import warp_cell
+        R = data["R"]
+        dtype, dim = R.dtype, R.shape[1]
+        constants = self.constants(theta, dtype, dim)
+        if self.which == "density":
+            return (warp_cell.sph_density(state, self.params, self.reach,
+                                          self.kind, constants, data["m"]),)
+        pressure, viscosity = warp_cell.sph_forces(
+            state, self.params, self.reach, self.kind, constants,
+            _pad3(data["V"]), data["m"], data["rho"], data["q"], data["c"])
+        return pressure[:, :dim], viscosity[:, :dim]
+
+
+def _warp_step(warp: _WarpPass, reference: Callable, h0: float,
+               graph: str) -> Callable:
+    """``step(R, V, h, m, eos, alpha, beta) -> Acceleration``: a whole
+    step's sums in one Warp call (`jaxrt.energy.listfree.warp_cell.sph_step`:
+    the sort, densities, Tait, forces), in R's dtype, ``m`` ``(N,)``. Its
+    VJP is ``reference``'s (the same step on the cell walk, recomputed:
+    the Warp kernels compute values only)."""
+    from jaxrt.energy.listfree import warp_cell
+
+    def values(R, V, h, m, eos, a, b):
+        dtype, dim = R.dtype, R.shape[1]
+        constants = warp.constants(dict(h=h, alpha=a, beta=b), dtype, dim,
+                                   eos)
+        pressure, viscosity, rho = warp_cell.sph_step(
+            _pad3(R), _pad3(V.astype(dtype)), m, warp.params, warp.reach,
+            warp.kind, constants, graph)
+        out = _poison((pressure[:, :dim], viscosity[:, :dim], rho), R,
+                      jnp.asarray(h, dtype), h0)
+        return _sph.Acceleration(*out)
+
+    @jax.custom_vjp
+    def step(R, V, h, m, eos, a, b):
+        return values(R, V, h, m, eos, a, b)
+
+    def forward(*args):
+        args = _first_order_only(args)
+        return values(*args), args
+
+    def backward(args, g):
+        def plain(R, V, h, m, eos, a, b):
+            return reference(R, V, None, None, h, m, eos, a, b)
+        return jax.vjp(plain, *args)[1](g)
+
+    step.defvjp(forward, backward)
+    return step
+
+
+def _pad3(x: Array) -> Array:
+    """``(N, dim)`` -> ``(N, 3)``, zeros on the padding axes."""
+    return jnp.pad(x, ((0, 0), (0, 3 - x.shape[1])))
+
+
+# ---------------------------------------------------------------------------
 # The SPH pair terms: `jaxrt.energy.sph`'s, per ordered pair (i, j); vectors
 # through `_map` (one definition for the array walk and the kernel).
 
@@ -598,36 +762,33 @@ def _acceleration_pair(kernel: _sph.Kernel, epsilon: float) -> Callable:
 # Factories
 
 
-def _traversal(backend) -> tuple[str, str]:
-    """``backend=`` -> ``(name, walk)`` of `_PairSum`, as
+def _traversal(backend) -> tuple[str, str, tuple]:
+    """``backend=`` -> ``(name, walk, (reach, graph))`` of `_PairSum` (the
+    Warp engine's stencil reach and graph capture, `_WarpPass`), as
     `jaxrt.energy.listfree.lj._backend` parses the LJ energy's: ``"cell"`` is
     ``Cell(kernel="auto")``; a `jaxrt.backends.Cell` picks the walk (its
     own checks reject an unknown ``kernel``; `jaxrt.energy.listfree.lj.CellSums`'s,
     a kernel this JAX or device cannot run)."""
     from jaxrt.backends.cell import search as cell_list
-    from jaxrt.energy.listfree.lj import CellSums
     if isinstance(backend, cell_list.Cell):
         if backend.radius_classes is not None:
             raise ValueError(
                 f"backend=Cell(radius_classes={backend.radius_classes!r}): "
                 "the SPH walks use one grid of the kernel's support; leave "
                 "radius_classes at None.")
-        if backend.kernel == "warp":
-            raise ValueError(
-                "backend=Cell(kernel='warp'): the Warp engine computes the "
-                "Lennard-Jones sums only; for SPH use Cell(kernel='auto'), "
-                "'pallas' or 'xla'.")
-        CellSums(kernel=backend.kernel)
-        return "cell", backend.kernel
+        return "cell", CellSums(kernel=backend.kernel).kernel, _WARP_DEFAULT
+    if isinstance(backend, CellSums) and backend.kernel == "warp":
+        # The Warp engine's stencil and graph capture (benchmarks tune them).
+        return "cell", "warp", (tuple(backend.reach), backend.graph)
     if isinstance(backend, str) and backend in BACKENDS:
-        return backend, "auto" if backend == "cell" else "xla"
+        return backend, "auto" if backend == "cell" else "xla", _WARP_DEFAULT
     raise ValueError(f"backend={backend!r} is not known; choose one of "
                      f"{BACKENDS}, or jaxrt.backends.Cell(kernel=...) with "
                      f"kernel one of {WALKS} (the cell walk's "
                      "program: 'xla' array programs, 'pallas' the CUDA "
                      "kernel, 'auto' the kernel on CUDA and the arrays "
                      "elsewhere, 'interpret' the kernel in Pallas' "
-                     "interpreter).")
+                     "interpreter, 'warp' the Warp engine).")
 
 
 def _grid(displacement, box, kernel: _sph.Kernel, periodic):
@@ -732,8 +893,9 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
         ``jaxrt.backends.Cell(kernel=...)``: the cell walk as the CUDA
         kernel (``"pallas"``), as array programs (``"xla"``), the kernel
         on CUDA and the arrays elsewhere (``"auto"``, what ``"cell"``
-        is), or the kernel in Pallas' interpreter (``"interpret"``,
-        tests). All agree to rounding.
+        is), the kernel in Pallas' interpreter (``"interpret"``,
+        tests), or the Warp engine (``"warp"``, module docstring). All
+        agree to rounding.
       periodic: bool or one per axis; None infers it from ``displacement``.
 
     Returns:
@@ -743,9 +905,11 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
       differentiated). The result is in R's dtype; ``jax.grad`` through it
       runs a second walk (first order only).
     """
-    name, walk = _traversal(backend)
+    name, walk, (reach, _) = _traversal(backend)
     grid, h0 = _grid(displacement, box, kernel, periodic)
-    engine = _PairSum(_density_pair(kernel), grid, name, walk)
+    warp = (_WarpPass.make("density", kernel, grid, reach)
+            if walk == "warp" else None)
+    engine = _PairSum(_density_pair(kernel), grid, name, walk, warp=warp)
     core = _density_core(engine.make(), engine, kernel, h0)
     default_mass = mass
 
@@ -766,6 +930,48 @@ def density_fused(displacement: Callable, box, kernel: _sph.Kernel, *,
         return rho
 
     return density_fn
+
+
+def _cell_step(engine: _PairSum, rho_core: Callable, h0: float) -> Callable:
+    """``step(R, V, rho, pressure, h, m, eos, alpha, beta) ->
+    Acceleration`` on ``engine``'s walks (``rho`` / ``pressure`` None:
+    the summation densities by ``rho_core``, Tait's pressures): one sort,
+    both walks in its order."""
+    sums = engine.make()
+
+    def compute(R, V, rho, pressure, h, m, state, a, b):
+        dtype, n = R.dtype, R.shape[0]
+
+        h = jnp.asarray(h, dtype)
+        m = _column(m, n, dtype)
+        V = V.astype(dtype)
+        cells = engine.cells(R)
+        given = [None if x is None else _column(x, n, dtype)
+                 for x in (rho, pressure)]
+        if cells is not None:
+            # Both walks in the sorted order: the densities feed the second
+            # walk without a round trip through the caller's order.
+            order, runs, images = cells
+            R, V, m = R[order], V[order], m[order]
+            given = [None if x is None else x[order] for x in given]
+            cells = (None, runs, images)
+        rho, pressure = given
+        if rho is None:
+            rho = rho_core(R, h, m, cells)
+        if pressure is None:
+            pressure = state.pressure(rho)
+        c = state.sound_speed(rho).astype(dtype)
+        data = dict(R=R, V=V, rho=rho, q=pressure / rho ** 2, c=c, m=m)
+        theta = dict(h=h, alpha=jnp.asarray(a, dtype),
+                     beta=jnp.asarray(b, dtype))
+        acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
+        out = _sph.Acceleration(acc_p, acc_v, rho)
+        if cells is not None:
+            inverse = jnp.zeros((n,), jnp.int32).at[order].set(
+                jnp.arange(n, dtype=jnp.int32))
+            out = jax.tree_util.tree_map(lambda x: x[inverse], out)
+        return out
+    return compute
 
 
 def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
@@ -802,48 +1008,37 @@ def acceleration_fused(displacement: Callable, box, kernel: _sph.Kernel,
         v = concrete(value)
         if v is not None and (v.ndim or v < 0):
             raise ValueError(f"{name} must be a scalar >= 0; got {value}.")
-    name, walk = _traversal(backend)
+    name, walk, (reach, graph) = _traversal(backend)
     grid, h0 = _grid(displacement, box, kernel, periodic)
-    density_engine = _PairSum(_density_pair(kernel), grid, name, walk)
+    warps = ((_WarpPass.make("density", kernel, grid, reach),
+              _WarpPass.make("forces", kernel, grid, reach, float(epsilon)))
+             if walk == "warp" else (None, None))
+    density_engine = _PairSum(_density_pair(kernel), grid, name, walk,
+                              warp=warps[0])
     rho_core = _density_core(density_engine.make(), density_engine, kernel,
                              h0)
     engine = _PairSum(_acceleration_pair(kernel, float(epsilon)), grid,
-                      name, walk)
-    sums = engine.make()
+                      name, walk, warp=warps[1])
     defaults = dict(mass=mass, eos=eos, alpha=alpha, beta=beta)
+    cell_step = _cell_step(engine, rho_core, h0)
+    whole_step = None
+    if walk == "warp":
+        # Densities, Tait and forces in one Warp call where the densities
+        # and pressures are the step's own; the cell walk ("auto") gives
+        # its VJP.
+        plain = dataclasses.replace(density_engine, walk="auto", warp=None)
+        whole_step = _warp_step(warps[1], _cell_step(
+            dataclasses.replace(engine, walk="auto", warp=None),
+            _density_core(plain.make(), plain, kernel, h0), h0), h0, graph)
 
     @jax.jit
     def compute(R, V, rho, pressure, h, m, state, a, b):
-        dtype, n = R.dtype, R.shape[0]
-        h = jnp.asarray(h, dtype)
-        m = _column(m, n, dtype)
-        V = V.astype(dtype)
-        cells = engine.cells(R)
-        given = [None if x is None else _column(x, n, dtype)
-                 for x in (rho, pressure)]
-        if cells is not None:
-            # Both walks in the sorted order: the densities feed the second
-            # walk without a round trip through the caller's order.
-            order, runs, images = cells
-            R, V, m = R[order], V[order], m[order]
-            given = [None if x is None else x[order] for x in given]
-            cells = (None, runs, images)
-        rho, pressure = given
-        if rho is None:
-            rho = rho_core(R, h, m, cells)
-        if pressure is None:
-            pressure = state.pressure(rho)
-        c = state.sound_speed(rho).astype(dtype)
-        data = dict(R=R, V=V, rho=rho, q=pressure / rho ** 2, c=c, m=m)
-        theta = dict(h=h, alpha=jnp.asarray(a, dtype),
-                     beta=jnp.asarray(b, dtype))
-        acc_p, acc_v = _poison(sums(data, theta, cells), R, h, h0)
-        out = _sph.Acceleration(acc_p, acc_v, rho)
-        if cells is not None:
-            inverse = jnp.zeros((n,), jnp.int32).at[order].set(
-                jnp.arange(n, dtype=jnp.int32))
-            out = jax.tree_util.tree_map(lambda x: x[inverse], out)
-        return out
+        if whole_step is not None and rho is None and pressure is None:
+            dtype, n = R.dtype, R.shape[0]
+            return whole_step(R, V, jnp.asarray(h, dtype), _column(m, n, dtype),
+                              state, jnp.asarray(a, dtype),
+                              jnp.asarray(b, dtype))
+        return cell_step(R, V, rho, pressure, h, m, state, a, b)
 
     def accel_fn(R: Array, V: Array, *, rho: Array | None = None,
                  pressure: Array | None = None, h: Array | None = None,
