@@ -1,7 +1,9 @@
 """Where the Warp list-free LJ engine's time goes: each stage of
 `jaxrt.backends.cell.warp_kernels.lj_sums` timed alone (bin, radix sort,
-cell table, gather, walk), the walk's variants side by side, the whole
-pipeline, the host's time to enqueue it, and the jitted JAX call
+cell table, gather, walk), the walk's variants side by side, the
+neighbour lists' walk on the same grid (`jaxrt.backends.cell.warp_rows`:
+``rows walk``, rows of `ROW_WIDTH`), each whole pipeline and the host's
+time to enqueue it, and the jitted JAX call
 (`jaxrt.energy.listfree.warp_cell.walk`, grid included), on md_step's LJ
 system (roofline.py's jittered simple-cubic lattice, rho 0.8, cutoff 2.5,
 float32, periodic), with the MD step's flags (forces and energy only).
@@ -66,6 +68,8 @@ VARIANTS = (("generic", False, False, 256), ("static", True, False, 256),
             ("static+hoist", True, True, 256),
             ("static+hoist b128", True, True, 128),
             ("static+hoist b64", True, True, 64))
+# The lists' walk's row and shell widths (rows of the LJ system hold ~52).
+ROW_WIDTH, SHELL_WIDTH = 96, 8
 # Flops of the walk: a candidate's difference, square and test; a pair's
 # Lennard-Jones terms inside the switch (reciprocal, powers, force, sums).
 FLOPS_CANDIDATE, FLOPS_PAIR = 9, 35
@@ -110,6 +114,7 @@ def measure(n_target, args, rows, device_columns):
     from jaxrt.backends.cell import warp_cluster as wc
     from jaxrt.backends.cell import warp_cluster_native as wcn
     from jaxrt.backends.cell import warp_kernels as wk
+    from jaxrt.backends.cell import warp_rows as wr
     from jaxrt.energy.listfree import warp_cell
 
     R, box, _ = roofline._system(n_target, jnp.float32)
@@ -206,6 +211,22 @@ def measure(n_target, args, rows, device_columns):
     for v in CLUSTER_VARIANTS + natives:
         stages["walk " + v[0]] = (lambda v=v: cluster_walk(v))
 
+    # The neighbour lists' walk (`warp_rows`) on the same sorted grid: the
+    # sums' stencil, writing rows of ROW_WIDTH and shells of SHELL_WIDTH.
+    rows_out, row_count = empty(n * ROW_WIDTH, wp.int32), empty(n, wp.int32)
+    shells, shell_count = empty(n * SHELL_WIDTH, wp.int32), empty(n, wp.int32)
+    rc = float(params.r_cutoff)
+    thresholds = arr(np.asarray([(rc * (1 - 2.0 ** -18)) ** 2,
+                                 (rc * (1 + 2.0 ** -18)) ** 2], np.float32),
+                     wp.float32)
+    rows_flags = flags | wr.MASK_SELF
+    rows_inputs = [position, keys, values, start, grid_w, cells_w,
+                   thresholds, rows_flags, ROW_WIDTH, SHELL_WIDTH, rows_out,
+                   row_count, shells, shell_count]
+    stages["rows walk (lists)"] = lambda: wp.launch(
+        wr.rows_kernel(wp.float32), dim=n, device=device,
+        block_dim=wr.WALK_BLOCK, inputs=rows_inputs)
+
     def timed_pass():
         # One pass of the pipeline, every walk variant after the gather;
         # returns ms per stage.
@@ -258,25 +279,36 @@ def measure(n_target, args, rows, device_columns):
                    d_epsilon=d_epsilon, count=count, keys=keys, values=values,
                    wrapped=wrapped, start=start, position=position,
                    radius=radius)
-    whole, host = [], []
-    for rep in range(args.warmup + args.repeats):
-        wp.synchronize_device(device)
-        if cuda:
-            walk(VARIANTS[0])  # busy, as in timed_pass
-            a, b = wp.Event(enable_timing=True), wp.Event(enable_timing=True)
-            wp.record_event(a)
-        t0 = time.perf_counter()
-        pipeline()
-        t1 = time.perf_counter()
-        if cuda:
-            wp.record_event(b)
-        wp.synchronize_device(device)
-        if rep >= args.warmup:
-            host.append(1e3 * (t1 - t0))
-            whole.append(wp.get_event_elapsed_time(a, b) if cuda
-                         else 1e3 * (time.perf_counter() - t0))
-    samples["pipeline (lj_sums)"] = whole
-    samples["host enqueue (lj_sums)"] = host
+    def rows_pipeline():
+        wr.candidate_rows(points, grid_w, cells_w, thresholds, rows_flags,
+                          row_width=ROW_WIDTH, shell=SHELL_WIDTH,
+                          rows=rows_out, count=row_count, shells=shells,
+                          shell_count=shell_count, keys=keys, values=values,
+                          wrapped=wrapped, start=start, position=position,
+                          radius=radius)
+
+    for label, run in (("lj_sums", pipeline),
+                       ("candidate_rows", rows_pipeline)):
+        whole, host = [], []
+        for rep in range(args.warmup + args.repeats):
+            wp.synchronize_device(device)
+            if cuda:
+                walk(VARIANTS[0])  # busy, as in timed_pass
+                a = wp.Event(enable_timing=True)
+                b = wp.Event(enable_timing=True)
+                wp.record_event(a)
+            t0 = time.perf_counter()
+            run()
+            t1 = time.perf_counter()
+            if cuda:
+                wp.record_event(b)
+            wp.synchronize_device(device)
+            if rep >= args.warmup:
+                host.append(1e3 * (t1 - t0))
+                whole.append(wp.get_event_elapsed_time(a, b) if cuda
+                             else 1e3 * (time.perf_counter() - t0))
+        samples[f"pipeline ({label})"] = whole
+        samples[f"host enqueue ({label})"] = host
 
     # The cluster walk's pipeline, as ffi.cell_lj_sums(walk="cluster")
     # launches it (clusters of wc.CLUSTER_SIZE).

@@ -303,3 +303,8 @@ def test_where_the_walk_cannot_serve_the_error_names_the_fix():
                               backend=WARP, radii=jnp.full((100,), 0.5))
     with pytest.raises(ValueError, match="kernel='warp'"):
         fns.allocate(R)
+
+
+def test_a_bad_graph_mode_is_refused_naming_the_choices():
+    with pytest.raises(ValueError, match=r"warp_graph='cuda'.*'none'"):
+        backends.Cell(kernel="warp", warp_graph="cuda")

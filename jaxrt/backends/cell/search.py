@@ -1195,13 +1195,13 @@ def _warp_grid(cart, geometry: Geometry, query: Query, table: int,
 
 
 @functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
-                                             "row_width", "query"))
+                                             "row_width", "query", "graph"))
 def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
-               shell_rows, row_width, query: Query):
+               shell_rows, row_width, query: Query, graph: str = "none"):
     """`_walk` on the Warp pipeline (`jaxrt.backends.cell.warp_rows`, one
     call of `jaxrt.backends.rt.ffi.cell_candidate_rows`): its own grid
     (`_warp_grid`), the same thresholds and shell decision, so the same
-    sets; rows in the walk's order.
+    sets; rows in the walk's order. ``graph``: `Cell.warp_graph`.
 
     Returns:
       As `_visit`: rows int32 ``(N, max(row_width, 1))``, counts int32
@@ -1235,7 +1235,7 @@ def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     rows, count, shells, shell_count = ffi.cell_candidate_rows(
         points, grid, cells, jnp.stack([inner_sq, outer_sq]).astype(
             cart.dtype), flags=flags, table=table, row_width=row_width,
-        shell=shell)
+        shell=shell, graph=graph)
     return _append_shell(position, metric_sq, rows, count, shells,
                          shell_count, shell_rows=shell_rows, query=query)
 
@@ -1248,6 +1248,7 @@ def _warp_fits(n: int, row_width: int, shell: int) -> bool:
 
 
 _KERNELS = ("auto", "pallas", "xla", "interpret", "warp")
+_WARP_GRAPHS = ("none", "warp", "jax")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1275,6 +1276,13 @@ class Cell:
         the radii at ``allocate`` need; 1, one grid of cells of the largest
         radius (the plain scheme, for comparison).
 
+      warp_graph: with ``kernel="warp"``, who captures the Warp
+        pipeline's launches in a CUDA graph
+        (`jaxrt.backends.rt.ffi.cell_candidate_rows`): ``"none"`` (its
+        launches enqueued from Python at every call), ``"warp"`` (Warp
+        captures them once per set of buffer addresses and replays),
+        ``"jax"`` (JAX captures them in its own graphs); on a CPU, none.
+
     Internal capacities: ``"window"`` (longest run of one stencil row),
     ``"shell"`` (most pairs of one particle that the caller's metric
     decides), ``"shell_rows"`` (most particles with such pairs) and
@@ -1284,6 +1292,7 @@ class Cell:
 
     kernel: str = "auto"
     radius_classes: int | None = None
+    warp_graph: str = "none"
 
     name: ClassVar[str] = "cell"
     decides_by_metric: ClassVar[bool] = True
@@ -1295,6 +1304,9 @@ class Cell:
         if self.kernel not in _KERNELS:
             raise ValueError(f"Cell(kernel={self.kernel!r}): choose one of "
                              f"{_KERNELS}.")
+        if self.warp_graph not in _WARP_GRAPHS:
+            raise ValueError(f"Cell(warp_graph={self.warp_graph!r}): choose "
+                             f"one of {_WARP_GRAPHS}.")
         k = self.radius_classes
         if k is not None and (isinstance(k, bool) or not isinstance(k, int)
                               or not 1 <= k <= radius_classes.MAX_CLASSES):
@@ -1381,7 +1393,8 @@ class Cell:
         if engine == "portable":
             return portable()
         if engine == "warp":
-            return _warp_walk(position, geometry, metric_sq, **options)
+            return _warp_walk(position, geometry, metric_sq,
+                              graph=self.warp_graph, **options)
         if engine == "interpret":
             return _walk(position, geometry, metric_sq, interpret=True,
                          **options)

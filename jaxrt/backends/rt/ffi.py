@@ -1455,12 +1455,13 @@ def cell_sph_step(points, velocity, mass, grid, cells, params, *,
 _CELL_ROWS_CALLABLES: dict = {}
 
 
-def _cell_rows_callable(vector):
+def _cell_rows_callable(vector, graph: str):
     """The jax callable of `jaxrt.backends.cell.warp_rows.candidate_rows`
-    for positions of type ``vector``."""
+    for positions of type ``vector``; ``graph``: `_GRAPH_MODES`' key."""
     from jaxrt.backends.cell import warp_kernels, warp_rows
-    if vector in _CELL_ROWS_CALLABLES:
-        return _CELL_ROWS_CALLABLES[vector]
+    key = (vector, graph)
+    if key in _CELL_ROWS_CALLABLES:
+        return _CELL_ROWS_CALLABLES[key]
     scalar = warp_kernels.scalar_of(vector)
 
     def walk(points: wp.array(dtype=vector), grid: wp.array(dtype=vector),
@@ -1481,15 +1482,18 @@ def _cell_rows_callable(vector):
             values=values, wrapped=wrapped, start=start, position=position,
             radius=radius)
 
-    walk.__module__ = warp_rows.__name__  # see _aabb_callables
-    _CELL_ROWS_CALLABLES[vector] = wp.jax_callable(
-        walk, num_outputs=10, graph_mode=wp.JaxCallableGraphMode.NONE,
+    # The sort's kernels' module (see _aabb_callables); the walk's own
+    # module is loaded by cell_candidate_rows.
+    walk.__module__ = warp_kernels.__name__
+    _CELL_ROWS_CALLABLES[key] = wp.jax_callable(
+        walk, num_outputs=10, graph_mode=_GRAPH_MODES[graph],
         vmap_method="sequential")
-    return _CELL_ROWS_CALLABLES[vector]
+    return _CELL_ROWS_CALLABLES[key]
 
 
 def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
-                        table: int, row_width: int, shell: int):
+                        table: int, row_width: int, shell: int,
+                        graph: str = "none"):
     """The cell list's candidate pass on the Warp grid
     (`jaxrt.backends.cell.warp_rows.candidate_rows`) in one call.
 
@@ -1500,6 +1504,8 @@ def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
         below which a pair is sure, and below which it is in the shell.
       flags: static int, `jaxrt.backends.cell.warp_rows`' bits.
       row_width, shell: static widths (>= 1) of the rows and shells.
+      graph: static, as `cell_lj_sums`' (nothing in the pipeline reads
+        back to the host); ``"none"`` on a CPU.
     Returns:
       In the caller's order: int32 ``(N, row_width)`` rows (sure pairs,
       padded with N), int32 ``(N,)`` their exact counts, int32 ``(N,
@@ -1514,7 +1520,9 @@ def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
     walk = warp_rows.rows_kernel(warp_kernels.scalar_of(vector))
     wp.load_module(walk.module, device=_warp_device(),
                    block_dim=warp_rows.WALK_BLOCK)
-    call = _cell_rows_callable(vector)
+    # Warp captures graphs of CUDA launches only.
+    call = _cell_rows_callable(vector, graph if _warp_device() == "cuda"
+                               else "none")
     outs = call(*jax.lax.stop_gradient((points, grid, cells, thresholds)),
                 int(flags), int(row_width), int(shell), output_dims={
                     "rows": (n * row_width,), "count": (n,),
