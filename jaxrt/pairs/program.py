@@ -677,34 +677,29 @@ def _running_max(x):
     return jax.lax.associative_scan(jnp.maximum, x)
 
 
-def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
-                reach, max_nodes, n_graph, completed, half,
-                self_interaction, capacity):
-    """The sorted rows of a batch of small systems, each system one dense
-    block: atom ``i`` against every atom ``j`` of its system in every
-    image ``o`` of the stencil, ``(G, M, K, M)`` candidates decided at once
-    (no cells, no runs, no per-candidate gathers), ``S = o + w[i] - w[j]``
-    (the wraps as in step 2), in the brute force's order (``i``, then
-    ``o``, then ``j``).
+# Dense blocks of more than one word are pruned by 32-atom tiles: each
+# system's atoms sorted along a Morton curve of their wrapped fractional
+# coordinates, a tile (one word) read by an atom in an image only where its
+# bounding box may come within the cutoff, each atom reading at most this
+# many (tile, image) words per image of the stencil's words of 32, ...
+TILE_WORDS_PER_IMAGE = 1
+# ... and the tiles' boxes grown by this much (relatively) and by this many
+# of the dtype's epsilons per unit of fractional coordinate, so that the
+# test only drops tiles that the exact test would drop (rounding of the
+# wrapped fractional coordinates is far smaller).
+TILE_MARGIN = 2.0 ** -10
+TILE_EPS = 2.0 ** 8
 
-    The decisions are packed into 32-bit words (``j`` by 32); the running
-    count over each atom's self pair and words places the words, and each
-    of the ``capacity`` rows finds its word (the last word starting at or
-    before it: marks and a running maximum) and its bit (the word's set
-    bit of its rank, by population counts): nothing runs over the
-    candidates but the decision, nothing is scattered per candidate.
 
-    Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``, the
-    count, the count per system and the error bits (a system with more
-    than ``max_nodes`` atoms sets ``MAX_NODES``).
-    """
-    n, dtype = positions.shape[0], positions.dtype
+def _dense_setup(positions, graph, mask, cells, pbc, cut, species, radius,
+                 *, reach, max_nodes, n_graph, completed, self_interaction):
+    """What every dense block reads: each system's atoms as ``(G, M)``
+    slots (the frame's arrays gathered), the stencil, the error bits."""
+    n = positions.shape[0]
     g, m = n_graph, max_nodes
     fr = _frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
                 completed=completed)
     stencil = offsets(reach, full=True)
-    k_offsets = stencil.shape[0]
-    own = int(np.argmin(np.abs(stencil).sum(axis=1)))
     # Each system's atoms are contiguous (a flat batch): slot = a - first.
     sizes = jnp.zeros((g,), jnp.int32).at[fr.unclipped].add(1, mode="drop")
     first = _exclusive_prefix(sizes)
@@ -719,46 +714,244 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
     present = slots < sizes[:, None]
     at = jnp.where(present, idx, 0)
     real = present & fr.real[at]                                  # (G, M)
-    p = positions[at]
-    w = fr.w[at].astype(jnp.int32)
     o = jnp.asarray(stencil)
-    # On a free axis only the zero offset (its wrap is 0).
-    allowed = jnp.all(pbc[:, None, :] | (o == 0)[None], axis=-1)  # (G, K)
+    if self_interaction:
+        selfs = _self_mask(fr.real, cut, species)[at] & real
+    else:
+        selfs = jnp.zeros((g, m), bool)
+    return dict(
+        n=n, fr=fr, error=error, first=first, idx=idx, real=real,
+        p=positions[at], w=fr.w[at].astype(jnp.int32), fw=fr.fw[at],
+        sp=None if species is None else species[at], o=o,
+        own=int(np.argmin(np.abs(stencil).sum(axis=1))),
+        # On a free axis only the zero offset (its wrap is 0).
+        allowed=jnp.all(pbc[:, None, :] | (o == 0)[None], axis=-1),  # (G, K)
+        selfs=selfs)
+
+
+def _pack(keep):
+    """uint32 ``(..., W)`` words of bool ``(..., 32 W)`` (bit ``b`` of word
+    ``w``: entry ``32 w + b``)."""
+    shape = keep.shape
+    keep = keep.reshape(shape[:-1] + (shape[-1] // _WORD, _WORD))
+    bit = jnp.arange(_WORD, dtype=jnp.uint32)
+    return jnp.sum(jnp.where(keep, jnp.uint32(1) << bit, jnp.uint32(0)),
+                   axis=-1, dtype=jnp.uint32)
+
+
+def _dense_full(st, cut, species, *, m, half):
+    """Every atom against every atom of its system in every image: uint32
+    ``(G, M, K W)`` words, word ``k W + t`` holding slots ``32 t ..`` in
+    image ``k``."""
+    g = st["real"].shape[0]
+    dtype = st["p"].dtype
+    p, w, o, real = st["p"], st["w"], st["o"], st["real"]
+    k_offsets = o.shape[0]
+    slots = jnp.arange(m, dtype=jnp.int32)
     s = (o[None, None, :, None, :] + w[:, :, None, None, :]
          - w[:, None, None, :, :])                          # (G, M, K, M, 3)
     diff = p[:, None, :, :] - p[:, :, None, :]              # (G, Mi, Mj, 3)
     d = diff[:, :, None] + shift_vectors(
-        s.astype(dtype), fr.h[:, None, None, None])
+        s.astype(dtype), st["fr"].h[:, None, None, None])
     dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
                     + d[..., 2] * d[..., 2])
     if species is None:
         limit = cut
     else:
-        sp = species[at]
+        sp = st["sp"]
         limit = cut.at[sp[:, :, None], sp[:, None, :]].get(
             mode="fill", fill_value=0)[:, :, None, :]
     same = (slots[:, None] == slots[None, :])[None, :, None, :]
-    not_self = ~(same & (jnp.arange(k_offsets) == own)[None, None, :, None])
+    not_self = ~(same & (jnp.arange(k_offsets) == st["own"])[
+        None, None, :, None])
     keep = ((dist < limit) & real[:, :, None, None] & real[:, None, None, :]
-            & allowed[:, None, :, None] & not_self)
+            & st["allowed"][:, None, :, None] & not_self)
     if half:
         before = (slots[:, None] < slots[None, :])[None, :, None, :]
         keep = keep & (before | (same & lex_positive(s)))
-    # Words of 32 slots: in-word ranks and word counts by population count.
     words = -(-m // _WORD)
     keep = jnp.pad(keep, ((0, 0), (0, 0), (0, 0), (0, words * _WORD - m)))
-    keep = keep.reshape(g, m, k_offsets, words, _WORD)
-    bit = jnp.arange(_WORD, dtype=jnp.uint32)
-    packed = jnp.sum(jnp.where(keep, jnp.uint32(1) << bit, jnp.uint32(0)),
-                     axis=-1, dtype=jnp.uint32)           # (G, M, K, W)
-    per_word = _popcount(packed).reshape(g * m, k_offsets * words)
+    return _pack(keep).reshape(g, m, k_offsets * words)
+
+
+def _morton(u, bits: int = 3):
+    """int32 Morton codes of ``u`` in ``[0, 1]`` ``(..., 3)``, ``bits``
+    per axis."""
+    q = jnp.clip(jnp.floor(u * (1 << bits)), 0, (1 << bits) - 1).astype(
+        jnp.int32)
+    code = jnp.zeros(u.shape[:-1], jnp.int32)
+    for b in range(bits - 1, -1, -1):
+        for a in range(3):
+            code = code * 2 + ((q[..., a] >> b) & 1)
+    return code
+
+
+def _dense_tiles(st, radius, *, m, budget, self_interaction):
+    """The words each atom reads (module docstring, dense blocks), listed
+    flat, atom by atom: int32 ``(E,)`` entries ``a C' + c`` (slot ``a = g
+    M + i``; ``c = 0`` its self pair where ``self_interaction``, then
+    ``k T + t``: tile ``t`` in image ``k``; ``G M C'`` past the last), the
+    entries needed, and the sort (``(G, T 32)`` sorted slot -> slot). The
+    test is conservative (`TILE_MARGIN`)."""
+    g = st["real"].shape[0]
+    dtype = st["p"].dtype
+    real, fw, o = st["real"], st["fw"], st["o"]
+    tiles = -(-m // _WORD)
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    lo = jnp.min(jnp.where(real[..., None], fw, big), axis=1)     # (G, 3)
+    hi = jnp.max(jnp.where(real[..., None], fw, -big), axis=1)
+    span = jnp.maximum(hi - lo, 0)
+    u = (fw - lo[:, None]) / jnp.where(span > 0, span, 1)[:, None]
+    key = jnp.where(real, _morton(u), 1 << 30)
+    order = jnp.argsort(key, axis=1, stable=True).astype(jnp.int32)
+    pad = tiles * _WORD - m
+    order = jnp.pad(order, ((0, 0), (0, pad)), constant_values=0)
+    real_s = jnp.pad(jnp.take_along_axis(real, order[:, :m], axis=1),
+                     ((0, 0), (0, pad)))
+    fw_s = jnp.take_along_axis(fw, order[..., None], axis=1)
+    real_t = real_s.reshape(g, tiles, _WORD)
+    fw_t = fw_s.reshape(g, tiles, _WORD, 3)
+    t_lo = jnp.min(jnp.where(real_t[..., None], fw_t, big), axis=2)
+    t_hi = jnp.max(jnp.where(real_t[..., None], fw_t, -big), axis=2)
+    filled = jnp.any(real_t, axis=2)                               # (G, T)
+    # |d| >= |f_j - f_i + o|_k h_k on each axis k: the gap between the
+    # atom and the tile's box, in heights.
+    of = o.astype(dtype)
+    gap = jnp.maximum(jnp.maximum(
+        t_lo[:, None, None, :, :] + of[None, None, :, None, :]
+        - fw[:, :, None, None, :],
+        fw[:, :, None, None, :] - of[None, None, :, None, :]
+        - t_hi[:, None, None, :, :]), 0)                    # (G, M, K, T, 3)
+    scale = 1 + jnp.max(jnp.abs(fw), axis=(1, 2))                  # (G,)
+    reach = (radius / st["fr"].h_height) * (1 + TILE_MARGIN) + (
+        TILE_EPS * jnp.finfo(dtype).eps * scale)[:, None]          # (G, 3)
+    near = jnp.all(gap < reach[:, None, None, None, :], axis=-1)
+    near = (near & filled[:, None, None, :] & real[:, :, None, None]
+            & st["allowed"][:, None, :, None]).reshape(g, m, -1)
     if self_interaction:
-        selfs = _self_mask(fr.real, cut, species)[at] & real
+        near = jnp.concatenate([st["selfs"][..., None], near], axis=-1)
+    flat = near.reshape(-1)
+    ends = _prefix_sum(flat, jnp.float64)
+    needed = ends[-1]
+    entries = jnp.full((budget,), flat.shape[0], jnp.int32).at[
+        jnp.where(flat, ends - 1, budget)].set(
+            jnp.arange(flat.shape[0], dtype=jnp.int32), mode="drop")
+    return entries, needed, order
+
+
+def _dense_tile_rows(st, cut, species, entries, order, *, m, half,
+                     self_interaction, capacity):
+    """The rows of the entries of `_dense_tiles`: each word decided
+    exactly (as `_dense_full`), then placed and read as `_dense_decode`
+    reads its words."""
+    g = st["real"].shape[0]
+    n, dtype = st["n"], st["p"].dtype
+    p, w, o, real = st["p"], st["w"], st["o"], st["real"]
+    k_offsets = o.shape[0]
+    tiles = order.shape[1] // _WORD
+    lead = int(self_interaction)
+    width = lead + k_offsets * tiles
+    valid = entries < g * m * width
+    atom = jnp.where(valid, entries // width, 0)                  # g M + i
+    combo = entries - atom * width - lead
+    is_self = valid & (combo < 0)
+    word = valid & (combo >= 0)
+    combo = jnp.maximum(combo, 0)
+    k = jnp.where(word, combo // tiles, 0)
+    t = jnp.where(word, combo - k * tiles, 0)
+    gi = atom // m
+    si = atom - gi * m
+    pad = tiles * _WORD - m
+
+    def tiled(x):
+        """``(G T, ..., 32)`` of ``(G, M, ...)``: the tiles' slots last
+        (each coordinate one ``(E, 32)`` array below: no ``(E, 32, 3)``
+        array is ever made)."""
+        x = jnp.pad(x, ((0, 0), (0, pad)) + ((0, 0),) * (x.ndim - 2))
+        x = jnp.take_along_axis(x, order.reshape(
+            (g, -1) + (1,) * (x.ndim - 2)), axis=1)
+        x = x.reshape((g * tiles, _WORD) + x.shape[2:])
+        return jnp.moveaxis(x, 1, -1)
+
+    tile = gi * tiles + t
+    slot_t = order.reshape(g * tiles, _WORD)[tile]               # (E, 32)
+    real_t = tiled(real)[tile] & word[:, None]
+    pj = tiled(p)[tile]                                          # (E, 3, 32)
+    wj = tiled(w)[tile]
+    p_flat, w_flat = p.reshape(-1, 3), w.reshape(-1, 3)
+    si_w = o[k] + w_flat[atom]                                   # (E, 3)
+    s = [si_w[:, c, None] - wj[:, c] for c in range(3)]
+    sf = [x.astype(dtype) for x in s]
+    h = st["fr"].h[gi]                                           # (E, 3, 3)
+    pi = p_flat[atom]
+    dist2 = None
+    for c in range(3):
+        # As `shift_vectors` and `_dense_full`: the same operations in the
+        # same order, so the same decisions.
+        dc = (pj[:, c] - pi[:, c, None]) + (
+            sf[0] * h[:, 0, c, None] + sf[1] * h[:, 1, c, None]
+            + sf[2] * h[:, 2, c, None])
+        dist2 = dc * dc if dist2 is None else dist2 + dc * dc
+    dist = jnp.sqrt(dist2)
+    if species is None:
+        limit = cut
     else:
-        selfs = jnp.zeros((g, m), bool)
+        spj = tiled(st["sp"])[tile]
+        limit = cut.at[st["sp"].reshape(-1)[atom][:, None], spj].get(
+            mode="fill", fill_value=0)
+    same = slot_t == si[:, None]
+    not_self = ~(same & (k == st["own"])[:, None])
+    keep = (dist < limit) & real_t & not_self
+    if half:
+        positive = (s[0] > 0) | ((s[0] == 0) & (
+            (s[1] > 0) | ((s[1] == 0) & (s[2] > 0))))
+        keep = keep & ((si[:, None] < slot_t) | (same & positive))
+    bits = _pack(keep)[:, 0]
+    counts = jnp.where(is_self, 1, _popcount(bits))
+    ends = _prefix_sum(counts, jnp.float64)
+    r = jnp.arange(capacity, dtype=jnp.int32)
+    total = ends[-1]
+    stored = r < total
+    word_start = ends - counts
+    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
+        counts > 0, word_start, capacity)].set(
+            jnp.arange(counts.shape[0], dtype=jnp.int32), mode="drop")
+    wid = _running_max(marks)
+    rank = r - word_start[wid]
+    bits = bits[wid]
+    b = jnp.zeros((capacity,), jnp.uint32)
+    for step in (16, 8, 4, 2, 1):
+        cand = b + jnp.uint32(step)
+        below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
+        b = jnp.where(below <= rank, cand, b)
+    row_atom, row_g, row_self = atom[wid], gi[wid], is_self[wid]
+    sj = order.reshape(-1)[row_g * (tiles * _WORD) + t[wid] * _WORD
+                           + b.astype(jnp.int32)]
+    sj = jnp.where(row_self, row_atom - row_g * m, sj)
+    kk = jnp.where(row_self, st["own"], k[wid])
+    shift = o[kk] + w_flat[row_atom] - w_flat[row_g * m + sj]
+    i = st["idx"].reshape(-1)[row_atom]
+    j = st["first"][row_g] + sj
+    rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
+    rows = jnp.where(stored[:, None], rows,
+                     jnp.array([n, n, 0, 0, 0], jnp.int32))
+    per_system = jax.ops.segment_sum(counts, jnp.where(valid, gi, g), g)
+    return rows, total, per_system
+
+
+def _dense_decode(st, packed, read, order, *, m, k_offsets, capacity):
+    """The rows of the words ``packed`` (uint32 ``(G, M, L)``): word ``l``
+    of atom ``i`` is ``read[i, l] = k T + t`` (``read`` None: ``l``
+    itself), tile ``t`` the sorted slots ``order[32 t ..]`` (``order``
+    None: the slots)."""
+    g = st["real"].shape[0]
+    n, o, w, first, idx = st["n"], st["o"], st["w"], st["first"], st["idx"]
+    tiles = -(-m // _WORD)
+    width_words = packed.shape[-1]
+    per_word = _popcount(packed).reshape(g * m, width_words)
     # Each atom's row of counts: its self pair, then its words; row r of
     # the list is in the word whose running count first passes r.
-    counts = jnp.concatenate([selfs.reshape(-1, 1).astype(jnp.int32),
+    counts = jnp.concatenate([st["selfs"].reshape(-1, 1).astype(jnp.int32),
                               per_word], axis=1)
     width = counts.shape[1]
     ends = _prefix_sum(counts.reshape(-1), jnp.float64)
@@ -778,8 +971,10 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
     col = wid - row_atom * width
     is_self = col == 0
     word = jnp.maximum(col - 1, 0)
-    k = word // words
-    bits = packed.reshape(-1)[row_atom * (k_offsets * words) + word]
+    bits = packed.reshape(-1)[row_atom * width_words + word]
+    if read is not None:
+        word = read.reshape(-1)[row_atom * width_words + word]
+    k = word // tiles
     # The rank-th set bit of the word: the largest b with fewer than
     # rank + 1 set bits below it.
     b = jnp.zeros((capacity,), jnp.uint32)
@@ -789,9 +984,12 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
         b = jnp.where(below <= rank, cand, b)
     gi = row_atom // m
     si = row_atom - gi * m
-    sj = jnp.where(is_self, si, (word - k * words) * _WORD + b.astype(
-        jnp.int32))
-    k = jnp.where(is_self, own, k)
+    sj = (word - k * tiles) * _WORD + b.astype(jnp.int32)
+    if order is not None:
+        sj = order.reshape(-1)[gi * (tiles * _WORD) + jnp.minimum(
+            sj, tiles * _WORD - 1)]
+    sj = jnp.where(is_self, si, sj)
+    k = jnp.where(is_self, st["own"], k)
     w_flat = w.reshape(-1, 3)
     shift = o[k] + w_flat[row_atom] - w_flat[gi * m + jnp.minimum(sj, m - 1)]
     i = idx.reshape(-1)[row_atom]
@@ -801,7 +999,64 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
                      jnp.array([n, n, 0, 0, 0], jnp.int32))
     total = jnp.sum(degree, dtype=jnp.int32)
     per_system = jnp.sum(degree.reshape(g, m), axis=1, dtype=jnp.int32)
-    return rows, total, per_system, error
+    return rows, total, per_system
+
+
+def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
+                reach, max_nodes, n_graph, completed, half,
+                self_interaction, capacity, tiles=True):
+    """The sorted rows of a batch of small systems, each system one dense
+    block: atom ``i`` against every atom ``j`` of its system in every
+    image ``o`` of the stencil, ``S = o + w[i] - w[j]`` (the wraps as in
+    step 2), decided as in step 5 (no cells, no runs, no per-candidate
+    gathers); each atom's rows in the order of its words (``o``, then the
+    word's slots).
+
+    One word per system (``max_nodes <= 32``): every ``(G, M, K, M)``
+    candidate is decided. More (``tiles``): the atoms are sorted into
+    tiles of 32 along a Morton curve, and each atom decides only the
+    ``(tile, image)`` words whose box may come within the cutoff, at most
+    ``TILE_WORDS_PER_IMAGE`` words per image; past that (some atom
+    near more), every candidate, as with one word.
+
+    The decisions are packed into 32-bit words; the running count over
+    each atom's self pair and words places the words, and each of the
+    ``capacity`` rows finds its word (the last word starting at or before
+    it: marks and a running maximum) and its bit (the word's set bit of
+    its rank, by population counts): nothing runs over the candidates but
+    the decision, nothing is scattered per candidate.
+
+    Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``, the
+    count, the count per system and the error bits (a system with more
+    than ``max_nodes`` atoms sets ``MAX_NODES``).
+    """
+    m = max_nodes
+    st = _dense_setup(positions, graph, mask, cells, pbc, cut, species,
+                      radius, reach=reach, max_nodes=m, n_graph=n_graph,
+                      completed=completed, self_interaction=self_interaction)
+    k_offsets = st["o"].shape[0]
+    words = -(-m // _WORD)
+
+    def full():
+        packed = _dense_full(st, cut, species, m=m, half=half)
+        return _dense_decode(st, packed, None, None, m=m,
+                             k_offsets=k_offsets, capacity=capacity)
+
+    budget = g_m = st["real"].size
+    budget = g_m * (TILE_WORDS_PER_IMAGE * k_offsets + int(self_interaction))
+    if not tiles or words < 2 or TILE_WORDS_PER_IMAGE >= words:
+        rows, total, per_system = full()
+        return rows, total, per_system, st["error"]
+    entries, needed, order = _dense_tiles(
+        st, radius, m=m, budget=budget, self_interaction=self_interaction)
+
+    def pruned():
+        return _dense_tile_rows(st, cut, species, entries, order, m=m,
+                                half=half, self_interaction=self_interaction,
+                                capacity=capacity)
+
+    rows, total, per_system = jax.lax.cond(needed > budget, full, pruned)
+    return rows, total, per_system, st["error"]
 
 
 @functools.partial(jax.jit, static_argnames=(
