@@ -682,7 +682,7 @@ def _running_max(x):
 # coordinates, a tile (one word) read by an atom in an image only where its
 # bounding box may come within the cutoff, each atom reading at most this
 # many (tile, image) words per image of the stencil's words of 32, ...
-TILE_WORDS_PER_IMAGE = 1
+TILE_CHUNK = 2 ** 13
 # ... and the tiles' boxes grown by this much (relatively) and by this many
 # of the dtype's epsilons per unit of fractional coordinate, so that the
 # test only drops tiles that the exact test would drop (rounding of the
@@ -839,11 +839,12 @@ def _dense_tiles(st, radius, *, m, budget, self_interaction):
     return entries, needed, order
 
 
-def _dense_tile_rows(st, cut, species, entries, order, *, m, half,
+def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
                      self_interaction, capacity):
-    """The rows of the entries of `_dense_tiles`: each word decided
-    exactly (as `_dense_full`), then placed and read as `_dense_decode`
-    reads its words."""
+    """The rows of the entries of `_dense_tiles`: the needed entries'
+    words decided exactly (as `_dense_full`), ``TILE_CHUNK`` entries at a
+    time in a loop (the work follows the words there are), then placed and
+    read as `_dense_decode` reads its words."""
     g = st["real"].shape[0]
     n, dtype = st["n"], st["p"].dtype
     p, w, o, real = st["p"], st["w"], st["o"], st["real"]
@@ -851,17 +852,9 @@ def _dense_tile_rows(st, cut, species, entries, order, *, m, half,
     tiles = order.shape[1] // _WORD
     lead = int(self_interaction)
     width = lead + k_offsets * tiles
-    valid = entries < g * m * width
-    atom = jnp.where(valid, entries // width, 0)                  # g M + i
-    combo = entries - atom * width - lead
-    is_self = valid & (combo < 0)
-    word = valid & (combo >= 0)
-    combo = jnp.maximum(combo, 0)
-    k = jnp.where(word, combo // tiles, 0)
-    t = jnp.where(word, combo - k * tiles, 0)
-    gi = atom // m
-    si = atom - gi * m
     pad = tiles * _WORD - m
+    p_flat, w_flat = p.reshape(-1, 3), w.reshape(-1, 3)
+    sp_flat = None if species is None else st["sp"].reshape(-1)
 
     def tiled(x):
         """``(G T, ..., 32)`` of ``(G, M, ...)``: the tiles' slots last
@@ -873,41 +866,82 @@ def _dense_tile_rows(st, cut, species, entries, order, *, m, half,
         x = x.reshape((g * tiles, _WORD) + x.shape[2:])
         return jnp.moveaxis(x, 1, -1)
 
-    tile = gi * tiles + t
-    slot_t = order.reshape(g * tiles, _WORD)[tile]               # (E, 32)
-    real_t = tiled(real)[tile] & word[:, None]
-    pj = tiled(p)[tile]                                          # (E, 3, 32)
-    wj = tiled(w)[tile]
-    p_flat, w_flat = p.reshape(-1, 3), w.reshape(-1, 3)
-    si_w = o[k] + w_flat[atom]                                   # (E, 3)
-    s = [si_w[:, c, None] - wj[:, c] for c in range(3)]
-    sf = [x.astype(dtype) for x in s]
-    h = st["fr"].h[gi]                                           # (E, 3, 3)
-    pi = p_flat[atom]
-    dist2 = None
-    for c in range(3):
-        # As `shift_vectors` and `_dense_full`: the same operations in the
-        # same order, so the same decisions.
-        dc = (pj[:, c] - pi[:, c, None]) + (
-            sf[0] * h[:, 0, c, None] + sf[1] * h[:, 1, c, None]
-            + sf[2] * h[:, 2, c, None])
-        dist2 = dc * dc if dist2 is None else dist2 + dc * dc
-    dist = jnp.sqrt(dist2)
-    if species is None:
-        limit = cut
-    else:
-        spj = tiled(st["sp"])[tile]
-        limit = cut.at[st["sp"].reshape(-1)[atom][:, None], spj].get(
-            mode="fill", fill_value=0)
-    same = slot_t == si[:, None]
-    not_self = ~(same & (k == st["own"])[:, None])
-    keep = (dist < limit) & real_t & not_self
-    if half:
-        positive = (s[0] > 0) | ((s[0] == 0) & (
-            (s[1] > 0) | ((s[1] == 0) & (s[2] > 0))))
-        keep = keep & ((si[:, None] < slot_t) | (same & positive))
-    bits = _pack(keep)[:, 0]
-    counts = jnp.where(is_self, 1, _popcount(bits))
+    slot_tab = order.reshape(g * tiles, _WORD)
+    real_tab, p_tab, w_tab = tiled(real), tiled(p), tiled(w)
+    sp_tab = None if species is None else tiled(st["sp"])
+
+    def split(e):
+        valid = e < g * m * width
+        atom = jnp.where(valid, e // width, 0)                    # g M + i
+        combo = e - atom * width - lead
+        is_self = valid & (combo < 0)
+        word = valid & (combo >= 0)
+        combo = jnp.maximum(combo, 0)
+        k = jnp.where(word, combo // tiles, 0)
+        t = jnp.where(word, combo - k * tiles, 0)
+        gi = atom // m
+        return valid, atom, is_self, word, k, t, gi
+
+    def decide(e):
+        _, atom, is_self, word, k, t, gi = split(e)
+        si = atom - gi * m
+        tile = gi * tiles + t
+        slot_t = slot_tab[tile]                                  # (E, 32)
+        real_t = real_tab[tile] & word[:, None]
+        pj = p_tab[tile]                                         # (E, 3, 32)
+        wj = w_tab[tile]
+        si_w = o[k] + w_flat[atom]                               # (E, 3)
+        s = [si_w[:, c, None] - wj[:, c] for c in range(3)]
+        sf = [x.astype(dtype) for x in s]
+        h = st["fr"].h[gi]                                       # (E, 3, 3)
+        pi = p_flat[atom]
+        dist2 = None
+        for c in range(3):
+            # As `shift_vectors` and `_dense_full`: the same operations in
+            # the same order, so the same decisions.
+            dc = (pj[:, c] - pi[:, c, None]) + (
+                sf[0] * h[:, 0, c, None] + sf[1] * h[:, 1, c, None]
+                + sf[2] * h[:, 2, c, None])
+            dist2 = dc * dc if dist2 is None else dist2 + dc * dc
+        dist = jnp.sqrt(dist2)
+        if species is None:
+            limit = cut
+        else:
+            limit = cut.at[sp_flat[atom][:, None], sp_tab[tile]].get(
+                mode="fill", fill_value=0)
+        same = slot_t == si[:, None]
+        not_self = ~(same & (k == st["own"])[:, None])
+        keep = (dist < limit) & real_t & not_self
+        if half:
+            positive = (s[0] > 0) | ((s[0] == 0) & (
+                (s[1] > 0) | ((s[1] == 0) & (s[2] > 0))))
+            keep = keep & ((si[:, None] < slot_t) | (same & positive))
+        bits = _pack(keep)[:, 0]
+        count = jnp.where(is_self, 1, _popcount(bits))
+        # Where the rows of the word find their partner: its tile's first
+        # sorted slot (flat over the systems), or -1 for the self pair.
+        base = jnp.where(is_self, -1, tile * _WORD)
+        kk = jnp.where(is_self, st["own"], k)
+        return jnp.stack([jax.lax.bitcast_convert_type(bits, jnp.int32),
+                          count, atom, gi, base, kk], axis=1)
+
+    budget = entries.shape[0]
+    chunk = min(TILE_CHUNK, budget)
+    steps = -(-budget // chunk)
+    entries = jnp.pad(entries, (0, steps * chunk - budget),
+                      constant_values=g * m * width)
+
+    # Each word's bits, count and where its rows go, written by the loop
+    # (written out once: the rows below read them many times over).
+    def step(c, words):
+        at = c * chunk
+        return jax.lax.dynamic_update_slice(words, decide(
+            jax.lax.dynamic_slice(entries, (at,), (chunk,))), (at, at * 0))
+
+    words = jax.lax.fori_loop(
+        0, (jnp.minimum(needed, budget) + chunk - 1) // chunk, step,
+        jnp.zeros((steps * chunk, 6), jnp.int32))
+    counts = words[:, 1]
     ends = _prefix_sum(counts, jnp.float64)
     r = jnp.arange(capacity, dtype=jnp.int32)
     total = ends[-1]
@@ -918,24 +952,23 @@ def _dense_tile_rows(st, cut, species, entries, order, *, m, half,
             jnp.arange(counts.shape[0], dtype=jnp.int32), mode="drop")
     wid = _running_max(marks)
     rank = r - word_start[wid]
-    bits = bits[wid]
+    row = words[wid]                                           # (R, 6)
+    bits = jax.lax.bitcast_convert_type(row[:, 0], jnp.uint32)
+    row_atom, row_g, base, kk = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
     b = jnp.zeros((capacity,), jnp.uint32)
-    for step in (16, 8, 4, 2, 1):
-        cand = b + jnp.uint32(step)
+    for bit in (16, 8, 4, 2, 1):
+        cand = b + jnp.uint32(bit)
         below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
         b = jnp.where(below <= rank, cand, b)
-    row_atom, row_g, row_self = atom[wid], gi[wid], is_self[wid]
-    sj = order.reshape(-1)[row_g * (tiles * _WORD) + t[wid] * _WORD
-                           + b.astype(jnp.int32)]
-    sj = jnp.where(row_self, row_atom - row_g * m, sj)
-    kk = jnp.where(row_self, st["own"], k[wid])
+    sj = jnp.where(base < 0, row_atom - row_g * m, order.reshape(-1)[
+        jnp.maximum(base, 0) + b.astype(jnp.int32)])
     shift = o[kk] + w_flat[row_atom] - w_flat[row_g * m + sj]
     i = st["idx"].reshape(-1)[row_atom]
     j = st["first"][row_g] + sj
     rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
     rows = jnp.where(stored[:, None], rows,
                      jnp.array([n, n, 0, 0, 0], jnp.int32))
-    per_system = jax.ops.segment_sum(counts, jnp.where(valid, gi, g), g)
+    per_system = jax.ops.segment_sum(counts, words[:, 3], g)
     return rows, total, per_system
 
 
@@ -1042,18 +1075,19 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
         return _dense_decode(st, packed, None, None, m=m,
                              k_offsets=k_offsets, capacity=capacity)
 
-    budget = g_m = st["real"].size
-    budget = g_m * (TILE_WORDS_PER_IMAGE * k_offsets + int(self_interaction))
-    if not tiles or words < 2 or TILE_WORDS_PER_IMAGE >= words:
+    if not tiles or words < 2:
         rows, total, per_system = full()
         return rows, total, per_system, st["error"]
+    # Room for one word per image per atom, in all (every word where
+    # fewer would do): past that, every candidate.
+    budget = st["real"].size * (k_offsets + int(self_interaction))
     entries, needed, order = _dense_tiles(
         st, radius, m=m, budget=budget, self_interaction=self_interaction)
 
     def pruned():
-        return _dense_tile_rows(st, cut, species, entries, order, m=m,
-                                half=half, self_interaction=self_interaction,
-                                capacity=capacity)
+        return _dense_tile_rows(
+            st, cut, species, entries, needed, order, m=m, half=half,
+            self_interaction=self_interaction, capacity=capacity)
 
     rows, total, per_system = jax.lax.cond(needed > budget, full, pruned)
     return rows, total, per_system, st["error"]
