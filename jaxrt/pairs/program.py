@@ -672,6 +672,18 @@ def _popcount(x):
     return jax.lax.population_count(x).astype(jnp.int32)
 
 
+def _select_bit(bits, rank):
+    """int32 ``(R,)``: the position of the set bit of rank ``rank`` (int32
+    ``(R,)``, from 0) in each uint32 ``bits`` ``(R,)``: the bits whose
+    inclusive count is at most ``rank``, counted (one reduction: XLA
+    writes it out once rather than computing it again in each reader)."""
+    lanes = jnp.arange(_WORD, dtype=jnp.uint32)
+    # (2 << 31) - 1 wraps to every bit, as wanted.
+    upto = (jnp.uint32(2) << lanes) - jnp.uint32(1)
+    inclusive = _popcount(bits[:, None] & upto)
+    return jnp.sum(inclusive <= rank[:, None], axis=1, dtype=jnp.int32)
+
+
 def _running_max(x):
     """int32 ``(n,)`` inclusive running maximum of int32 ``(n,)`` ``x``."""
     return jax.lax.associative_scan(jnp.maximum, x)
@@ -955,13 +967,9 @@ def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
     row = words[wid]                                           # (R, 6)
     bits = jax.lax.bitcast_convert_type(row[:, 0], jnp.uint32)
     row_atom, row_g, base, kk = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
-    b = jnp.zeros((capacity,), jnp.uint32)
-    for bit in (16, 8, 4, 2, 1):
-        cand = b + jnp.uint32(bit)
-        below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
-        b = jnp.where(below <= rank, cand, b)
+    b = _select_bit(bits, rank)
     sj = jnp.where(base < 0, row_atom - row_g * m, order.reshape(-1)[
-        jnp.maximum(base, 0) + b.astype(jnp.int32)])
+        jnp.maximum(base, 0) + b])
     shift = o[kk] + w_flat[row_atom] - w_flat[row_g * m + sj]
     i = st["idx"].reshape(-1)[row_atom]
     j = st["first"][row_g] + sj
@@ -1010,14 +1018,10 @@ def _dense_decode(st, packed, read, order, *, m, k_offsets, capacity):
     k = word // tiles
     # The rank-th set bit of the word: the largest b with fewer than
     # rank + 1 set bits below it.
-    b = jnp.zeros((capacity,), jnp.uint32)
-    for step in (16, 8, 4, 2, 1):
-        cand = b + jnp.uint32(step)
-        below = _popcount(bits & ((jnp.uint32(1) << cand) - jnp.uint32(1)))
-        b = jnp.where(below <= rank, cand, b)
+    b = _select_bit(bits, rank)
     gi = row_atom // m
     si = row_atom - gi * m
-    sj = (word - k * tiles) * _WORD + b.astype(jnp.int32)
+    sj = (word - k * tiles) * _WORD + b
     if order is not None:
         sj = order.reshape(-1)[gi * (tiles * _WORD) + jnp.minimum(
             sj, tiles * _WORD - 1)]
