@@ -817,10 +817,13 @@ def _dense_tiles(st, radius, *, m, budget, self_interaction):
     key = jnp.where(real, _morton(u), 1 << 30)
     order = jnp.argsort(key, axis=1, stable=True).astype(jnp.int32)
     pad = tiles * _WORD - m
-    order = jnp.pad(order, ((0, 0), (0, pad)), constant_values=0)
+    # The last tile's missing slots are slot m: past every atom (padded
+    # below wherever a tile reads it, so never real).
+    order = jnp.pad(order, ((0, 0), (0, pad)), constant_values=m)
     real_s = jnp.pad(jnp.take_along_axis(real, order[:, :m], axis=1),
                      ((0, 0), (0, pad)))
-    fw_s = jnp.take_along_axis(fw, order[..., None], axis=1)
+    fw_s = jnp.take_along_axis(fw, jnp.minimum(order, m - 1)[..., None],
+                               axis=1)
     real_t = real_s.reshape(g, tiles, _WORD)
     fw_t = fw_s.reshape(g, tiles, _WORD, 3)
     t_lo = jnp.min(jnp.where(real_t[..., None], fw_t, big), axis=2)
