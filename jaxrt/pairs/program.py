@@ -52,8 +52,9 @@ How it searches (the search of one system is the same with one graph):
 **Dense blocks** (``max_nodes > 0``, sorted lists of flat batches of small
 systems): steps 3-5 are replaced by `_dense_rows`: each system is one
 block of ``max_nodes`` slots, every atom against every atom of its system
-in every image of the reach, decided as in step 5 all at once (no cells,
-no runs, no gather per candidate), the rows found by counting kept bits.
+in every image of the reach, decided as in step 5 (no cells, no runs),
+the rows found by counting kept bits; past 32 atoms each atom reads only
+the 32-atom tiles (Morton order) whose boxes may come within the cutoff.
 
 ``brute=True`` is the same program with one cell per system: every atom
 of a system is a candidate of every atom of it, in every image.
@@ -689,16 +690,14 @@ def _running_max(x):
     return jax.lax.associative_scan(jnp.maximum, x)
 
 
-# Dense blocks of more than one word are pruned by 32-atom tiles: each
-# system's atoms sorted along a Morton curve of their wrapped fractional
-# coordinates, a tile (one word) read by an atom in an image only where its
-# bounding box may come within the cutoff, each atom reading at most this
-# many (tile, image) words per image of the stencil's words of 32, ...
+# Dense blocks of more than one word are read by 32-atom tiles (`_dense_rows`):
+# the (atom, tile, image) words decided this many at a time in a loop, ...
 TILE_CHUNK = 2 ** 13
-# ... and the tiles' boxes grown by this much (relatively) and by this many
-# of the dtype's epsilons per unit of fractional coordinate, so that the
-# test only drops tiles that the exact test would drop (rounding of the
-# wrapped fractional coordinates is far smaller).
+# ... a tile dropped only where the cutoff, grown by this much (relatively)
+# and by this many of the dtype's epsilons per unit of fractional
+# coordinate, does not reach its box: only where the exact test would drop
+# every atom of it (the wrapped fractional coordinates' rounding is far
+# smaller).
 TILE_MARGIN = 2.0 ** -10
 TILE_EPS = 2.0 ** 8
 
@@ -799,12 +798,18 @@ def _morton(u, bits: int = 3):
 
 
 def _dense_tiles(st, radius, *, m, budget, self_interaction):
-    """The words each atom reads (module docstring, dense blocks), listed
-    flat, atom by atom: int32 ``(E,)`` entries ``a C' + c`` (slot ``a = g
-    M + i``; ``c = 0`` its self pair where ``self_interaction``, then
-    ``k T + t``: tile ``t`` in image ``k``; ``G M C'`` past the last), the
-    entries needed, and the sort (``(G, T 32)`` sorted slot -> slot). The
-    test is conservative (`TILE_MARGIN`)."""
+    """The words each atom reads (`_dense_rows`), listed flat, atom by
+    atom: int32 ``(budget,)`` entries ``a C' + c`` (slot ``a = g M + i``;
+    ``c = 0`` its self pair where ``self_interaction``, then ``lead + k T +
+    t``: tile ``t`` in image ``k``; ``G M C'`` past the last), int32 the
+    entries needed (the list is whole only if at most ``budget``), and the
+    sort, int32 ``(G, 32 T)`` sorted slot -> slot (``M`` past the atoms).
+
+    An atom reads tile ``t`` in image ``o`` unless, on some axis ``k``, the
+    tile's box of wrapped fractional coordinates is farther from it than
+    the cutoff: ``|d| >= |f_j - f_i + o|_k h_k`` (``h_k`` the height), so
+    no atom of the tile is within the cutoff in that image
+    (`TILE_MARGIN`)."""
     g = st["real"].shape[0]
     dtype = st["p"].dtype
     real, fw, o = st["real"], st["fw"], st["o"]
@@ -856,10 +861,12 @@ def _dense_tiles(st, radius, *, m, budget, self_interaction):
 
 def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
                      self_interaction, capacity):
-    """The rows of the entries of `_dense_tiles`: the needed entries'
-    words decided exactly (as `_dense_full`), ``TILE_CHUNK`` entries at a
-    time in a loop (the work follows the words there are), then placed and
-    read as `_dense_decode` reads its words."""
+    """The rows of the entries of `_dense_tiles` (all of them: ``needed``
+    at most their number): the words decided exactly (as `_dense_full`),
+    ``TILE_CHUNK`` entries at a time in a loop (the work follows the words
+    there are), then placed and read as `_dense_decode` reads its words.
+    Returns int32 ``(capacity, 5)`` rows, the count and the count per
+    system."""
     g = st["real"].shape[0]
     n, dtype = st["n"], st["p"].dtype
     p, w, o, real = st["p"], st["w"], st["o"], st["real"]
@@ -983,11 +990,10 @@ def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
     return rows, total, per_system
 
 
-def _dense_decode(st, packed, read, order, *, m, k_offsets, capacity):
-    """The rows of the words ``packed`` (uint32 ``(G, M, L)``): word ``l``
-    of atom ``i`` is ``read[i, l] = k T + t`` (``read`` None: ``l``
-    itself), tile ``t`` the sorted slots ``order[32 t ..]`` (``order``
-    None: the slots)."""
+def _dense_decode(st, packed, *, m, capacity):
+    """The rows of `_dense_full`'s words ``packed`` (uint32 ``(G, M, K
+    W)``), each atom's self pair (where ``st["selfs"]``) first: int32
+    ``(capacity, 5)``, the count and the count per system."""
     g = st["real"].shape[0]
     n, o, w, first, idx = st["n"], st["o"], st["w"], st["first"], st["idx"]
     tiles = -(-m // _WORD)
@@ -1016,19 +1022,11 @@ def _dense_decode(st, packed, read, order, *, m, k_offsets, capacity):
     is_self = col == 0
     word = jnp.maximum(col - 1, 0)
     bits = packed.reshape(-1)[row_atom * width_words + word]
-    if read is not None:
-        word = read.reshape(-1)[row_atom * width_words + word]
     k = word // tiles
-    # The rank-th set bit of the word: the largest b with fewer than
-    # rank + 1 set bits below it.
     b = _select_bit(bits, rank)
     gi = row_atom // m
     si = row_atom - gi * m
-    sj = (word - k * tiles) * _WORD + b
-    if order is not None:
-        sj = order.reshape(-1)[gi * (tiles * _WORD) + jnp.minimum(
-            sj, tiles * _WORD - 1)]
-    sj = jnp.where(is_self, si, sj)
+    sj = jnp.where(is_self, si, (word - k * tiles) * _WORD + b)
     k = jnp.where(is_self, st["own"], k)
     w_flat = w.reshape(-1, 3)
     shift = o[k] + w_flat[row_atom] - w_flat[gi * m + jnp.minimum(sj, m - 1)]
@@ -1044,20 +1042,25 @@ def _dense_decode(st, packed, read, order, *, m, k_offsets, capacity):
 
 def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
                 reach, max_nodes, n_graph, completed, half,
-                self_interaction, capacity, tiles=True):
+                self_interaction, capacity):
     """The sorted rows of a batch of small systems, each system one dense
     block: atom ``i`` against every atom ``j`` of its system in every
     image ``o`` of the stencil, ``S = o + w[i] - w[j]`` (the wraps as in
     step 2), decided as in step 5 (no cells, no runs, no per-candidate
-    gathers); each atom's rows in the order of its words (``o``, then the
-    word's slots).
+    gathers); each atom's self pair first, then its rows in the order of
+    its words (``o``, then the word's slots).
 
     One word per system (``max_nodes <= 32``): every ``(G, M, K, M)``
-    candidate is decided. More (``tiles``): the atoms are sorted into
-    tiles of 32 along a Morton curve, and each atom decides only the
-    ``(tile, image)`` words whose box may come within the cutoff, at most
-    ``TILE_WORDS_PER_IMAGE`` words per image; past that (some atom
-    near more), every candidate, as with one word.
+    candidate is decided. More: each system's atoms are sorted along a
+    Morton curve of their wrapped fractional coordinates and cut into
+    tiles of 32 (one word each), and each atom decides only the ``(tile,
+    image)`` words whose box may come within the cutoff (`_dense_tiles`,
+    conservative), listed flat for the batch, in a loop that reads only
+    the words listed: the work grows with the words near the atoms, not
+    with ``M² K``. The list has room for ``K`` words per atom slot on
+    average (a tile a little smaller than the cutoff's sphere has about
+    half of that); a batch needing more (tiles as wide as the cell, short
+    cells) is decided whole, as with one word.
 
     The decisions are packed into 32-bit words; the running count over
     each atom's self pair and words places the words, and each of the
@@ -1079,10 +1082,9 @@ def _dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,
 
     def full():
         packed = _dense_full(st, cut, species, m=m, half=half)
-        return _dense_decode(st, packed, None, None, m=m,
-                             k_offsets=k_offsets, capacity=capacity)
+        return _dense_decode(st, packed, m=m, capacity=capacity)
 
-    if not tiles or words < 2:
+    if words < 2:
         rows, total, per_system = full()
         return rows, total, per_system, st["error"]
     # Room for one word per image per atom, in all (every word where
