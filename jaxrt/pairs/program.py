@@ -850,12 +850,17 @@ def _dense_tiles(st, radius, *, m, budget, self_interaction):
             & st["allowed"][:, None, :, None]).reshape(g, m, -1)
     if self_interaction:
         near = jnp.concatenate([st["selfs"][..., None], near], axis=-1)
-    flat = near.reshape(-1)
-    ends = _prefix_sum(flat, jnp.float64)
-    needed = ends[-1]
-    entries = jnp.full((budget,), flat.shape[0], jnp.int32).at[
-        jnp.where(flat, ends - 1, budget)].set(
-            jnp.arange(flat.shape[0], dtype=jnp.int32), mode="drop")
+    # Each entry's place: the words listed before its atom's, then its
+    # rank among the atom's (float32 block products: a few thousand words
+    # per atom at most).
+    near = near.reshape(g * m, -1)
+    ranks = _row_ranks(near)
+    count = ranks[:, -1]
+    at = _exclusive_prefix(count)[:, None] + ranks - 1
+    needed = jnp.sum(count, dtype=jnp.int32)
+    entries = jnp.full((budget,), near.size, jnp.int32).at[
+        jnp.where(near, at, budget).reshape(-1)].set(
+            jnp.arange(near.size, dtype=jnp.int32), mode="drop")
     return entries, needed, order
 
 
