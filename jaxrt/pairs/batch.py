@@ -253,8 +253,9 @@ def pairs_batch(positions, n_node, cutoff, *, cell=None, pbc=None,
       species, half, self_interaction, backend: as `jaxrt.pairs`.
       max_nodes: static int: positive, at most this many atoms in any
         system, each system then searched as one dense block (every atom
-        against every atom of its system in every image of the reach),
-        faster than cells for small systems (a system with more atoms sets
+        against every atom of its system in every image of the reach; past
+        32 atoms only the 32-atom tiles near each atom), faster than cells
+        for small systems (a system with more atoms sets
         ``ErrorBit.MAX_NODES``); 0: cells. None: eager calls choose (dense
         blocks for small systems), under ``jit`` cells;
         `jaxrt.pairs_batch_sizes` gives it.

@@ -370,10 +370,18 @@ def is_small(n: int, max_shift) -> bool:
 
 
 # A flat batch's systems are searched as dense blocks (every atom against
-# every atom of its system, in every image of the reach) while each atom has
-# at most this many candidates; past it the cells read fewer (on a CPU the
-# two cross between 128 and 256 atoms of fcc at reach 1).
+# every atom of its system, in every image of the reach) while each atom
+# has at most DENSE_CANDIDATES candidates; past them the cells read fewer
+# (on a CPU the two cross between 128 and 256 atoms of fcc at reach 1). A
+# system of more than one word (32 atoms) is read by tiles of 32, each atom
+# deciding only the tiles near it: they stay faster than the cells up to
+# DENSE_TILE_CANDIDATES candidates and DENSE_LARGEST atoms (fcc at reach 1:
+# the tiles win at a thousand atoms, the cells at two thousand; the tiles'
+# own test grows as the square of the atoms).
 DENSE_CANDIDATES = 2 ** 12
+DENSE_TILE_CANDIDATES = 2 ** 15
+DENSE_LARGEST = 1024
+_WORD = 32
 
 
 def dense_nodes(largest: int, max_shift) -> int:
@@ -381,8 +389,11 @@ def dense_nodes(largest: int, max_shift) -> int:
     ``largest`` atoms (rounded up by `bucket`), or 0 where cells are the
     better search."""
     m = bucket(largest)
-    images = math.prod(2 * r + 1 for r in max_shift)
-    return m if m * images <= DENSE_CANDIDATES else 0
+    candidates = m * math.prod(2 * r + 1 for r in max_shift)
+    if m <= _WORD:
+        return m if candidates <= DENSE_CANDIDATES else 0
+    return m if candidates <= DENSE_TILE_CANDIDATES and m <= DENSE_LARGEST \
+        else 0
 
 
 def plan(n: int, pbc, max_shift, backend: str, candidates=None):
