@@ -30,7 +30,8 @@ import numpy as np
 from jaxrt.layouts.edges import materialized
 from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, raise_if
-from jaxrt.pairs.program import safe_norm, search, shift_vectors
+from jaxrt.pairs.cells import safe_norm, shift_vectors
+from jaxrt.pairs.program import search
 from jaxrt.pairs.search import PairSizes
 
 __all__ = ["BatchPairs", "pairs_batch", "pairs_batch_sizes"]

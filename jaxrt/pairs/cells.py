@@ -1,0 +1,604 @@
+"""The cell search of `jaxrt.pairs.program` (steps 1-5 of its docstring)
+and the pieces the dense blocks (`jaxrt.pairs.blocks`) share with it: the
+cells' geometry, fractional frames, prefix sums and row ranks."""
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrt.pairs.bits import ErrorBit
+from jaxrt.pairs.host import lex_positive
+
+# Cells are this much (relatively) wider than their minimum, so that an atom
+# binned one cell off by rounding still has all its neighbours in reach.
+CELL_MARGIN = 2.0 ** -10
+# The brute force up to this many slots (N² K) is one step, without a loop.
+BRUTE_ONE_STEP = 2 ** 16
+# A system has at most this many cells per atom, plus CELLS_PER_SYSTEM.
+CELLS_PER_ATOM = 4
+CELLS_PER_SYSTEM = 64
+# Dense blocks up to this many candidates in all (their flat index is an
+# int32, their keep bits one array); past it the cells search the batch.
+DENSE_MOST = 2 ** 28
+
+
+def shift_vectors(s, h):
+    """``s @ h`` written out (``s`` float ``(..., 3)``, ``h`` ``(..., 3, 3)``
+    broadcasting): elementwise in the dtype, as ASE's sum of three products
+    (a GPU matrix product may round float32 to TF32)."""
+    return (s[..., 0:1] * h[..., 0, :] + s[..., 1:2] * h[..., 1, :]
+            + s[..., 2:3] * h[..., 2, :])
+
+
+def safe_norm(d):
+    """``|d|`` over the last axis, with a zero (finite) gradient at 0."""
+    d2 = jnp.sum(d * d, axis=-1)
+    positive = d2 > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, d2, 1)), 0)
+
+
+def inverse(h):
+    """``inv(h)`` and ``det(h)`` of ``(..., 3, 3)`` matrices, written out by
+    cofactors: no solver call for a 3x3, a fraction of its compile time."""
+    a, b, c = h[..., 0, :], h[..., 1, :], h[..., 2, :]
+    adj = jnp.stack([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)],
+                    axis=-1)  # columns: inv(h) = adj / det
+    det = jnp.sum(a * adj[..., :, 0], axis=-1)  # elementwise: no TF32 dot
+    return adj / det[..., None, None], det
+
+
+def heights(hinv):
+    """float ``(..., 3)``: a cell's height across each axis, ``1 / |b_k|``
+    with ``b_k`` column ``k`` of ``inv(cell)``."""
+    return 1 / jnp.sqrt(jnp.sum(hinv * hinv, axis=-2))
+
+
+def _unit(v):
+    n = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
+    return v / jnp.where(n > 0, n, 1)
+
+
+def complete_cells(h, pbc):
+    """Cells ``(G, 3, 3)`` with their zero rows on free axes replaced (ASE's
+    ``complete_cell``: unit vectors orthogonal to the rows given), and bool
+    ``(G,)``: a zero row on a periodic axis (the cell is singular)."""
+    zero = ~jnp.any(h != 0, axis=-1)  # (G, 3)
+    missing = zero & ~pbc
+    count = jnp.sum(missing, axis=-1)
+    rows = [h[:, 0], h[:, 1], h[:, 2]]
+    # One row missing: the unit normal of the two others.
+    normal = [_unit(jnp.cross(rows[(k + 1) % 3], rows[(k + 2) % 3]))
+              for k in range(3)]
+    # Two missing: the present row u and two unit vectors orthogonal to it
+    # and to each other (from the Cartesian axis least along u).
+    present = jnp.sum(jnp.where(missing[..., None], 0, h), axis=1)
+    u = _unit(present)
+    axis = jax.nn.one_hot(jnp.argmin(jnp.abs(u), axis=-1), 3, dtype=h.dtype)
+    v1 = _unit(jnp.cross(u, axis))
+    v2 = jnp.cross(u, v1)
+    first_missing = jnp.argmax(missing, axis=-1)
+    eye = jnp.eye(3, dtype=h.dtype)
+    out = []
+    for k in range(3):
+        pair = jnp.where((first_missing == k)[:, None], v1, v2)
+        row = jnp.where((count == 1)[:, None], normal[k],
+                        jnp.where((count == 2)[:, None], pair, eye[k]))
+        out.append(jnp.where(missing[:, k, None], row, rows[k]))
+    return jnp.stack(out, axis=1), jnp.any(zero & pbc, axis=-1)
+
+
+def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
+    """int32 ``(K, 3)``: the stencil, every offset with ``|o_k| <= r_k``;
+    the half stencil (not ``full``) keeps those that are zero or
+    lexicographically positive."""
+    every = np.array(list(itertools.product(
+        *(range(-r, r + 1) for r in reach))), np.int32)
+    if full:
+        return every
+    first = np.array([next((v for v in o if v != 0), 0) for o in every])
+    return every[first >= 0]
+
+
+def exclusive_prefix(x):
+    """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
+    return prefix_sum(x, jnp.float64) - x
+
+
+def _triangular_dot(x, strict: bool = False):
+    """Inclusive (or, ``strict``, exclusive) prefix sums along the last
+    axis of float ``x`` as one product with a triangular matrix: exact for
+    whole sums below 2^24 (float32) or 2^53 (float64), and one small dot
+    compiles and runs faster than a scan on a CPU."""
+    m = x.shape[-1]
+    upper = jnp.asarray(np.triu(np.ones((m, m), x.dtype), k=int(strict)))
+    return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
+
+
+_PREFIX_BLOCK = 64
+
+
+def prefix_sum(x, dtype=jnp.float32):
+    """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
+    triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
+    sum may pass 2^24): a CPU runs them several times faster than
+    ``cumsum``'s scan."""
+    m = x.shape[0]
+    if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
+        return jnp.cumsum(x, dtype=jnp.int32)
+    x = x.astype(dtype)
+    if m <= _PREFIX_BLOCK:
+        return _triangular_dot(x).astype(jnp.int32)
+    rows = -(-m // _PREFIX_BLOCK)
+    inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
+        rows, _PREFIX_BLOCK))
+    totals = inner[:, -1]
+    before = prefix_sum(totals, dtype).astype(dtype) - totals
+    return (inner + before[:, None]).reshape(-1)[:m].astype(jnp.int32)
+
+
+_RANK_BLOCK = 32
+
+
+def row_ranks(keep):
+    """int32 ``(R, M)``: the inclusive count of True along each row of bool
+    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
+    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
+    ``M²``."""
+    rows, m = keep.shape
+    x = keep.astype(jnp.float32)
+    if m <= 2 * _RANK_BLOCK:
+        return _triangular_dot(x).astype(jnp.int32)
+    blocks = -(-m // _RANK_BLOCK)
+    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
+        rows, blocks, _RANK_BLOCK)
+    inner = _triangular_dot(x)
+    before = _triangular_dot(inner[..., -1], strict=True)
+    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
+    return ranks.astype(jnp.int32)
+
+
+def table_size(n: int, n_graph: int, brute: bool) -> int:
+    return n_graph if brute else CELLS_PER_ATOM * n + CELLS_PER_SYSTEM * n_graph
+
+
+def _grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
+          brute: bool, count):
+    """Each system's grid (module docstring, 3.).
+
+    Args:
+      fw: float ``(N, 3)`` wrapped fractional positions; graph: int32
+        ``(N,)``; real: bool ``(N,)``; pbc: bool ``(G, 3)``; h_height:
+        float ``(G, 3)``; count: int32 ``(G,)`` real atoms per system.
+    Returns:
+      int32 ``(G, 3)`` cells per axis, float ``(G, 3)`` origin and width,
+      int32 ``(G,)`` the first cell of each system in the table.
+    """
+    dtype = fw.dtype
+    g = n_graph
+    if brute:
+        cells = jnp.ones((g, 3), jnp.int32)
+        return (cells, jnp.zeros((g, 3), dtype), jnp.ones((g, 3), dtype),
+                jnp.arange(g, dtype=jnp.int32))
+    reach_arr = np.maximum(np.array(reach), 1)
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    lo = jax.ops.segment_min(jnp.where(real[:, None], fw, big), graph, g)
+    hi = jax.ops.segment_max(jnp.where(real[:, None], fw, -big), graph, g)
+    has = (count > 0)[:, None]
+    origin = jnp.where(pbc, 0, jnp.where(has, lo, 0))
+    extent = jnp.where(pbc, 1, jnp.where(has, jnp.maximum(hi - origin, 0), 0))
+    least = cutoff * (1 + CELL_MARGIN) / (reach_arr * h_height)
+    budget = CELLS_PER_ATOM * count + CELLS_PER_SYSTEM
+
+    def count_cells(coarsen):
+        size = least * coarsen[:, None]
+        per_axis = jnp.where(pbc, jnp.maximum(jnp.floor(1 / size), 1),
+                             jnp.floor(extent / size) + 1)
+        return jnp.where(has, per_axis, 1)
+
+    def over(coarsen):
+        return jnp.prod(count_cells(coarsen), axis=-1) > budget
+
+    coarsen = jax.lax.while_loop(
+        lambda c: jnp.any(over(c)),
+        lambda c: jnp.where(over(c), c * 1.25, c), jnp.ones((g,), dtype))
+    cells_f = count_cells(coarsen)
+    width = jnp.where(pbc, 1 / cells_f, least * coarsen[:, None])
+    cells = cells_f.astype(jnp.int32)
+    return cells, origin, width, exclusive_prefix(jnp.prod(cells, axis=-1))
+
+
+class _Binned(NamedTuple):
+    """The atoms binned: what the loop and the assembly read."""
+    error: jax.Array      # int32 bits so far
+    real: jax.Array       # bool (N,)
+    graph: jax.Array      # int32 (N,)
+    h_atom: jax.Array     # (N, 3, 3) each atom's completed cell
+    start: jax.Array      # int32 (N, K) first sorted slot of each target run
+    length: jax.Array     # int32 (N, K) its length
+    image: jax.Array      # int32 (N, K, 3) S' + w[i] of each target
+    order: jax.Array      # int32 (N,) sorted slot -> atom
+    rank: jax.Array       # int32 (N,) atom -> sorted slot
+    w: jax.Array          # float (N, 3) whole cells each atom was moved by
+
+
+def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
+    """The atoms sorted by cell: each target cell's run (first sorted slot
+    and length, int32 ``(N, K)``), ``order`` (slot -> atom) and ``rank``
+    (atom -> slot)."""
+    n = coord.shape[0]
+    table = table_size(n, n_graph, False)
+
+    def key_of(c, cells_c, base_c):
+        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
+            cells_c[..., 0] + c[..., 0]
+
+    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
+    sorted_key, order = jax.lax.sort(
+        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    # Each cell's run: its first sorted slot and its length, by two
+    # scatters (an empty cell's start is never read).
+    slots = jnp.arange(n, dtype=jnp.int32)
+    first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
+        slots, mode="drop")
+    sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
+    tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
+                                    base_a[:, None]), 0)
+    # One gather for both (the key's arithmetic is fused into the gather,
+    # and would be done once per gathered array).
+    run = jnp.stack([first, sizes], axis=1)[tkey]
+    start = run[..., 0]
+    length = jnp.where(inside, run[..., 1], 0)
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(
+        jnp.arange(n, dtype=jnp.int32))
+    return start, length, order, rank
+
+
+class _Frame(NamedTuple):
+    """Steps 1-2: the completed cells, the real atoms, the wraps."""
+    error: jax.Array      # int32 bits so far
+    real: jax.Array       # bool (N,)
+    graph: jax.Array      # int32 (N,) clipped to [0, G)
+    unclipped: jax.Array  # int32 (N,) as given
+    h: jax.Array          # (G, 3, 3) completed cells
+    bad_cell: jax.Array   # bool (G,)
+    h_height: jax.Array   # (G, 3)
+    count: jax.Array      # int32 (G,) real atoms per system
+    pbc_a: jax.Array      # bool (N, 3)
+    w: jax.Array          # float (N, 3) whole cells each atom was moved by
+    fw: jax.Array         # float (N, 3) wrapped fractional positions
+
+
+def frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
+    """Steps 1-2 of the module docstring (step 1 unless ``completed``)."""
+    n, dtype = positions.shape[0], positions.dtype
+    r = jax.lax.stop_gradient(positions)
+    h = jax.lax.stop_gradient(cells)
+    if completed:
+        zero_periodic = jnp.zeros((n_graph,), bool)
+    else:
+        h, zero_periodic = complete_cells(h, pbc)
+    hinv, det = inverse(h)
+    bad_cell = zero_periodic | ~(jnp.isfinite(det) & (jnp.abs(det) > 0)
+                                 & jnp.all(jnp.isfinite(hinv), axis=(1, 2)))
+    unclipped, graph = graph, jnp.clip(graph, 0, n_graph - 1)
+    finite = jnp.all(jnp.isfinite(r), axis=1)
+    count = jax.ops.segment_sum(mask.astype(jnp.int32), graph, n_graph)
+    error = jnp.where(jnp.any(mask & ~finite),
+                      int(ErrorBit.NONFINITE_POSITION), 0)
+    error = error | jnp.where(jnp.any(bad_cell & (count > 0)),
+                              int(ErrorBit.SINGULAR_CELL), 0)
+    real = mask & finite
+    count = jax.ops.segment_sum(real.astype(jnp.int32), graph, n_graph)
+    hinv = jnp.where(bad_cell[:, None, None], jnp.eye(3, dtype=dtype), hinv)
+    h_height = heights(hinv)
+    pbc_a, hinv_a = pbc[graph], hinv[graph]
+    f = jnp.sum(jnp.where(real[:, None], r, 0)[:, :, None] * hinv_a, axis=1)
+    w = jnp.where(pbc_a, jnp.floor(f), 0)
+    fw = f - w
+    return _Frame(error, real, graph, unclipped, h, bad_cell, h_height,
+                  count, pbc_a, w, fw)
+
+
+def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
+         n_graph, completed, full) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+    n = positions.shape[0]
+    (error, real, graph, unclipped, h, bad_cell, h_height, count, pbc_a, w,
+     fw) = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
+                  completed=completed)
+    grid_cells, origin, width, base = _grid(
+        fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
+    # The reach covers the cutoff unless the cell is too short for it.
+    short = jnp.any(pbc & (radius * grid_cells / h_height > np.array(reach)),
+                    axis=-1) & (count > 0) & ~bad_cell
+    error = error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
+
+    cells_a, base_a = grid_cells[graph], base[graph]
+    coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
+        jnp.int32), 0, cells_a - 1)
+    # The half stencil's target cells and their images (docstring, 4.).
+    target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
+    cells_k = cells_a[:, None, :]
+    # floor(target / cells) of small whole numbers, in float32 (exact:
+    # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
+    # faster than an integer division.
+    image = jnp.where(pbc_a[:, None, :], jnp.floor(
+        (target.astype(jnp.float32) + 0.5) / cells_k.astype(jnp.float32)
+    ).astype(jnp.int32), 0)
+    target = target - image * cells_k
+    inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
+        real[:, None]
+    if brute:
+        # One cell per system: a system's run is its atoms as given (they
+        # are contiguous; padding atoms in it are skipped by the loop), so
+        # nothing is sorted.
+        order = rank = jnp.arange(n, dtype=jnp.int32)
+        system = jnp.clip(unclipped, 0, n_graph)
+        sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
+                                    n_graph + 1)
+        first = exclusive_prefix(sizes)
+        start = jnp.broadcast_to(first[system][:, None], inside.shape)
+        length = jnp.where(inside, sizes[system][:, None], 0)
+    else:
+        start, length, order, rank = _runs(coord, target, inside, cells_a,
+                                           base_a, real, n_graph)
+    # Shifts of the caller's positions: S = S' + w[i] - w[j].
+    image = image + w.astype(jnp.int32)[:, None, :]
+    return _Binned(error, real, graph, h[graph], start, length, image, order,
+                   rank, w)
+
+
+def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
+                stored, brute, full, half):
+    """Step 5: the loop over candidates. Returns the pairs found (int32),
+    per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
+    (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
+    with ``i = N``: from the half stencil each pair is found once; from the
+    ``full`` stencil each atom finds all its own pairs (its representatives
+    only, with ``half``).
+
+    From the ``full`` stencil the candidates are the runs' slots laid end
+    to end, atom by atom and offset by offset (``i``-major), and read
+    ``chunk`` at a time: the work follows the candidates there are, not
+    the fullest cell times every run, and the pairs kept come out in
+    ``i``-major order, so a pair's place in the list is its rank among the
+    kept (no sort, one scatter). A brute force of few candidates is one
+    step."""
+    n, dtype = positions.shape[0], positions.dtype
+    b = binned
+    own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
+    k_offsets = own.shape[0]
+    columns = [positions[b.order], b.w[b.order]]
+    if species is not None:
+        columns.append(species[b.order][:, None].astype(dtype))
+    # One gather per candidate: the sorted atoms' positions, wraps (small
+    # whole numbers, exact in the dtype) and species side by side.
+    table = jnp.concatenate(columns, axis=1)
+
+    def decide(i, k, p, image):
+        """Which candidates ``(i, offset k, sorted slot p)`` (any shape;
+        ``image`` the run's ``S' + w[i]``, shape + (3,)) are kept."""
+        row = table[p]
+        s = image - row[..., 3:6].astype(jnp.int32)
+        d = (row[..., :3] - positions[i]) + shift_vectors(
+            s.astype(dtype), b.h_atom[i])
+        dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
+                        + d[..., 2] * d[..., 2])
+        if species is None:
+            limit = cut
+        else:
+            limit = cut.at[species[i], row[..., 6].astype(jnp.int32)].get(
+                mode="fill", fill_value=0)
+        rank_i = b.rank[i]
+        if not full:  # within the own cell, from the atom sorted first
+            once = ~own[k] | (p > rank_i)
+        else:  # all but (i, i, 0)
+            once = ~(own[k] & (p == rank_i))
+            if half:
+                j = b.order[p]
+                once = once & ((i < j) | ((i == j) & lex_positive(s)))
+        if brute:  # runs hold padding atoms (not sorted out)
+            once = once & b.real[p]
+        return (dist < limit) & once
+
+    pad = jnp.array([n * k_offsets, 0], jnp.int32)
+    out = jnp.broadcast_to(pad, (stored, 2))
+    if brute and n * n * k_offsets <= max(chunk, BRUTE_ONE_STEP):
+        # Few candidates (every slot of every run, N² K at most): one
+        # step, no loop and no stream to lay out.
+        slot = jnp.arange(n, dtype=jnp.int32)
+        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+        p = jnp.clip(b.start[:, :, None] + slot, 0, n - 1)
+        keep = (slot < b.length[:, :, None]) & decide(
+            atoms, k, p, b.image[:, :, None, :])
+        ranks = prefix_sum(keep.reshape(-1))
+        if stored > 0:
+            rows = jnp.stack([jnp.broadcast_to(atoms * k_offsets + k,
+                                               p.shape), p], axis=-1)
+            out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
+                rows.reshape(-1, 2), mode="drop")
+        return ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
+
+    if not full:
+        # Unsorted, the order is free: every run read a slot at a time (as
+        # many steps as the fullest cell holds), which on a CPU costs less
+        # than laying out the stream for one system of ~100 atoms.
+        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+
+        def slot_step(t, carry):
+            total, per_atom, out = carry
+            p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
+            keep = ((t < b.length[:, :, None]) & decide(
+                atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
+            ranks = row_ranks(keep)
+            row_count = ranks[:, -1]
+            if stored > 0:
+                at = total + exclusive_prefix(row_count)[:, None] + ranks - 1
+                rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
+                                  p.reshape(n, -1)], axis=-1)
+                out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
+                    rows.reshape(-1, 2), mode="drop")
+            return (total + jnp.sum(row_count, dtype=jnp.int32),
+                    per_atom + row_count, out)
+
+        return jax.lax.fori_loop(
+            0, jnp.max(b.length, initial=0), slot_step,
+            (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+
+    return _stream(decide, b, out, n=n, k_offsets=k_offsets, chunk=chunk,
+                   stored=stored)
+
+
+def _stream(decide, b: _Binned, out, *, n, k_offsets, chunk, stored):
+    """`candidates` from the full stencil: the candidates as one
+    ``i``-major stream read ``chunk`` at a time (its docstring)."""
+    length = b.length.reshape(-1)
+    ends = prefix_sum(length, jnp.float64)  # (N K,) inclusive
+    total_candidates = ends[-1]
+    runs = n * k_offsets
+    # The runs that hold candidates, in order (compacted, padded with
+    # runs that start past every candidate): a block of ``chunk``
+    # candidates meets at most ``chunk`` of them, in one slice.
+    nonempty = length > 0
+    at = jnp.where(nonempty, prefix_sum(nonempty) - 1,
+                   runs + chunk)
+    big = jnp.iinfo(jnp.int32).max
+    run_first = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends - length, mode="drop")
+    run_ends = jnp.full((runs + chunk,), big, jnp.int32).at[at].set(
+        ends, mode="drop")
+    run_id = jnp.full((runs + chunk,), runs - 1, jnp.int32).at[at].set(
+        jnp.arange(runs, dtype=jnp.int32), mode="drop")
+    runs_start = b.start.reshape(-1)
+    image = b.image.reshape(-1, 3)
+    # Each atom's last candidate: the kept count there, read as the block
+    # holding it passes, gives the pairs per atom (exact past the capacity).
+    atom_end = ends[k_offsets - 1::k_offsets] - 1
+    slots = jnp.arange(chunk, dtype=jnp.int32)
+
+    def step(carry):
+        c0, total, upto, out = carry
+        c = c0 + slots
+        valid = c < total_candidates
+        # The compacted run of each candidate: the block's first (holding
+        # c0), plus the later runs that start at or before it.
+        r0 = jnp.searchsorted(run_ends, c0, side="right").astype(jnp.int32)
+        first = jax.lax.dynamic_slice(run_first, (r0 + 1,), (chunk,))
+        starts = jnp.zeros((chunk,), jnp.float32).at[first - c0].add(
+            1, mode="drop")
+        compact = r0 + prefix_sum(starts)
+        run = run_id[compact]
+        c_first = run_first[compact]
+        i = run // k_offsets
+        k = run - i * k_offsets
+        p = jnp.clip(runs_start[run] + c - c_first, 0, n - 1)
+        keep = valid & decide(i, k, p, image[run])
+        ranks = prefix_sum(keep)
+        if stored > 0:
+            at = jnp.where(keep, total + ranks - 1, stored)
+            rows = jnp.stack([run, p], axis=-1)
+            out = out.at[at].set(rows, mode="drop")
+        last = atom_end - c0
+        here = (last >= 0) & (last < chunk)
+        upto = jnp.where(here, total + ranks[jnp.clip(last, 0, chunk - 1)],
+                         upto)
+        return c0 + chunk, total + ranks[-1], upto, out
+
+    zero = jnp.zeros((), jnp.int32)
+    _, found, upto, out = jax.lax.while_loop(
+        lambda carry: carry[0] < total_candidates, step,
+        (zero, zero, jnp.zeros((n,), jnp.int32), out))
+    per_atom = upto - jnp.concatenate([zero[None], upto[:-1]])
+    return found, per_atom, out
+
+
+def _stored_pairs(out, binned: _Binned):
+    """The stored candidates as ``i``, ``j`` (``N`` where padded) and
+    ``S`` (int32)."""
+    n, k_offsets = binned.image.shape[:2]
+    i = out[:, 0] // k_offsets
+    kept = i < n
+    at = jnp.where(kept, i, 0)
+    j = jnp.where(kept, binned.order[jnp.where(kept, out[:, 1], 0)], n)
+    s = binned.image[at, out[:, 0] % k_offsets] - binned.w[
+        jnp.where(kept, j, 0)].astype(jnp.int32)
+    return jnp.where(kept, i, n), j, jnp.where(kept[:, None], s, 0)
+
+
+def placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
+    """The full stencil's rows, found ``i``-major (so stored at their place
+    when there are no self pairs), with atom ``i``'s self pair (``selfs``)
+    placed before its pairs. Returns int32 ``(capacity, 5)`` rows padded
+    with ``(N, N, 0)``, their count and the count per system."""
+    n = binned.order.shape[0]
+    i, j, s = _stored_pairs(out, binned)
+    rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    if selfs is None:
+        return rows, jnp.sum(per_atom, dtype=jnp.int32), \
+            jax.ops.segment_sum(per_atom, binned.graph, n_graph)
+    kept = i < n
+    at_i = jnp.where(kept, i, 0)
+    own = selfs.astype(jnp.int32)
+    # Each pair moves down by the self pairs of the atoms up to its own.
+    before = prefix_sum(own, jnp.float64)
+    at = jnp.where(kept, jnp.arange(capacity, dtype=jnp.int32)
+                   + before[at_i], capacity)
+    placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                              (capacity, 5)).at[at].set(rows, mode="drop")
+    degree = per_atom + own
+    first = exclusive_prefix(degree)
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    placed = placed.at[jnp.where(selfs, first, capacity)].set(
+        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+        mode="drop")
+    return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
+        degree, binned.graph, n_graph)
+
+
+def pair_rows(found, per_atom, out, binned, *, half, n_graph):
+    """The stored rows as pairs ``(i, j, S)``: both directions of each (a
+    full list) or its representative (a half list). Returns the rows, their
+    count and the count per system (exact past the capacity)."""
+    i, j, s = _stored_pairs(out, binned)
+    per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
+    if half:
+        # The representative: i < j, or i == j and S > 0.
+        swap = (j < i) | ((j == i) & ~lex_positive(s))
+        rows = jnp.concatenate([
+            jnp.stack([jnp.where(swap, j, i), jnp.where(swap, i, j)], axis=1),
+            jnp.where(swap[:, None], -s, s)], axis=1)
+        return rows, found, per_system
+    # Each pair next to its reverse (j, i, -S).
+    forward = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    reverse = jnp.concatenate([j[:, None], i[:, None], -s], axis=1)
+    rows = jnp.stack([forward, reverse], axis=1).reshape(-1, 5)
+    return rows, 2 * found, 2 * per_system
+
+
+def self_mask(real, cut, species):
+    """bool ``(N,)``: the atoms with a self pair ``(i, i, 0)``, the real
+    ones whose own cutoff is positive (ASE keeps ``0 < rc``)."""
+    if species is None:
+        return real & (cut > 0)
+    return real & (cut.at[species, species].get(mode="fill",
+                                                 fill_value=0) > 0)
+
+
+def self_pair_rows(selfs, graph, n_graph):
+    """Step 6's self pairs ``(i, i, 0)`` of ``selfs``, packed first: int32
+    ``(N, 5)``, their count and count per system."""
+    n = selfs.shape[0]
+    atoms = jnp.arange(n, dtype=jnp.int32)
+    at = exclusive_prefix(selfs.astype(jnp.int32))
+    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    rows = jnp.broadcast_to(pad, (n, 5)).at[jnp.where(selfs, at, n)].set(
+        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
+        mode="drop")
+    return rows, jnp.sum(selfs, dtype=jnp.int32), jax.ops.segment_sum(
+        selfs.astype(jnp.int32), graph, n_graph)
