@@ -1,8 +1,8 @@
 """Pairs ``(i, j, S)`` with lattice shifts in any cell, for ML graphs: one
 system (`jaxrt.pairs.search`), flat batches in jraph's layout
 (`jaxrt.pairs.batch`), ASE in and out (`jaxrt.pairs.ase`); the search
-program (`jaxrt.pairs.program`, with `jaxrt.pairs.cells` and `jaxrt.pairs.blocks`), the host search of small systems
-(`jaxrt.pairs.host`) and the argument checks (`jaxrt.pairs.checks`)
+program (`jaxrt.pairs.program`, with `jaxrt.pairs.cells` and
+`jaxrt.pairs.blocks`), the host search of small systems (`jaxrt.pairs.host`) and the argument checks (`jaxrt.pairs.checks`)
 behind them."""
 from jaxrt.pairs.ase import neighbor_list as ase_neighbor_list
 from jaxrt.pairs.ase import batch_from_ase, pairs_from_ase, pairs_to_ase
