@@ -89,7 +89,7 @@ import numpy as np
 from jaxrt import platforms
 from jaxrt.backends import contract as _backend
 from jaxrt.backends.cell import kernel as _cell_kernel
-from jaxrt.backends.cell import radius_classes
+from jaxrt.backends.cell import radius_classes, warp_grid
 from jaxrt.backends.contract import Capacity, Geometry, MetricSq, Query
 from jaxrt.errors import ListTooLargeError
 
@@ -1136,62 +1136,32 @@ def _append_shell(position, metric_sq: MetricSq, rows, count, shells,
 _WARP_REACH = (4, 2)
 
 
-def _warp_grid(cart, geometry: Geometry, query: Query, table: int,
+def _warp_grid(points, geometry: Geometry, query: Query, table: int,
                reach: tuple[int, int] = _WARP_REACH):
     """The Warp pipeline's grid (`jaxrt.backends.rt.ffi.cell_lj_sums`'
-    ``grid`` and ``cells``) for a list.
-
-    Cells are at least ``cutoff (1 + _CELL_MARGIN) / reach`` wide: the box
-    divided evenly on periodic axes, the particles' span from its minimum
-    on free ones; axes past ``dim`` have one cell. Where that makes more
-    than ``table`` cells, all axes are coarsened together (a few unrolled
-    steps, no device loop), and a grid still too large becomes one cell
-    per axis (every pair a candidate: slower, the same list).
+    ``grid`` and ``cells``) for a list: `jaxrt.backends.cell.warp_grid.build`
+    with cells at least ``cutoff (1 + _CELL_MARGIN) / reach`` wide, the
+    box's (traced) sides on periodic axes, one cell on axes past ``dim``.
 
     Args:
-      cart: float ``(N, dim)`` finite Cartesian positions (unwrapped).
+      points: float ``(N, 3)`` finite Cartesian positions (unwrapped), zeros
+        past ``dim``.
       table: static, the most cells.
     Returns:
-      float ``(3, 3)`` origin, cell width, side (1 on free axes) per axis;
-      int32 ``(6,)`` cells per axis then the reach per axis.
+      float ``(3, 3)`` origin, cell width, side (1 off periodic axes) per
+      axis; int32 ``(6,)`` cells per axis then the reach per axis.
     """
     dim = query.dim
-    dtype = cart.dtype
-    periodic = np.array(list(query.periodic) + [False] * (3 - dim))
-    real = np.arange(3) < dim
-    side = jnp.pad(geometry.side.astype(dtype), (0, 3 - dim),
+    padding = tuple(a >= dim for a in range(3))
+    reach3 = tuple(1 if pad else reach[a > 0]
+                   for a, pad in enumerate(padding))
+    side = jnp.pad(geometry.side.astype(points.dtype), (0, 3 - dim),
                    constant_values=1)
-    lo = jnp.pad(jnp.min(cart, axis=0), (0, 3 - dim))
-    hi = jnp.pad(jnp.max(cart, axis=0), (0, 3 - dim))
-    reach3 = np.array([reach[0], reach[1], reach[1]])
-    reach3 = np.where(real, reach3, 1)
-    min_size = (query.cutoff * (1.0 + _CELL_MARGIN) / reach3).astype(
-        np.float64)
-    extent = jnp.where(periodic, side, hi - lo)
-
-    def cells_at(factor):  # float (3,)
-        size = min_size * factor
-        n = jnp.where(periodic, jnp.maximum(jnp.floor(extent / size), 1),
-                      jnp.floor(extent / size) + 1)
-        return jnp.where(real, n, 1)
-
-    # The product is compared in floats: keep a margin below the table.
-    budget = table * (1 - 2.0 ** -10)
-    factor = jnp.ones((), dtype)
-    for _ in range(6):
-        product = jnp.prod(cells_at(factor))
-        factor = jnp.where(product > budget, factor * jnp.maximum(
-            1.25, (product / budget) ** (1.0 / dim)), factor)
-    n = cells_at(factor)
-    n = jnp.where(jnp.prod(n) > budget, 1, n)
-    width = jnp.where(periodic, extent / n,
-                      jnp.maximum(min_size * factor, extent / n))
-    origin = jnp.where(periodic | ~real, 0, lo)
-    grid = jnp.stack([origin, width, jnp.where(periodic, side, 1)]).astype(
-        dtype)
-    cells = jnp.concatenate([n.astype(jnp.int32),
-                             jnp.asarray(reach3, jnp.int32)])
-    return grid, cells
+    return warp_grid.build(
+        points, side, periodic=tuple(query.periodic) + (False,) * (3 - dim),
+        padding=padding, reach=reach3, table=table,
+        min_size=tuple(query.cutoff * (1.0 + _CELL_MARGIN) / r
+                       for r in reach3))
 
 
 @functools.partial(jax.jit, static_argnames=("shell", "shell_rows",
@@ -1219,7 +1189,8 @@ def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     # NaN positions are reported by the front; keep them from poisoning keys.
     cart = jnp.where(jnp.isfinite(cart), cart, 0.0)
     table = _table_size(n)
-    grid, cells = _warp_grid(cart, geometry, query, table)
+    points = jnp.pad(cart, [(0, 0), (0, 3 - dim)])
+    grid, cells = _warp_grid(points, geometry, query, table)
     # The walk's coordinates reach a side on periodic axes (wrapped there):
     # its rounding is bounded as `_walk`'s, whose wrapped positions the
     # tolerance sees.
@@ -1231,7 +1202,6 @@ def _warp_walk(position, geometry: Geometry, metric_sq: MetricSq, *, shell,
     flags |= warp_rows.LOWER_ONLY if _lower_only(query) else 0
     for a, p in enumerate(query.periodic):
         flags |= (warp_rows.PERIODIC << a) if p else 0
-    points = jnp.pad(cart, [(0, 0), (0, 3 - dim)])
     rows, count, shells, shell_count = ffi.cell_candidate_rows(
         points, grid, cells, jnp.stack([inner_sq, outer_sq]).astype(
             cart.dtype), flags=flags, table=table, row_width=row_width,

@@ -6,11 +6,12 @@ for `jaxrt.energy.listfree.sph`, the sort in one call (`sort`) and each
 pass in one more (`sph_density`, `sph_forces`;
 `jaxrt.backends.cell.warp_sph`).
 
-The grid: cells at least ``params.bound`` wide. A periodic axis of side
-``L`` has ``floor(L / bound)`` cells (fixed by the box); a free axis spans
-the particles' extent, its cells coarsened so that all the free axes'
-cells together fit the static table (``free_cells``); padding axes
-(`Params.dim`) have one cell.
+The grid (`jaxrt.backends.cell.warp_grid.build`): cells at least
+``params.bound / reach`` wide. A periodic axis of side ``L`` has
+``floor(L reach / bound)`` cells (fixed by the box, the table sized for
+them); a free axis spans the particles' extent, its cells coarsened so that
+all the free axes' cells together fit the rest of the static table
+(``free_cells``); padding axes (`Params.dim`) have one cell.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxrt.backends.cell import warp_kernels
+from jaxrt.backends.cell import warp_grid, warp_kernels
 from jaxrt.backends.rt import ffi
 from jaxrt.energy.listfree.lj import Params
 
@@ -32,6 +33,10 @@ def _flat(params: Params) -> tuple[bool, ...]:
     return tuple(a >= dim for a in range(3))
 
 
+def _min_size(params: Params, reach) -> tuple[float, ...]:
+    return tuple(params.bound / r for r in reach)
+
+
 def table_size(n: int, params: Params, reach=(1, 1, 1)
                ) -> tuple[int, int, tuple[int, ...]]:
     """Static: ``(table, free_cells, periodic cells)``: the cell-start
@@ -39,9 +44,9 @@ def table_size(n: int, params: Params, reach=(1, 1, 1)
     cells of each periodic axis (0 elsewhere), cells ``bound / reach``
     wide."""
     flat = _flat(params)
-    fixed = tuple(max(1, int(math.floor(s * r / params.bound))) if p and not f
-                  else 0 for s, p, f, r in zip(params.side, params.periodic,
-                                               flat, reach))
+    counted = warp_grid.periodic_cells(params.side, _min_size(params, reach))
+    fixed = tuple(c if p and not f else 0
+                  for c, p, f in zip(counted, params.periodic, flat))
     product = math.prod(c for c in fixed if c)
     free = sum(1 for c, f in zip(fixed, flat) if not c and not f)
     budget = max(27, -(-2 * n // product)) if free else 1
@@ -52,44 +57,16 @@ def grid(R3: Array, params: Params, reach=(1, 1, 1)
          ) -> tuple[Array, Array, int]:
     """``(grid (3, 3), cells int32 (6,), table)`` of
     `jaxrt.backends.rt.ffi.cell_lj_sums` for positions ``R3`` (finite),
-    cells ``bound / reach`` wide (static ints per axis)."""
-    dtype = R3.dtype
-    table, budget, fixed = table_size(R3.shape[0], params, reach)
-    flat = _flat(params)
-    free = jnp.asarray([not c and not f for c, f in zip(fixed, flat)])
-    bound = jnp.asarray(params.bound, dtype) / jnp.asarray(reach, dtype)
-    if R3.shape[0]:
-        lo, hi = jnp.min(R3, axis=0), jnp.max(R3, axis=0)
-    else:
-        lo = hi = jnp.zeros((3,), dtype)
-    extent = jnp.where(free, hi - lo, 0)
-    ideal = jnp.where(free, jnp.clip(jnp.floor(extent / bound), 1, budget), 1)
-    k = sum(1 for c, f in zip(fixed, flat) if not c and not f)
-    if k:
-        product = jnp.prod(ideal.astype(jnp.float32))
-        # Coarsen evenly until the free axes' cells fit the budget (the
-        # margin covers the rounding of the root).
-        shrink = jnp.maximum(1.0, (product / budget) ** (1.0 / k) * 1.001)
-        ideal = jnp.where(free, jnp.maximum(1, jnp.floor(ideal / shrink)), 1)
-        # An axis held at one cell (a flat cloud) shrinks no further, so
-        # the others may still overflow: cap each free axis in turn by
-        # what the others leave (after one pass the product fits).
-        counts = [ideal[a].astype(jnp.int32) for a in range(3)]
-        for a in range(3):
-            others = math.prod(counts[b] for b in range(3) if b != a)
-            counts[a] = jnp.where(free[a], jnp.maximum(1, jnp.minimum(
-                counts[a], budget // others)), counts[a])
-        ideal = jnp.stack(counts)
-    fixed_cells = jnp.asarray([max(c, 1) for c in fixed], jnp.int32)
-    cells = jnp.where(free, ideal.astype(jnp.int32), fixed_cells)
-    side = jnp.asarray(params.side, dtype)
-    periodic = jnp.asarray([bool(c) for c in fixed])
-    width = jnp.where(periodic, side / cells.astype(dtype),
-                      jnp.maximum(extent / cells.astype(dtype), bound))
-    origin = jnp.where(free, lo, 0).astype(dtype)
-    side = jnp.where(periodic, side, 1).astype(dtype)
-    cells = jnp.concatenate([cells, jnp.asarray(reach, jnp.int32)])
-    return jnp.stack([origin, width.astype(dtype), side]), cells, table
+    cells ``bound / reach`` wide (static ints per axis):
+    `jaxrt.backends.cell.warp_grid.build` on the periodic axes' static
+    sides, with a table that holds their cells times the free axes'
+    budget."""
+    table, _, fixed = table_size(R3.shape[0], params, reach)
+    g, cells = warp_grid.build(
+        R3, params.side, periodic=tuple(bool(c) for c in fixed),
+        padding=_flat(params), min_size=_min_size(params, reach),
+        reach=reach, table=table)
+    return g, cells, table
 
 
 def stencil_reach(params: Params, reach=(1, 1)) -> tuple[int, int, int]:
