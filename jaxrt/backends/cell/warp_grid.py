@@ -135,8 +135,8 @@ def build(points: Array, side, *, periodic, padding, min_size, reach,
       ``(grid, cells)``: float ``(3, 3)`` in ``points``' dtype, per axis
       the origin (the minimum on free axes, else 0), cell width (at least
       ``min_size``; a periodic side under it is one cell) and side (1 off
-      periodic axes); int32 ``(6,)`` the
-      cells per axis (their product at most ``table``), then ``reach``.
+      periodic axes); int32 ``(6,)`` the cells per axis (their product at
+      most ``table``), then ``reach``.
     """
     periodic = tuple(bool(p) for p in periodic)
     padding = tuple(bool(p) for p in padding)
