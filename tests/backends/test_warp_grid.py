@@ -5,8 +5,10 @@ far past what the table holds, traced periodic sides under ``jit``.
 
 Every grid must hold at most ``table`` cells and have cells at least the
 minimum size wide (checked in the positions' dtype, the kernels' own
-arithmetic; a periodic side under it is one cell); a grid that fits is not coarsened (exact counts), so that a
-builder returning one cell everywhere fails here too. Pure JAX: no Warp.
+arithmetic; a periodic side under it is one cell); a grid that fits is
+not coarsened (one more cell on any axis would be too small), and one
+that does not is coarsened evenly rather than collapsed, so that a builder
+returning one cell everywhere fails here too. Pure JAX: no Warp.
 """
 from __future__ import annotations
 
