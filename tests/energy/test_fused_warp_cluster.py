@@ -27,11 +27,11 @@ from scenes import GEOMETRIES, fluid
 
 wp = pytest.importorskip("warp")
 
-import jaxrt  # noqa: E402
 from jaxrt.backends.cell import warp_cluster, warp_kernels as wk  # noqa: E402
 from jaxrt.backends.cell import warp_cluster_native  # noqa: E402
 from jaxrt.energy import lennard_jones_fused  # noqa: E402
 from jaxrt.energy.listfree.lj import CellSums  # noqa: E402
+from lj_cases import check_descent_in_scan_2d, close  # noqa: E402
 
 E_RTOL, F_RTOL = 1e-12, 1e-10
 REACHES = ((4, 2), (1, 1))
@@ -42,12 +42,6 @@ CPU = jax.default_backend() == "cpu"
 def x64():
     with jax.enable_x64(True):
         yield
-
-
-def close(a, b, rtol):
-    a, b = np.asarray(a), np.asarray(b)
-    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
-    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
 
 
 def same(a, b, rtol=E_RTOL):
@@ -154,26 +148,11 @@ def test_float32_within_tolerance_and_jit(x64):
 
 @pytest.mark.parametrize("walk", ["cluster", "native"])
 def test_jit_scan_and_2d(x64, walk):
-    from jax_md import space
-    R, side = fluid(n_side=10, dim=2)
-    R = jnp.asarray(R)
-    displacement, shift = space.periodic(side)
-    cluster = lennard_jones_fused(displacement, side, backend=CellSums(
-        kernel="warp", reach=(1, 1), walk=walk))
+    cluster, _, R_end, displacement, side = check_descent_in_scan_2d(
+        CellSums(kernel="warp", reach=(1, 1), walk=walk), E_RTOL)
     thread = lennard_jones_fused(displacement, side, backend=CellSums(
         kernel="warp", reach=(1, 1)))
-    brute = lennard_jones_fused(displacement, side, backend="brute")
-    close(jax.jit(cluster)(R), brute(R), E_RTOL)
-
-    def descend(R, _):
-        R = shift(R, -1e-4 * jax.grad(cluster)(R))
-        return R, cluster(R)
-
-    R_end, energies = jax.jit(lambda R: jax.lax.scan(descend, R, None,
-                                                     length=5))(R)
-    close(energies[-1], brute(R_end), E_RTOL)
     same(jax.grad(cluster)(R_end), jax.grad(thread)(R_end), F_RTOL)
-    assert np.all(np.diff(np.asarray(energies)) < 0)
 
 
 def test_walk_option_refused_off_the_warp_engine():
