@@ -19,6 +19,17 @@ def close(a, b, rtol):
     np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
 
 
+def check_sums(s, t, e_rtol, f_rtol):
+    """A walk's `CellSums` ``s`` == brute force's ``t``: the pair count
+    exactly, energies and the sigma / epsilon gradients to ``e_rtol``,
+    forces to ``f_rtol`` (of the largest entry)."""
+    assert int(s.count) == int(t.count)
+    close(s.energy, t.energy, e_rtol)
+    close(s.forces, t.forces, f_rtol)
+    close(s.d_sigma, t.d_sigma, e_rtol)
+    close(s.d_epsilon, t.d_epsilon, e_rtol)
+
+
 def check_descent_in_scan_2d(backend, e_rtol):
     """A 2D periodic fluid: the energy under ``jit`` matches brute force,
     and five steepest-descent steps under ``jit`` and ``lax.scan`` lower

@@ -102,8 +102,11 @@ def check_half_self_species(systems, cutoffs, max_nodes: int, half: bool,
     np.testing.assert_array_equal(self_at, np.searchsorted(i, i[self_at]))
 
 
-def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
-    systems = mixed()
+def blocks_match_ase_and_the_cells(systems):
+    """The blocks' search (``max_nodes`` the largest system) of the
+    systems, unpadded: ASE's edges system by system, and the cells' counts
+    and order (both sorted by ``i``). Returns the result, the batch, ASE's
+    sets and ``max_nodes``."""
     batch = jaxrt.batch_from_ase(systems, pad=False)
     m = int(np.max(batch.n_node))
     got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
@@ -112,10 +115,15 @@ def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
                               max_nodes=0, **batch.kwargs)
     assert int(got.error) == 0
     want = [ase_set(a) for a in systems]
-    assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 3
     assert per_system(got, batch.n_node, len(systems)) == want
     np.testing.assert_array_equal(got.n_edge, cells.n_edge)
-    np.testing.assert_array_equal(got.i, cells.i)  # both sorted by i
+    np.testing.assert_array_equal(got.i, cells.i)
+    return got, batch, want, m
+
+
+def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
+    got, batch, want, _ = blocks_match_ase_and_the_cells(mixed())
+    assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 3
     d = np.asarray(got.distances(batch.positions, batch.cell))
     assert np.all(d < CUTOFF) and np.all(d > 0)
 
@@ -236,23 +244,13 @@ def tiled_systems():
 
 def test_tiles_match_ase_at_the_cutoff_and_with_many_images(x64):
     systems = tiled_systems()
-    batch = jaxrt.batch_from_ase(systems, pad=False)
-    m = int(np.max(batch.n_node))
+    _, batch, want, m = blocks_match_ase_and_the_cells(systems)
     assert m > 64
-    got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                            max_nodes=m, **batch.kwargs)
-    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                              max_nodes=0, **batch.kwargs)
-    assert int(got.error) == 0
-    want = [ase_set(a) for a in systems]
     # The simple cubic lattice has pairs at exactly 4.0 that ASE drops:
     # twice as many at a cutoff a rounding above it.
     above = ase_set(systems[1], np.nextafter(CUTOFF, 5.0))
     assert len(above) > len(want[1])
     assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 2
-    assert per_system(got, batch.n_node, len(systems)) == want
-    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
-    np.testing.assert_array_equal(got.i, cells.i)
     # A cutoff a rounding above: the pairs at 4.0 come in, as in ASE.
     got_above = jaxrt.pairs_batch(batch.positions, batch.n_node,
                                   np.nextafter(CUTOFF, 5.0), max_nodes=m,
