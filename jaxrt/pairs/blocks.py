@@ -12,9 +12,8 @@ from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.cells import (exclusive_prefix, frame, offsets,
                                prefix_sum, row_ranks, self_mask,
                                shift_vectors)
+from jaxrt.pairs.checks import DENSE_WORD as _WORD
 from jaxrt.pairs.host import lex_positive
-
-_WORD = 32
 
 
 def _popcount(x):
