@@ -60,8 +60,6 @@ row says so); the pair-centric batch path does not use that kernel.
 """
 from __future__ import annotations
 
-import os
-import sys
 from math import prod
 
 if __package__:  # run as -m, or imported: the package's modules
@@ -97,7 +95,7 @@ def scene(n: int, seed: int = 0):
     return frac @ cell + rng.normal(0, 0.05, frac.shape), cell
 
 
-def _fcc_reps(m: int) -> tuple[int, int, int]:
+def fcc_reps(m: int) -> tuple[int, int, int]:
     """Repeats (a, b, c) of the 4-atom fcc cell making m atoms, as cubic as
     possible."""
     if m % 4 or m <= 0:
@@ -121,7 +119,7 @@ def parse_batch(name: str) -> tuple[int, int]:
     except ValueError:
         raise ValueError(f"--batches: expected GxM (systems x atoms), got "
                          f"{name!r}") from None
-    _fcc_reps(m)
+    fcc_reps(m)
     return g, m
 
 
@@ -129,7 +127,7 @@ def batch_scene(g: int, m: int, seed: int = 0):
     """float64 positions (g m, 3) concatenated, n_node (g,) int32, cells
     (g, 3, 3) (rows): g periodic fcc-like systems of m atoms."""
     import numpy as np
-    reps = np.array(_fcc_reps(m))
+    reps = np.array(fcc_reps(m))
     base = np.array([[0, 0, 0], [0, .5, .5], [.5, 0, .5], [.5, .5, 0]])
     grid = np.stack(np.meshgrid(*[np.arange(r) for r in reps],
                                 indexing="ij"), -1).reshape(-1, 1, 3)
@@ -308,7 +306,7 @@ def compare_pairs(got, ref, positions, cells, system_of, cutoff: float,
     return {"same_pairs": True, "boundary": int(len(only)), "reason": None}
 
 
-def _tolerance(dtype: str, positions, cells) -> float:
+def pair_tolerance(dtype: str, positions, cells) -> float:
     """Length rounding at the cutoff: a few ulps of the largest coordinate
     or cell entry, in the row's dtype."""
     import numpy as np
@@ -316,7 +314,7 @@ def _tolerance(dtype: str, positions, cells) -> float:
     return 64 * float(np.finfo(dtype).eps) * scale
 
 
-def _matrix_pairs(out):
+def matrix_pairs(out):
     """(i, j, shift) from nvalchemiops' neighbour matrix output
     (neighbor_matrix (N, K), num_neighbors (N,), shifts (N, K, 3))."""
     import numpy as np
@@ -458,10 +456,10 @@ def _check_nval(first, inputs, cells, n_node, dtype) -> dict:
         got = (np.asarray(first[0][0]), np.asarray(first[0][1]),
                np.asarray(first[2]))
     else:
-        got = _matrix_pairs(first)
+        got = matrix_pairs(first)
     return compare_pairs(got, ref, np.asarray(inputs[0], np.float64), cells,
                          system_of, CUTOFF,
-                         _tolerance(dtype, inputs[0], cells))
+                         pair_tolerance(dtype, inputs[0], cells))
 
 
 def _version(dist: str) -> str:

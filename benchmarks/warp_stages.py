@@ -156,16 +156,20 @@ def measure(n_target, args, rows, device_columns):
         offs, clusters = tables[size]
         wc.build_clusters(start, counts, offs, clusters, n=n, size=size)
 
+    def cluster_args(size, walk_flags):
+        # The arrays both cluster walks (native and tiled) read and write.
+        offs, clusters = tables[size]
+        return dict(position=position, keys=keys, values=values,
+                    radius=radius, start=start, offsets=offs,
+                    clusters=clusters, grid=grid_w, cells=cells_w,
+                    params=params_w, flags=walk_flags, forces=forces,
+                    energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
+                    count=count, size=size)
+
     def native_walk(variant, walk_flags=flags):
         _, size, block = variant
         kernel = wcn.native_kernel(wp.float32, walk_flags, size=size)
-        offs, clusters = tables[size]
-        wcn.launch(kernel, position=position, keys=keys, values=values,
-                         radius=radius, start=start, offsets=offs,
-                         clusters=clusters, grid=grid_w, cells=cells_w,
-                         params=params_w, flags=walk_flags, forces=forces,
-                         energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
-                         count=count, size=size, block_dim=block)
+        wcn.launch(kernel, **cluster_args(size, walk_flags), block_dim=block)
 
     def cluster_walk(variant, walk_flags=flags):
         if len(variant) == 3:
@@ -173,13 +177,8 @@ def measure(n_target, args, rows, device_columns):
         _, size, prune, block = variant
         kernel = wc.cluster_kernel(wp.float32, walk_flags, size=size,
                                    prune=prune, unroll=cuda)
-        offs, clusters = tables[size]
-        wc.launch_walk(kernel, position=position, keys=keys, values=values,
-                       radius=radius, start=start, offsets=offs,
-                       clusters=clusters, grid=grid_w, cells=cells_w,
-                       params=params_w, flags=walk_flags, forces=forces,
-                       energy=energy, d_sigma=d_sigma, d_epsilon=d_epsilon,
-                       count=count, size=size, block_dim=block)
+        wc.launch_walk(kernel, **cluster_args(size, walk_flags),
+                       block_dim=block)
 
     def walk(variant, walk_flags=flags):
         _, specialize, hoist, block = variant

@@ -1,5 +1,6 @@
 """Scenes shared by test files in different folders (importable as
 ``scenes``: pyproject's ``pythonpath`` holds ``tests``)."""
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax_md import space
@@ -30,6 +31,24 @@ def slab_displacement(side, periodic_axes=2):
         d = a - b
         return d.at[:k].set(jnp.mod(d[:k] + side / 2, side) - side / 2)
     return displacement
+
+
+def kicked_updates(nbrs, shift, R, steps, seed=13, scale=0.03):
+    """``steps`` random kicks (``scale`` times normal deviates from
+    ``PRNGKey(seed)``) under ``lax.scan``, the list updated after each:
+    (the last list, then per step the positions ``(steps, N, dim)``, the
+    list's ``idx`` and its reference positions)."""
+    kicks = scale * jax.random.normal(jax.random.PRNGKey(seed),
+                                      (steps,) + R.shape)
+
+    def step(carry, kick):
+        R, nbrs = carry
+        R = shift(R, kick)
+        nbrs = nbrs.update(R)
+        return (R, nbrs), (R, nbrs.idx, nbrs.reference_position)
+
+    (_, last), per_step = jax.lax.scan(step, (R, nbrs), kicks)
+    return (last, *per_step)
 
 
 # The list-free LJ tests' boxes: name -> side -> (displacement, box,

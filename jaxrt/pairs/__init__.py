@@ -2,8 +2,9 @@
 system (`jaxrt.pairs.search`), flat batches in jraph's layout
 (`jaxrt.pairs.batch`), ASE in and out (`jaxrt.pairs.ase`); the search
 program (`jaxrt.pairs.program`, with `jaxrt.pairs.cells` and
-`jaxrt.pairs.blocks`), the host search of small systems (`jaxrt.pairs.host`) and the argument checks (`jaxrt.pairs.checks`)
-behind them."""
+`jaxrt.pairs.blocks`), the host search of small systems
+(`jaxrt.pairs.host`) and the argument checks (`jaxrt.pairs.checks`) behind
+them."""
 from jaxrt.pairs.ase import neighbor_list as ase_neighbor_list
 from jaxrt.pairs.ase import batch_from_ase, pairs_from_ase, pairs_to_ase
 from jaxrt.pairs.batch import BatchPairs, pairs_batch, pairs_batch_sizes

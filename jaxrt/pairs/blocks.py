@@ -9,12 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
-from jaxrt.pairs.cells import (exclusive_prefix, frame, heights, offsets,
+from jaxrt.pairs.cells import (exclusive_prefix, frame, offsets,
                                prefix_sum, row_ranks, self_mask,
                                shift_vectors)
+from jaxrt.pairs.checks import DENSE_WORD as _WORD
 from jaxrt.pairs.host import lex_positive
-
-_WORD = 32
 
 
 def _popcount(x):
@@ -222,7 +221,7 @@ def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
     Returns int32 ``(capacity, 5)`` rows, the count and the count per
     system."""
     g = st["real"].shape[0]
-    n, dtype = st["n"], st["p"].dtype
+    dtype = st["p"].dtype
     p, w, o, real = st["p"], st["w"], st["o"], st["real"]
     k_offsets = o.shape[0]
     tiles = order.shape[1] // _WORD
@@ -327,32 +326,49 @@ def _word_rows(st, words, order, *, m, capacity):
     Returns int32 ``(capacity, 5)`` rows, the count and the count per
     system."""
     g = st["real"].shape[0]
-    n, o, w_flat = st["n"], st["o"], st["w"].reshape(-1, 3)
     counts = words[:, 1]
     ends = prefix_sum(counts, jnp.float64)
-    r = jnp.arange(capacity, dtype=jnp.int32)
-    total = ends[-1]
-    stored = r < total
-    word_start = ends - counts
-    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
-        counts > 0, word_start, capacity)].set(
-            jnp.arange(counts.shape[0], dtype=jnp.int32), mode="drop")
-    wid = _running_max(marks)
-    rank = r - word_start[wid]
+    wid, rank, stored = _row_words(counts, ends, capacity)
     row = words[wid]                                           # (R, 6)
     bits = jax.lax.bitcast_convert_type(row[:, 0], jnp.uint32)
     row_atom, row_g, base, kk = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
     b = _select_bit(bits, rank)
     sj = jnp.where(base < 0, row_atom - row_g * m, order.reshape(-1)[
         jnp.maximum(base, 0) + b])
-    shift = o[kk] + w_flat[row_atom] - w_flat[row_g * m + sj]
-    i = st["idx"].reshape(-1)[row_atom]
-    j = st["first"][row_g] + sj
-    rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
-    rows = jnp.where(stored[:, None], rows,
-                     jnp.array([n, n, 0, 0, 0], jnp.int32))
+    rows = _block_rows(st, row_atom, row_g, sj, kk, stored, m=m)
     per_system = jax.ops.segment_sum(counts, words[:, 3], g)
-    return rows, total, per_system
+    return rows, ends[-1], per_system
+
+
+def _row_words(counts, ends, capacity):
+    """Where each of ``capacity`` rows lies among words of int32 ``counts``
+    ``(W,)`` rows (inclusive running counts ``ends``): int32 ``(capacity,)``
+    word and rank in it, and bool ``(capacity,)`` whether the row is
+    stored. Each nonempty word marks its first row; a row's word is the
+    last mark at or before it (a running maximum: no search per row)."""
+    r = jnp.arange(capacity, dtype=jnp.int32)
+    word_start = ends - counts
+    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
+        counts > 0, word_start, capacity)].set(
+            jnp.arange(counts.shape[0], dtype=jnp.int32), mode="drop")
+    wid = _running_max(marks)
+    return wid, r - word_start[wid], r < ends[-1]
+
+
+def _block_rows(st, row_atom, gi, sj, k, stored, *, m):
+    """int32 ``(R, 5)`` rows ``(i, j, S)`` of atom slots ``row_atom``
+    (``g M + slot``) of systems ``gi`` against slots ``sj`` in stencil
+    image ``k`` (int32 ``(R,)`` each), ``S = o + w[i] - w[j]``; rows not
+    ``stored`` padded with ``(N, N, 0)``. The slot is clipped for the
+    wrap's gather only: an unstored row may point past its block."""
+    n, w_flat = st["n"], st["w"].reshape(-1, 3)
+    shift = (st["o"][k] + w_flat[row_atom]
+             - w_flat[gi * m + jnp.minimum(sj, m - 1)])
+    i = st["idx"].reshape(-1)[row_atom]
+    j = st["first"][gi] + sj
+    rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
+    return jnp.where(stored[:, None], rows,
+                     jnp.array([n, n, 0, 0, 0], jnp.int32))
 
 
 def _dense_decode(st, packed, *, m, capacity):
@@ -360,7 +376,6 @@ def _dense_decode(st, packed, *, m, capacity):
     W)``), each atom's self pair (where ``st["selfs"]``) first: int32
     ``(capacity, 5)``, the count and the count per system."""
     g = st["real"].shape[0]
-    n, o, w, first, idx = st["n"], st["o"], st["w"], st["first"], st["idx"]
     tiles = -(-m // _WORD)
     width_words = packed.shape[-1]
     per_word = _popcount(packed).reshape(g * m, width_words)
@@ -371,17 +386,7 @@ def _dense_decode(st, packed, *, m, capacity):
     width = counts.shape[1]
     ends = prefix_sum(counts.reshape(-1), jnp.float64)
     degree = jnp.sum(counts, axis=1, dtype=jnp.int32)
-    r = jnp.arange(capacity, dtype=jnp.int32)
-    stored = r < ends[-1]
-    # Each nonempty word marks its first row; a row's word is the last mark
-    # at or before it (a running maximum: no search per row).
-    flat_counts = counts.reshape(-1)
-    word_start = ends - flat_counts
-    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
-        flat_counts > 0, word_start, capacity)].set(
-            jnp.arange(ends.shape[0], dtype=jnp.int32), mode="drop")
-    wid = _running_max(marks)
-    rank = r - word_start[wid]
+    wid, rank, stored = _row_words(counts.reshape(-1), ends, capacity)
     row_atom = wid // width                               # g M + i slot
     col = wid - row_atom * width
     is_self = col == 0
@@ -393,16 +398,9 @@ def _dense_decode(st, packed, *, m, capacity):
     si = row_atom - gi * m
     sj = jnp.where(is_self, si, (word - k * tiles) * _WORD + b)
     k = jnp.where(is_self, st["own"], k)
-    w_flat = w.reshape(-1, 3)
-    shift = o[k] + w_flat[row_atom] - w_flat[gi * m + jnp.minimum(sj, m - 1)]
-    i = idx.reshape(-1)[row_atom]
-    j = first[gi] + sj
-    rows = jnp.concatenate([jnp.stack([i, j], axis=1), shift], axis=1)
-    rows = jnp.where(stored[:, None], rows,
-                     jnp.array([n, n, 0, 0, 0], jnp.int32))
-    total = jnp.sum(degree, dtype=jnp.int32)
+    rows = _block_rows(st, row_atom, gi, sj, k, stored, m=m)
     per_system = jnp.sum(degree.reshape(g, m), axis=1, dtype=jnp.int32)
-    return rows, total, per_system
+    return rows, ends[-1], per_system
 
 
 def dense_rows(positions, graph, mask, cells, pbc, cut, species, radius, *,

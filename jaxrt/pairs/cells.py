@@ -274,7 +274,7 @@ class _Frame(NamedTuple):
 
 def frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
     """Steps 1-2 of the module docstring (step 1 unless ``completed``)."""
-    n, dtype = positions.shape[0], positions.dtype
+    dtype = positions.dtype
     r = jax.lax.stop_gradient(positions)
     h = jax.lax.stop_gradient(cells)
     if completed:

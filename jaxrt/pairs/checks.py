@@ -381,7 +381,8 @@ def is_small(n: int, max_shift) -> bool:
 DENSE_CANDIDATES = 2 ** 12
 DENSE_TILE_CANDIDATES = 2 ** 15
 DENSE_LARGEST = 1024
-_WORD = 32
+# Atoms per word (and per tile) of a dense block (`jaxrt.pairs.blocks`).
+DENSE_WORD = 32
 
 
 def dense_nodes(largest: int, max_shift) -> int:
@@ -390,7 +391,7 @@ def dense_nodes(largest: int, max_shift) -> int:
     better search."""
     m = bucket(largest)
     candidates = m * math.prod(2 * r + 1 for r in max_shift)
-    if m <= _WORD:
+    if m <= DENSE_WORD:
         return m if candidates <= DENSE_CANDIDATES else 0
     return m if candidates <= DENSE_TILE_CANDIDATES and m <= DENSE_LARGEST \
         else 0

@@ -34,12 +34,13 @@ How it searches (the search of one system is the same with one graph):
    slots laid end to end, atom by atom and offset by offset (``i``-major),
    read ``chunk`` at a time in a loop until every one is read (the work
    follows the candidates there are); unsorted, every run is read a slot
-   at a time until the fullest cell is read. Each is decided as ASE decides, in the
-   positions' dtype: ``|R[j] - R[i] + S @ cell| < cutoff`` (strict; the
-   cutoff of the two atoms' species with a cutoff matrix), and kept
-   candidates are written at the running count, so the count is exact
-   past the capacity. From the half stencil a kept pair stands for ``(i,
-   j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| = |d|`` bit for bit):
+   at a time until the fullest cell is read. Each is decided as ASE
+   decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
+   cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
+   matrix), and kept candidates are written at the running count, so the
+   count is exact past the capacity. From the half stencil a kept pair
+   stands for ``(i, j, S)`` and ``(j, i, -S)`` (one decision: ``|-d| =
+   |d|`` bit for bit):
    a full list writes both, a half list the representative, ``i < j``, or
    ``i == j`` and ``S`` lexicographically positive. From the full stencil
    each atom finds its own pairs (only representatives for a half list),
@@ -113,7 +114,6 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     cut = jnp.asarray(cutoff, dtype)
     radius = cut if species is None else jnp.max(cut)
     pbc = jnp.asarray(pbc, bool) & np.array(periodic)
-    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
     if max_nodes > 0 and sort and n_graph * max_nodes * max_nodes * \
             offsets(reach, True).shape[0] <= DENSE_MOST:
         rows, total, per_system, error = dense_rows(
@@ -123,9 +123,9 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
             self_interaction=self_interaction, capacity=capacity)
         return _finish(rows, total, per_system, error, pad_index, n=n,
                        capacity=capacity)
-    binned = bin_atoms(positions, graph, mask, cells.astype(dtype), pbc, radius,
-                  reach=reach, brute=brute, n_graph=n_graph,
-                  completed=completed, full=sort)
+    binned = bin_atoms(positions, graph, mask, cells.astype(dtype), pbc,
+                       radius, reach=reach, brute=brute, n_graph=n_graph,
+                       completed=completed, full=sort)
     selfs = self_mask(binned.real, cut, species) if self_interaction \
         else None
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)

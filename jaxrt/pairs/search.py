@@ -47,9 +47,8 @@ from jaxrt.layouts.edges import materialized
 from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, PairsError, raise_if
 from jaxrt.pairs.checks import BRUTE_CANDIDATES, Float32Warning
-from jaxrt.pairs.cells import safe_norm as _safe_norm
+from jaxrt.pairs.cells import safe_norm as _safe_norm, shift_vectors
 from jaxrt.pairs.host import search_small_host
-from jaxrt.pairs.cells import shift_vectors
 from jaxrt.pairs.program import search
 
 __all__ = ["BRUTE_CANDIDATES", "ErrorBit", "Float32Warning", "PairSizes",

@@ -43,8 +43,8 @@ def test_batch_scene_is_periodic_fcc_of_the_requested_size(batch):
     pos, n_node, cells, _ = batch
     assert pos.shape == (96, 3) and n_node.tolist() == [32] * 3
     assert cells.shape == (3, 3, 3)
-    assert bench._fcc_reps(32) == (2, 2, 2)
-    assert bench._fcc_reps(128) == (4, 4, 2)
+    assert bench.fcc_reps(32) == (2, 2, 2)
+    assert bench.fcc_reps(128) == (4, 4, 2)
     with pytest.raises(ValueError, match="multiple of 4"):
         bench.parse_batch("8x30")
     with pytest.raises(ValueError, match="GxM"):
@@ -61,7 +61,7 @@ def test_check_agrees_with_brute_force_and_catches_differences(batch):
     k = int(got.count)
     got = (np.asarray(got.i)[:k], np.asarray(got.j)[:k],
            np.asarray(got.shift)[:k])
-    tol = bench._tolerance("float64", pos, cells)
+    tol = bench.pair_tolerance("float64", pos, cells)
 
     def check(a, b):
         return bench.compare_pairs(a, b, pos, cells, system_of,
@@ -90,12 +90,12 @@ def test_matrix_output_unrolls_rows_and_rejects_overflow():
     nm = np.array([[1, 2, 9], [0, 9, 9]])
     nn = np.array([2, 1])
     sh = np.arange(18).reshape(2, 3, 3)
-    i, j, s = bench._matrix_pairs((nm, nn, sh))
+    i, j, s = bench.matrix_pairs((nm, nn, sh))
     assert i.tolist() == [0, 0, 1] and j.tolist() == [1, 2, 0]
     assert s.tolist() == [sh[0, 0].tolist(), sh[0, 1].tolist(),
                           sh[1, 0].tolist()]
     with pytest.raises(RuntimeError, match="max_neighbors"):
-        bench._matrix_pairs((nm, np.array([4, 1]), sh))
+        bench.matrix_pairs((nm, np.array([4, 1]), sh))
 
 
 def test_nvalchemiops_rows_are_skipped_without_it(monkeypatch):

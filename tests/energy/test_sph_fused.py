@@ -18,22 +18,22 @@ interpreter elsewhere (small systems: it is slow there). On the GPU,
 """
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax import lax
-from jax_md import partition, space
+from jax_md import space
 
 from jaxrt.backends import Cell
 from jaxrt.energy import (FusedInputError, HigherOrderError,
                           acceleration_fused, density_fused, sph)
 from scenes import slab_displacement
+from sph_cases import (EOS, KERNEL, check_coincident_and_exact_support,
+                       check_every_input_gradient, check_momentum,
+                       check_scan_steps_match_list, close, fluid_state,
+                       neighbour_fn)
 
 SLOW = pytest.mark.slow
-RTOL = 1e-12
 ON_GPU = jax.default_backend() in ("gpu", "cuda")
 WALKS = {"pallas": Cell(kernel="pallas" if ON_GPU else "interpret"),
          "xla": Cell(kernel="xla")}
@@ -45,21 +45,6 @@ def pick(backend):
     return WALKS.get(backend, backend)
 
 
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
-
-def fluid(n_side, dim, dx=1.0, seed=0, jitter=0.2):
-    """A jittered lattice in ``[0, n_side dx)``: (R float64 (N, dim), side)."""
-    g = np.stack(np.meshgrid(*[np.arange(n_side)] * dim, indexing="ij"),
-                 -1).reshape(-1, dim) * dx
-    rng = np.random.default_rng(seed)
-    side = n_side * dx
-    return (g + rng.uniform(-jitter, jitter, g.shape) * dx) % side, side
-
-
 GEOMETRIES = {
     "periodic": lambda side, dim: (space.periodic(side)[0], side, None),
     "free": lambda side, dim: (space.free()[0], None, None),
@@ -68,40 +53,17 @@ GEOMETRIES = {
 }
 
 
-def neighbour_fn(displacement, box, cutoff, **kw):
-    return partition.neighbor_list(
-        displacement, box if box is not None else 1.0, cutoff,
-        format=partition.Dense, disable_cell_list=True,
-        capacity_multiplier=2.0, **kw)
-
-
 def neighbours(displacement, box, periodic, R, cutoff):
     """jax-md's all-pairs Dense list at R, the reference's."""
     return neighbour_fn(displacement, box, cutoff).allocate(R)
-
-
-def close(a, b, rtol=RTOL):
-    a, b = np.asarray(a), np.asarray(b)
-    assert a.shape == b.shape
-    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
-    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
 
 
 def system(dim, geometry, n_side=None, seed=0):
     n_side = n_side or (11 if dim == 2 else 6)
     if geometry == "slab" and dim == 2:
         n_side = 20  # brute's row blocks: two, the second padded
-    R, side = fluid(n_side, dim, seed=seed)
-    rng = np.random.default_rng(seed + 1)
-    V = rng.normal(0, 1.0, R.shape)
-    mass = rng.uniform(0.8, 1.2, len(R))
-    displacement, box, periodic = GEOMETRIES[geometry](side, dim)
-    return (jnp.asarray(R), jnp.asarray(V), jnp.asarray(mass), displacement,
-            box, periodic)
-
-
-KERNEL = {2: sph.CubicSpline(1.3, dim=2), 3: sph.WendlandC2(1.3, dim=3)}
-EOS = sph.Tait(rho0=1.0, c0=10.0, gamma=7.0)
+    R, V, mass, side = fluid_state(n_side, dim, seed=seed)
+    return (R, V, mass, *GEOMETRIES[geometry](side, dim))
 
 
 @pytest.mark.parametrize("dim, geometry, backend", [
@@ -141,10 +103,7 @@ def test_density_and_acceleration_match_list_path(x64, dim, geometry,
                                  **kw)(R, V)
         for a, b in zip(acc, xla):
             close(a, b)
-    # Momentum: every pair term is antisymmetric.
-    total = jnp.sum(mass[:, None] * acc.total, axis=0)
-    assert float(jnp.max(jnp.abs(total))) < 1e-10 * float(
-        jnp.max(jnp.abs(mass[:, None] * acc.total)))
+    check_momentum(mass, acc)
 
 
 @pytest.mark.parametrize("dim, backend", [
@@ -160,23 +119,7 @@ def test_gradients_match_list_path(x64, dim, backend):
     fused = acceleration_fused(displacement, box, kernel, EOS,
                                backend=pick(backend))
     ref = sph.acceleration(displacement, kernel, EOS)
-    weights = jnp.asarray(np.random.default_rng(5).normal(size=R.shape))
-
-    def loss(accel, R, V, h, m, a, b, rho0, c0, gamma):
-        out = accel(R, V, h=h, mass=m, alpha=a, beta=b,
-                    eos=sph.Tait(rho0, c0, gamma))
-        return (jnp.sum(weights * out.total)
-                + jnp.sum(jnp.sin(out.density)))
-
-    args = (R, V, 1.2, mass, 0.5, 0.3, 1.1, 9.0, 7.0)
-    g = jax.jit(jax.grad(functools.partial(loss, fused),
-                         argnums=tuple(range(9))))(*args)
-    g_ref = jax.jit(jax.grad(
-        lambda *a: loss(lambda *x, **k: ref(x[0], x[1], nbrs, **k), *a),
-        argnums=tuple(range(9))))(*args)
-    for x, y in zip(g, g_ref):
-        assert np.all(np.isfinite(x))
-        close(x, y)
+    check_every_input_gradient(fused, ref, nbrs, R, V, mass)
 
 
 @pytest.mark.parametrize("backend", [
@@ -221,28 +164,8 @@ def test_density_gradients_and_given_pressure(x64, backend):
 @pytest.mark.parametrize("backend", ["cell", "pallas",
                                      pytest.param("brute", marks=SLOW)])
 def test_coincident_and_exact_support_pairs(x64, backend):
-    h = 0.5
-    kernel = sph.CubicSpline(h, dim=2)   # support 2h = 1.0
-    R = jnp.asarray([[1.0, 1.0], [1.0, 1.0],     # coincident
-                     [5.0, 5.0], [6.0, 5.0],     # exactly the support
-                     [1.0, 8.0], [1.6, 8.0],     # inside
-                     [8.0, 1.0], [8.0, 1.0 + 1e-9]])  # nearly coincident
-    V = jnp.asarray(np.random.default_rng(0).normal(size=R.shape))
-    displacement, _ = space.free()
-    rho = density_fused(displacement, None, kernel, backend=pick(backend))(R)
-    w0, w = kernel.w(jnp.zeros(())), kernel.w(jnp.asarray(0.6))
-    w_near = kernel.w(jnp.asarray(1e-9))
-    close(rho, jnp.asarray([2 * w0, 2 * w0, w0, w0, w0 + w, w0 + w,
-                            w0 + w_near, w0 + w_near]))
-    accel = acceleration_fused(displacement, None, kernel, EOS, alpha=1.0,
-                               beta=1.0, backend=pick(backend))
-    nbrs = neighbours(displacement, None, False, R, float(kernel.cutoff))
-    ref = sph.acceleration(displacement, kernel, EOS, alpha=1.0, beta=1.0)
-    out = accel(R, V)
-    for a, b in zip(out, jax.jit(ref)(R, V, nbrs)):
-        assert np.all(np.isfinite(a))
-        close(a, b)
-    np.testing.assert_array_equal(np.asarray(out.total[:4]), 0.0)
+    accel, ref, nbrs, R, V = check_coincident_and_exact_support(
+        2, pick(backend))
 
     def loss(out):
         return jnp.sum(out.total ** 2) + jnp.sum(out.density)
@@ -256,38 +179,7 @@ def test_coincident_and_exact_support_pairs(x64, backend):
 
 
 def test_jit_scan_steps_match_list_path(x64):
-    R, V, _, displacement, box, periodic = system(2, "periodic", n_side=10)
-    _, shift = space.periodic(box)
-    kernel = KERNEL[2]
-    fused = acceleration_fused(displacement, box, kernel, EOS, mass=1.0,
-                               alpha=0.2)
-    ref = sph.acceleration(displacement, kernel, EOS, mass=1.0, alpha=0.2)
-    nfn = neighbour_fn(displacement, box, float(kernel.cutoff),
-                       dr_threshold=0.1)
-    dt = 1e-3
-
-    @jax.jit
-    def run_fused(R, V):
-        def step(carry, _):
-            R, V = carry
-            V = V + dt * fused(R, V).total
-            return (shift(R, dt * V), V), None
-        return lax.scan(step, (R, V), None, length=5)[0]
-
-    @jax.jit
-    def run_list(R, V, nbrs):
-        def step(carry, _):
-            R, V, nbrs = carry
-            V = V + dt * ref(R, V, nbrs).total
-            R = shift(R, dt * V)
-            return (R, V, nbrs.update(R)), None
-        return lax.scan(step, (R, V, nbrs), None, length=5)[0]
-
-    R1, V1 = run_fused(R, V)
-    R2, V2, nbrs = run_list(R, V, nfn.allocate(R))
-    assert not nbrs.did_buffer_overflow
-    close(R1, R2)
-    close(V1, V2, 1e-11)
+    check_scan_steps_match_list(2, n_side=10)
 
 
 def test_float32(x64):

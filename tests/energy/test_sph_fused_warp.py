@@ -26,8 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax import lax
-from jax_md import partition, space
+from jax_md import space
 
 pytest.importorskip("warp")
 
@@ -36,33 +35,14 @@ from jaxrt.energy import (FusedInputError, acceleration_fused,  # noqa: E402
                           density_fused, sph)
 from jaxrt.energy.listfree.lj import CellSums  # noqa: E402
 from scenes import slab_displacement  # noqa: E402
+from sph_cases import (EOS, KERNEL,  # noqa: E402
+                       check_coincident_and_exact_support,
+                       check_every_input_gradient, check_momentum,
+                       check_scan_steps_match_list, close, fluid_state,
+                       loss_of_every_input, neighbour_fn)
 
-RTOL = 1e-12
 WARP = Cell(kernel="warp")
 XLA = Cell(kernel="xla")
-EOS = sph.Tait(rho0=1.0, c0=10.0, gamma=7.0)
-KERNEL = {2: sph.CubicSpline(1.3, dim=2), 3: sph.WendlandC2(1.3, dim=3)}
-
-
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
-
-def close(a, b, rtol=RTOL):
-    a, b = np.asarray(a), np.asarray(b)
-    assert a.shape == b.shape
-    scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
-    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
-
-
-def fluid(n_side, dim, seed=0, jitter=0.2):
-    """A jittered unit lattice in ``[0, n_side)``: (R (N, dim), side)."""
-    g = np.stack(np.meshgrid(*[np.arange(n_side)] * dim, indexing="ij"),
-                 -1).reshape(-1, dim).astype(float)
-    rng = np.random.default_rng(seed)
-    return (g + rng.uniform(-jitter, jitter, g.shape)) % n_side, n_side
 
 
 GEOMETRIES = {
@@ -74,27 +54,15 @@ GEOMETRIES = {
 
 
 def system(dim, geometry, n_side, seed=0):
-    R, side = fluid(n_side, dim, seed=seed)
-    rng = np.random.default_rng(seed + 1)
-    V = rng.normal(0, 1.0, R.shape)
-    mass = rng.uniform(0.8, 1.2, len(R))
-    displacement, box, periodic = GEOMETRIES[geometry](side, dim)
-    return (jnp.asarray(R), jnp.asarray(V), jnp.asarray(mass), displacement,
-            box, periodic)
-
-
-def neighbours(displacement, box, cutoff, **kw):
-    return partition.neighbor_list(
-        displacement, box if box is not None else 1.0, cutoff,
-        format=partition.Dense, disable_cell_list=True,
-        capacity_multiplier=2.0, **kw)
+    R, V, mass, side = fluid_state(n_side, dim, seed=seed)
+    return (R, V, mass, *GEOMETRIES[geometry](side, dim))
 
 
 def check_against_references(R, V, mass, displacement, box, periodic,
                              kernel, engine=WARP, **kw):
     """Warp's density and accelerations == the list path's and the array
     walk's (float64, `RTOL`); momentum conserved."""
-    nbrs = neighbours(displacement, box, float(kernel.cutoff)).allocate(R)
+    nbrs = neighbour_fn(displacement, box, float(kernel.cutoff)).allocate(R)
     rho = density_fused(displacement, box, kernel, mass=mass,
                         backend=engine, periodic=periodic)(R)
     assert rho.dtype == R.dtype and rho.shape == (len(R),)
@@ -112,9 +80,7 @@ def check_against_references(R, V, mass, displacement, box, periodic,
         assert a.shape == b.shape and a.dtype == R.dtype
         close(a, b)
         close(a, c)
-    total = jnp.sum(mass[:, None] * acc.total, axis=0)
-    assert float(jnp.max(jnp.abs(total))) < 1e-10 * float(
-        jnp.max(jnp.abs(mass[:, None] * acc.total)))
+    check_momentum(mass, acc)
     return acc
 
 
@@ -151,29 +117,7 @@ def test_small_periodic_boxes(x64, n_side, reach):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_coincident_and_exact_support_pairs(x64, dim):
-    h = 0.5
-    kernel = sph.CubicSpline(h, dim=dim)   # support 2h = 1.0
-    pad = (0.0,) * (dim - 2)
-    R = jnp.asarray([[1.0, 1.0, *pad], [1.0, 1.0, *pad],   # coincident
-                     [5.0, 5.0, *pad], [6.0, 5.0, *pad],   # the support
-                     [1.0, 8.0, *pad], [1.6, 8.0, *pad],   # inside
-                     [8.0, 1.0, *pad], [8.0, 1.0 + 1e-9, *pad]])
-    V = jnp.asarray(np.random.default_rng(0).normal(size=R.shape))
-    displacement, _ = space.free()
-    rho = density_fused(displacement, None, kernel, backend=WARP)(R)
-    w0, w = kernel.w(jnp.zeros(())), kernel.w(jnp.asarray(0.6))
-    w_near = kernel.w(jnp.asarray(1e-9))
-    close(rho, jnp.asarray([2 * w0, 2 * w0, w0, w0, w0 + w, w0 + w,
-                            w0 + w_near, w0 + w_near]))
-    accel = acceleration_fused(displacement, None, kernel, EOS, alpha=1.0,
-                               beta=1.0, backend=WARP)
-    nbrs = neighbours(displacement, None, float(kernel.cutoff)).allocate(R)
-    ref = sph.acceleration(displacement, kernel, EOS, alpha=1.0, beta=1.0)
-    out = accel(R, V)
-    for a, b in zip(out, jax.jit(ref)(R, V, nbrs)):
-        assert np.all(np.isfinite(a))
-        close(a, b)
-    np.testing.assert_array_equal(np.asarray(out.total[:4]), 0.0)
+    check_coincident_and_exact_support(dim, WARP)
 
 
 def test_periodic_pair_at_the_support_across_the_boundary(x64):
@@ -194,28 +138,14 @@ def test_gradients_and_traced_keywords(x64):
     keywords: h below the factory's, masses, alpha, beta, the EOS."""
     R, V, mass, displacement, box, periodic = system(3, "periodic", 6)
     kernel = KERNEL[3]
-    nbrs = neighbours(displacement, box, float(kernel.cutoff)).allocate(R)
+    nbrs = neighbour_fn(displacement, box, float(kernel.cutoff)).allocate(R)
     fused = acceleration_fused(displacement, box, kernel, EOS, backend=WARP)
     ref = sph.acceleration(displacement, kernel, EOS)
     weights = jnp.asarray(np.random.default_rng(5).normal(size=R.shape))
-
-    def loss(accel, R, V, h, m, a, b, rho0, c0, gamma):
-        out = accel(R, V, h=h, mass=m, alpha=a, beta=b,
-                    eos=sph.Tait(rho0, c0, gamma))
-        return (jnp.sum(weights * out.total)
-                + jnp.sum(jnp.sin(out.density)))
-
     args = (R, V, 1.2, mass, 0.5, 0.3, 1.1, 9.0, 7.0)
-    close(loss(fused, *args),
-          loss(lambda *x, **k: ref(x[0], x[1], nbrs, **k), *args))
-    g = jax.jit(jax.grad(lambda *a: loss(fused, *a),
-                         argnums=tuple(range(9))))(*args)
-    g_ref = jax.jit(jax.grad(
-        lambda *a: loss(lambda *x, **k: ref(x[0], x[1], nbrs, **k), *a),
-        argnums=tuple(range(9))))(*args)
-    for x, y in zip(g, g_ref):
-        assert np.all(np.isfinite(x))
-        close(x, y)
+    close(loss_of_every_input(fused, weights, *args), loss_of_every_input(
+        lambda R, V, **k: ref(R, V, nbrs, **k), weights, *args))
+    check_every_input_gradient(fused, ref, nbrs, R, V, mass)
 
     density = density_fused(displacement, box, kernel, backend=WARP)
     dref = sph.density(displacement, kernel)
@@ -236,38 +166,7 @@ def test_gradients_and_traced_keywords(x64):
 
 
 def test_jit_scan_steps_match_list_path(x64):
-    R, V, _, displacement, box, periodic = system(3, "periodic", 6)
-    _, shift = space.periodic(box)
-    kernel = KERNEL[3]
-    fused = acceleration_fused(displacement, box, kernel, EOS, mass=1.0,
-                               alpha=0.2, backend=WARP)
-    ref = sph.acceleration(displacement, kernel, EOS, mass=1.0, alpha=0.2)
-    nfn = neighbours(displacement, box, float(kernel.cutoff),
-                     dr_threshold=0.1)
-    dt = 1e-3
-
-    @jax.jit
-    def run_fused(R, V):
-        def step(carry, _):
-            R, V = carry
-            V = V + dt * fused(R, V).total
-            return (shift(R, dt * V), V), None
-        return lax.scan(step, (R, V), None, length=5)[0]
-
-    @jax.jit
-    def run_list(R, V, nbrs):
-        def step(carry, _):
-            R, V, nbrs = carry
-            V = V + dt * ref(R, V, nbrs).total
-            R = shift(R, dt * V)
-            return (R, V, nbrs.update(R)), None
-        return lax.scan(step, (R, V, nbrs), None, length=5)[0]
-
-    R1, V1 = run_fused(R, V)
-    R2, V2, nbrs = run_list(R, V, nfn.allocate(R))
-    assert not nbrs.did_buffer_overflow
-    close(R1, R2)
-    close(V1, V2, 1e-11)
+    check_scan_steps_match_list(3, n_side=6, backend=WARP)
 
 
 def test_float32(x64):
@@ -275,7 +174,7 @@ def test_float32(x64):
     path's (the module docstring's bounds)."""
     R, V, mass, displacement, box, periodic = system(3, "periodic", 7)
     kernel = KERNEL[3]
-    nbrs = neighbours(displacement, box, float(kernel.cutoff)).allocate(R)
+    nbrs = neighbour_fn(displacement, box, float(kernel.cutoff)).allocate(R)
     ref = jax.jit(sph.acceleration(displacement, kernel, EOS, mass=mass,
                                    alpha=0.5))(R, V, nbrs)
     accel = acceleration_fused(displacement, box, kernel, EOS, mass=mass,

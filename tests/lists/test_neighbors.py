@@ -15,7 +15,7 @@ from jax_md import energy, partition, simulate, space
 
 import jaxrt
 from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
-from scenes import lattice
+from scenes import kicked_updates, lattice
 
 FORMATS = [partition.Dense, partition.Sparse, partition.OrderedSparse]
 PURE_JAX = ["cell", "brute"]
@@ -304,16 +304,7 @@ def test_update_in_scan_lists_every_pair_within_the_skin_every_step():
     R = jax.random.uniform(jax.random.PRNGKey(12), (120, 3)) * side
     fns = jaxrt.neighbor_list(disp, side, cutoff, dr_threshold=0.3,
                               capacity_multiplier=2.0)
-    nbrs = fns.allocate(R)
-    kicks = 0.03 * jax.random.normal(jax.random.PRNGKey(13), (40,) + R.shape)
-
-    def step(carry, kick):
-        R, nbrs = carry
-        R = shift(R, kick)
-        nbrs = nbrs.update(R)
-        return (R, nbrs), (R, nbrs.idx)
-
-    (_, last), (Rs, idxs) = jax.lax.scan(step, (R, nbrs), kicks)
+    last, Rs, idxs, _ = kicked_updates(fns.allocate(R), shift, R, 40)
     assert not last.did_buffer_overflow
     for t in range(0, 40, 7):
         snap = last.__class__(idxs[t], Rs[t], last.error, *[

@@ -15,7 +15,7 @@ from jax_md import partition, space
 import jaxrt
 from jaxrt import backends
 from oracle import assert_layout, brute_pairs, expected_pairs, list_pairs
-from scenes import lattice, slab_displacement
+from scenes import kicked_updates, lattice, slab_displacement
 
 WARP = backends.Cell(kernel="warp")
 XLA = backends.Cell(kernel="xla")
@@ -268,16 +268,7 @@ def test_update_in_scan_lists_every_pair_within_the_skin_every_step():
     R = uniform(12, 120, side)
     fns = jaxrt.neighbor_list(displacement, side, cutoff, dr_threshold=skin,
                               capacity_multiplier=2.0, backend=WARP)
-    nbrs = fns.allocate(R)
-    kicks = 0.03 * jax.random.normal(jax.random.PRNGKey(13), (30,) + R.shape)
-
-    def step(carry, kick):
-        R, nbrs = carry
-        R = shift(R, kick)
-        nbrs = nbrs.update(R)
-        return (R, nbrs), (R, nbrs.idx, nbrs.reference_position)
-
-    (_, last), (Rs, idxs, refs) = jax.lax.scan(step, (R, nbrs), kicks)
+    last, Rs, idxs, refs = kicked_updates(fns.allocate(R), shift, R, 30)
     assert not last.did_buffer_overflow
     n = R.shape[0]
     for t in range(0, 30, 6):

@@ -22,55 +22,18 @@ from ase.build import bulk, fcc111, molecule  # noqa: E402
 from ase.neighborlist import neighbor_list as ase_neighbor_list  # noqa: E402
 
 import jaxrt  # noqa: E402
+from batch_cases import (CUTOFF, ase_set, assert_padded_as_jraph,  # noqa: E402
+                         half_of, per_system, skewed)
 
 program = importlib.import_module("jaxrt.pairs.program")
 ErrorBit = importlib.import_module("jaxrt.pairs.bits").ErrorBit
-
-CUTOFF = 4.0
-
-
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
-
-def triclinic():
-    rng = np.random.default_rng(0)
-    cell = np.array([[4.0, 0, 0], [3.1, 3.5, 0], [-2.7, 1.9, 3.2]])
-    cell = cell + rng.uniform(-0.3, 0.3, (3, 3))
-    frac = rng.uniform(-0.5, 1.7, (5, 3))
-    return Atoms("H5", positions=frac @ cell, cell=cell, pbc=True)
 
 
 def mixed():
     cu = bulk("Cu", "fcc", a=3.61, cubic=True)
     cu.rattle(0.05, seed=1)
     return [molecule("CH3CH2OH"), fcc111("Al", size=(2, 2, 2), vacuum=None),
-            cu, bulk("Cu", "fcc", a=3.61), triclinic()]
-
-
-def ase_set(atoms, cutoff=CUTOFF, **kw) -> set:
-    i, j, s = ase_neighbor_list("ijS", atoms, cutoff, **kw)
-    return {(int(a), int(b), *map(int, c)) for a, b, c in zip(i, j, s)}
-
-
-def per_system(result, n_node, n_systems: int) -> list[set]:
-    """The stored edges split by system with n_edge, indices made local;
-    asserts each edge lies in its system."""
-    i, j, s = (np.asarray(x) for x in (result.i, result.j, result.shift))
-    n_edge = np.asarray(result.n_edge)
-    starts = np.concatenate([[0], np.cumsum(n_node)])
-    edges = np.concatenate([[0], np.cumsum(n_edge)])
-    out = []
-    for g in range(n_systems):
-        a, b = edges[g], edges[g + 1]
-        lo, hi = starts[g], starts[g + 1]
-        assert np.all((i[a:b] >= lo) & (i[a:b] < hi)), g
-        assert np.all((j[a:b] >= lo) & (j[a:b] < hi)), g
-        out.append({(int(p) - lo, int(q) - lo, *map(int, t))
-                    for p, q, t in zip(i[a:b], j[a:b], s[a:b])})
-    return out
+            cu, bulk("Cu", "fcc", a=3.61), skewed()]
 
 
 def test_mixed_batch_eager_matches_ase_per_system(x64):
@@ -93,7 +56,6 @@ def test_mixed_batch_eager_matches_ase_per_system(x64):
 def test_jitted_padded_batch_matches_ase_and_pads_as_jraph(x64):
     systems = mixed()
     batch = jaxrt.batch_from_ase(systems)  # a padding graph, jraph's way
-    n_real = int(np.sum(batch.n_node[:len(systems)]))
     sizes = jaxrt.pairs_batch_sizes(batch.positions, batch.n_node, CUTOFF,
                                     **batch.kwargs)
     assert sizes.max_shift == (2, 2, 2)  # the 1-atom and triclinic cells'
@@ -109,16 +71,9 @@ def test_jitted_padded_batch_matches_ase_and_pads_as_jraph(x64):
     assert int(got.error) == 0
     assert per_system(got, batch.n_node, len(systems)) == [
         ase_set(a) for a in systems]
-    count = int(got.count)
-    # Padding edges point at the first padding node, counted in the padding
-    # graph: sum(n_edge) is the capacity, as after jraph.pad_with_graphs.
-    assert np.all(np.asarray(got.i)[count:] == n_real)
-    assert np.all(np.asarray(got.j)[count:] == n_real)
-    n_edge = np.asarray(got.n_edge)
-    assert n_edge[len(systems)] == capacity - count
-    assert n_edge.sum() == capacity
+    assert_padded_as_jraph(got, batch.n_node, len(systems), capacity)
     assert np.all(np.asarray(got.distances(batch.positions,
-                                           batch.cell))[count:] == 0)
+                                           batch.cell))[int(got.count):] == 0)
 
 
 def test_graphs_tuple_for_jraph(x64):
@@ -144,10 +99,7 @@ def test_half_lists_self_pairs_and_species_in_a_batch(x64):
                             species=batch.numbers, half=True,
                             self_interaction=True, **batch.kwargs)
     for a, edges in zip(systems, per_system(got, batch.n_node, 2)):
-        want = {p for p in ase_set(a, cutoffs, self_interaction=True)
-                if p[0] < p[1] or (p[0] == p[1] and tuple(p[2:]) >=
-                                   (0, 0, 0))}
-        assert edges == want
+        assert edges == half_of(ase_set(a, cutoffs, self_interaction=True))
 
 
 def test_overflow_is_flagged_with_exact_counts_per_system(x64):
@@ -168,7 +120,7 @@ def test_overflow_is_flagged_with_exact_counts_per_system(x64):
 
 
 def test_forces_through_batch_vectors_match_finite_differences(x64):
-    systems = [bulk("Cu", "fcc", a=3.61), triclinic()]
+    systems = [bulk("Cu", "fcc", a=3.61), skewed()]
     for a in systems:
         a.rattle(0.05, seed=4)
     batch = jaxrt.batch_from_ase(systems, pad=False)

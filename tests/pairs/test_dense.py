@@ -20,19 +20,12 @@ import pytest
 ase = pytest.importorskip("ase")
 from ase import Atoms  # noqa: E402
 from ase.build import bulk, fcc111, molecule  # noqa: E402
-from ase.neighborlist import neighbor_list as ase_neighbor_list  # noqa: E402
 
 import jaxrt  # noqa: E402
+from batch_cases import (CUTOFF, ase_set, assert_padded_as_jraph,  # noqa: E402
+                         half_of, per_system, skewed)
 
 ErrorBit = importlib.import_module("jaxrt.pairs.bits").ErrorBit
-
-CUTOFF = 4.0
-
-
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
 
 
 def one_atom():
@@ -53,14 +46,6 @@ def rhombohedral():
     return Atoms("H2", positions=frac @ cell, cell=cell, pbc=True)
 
 
-def skewed():
-    rng = np.random.default_rng(0)
-    cell = np.array([[4.0, 0, 0], [3.1, 3.5, 0], [-2.7, 1.9, 3.2]])
-    cell = cell + rng.uniform(-0.3, 0.3, (3, 3))
-    frac = rng.uniform(-0.5, 1.7, (5, 3))
-    return Atoms("H5", positions=frac @ cell, cell=cell, pbc=True)
-
-
 def mixed():
     cu = bulk("Cu", "fcc", a=3.61, cubic=True)
     cu.rattle(0.05, seed=1)
@@ -68,53 +53,16 @@ def mixed():
             cu, one_atom(), skewed(), rhombohedral()]
 
 
-def ase_set(atoms, cutoff=CUTOFF, **kw) -> set:
-    i, j, s = ase_neighbor_list("ijS", atoms, cutoff, **kw)
-    return {(int(a), int(b), *map(int, c)) for a, b, c in zip(i, j, s)}
-
-
-def per_system(result, n_node, n_systems: int) -> list[set]:
-    i, j, s = (np.asarray(x) for x in (result.i, result.j, result.shift))
-    n_edge = np.asarray(result.n_edge)
-    starts = np.concatenate([[0], np.cumsum(n_node)])
-    edges = np.concatenate([[0], np.cumsum(n_edge)])
-    out = []
-    for g in range(n_systems):
-        a, b = edges[g], edges[g + 1]
-        lo, hi = starts[g], starts[g + 1]
-        assert np.all((i[a:b] >= lo) & (i[a:b] < hi)), g
-        assert np.all((j[a:b] >= lo) & (j[a:b] < hi)), g
-        out.append({(int(p) - lo, int(q) - lo, *map(int, t))
-                    for p, q, t in zip(i[a:b], j[a:b], s[a:b])})
-    return out
-
-
-def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
-    systems = mixed()
-    batch = jaxrt.batch_from_ase(systems, pad=False)
-    m = int(np.max(batch.n_node))
-    got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                            max_nodes=m, **batch.kwargs)
-    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                              max_nodes=0, **batch.kwargs)
-    assert int(got.error) == 0
-    want = [ase_set(a) for a in systems]
-    assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 3
-    assert per_system(got, batch.n_node, len(systems)) == want
-    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
-    np.testing.assert_array_equal(got.i, cells.i)  # both sorted by i
-    d = np.asarray(got.distances(batch.positions, batch.cell))
-    assert np.all(d < CUTOFF) and np.all(d > 0)
-
-
-def test_jitted_padded_dense_batch_matches_ase_and_pads_as_jraph(x64):
-    systems = mixed()
+def jitted_padded(systems, extra: int = 0, max_nodes=None):
+    """The jitted search on the systems padded as jraph pads them, with
+    `jaxrt.pairs_batch_sizes`' reach, its capacity plus ``extra`` and
+    ``max_nodes`` (the sizes' where None), checked against ASE. Returns
+    the result, the batch, the sizes and the capacity."""
     batch = jaxrt.batch_from_ase(systems)
-    n_real = int(np.sum(batch.n_node[:len(systems)]))
     sizes = jaxrt.pairs_batch_sizes(batch.positions, batch.n_node, CUTOFF,
                                     **batch.kwargs)
-    capacity = sizes.capacity + 5
-    m = int(np.max(batch.n_node[:len(systems)]))
+    capacity = sizes.capacity + extra
+    m = sizes.max_nodes if max_nodes is None else max_nodes
 
     @jax.jit
     def edges(r, n_node, cell, pbc, mask):
@@ -126,40 +74,74 @@ def test_jitted_padded_dense_batch_matches_ase_and_pads_as_jraph(x64):
     assert int(got.error) == 0
     assert per_system(got, batch.n_node, len(systems)) == [
         ase_set(a) for a in systems]
-    count = int(got.count)
-    assert np.all(np.asarray(got.i)[count:] == n_real)
-    assert np.all(np.asarray(got.j)[count:] == n_real)
-    n_edge = np.asarray(got.n_edge)
-    assert n_edge[len(systems)] == capacity - count
-    assert n_edge.sum() == capacity
+    return got, batch, sizes, capacity
 
 
-@pytest.mark.parametrize("half", [False, True])
-def test_dense_half_lists_self_pairs_and_species(x64, half):
-    systems = [bulk("NaCl", "rocksalt", a=5.64), molecule("CH3CH2OH")]
-    cutoffs = {(11, 17): 3.2, (17, 17): 4.2, (1, 6): 1.2, (6, 6): 1.6,
-               (6, 8): 1.5, (1, 8): 1.0}
+def check_half_self_species(systems, cutoffs, max_nodes: int, half: bool,
+                            n_self: int):
+    """Per-species cutoffs with self pairs, full or half: the blocks'
+    edges are ASE's (halved), in the cells' order, and each of the
+    ``n_self`` atoms with a same-species cutoff has its self pair first."""
     batch = jaxrt.batch_from_ase(systems, pad=False)
     kw = dict(species=batch.numbers, half=half, self_interaction=True,
               **batch.kwargs)
     got = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
-                            max_nodes=9, **kw)
+                            max_nodes=max_nodes, **kw)
     cells = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
                               max_nodes=0, **kw)
-    for a, edges in zip(systems, per_system(got, batch.n_node, 2)):
+    for a, edges in zip(systems, per_system(got, batch.n_node,
+                                            len(systems))):
         want = ase_set(a, cutoffs, self_interaction=True)
-        if half:
-            want = {p for p in want if p[0] < p[1] or (
-                p[0] == p[1] and tuple(p[2:]) >= (0, 0, 0))}
-        assert edges == want
+        assert edges == (half_of(want) if half else want)
     np.testing.assert_array_equal(got.i, cells.i)
-    # Each atom's self pair opens its edges (Cl and the two C have one; no
-    # Na-Na, O-O or H-H cutoff).
+    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
     i, j = np.asarray(got.i)[:int(got.count)], np.asarray(got.j)
     self_at = np.nonzero((i == j[:len(i)]) & ~np.asarray(
         got.shift)[:len(i)].any(axis=1))[0]
-    assert len(self_at) == 3
+    assert len(self_at) == n_self
     np.testing.assert_array_equal(self_at, np.searchsorted(i, i[self_at]))
+
+
+def blocks_match_ase_and_the_cells(systems):
+    """The blocks' search (``max_nodes`` the largest system) of the
+    systems, unpadded: ASE's edges system by system, and the cells' counts
+    and order (both sorted by ``i``). Returns the result, the batch, ASE's
+    sets and ``max_nodes``."""
+    batch = jaxrt.batch_from_ase(systems, pad=False)
+    m = int(np.max(batch.n_node))
+    got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
+                            max_nodes=m, **batch.kwargs)
+    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
+                              max_nodes=0, **batch.kwargs)
+    assert int(got.error) == 0
+    want = [ase_set(a) for a in systems]
+    assert per_system(got, batch.n_node, len(systems)) == want
+    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
+    np.testing.assert_array_equal(got.i, cells.i)
+    return got, batch, want, m
+
+
+def test_mixed_batch_dense_matches_ase_and_the_cells(x64):
+    got, batch, want, _ = blocks_match_ase_and_the_cells(mixed())
+    assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 3
+    d = np.asarray(got.distances(batch.positions, batch.cell))
+    assert np.all(d < CUTOFF) and np.all(d > 0)
+
+
+def test_jitted_padded_dense_batch_matches_ase_and_pads_as_jraph(x64):
+    systems = mixed()
+    got, batch, _, capacity = jitted_padded(
+        systems, extra=5, max_nodes=max(len(a) for a in systems))
+    assert_padded_as_jraph(got, batch.n_node, len(systems), capacity)
+
+
+@pytest.mark.parametrize("half", [False, True])
+def test_dense_half_lists_self_pairs_and_species(x64, half):
+    # Cl and the two C have a self pair; no Na-Na, O-O or H-H cutoff.
+    check_half_self_species(
+        [bulk("NaCl", "rocksalt", a=5.64), molecule("CH3CH2OH")],
+        {(11, 17): 3.2, (17, 17): 4.2, (1, 6): 1.2, (6, 6): 1.6,
+         (6, 8): 1.5, (1, 8): 1.0}, max_nodes=9, half=half, n_self=3)
 
 
 def test_dense_flags_a_system_larger_than_max_nodes(x64):
@@ -230,20 +212,6 @@ def test_dense_too_short_reach_is_flagged(x64):
     assert int(got.error) & int(ErrorBit.MAX_SHIFT)
 
 
-def test_float32_dense_equals_the_cells():
-    # float32 (x64 off): both searches decide with the same expression in
-    # the same dtype, so the edge sets are equal, not only close.
-    systems = mixed()[:-1]
-    batch = jaxrt.batch_from_ase(systems, pad=False)
-    r = np.asarray(batch.positions, np.float32)
-    kw = dict(batch.kwargs, cell=np.asarray(batch.cell, np.float32))
-    dense = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=9, **kw)
-    cells = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=0, **kw)
-    assert per_system(dense, batch.n_node, len(systems)) == per_system(
-        cells, batch.n_node, len(systems))
-    np.testing.assert_array_equal(dense.n_edge, cells.n_edge)
-
-
 # Tiles: systems of more than one word (32 atoms), each atom deciding only
 # the 32-atom tiles whose box may come within the cutoff.
 
@@ -276,23 +244,13 @@ def tiled_systems():
 
 def test_tiles_match_ase_at_the_cutoff_and_with_many_images(x64):
     systems = tiled_systems()
-    batch = jaxrt.batch_from_ase(systems, pad=False)
-    m = int(np.max(batch.n_node))
+    _, batch, want, m = blocks_match_ase_and_the_cells(systems)
     assert m > 64
-    got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                            max_nodes=m, **batch.kwargs)
-    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
-                              max_nodes=0, **batch.kwargs)
-    assert int(got.error) == 0
-    want = [ase_set(a) for a in systems]
     # The simple cubic lattice has pairs at exactly 4.0 that ASE drops:
     # twice as many at a cutoff a rounding above it.
     above = ase_set(systems[1], np.nextafter(CUTOFF, 5.0))
     assert len(above) > len(want[1])
     assert max(max(abs(p[2]), abs(p[3]), abs(p[4])) for p in want[-1]) >= 2
-    assert per_system(got, batch.n_node, len(systems)) == want
-    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
-    np.testing.assert_array_equal(got.i, cells.i)
     # A cutoff a rounding above: the pairs at 4.0 come in, as in ASE.
     got_above = jaxrt.pairs_batch(batch.positions, batch.n_node,
                                   np.nextafter(CUTOFF, 5.0), max_nodes=m,
@@ -301,53 +259,19 @@ def test_tiles_match_ase_at_the_cutoff_and_with_many_images(x64):
 
 
 def test_jitted_padded_tiles_match_ase(x64):
-    systems = tiled_systems()
-    batch = jaxrt.batch_from_ase(systems)
-    sizes = jaxrt.pairs_batch_sizes(batch.positions, batch.n_node, CUTOFF,
-                                    **batch.kwargs)
+    _, _, sizes, _ = jitted_padded(tiled_systems())
     assert sizes.max_nodes >= 108
-    capacity = sizes.capacity
-
-    @jax.jit
-    def edges(r, n_node, cell, pbc, mask):
-        return jaxrt.pairs_batch(r, n_node, CUTOFF, cell=cell, pbc=pbc,
-                                 graph_mask=mask, capacity=capacity,
-                                 max_shift=sizes.max_shift,
-                                 max_nodes=sizes.max_nodes)
-
-    got = edges(*batch[:1], *batch[2:])
-    assert int(got.error) == 0
-    assert per_system(got, batch.n_node, len(systems)) == [
-        ase_set(a) for a in systems]
 
 
 @pytest.mark.parametrize("half", [False, True])
 def test_tiles_half_lists_self_pairs_and_species(x64, half):
     nacl = bulk("NaCl", "rocksalt", a=5.64, cubic=True).repeat((2, 2, 3))
     nacl.rattle(0.05, seed=4)  # 96 atoms
-    systems = [nacl, molecule("C60")]
-    cutoffs = {(11, 17): 3.2, (17, 17): 4.2, (6, 6): 1.6, (11, 11): 0.0}
-    batch = jaxrt.batch_from_ase(systems, pad=False)
-    kw = dict(species=batch.numbers, half=half, self_interaction=True,
-              **batch.kwargs)
-    got = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
-                            max_nodes=96, **kw)
-    cells = jaxrt.pairs_batch(batch.positions, batch.n_node, cutoffs,
-                              max_nodes=0, **kw)
-    for a, edges in zip(systems, per_system(got, batch.n_node, 2)):
-        want = ase_set(a, cutoffs, self_interaction=True)
-        if half:
-            want = {p for p in want if p[0] < p[1] or (
-                p[0] == p[1] and tuple(p[2:]) >= (0, 0, 0))}
-        assert edges == want
-    np.testing.assert_array_equal(got.i, cells.i)
-    np.testing.assert_array_equal(got.n_edge, cells.n_edge)
-    # Each atom's self pair opens its edges (Cl and C: no Na-Na cutoff).
-    i, j = np.asarray(got.i)[:int(got.count)], np.asarray(got.j)
-    self_at = np.nonzero((i == j[:len(i)]) & ~np.asarray(
-        got.shift)[:len(i)].any(axis=1))[0]
-    assert len(self_at) == 48 + 60
-    np.testing.assert_array_equal(self_at, np.searchsorted(i, i[self_at]))
+    # Cl and C have a self pair: no Na-Na cutoff.
+    check_half_self_species(
+        [nacl, molecule("C60")],
+        {(11, 17): 3.2, (17, 17): 4.2, (6, 6): 1.6, (11, 11): 0.0},
+        max_nodes=96, half=half, n_self=48 + 60)
 
 
 def test_tiles_near_everything_fall_back_to_every_candidate(x64):
@@ -381,12 +305,17 @@ def test_tiles_capacity_overflow_keeps_exact_counts(x64):
     np.testing.assert_array_equal(np.asarray(small.i), exact.i[:100])
 
 
-def test_float32_tiles_equal_the_cells():
-    systems = tiled_systems()
+@pytest.mark.parametrize("systems, max_nodes", [
+    (lambda: mixed()[:-1], 9), (tiled_systems, 108)], ids=["dense", "tiles"])
+def test_float32_blocks_equal_the_cells(systems, max_nodes):
+    # float32 (x64 off): both searches decide with the same expression in
+    # the same dtype, so the edge sets are equal, not only close.
+    systems = systems()
     batch = jaxrt.batch_from_ase(systems, pad=False)
     r = np.asarray(batch.positions, np.float32)
     kw = dict(batch.kwargs, cell=np.asarray(batch.cell, np.float32))
-    dense = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=108, **kw)
+    dense = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=max_nodes,
+                              **kw)
     cells = jaxrt.pairs_batch(r, batch.n_node, CUTOFF, max_nodes=0, **kw)
     assert per_system(dense, batch.n_node, len(systems)) == per_system(
         cells, batch.n_node, len(systems))
