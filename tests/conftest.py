@@ -54,6 +54,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
 # the float64 oracles would disagree with it near the cutoff. jaxrt copes
 # (`jaxrt.lists.metric`'s slack); the oracles need the metric exact.
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_default_matmul_precision", "highest")
 
@@ -66,6 +67,14 @@ else:
                                          database=None, deadline=None,
                                          print_blob=True)
     hypothesis.settings.load_profile("jaxrt")
+
+
+@pytest.fixture
+def x64():
+    """float64 for one test (the ``jax.enable_x64`` context; tests whose
+    callbacks run in other threads override it with the global flag)."""
+    with jax.enable_x64(True):
+        yield
 
 
 def pytest_configure(config):

@@ -32,11 +32,6 @@ from scenes import fluid as fused_fluid
 SLOW = pytest.mark.slow
 
 
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
 
 def cloud(n, centre, sigma, side, seed=0):
     """float64 ``(n, dim)``: a normal cloud around ``centre``, wrapped into

@@ -42,12 +42,6 @@ def list_fn(request):
     return _list_fn(request.param)
 
 
-@pytest.fixture
-def x64():
-    """float64 for one test, without touching other test files."""
-    with jax.enable_x64(True):
-        yield
-
 
 def fluid(n_side=4, dim=3, density=0.8, seed=0, dtype=np.float32):
     """A jittered lattice: LJ-like spacing, no overlaps."""

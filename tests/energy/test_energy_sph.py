@@ -43,12 +43,6 @@ def list_fn(request):
     return _list_fn(request.param)
 
 
-@pytest.fixture
-def x64():
-    """float64 for one test, without touching other test files."""
-    with jax.enable_x64(True):
-        yield
-
 
 def lattice(n, dx, dim):
     g = np.stack(np.meshgrid(*[np.arange(n)] * dim, indexing="ij"), -1)

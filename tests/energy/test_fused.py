@@ -58,11 +58,6 @@ SLOW = pytest.mark.slow
 BRUTE_SLOW = ("bvh", pytest.param("brute", marks=SLOW))
 
 
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
 
 def list_energy(displacement, box, periodic, R0, radii=None, **kw):
     """jaxrt's list path (Dense, cell list; bvh with radii): energy_fn(R),
@@ -514,7 +509,6 @@ def _traced_grid_cells():
     """``(query, cells)``: the fused grid's query in a periodic cube (cutoff
     2.5), and ``cells(side, R)``, `grid.grid`'s traced cells per axis
     (int32 ``(3,)``) for box ``side`` and positions ``R``."""
-    from jaxrt.backends.cell import search as cell_list
     from jaxrt.backends.contract import Geometry
     from jaxrt.energy.listfree import lj as fused
     query = fused.grid_query(fused.Params(2.0, 2.5, 2.5, (True,) * 3,
@@ -560,7 +554,6 @@ def test_static_cells_bound_the_traced_grid(dtype):
     (in the positions' dtype) does not coarsen and its every key is below
     the table: boxes a hair around whole numbers of cells, N around the
     coarsening budget; and it gives none with a free axis."""
-    from jaxrt.backends.cell import search as cell_list
     from jaxrt.energy.listfree import lj as fused
     rng = np.random.default_rng(11)
     query, cells = _traced_grid_cells()

@@ -22,11 +22,6 @@ from ase.neighborlist import neighbor_list as ase_neighbor_list  # noqa: E402
 import jaxrt  # noqa: E402
 
 
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
 
 def stored(result) -> list:
     """The (i, j, S) stored, in order."""

@@ -34,11 +34,6 @@ pairs_module = importlib.import_module("jaxrt.pairs.search")
 checks_module = importlib.import_module("jaxrt.pairs.checks")
 
 
-@pytest.fixture
-def x64():
-    with jax.enable_x64(True):
-        yield
-
 
 def keys(result) -> list:
     """The stored (i, j, S) in order (the first min(count, capacity))."""
