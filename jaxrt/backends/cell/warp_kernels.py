@@ -110,8 +110,9 @@ def _scalar_kernels(scalar):
 
 @wp.func
 def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
-    """The stencil's x cells as up to two ranges [lo, hi] with images
-    (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range."""
+    """The stencil's x cells as up to two ranges with images: (lo0, hi0,
+    image0, hi1, image1), the second range ``[0, hi1]``, empty (hi1 < 0)
+    for one range."""
     lo0 = wp.max(c - reach, 0)
     hi0 = wp.min(c + reach, n - 1)
     ox0 = 0
@@ -131,7 +132,7 @@ def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
             hi0 = n - 1
             hi1 = c + reach - n
             ox1 = 1
-    return lo0, hi0, ox0, 0, hi1, ox1
+    return lo0, hi0, ox0, hi1, ox1
 
 
 @wp.func
@@ -154,8 +155,8 @@ class Stencil:
     """A cell's stencil (`stencil`): the grid's cells ``nx, ny, nz``, the
     reach ``ay, az`` and periodic bits ``py, pz`` of the rows, the cell's
     ``cy, cz``, the rounded axes ``rx, ry, rz`` (periodic with too few
-    cells for images), the x ranges of `x_ranges`, ``parts`` of them (1
-    or 2), and ``pieces``, the (y row, x range) pairs of a z row."""
+    cells for images), the x ranges of `x_ranges` and ``pieces``, the (y
+    row, x range) pairs of a z row."""
     nx: wp.int32
     ny: wp.int32
     nz: wp.int32
@@ -171,10 +172,8 @@ class Stencil:
     lo0: wp.int32
     hi0: wp.int32
     ox0: wp.int32
-    lo1: wp.int32
     hi1: wp.int32
     ox1: wp.int32
-    parts: wp.int32
     pieces: wp.int32
 
 
@@ -198,16 +197,13 @@ def stencil(flags: int, cells: wp.array(dtype=wp.int32), key: int):
     s.rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
     s.ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
     s.rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
-    lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(key % nx, ax, nx, px, s.rx)
+    lo0, hi0, ox0, hi1, ox1 = x_ranges(key % nx, ax, nx, px, s.rx)
     s.lo0 = lo0
     s.hi0 = hi0
     s.ox0 = ox0
-    s.lo1 = lo1
     s.hi1 = hi1
     s.ox1 = ox1
-    # The first range is never empty (it holds the cell itself).
-    s.parts = wp.where(hi1 >= lo1, 2, 1)
-    # Two per y row (a constant divisor): the second empty for one range.
+    # Two per y row (a constant divisor), the second empty for one range.
     s.pieces = (2 * ay + 1) * 2
     return s
 
@@ -225,9 +221,8 @@ def stencil_functions(scalar):
         for dz in range(-s.az, s.az + 1):
             for piece in range(s.pieces):
                 first, end, shift = span(s, start, side, dz, piece)
-                q = position[i] - shift
                 for j in range(first, end):
-                    d, d2 = difference(q, position[j], side, s)
+                    d, d2 = difference(p - shift, position[j], side, s)
     """
     vector = wp.types.vector(3, scalar)
 
@@ -237,12 +232,14 @@ def stencil_functions(scalar):
         part = piece % 2
         z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
         y, oy, oky = row(s.cy, piece / 2 - s.ay, s.ny, s.py, s.ay)
+        lo = wp.where(part == 0, s.lo0, 0)
+        hi = wp.where(part == 0, s.hi0, s.hi1)
         first = int(0)
         end = int(0)
-        if okz and oky and part < s.parts:
+        if okz and oky and hi >= lo:
             base = s.nx * (y + s.ny * z)
-            first = start[base + wp.where(part == 0, s.lo0, s.lo1)]
-            end = start[base + wp.where(part == 0, s.hi0, s.hi1) + 1]
+            first = start[base + lo]
+            end = start[base + hi + 1]
         ox = wp.where(part == 0, s.ox0, s.ox1)
         return first, end, vector(scalar(ox) * side[0], scalar(oy) * side[1],
                                   scalar(oz) * side[2])
@@ -404,7 +401,7 @@ def _walk_kernel(scalar, static_bits, hoist):
                     if oky:
                         base = s.nx * (y + s.ny * z)
                         for part in range(2):
-                            lo = wp.where(part == 0, s.lo0, s.lo1)
+                            lo = wp.where(part == 0, s.lo0, 0)
                             hi = wp.where(part == 0, s.hi0, s.hi1)
                             ox = wp.where(part == 0, s.ox0, s.ox1)
                             if hi >= lo:

@@ -73,9 +73,8 @@ def _rows_kernel(scalar):
         for dz in range(-s.az, s.az + 1):
             for piece in range(s.pieces):
                 first, end, shift = span(s, start, side, dz, piece)
-                q = p - shift
                 for j in range(first, end):
-                    d, d2 = difference(q, position[j], side, s)
+                    d, d2 = difference(p - shift, position[j], side, s)
                     # The caller's index is loaded only for the few candidates
                     # that are kept.
                     if d2 < outer_sq and (mask_self == 0 or j != i):

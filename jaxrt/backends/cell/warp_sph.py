@@ -133,9 +133,8 @@ def _density_walk(scalar, shape):
         for dz in range(-s.az, s.az + 1):
             for piece in range(s.pieces):
                 first, end, shift = span(s, start, side, dz, piece)
-                qi = p - shift
                 for j in range(first, end):
-                    d, d2 = difference(qi, position[j], side, s)
+                    d, d2 = difference(p - shift, position[j], side, s)
                     if d2 < support2 and j != i:
                         r = wp.sqrt(d2)
                         # `jaxrt.energy.sph`'s cut, r < support h.
@@ -207,9 +206,8 @@ def _force_walk(scalar, shape):
         for dz in range(-s.az, s.az + 1):
             for piece in range(s.pieces):
                 first, end, shift = span(s, start, side, dz, piece)
-                pi_ = p - shift
                 for j in range(first, end):
-                    d, d2 = difference(pi_, position[j], side, s)
+                    d, d2 = difference(p - shift, position[j], side, s)
                     # Coincident pairs: no force (unit 0).
                     if d2 < support2 and d2 > scalar(0.0):
                         r = wp.sqrt(d2)
