@@ -65,70 +65,26 @@ def _drop_lowest(mask: int) -> int:
     ...
 
 
-@wp.func_native("""
+# Shuffles of an int, float32 or float64 (overloads of one name): from
+# lane ``lane``, and from the lane ``m`` apart (xor).
+_SHFL = """
 #if defined(__CUDA_ARCH__)
 return __shfl_sync(0xffffffffu, x, lane);
 #else
 return x;
 #endif
-""")
-def _shfl_i(x: int, lane: int) -> int:
-    ...
+"""
+_SHFL_XOR = _SHFL.replace("__shfl_sync(0xffffffffu, x, lane)",
+                          "__shfl_xor_sync(0xffffffffu, x, m)")
+for _type in (int, wp.float32, wp.float64):
+    @wp.func_native(_SHFL)
+    def _shfl(x: _type, lane: int) -> _type:
+        ...
 
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_sync(0xffffffffu, x, lane);
-#else
-return x;
-#endif
-""")
-def _shfl_f32(x: wp.float32, lane: int) -> wp.float32:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_sync(0xffffffffu, x, lane);
-#else
-return x;
-#endif
-""")
-def _shfl_f64(x: wp.float64, lane: int) -> wp.float64:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_i(x: int, m: int) -> int:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_f32(x: wp.float32, m: int) -> wp.float32:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_f64(x: wp.float64, m: int) -> wp.float64:
-    ...
+    @wp.func_native(_SHFL_XOR)
+    def _xor(x: _type, m: int) -> _type:
+        ...
+del _type
 
 
 def _lane_functions(scalar, size, lanes):
@@ -136,8 +92,6 @@ def _lane_functions(scalar, size, lanes):
     lanes, each slot's next survivor of a ballot, the sums over the
     slots."""
     vector = wp.types.vector(3, scalar)
-    shfl = _shfl_f32 if scalar == wp.float32 else _shfl_f64
-    xor = _xor_f32 if scalar == wp.float32 else _xor_f64
     slots = lanes // size
 
     @wp.func
@@ -152,11 +106,11 @@ def _lane_functions(scalar, size, lanes):
         lo, hi, r_max = p, p, ri
         s = int(1)
         while s < wp.static(size):
-            lo = wp.min(lo, vector(xor(lo[0], s), xor(lo[1], s),
-                                   xor(lo[2], s)))
-            hi = wp.max(hi, vector(xor(hi[0], s), xor(hi[1], s),
-                                   xor(hi[2], s)))
-            r_max = wp.max(r_max, xor(r_max, s))
+            lo = wp.min(lo, vector(_xor(lo[0], s), _xor(lo[1], s),
+                                   _xor(lo[2], s)))
+            hi = wp.max(hi, vector(_xor(hi[0], s), _xor(hi[1], s),
+                                   _xor(hi[2], s)))
+            r_max = wp.max(r_max, _xor(r_max, s))
             s = s * 2
         return lo, hi, r_max, ri
 
@@ -166,7 +120,7 @@ def _lane_functions(scalar, size, lanes):
         y = x
         s = int(wp.static(size))
         while s < wp.static(lanes):
-            y = y + xor(y, s)
+            y = y + _xor(y, s)
             s = s * 2
         return y
 
@@ -183,11 +137,11 @@ def _lane_functions(scalar, size, lanes):
                 source = low_bit
             left = _drop_lowest(left)
         src = wp.max(source, 0)
-        qj = vector(shfl(pj[0], src), shfl(pj[1], src), shfl(pj[2], src))
+        qj = vector(_shfl(pj[0], src), _shfl(pj[1], src), _shfl(pj[2], src))
         r = rj
         if has_radii != 0:
-            r = shfl(rj, src)
-        return left, source, _shfl_i(j, src), qj, r
+            r = _shfl(rj, src)
+        return left, source, _shfl(j, src), qj, r
 
     @wp.func
     def reduce_slots(f: vector, e: scalar, ds: scalar, de: scalar, hits: int,
@@ -196,7 +150,7 @@ def _lane_functions(scalar, size, lanes):
         h = int(hits)
         s = int(wp.static(size))
         while s < wp.static(lanes):
-            h = h + _xor_i(h, s)
+            h = h + _xor(h, s)
             s = s * 2
         ds_sum, de_sum = ds, de
         if derivatives != 0:
