@@ -6,7 +6,7 @@ The pipeline, one launch each (`lj_sums`; steps 1 to 4 are `sort_cells`,
 which the SPH walks (`jaxrt.backends.cell.warp_sph`), the cluster walk
 (`jaxrt.backends.cell.warp_cluster`) and the neighbour lists' walk
 (`jaxrt.backends.cell.warp_rows`) share with the stencil's functions,
-`stencil_functions`):
+`stencil` and `stencil_functions`):
 
 1. ``bin_particles``: each particle wrapped into the box on periodic axes,
    its cell's row-major key (x fastest) and its index.
@@ -346,7 +346,7 @@ def _walk_kernel(scalar, static_bits, hoist):
     ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
     (the branches they guard compiled away), or None to read them from
     ``flags``. ``hoist`` (with ``static_bits`` and no radii): the pair
-    terms by `lj_forces`, their constants computed once per particle.
+    terms by `lj_forces` (`pair_functions`).
     """
     vector = wp.types.vector(3, scalar)
     _, difference = stencil_functions(scalar)
