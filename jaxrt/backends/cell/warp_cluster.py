@@ -81,16 +81,6 @@ def bound(n: int, table: int, size: int) -> int:
     return max(1, min(n, -(-n // size) + min(table, n)))
 
 
-@wp.func
-def rounded_axes(flags: int, cells: wp.array(dtype=wp.int32)):
-    """(rx, ry, rz): 1 on the periodic axes whose differences are rounded
-    to their minimum image (too few cells for the stencil's images)."""
-    rx = wp.where((flags >> 3) & 1 != 0 and cells[0] < 2 * cells[3] + 1, 1, 0)
-    ry = wp.where((flags >> 4) & 1 != 0 and cells[1] < 2 * cells[4] + 1, 1, 0)
-    rz = wp.where((flags >> 5) & 1 != 0 and cells[2] < 2 * cells[5] + 1, 1, 0)
-    return rx, ry, rz
-
-
 def _gap(scalar):
     @wp.func
     def gap(lo: scalar, hi: scalar, x: scalar, off: int):
@@ -106,45 +96,21 @@ def _gap(scalar):
     return gap
 
 
-def cluster_functions(scalar, static_bits, hoist):
-    """The walks' shared functions for ``scalar`` (``static_bits``,
-    ``hoist`` as `warp_kernels.walk_kernel`'s): ``near`` (a candidate
-    within the cut of a box), ``difference`` (a pair's difference and its
-    square, as the thread walk rounds them) and ``terms`` (a pair's energy,
-    force factor and derivatives at its cut, as the thread walk's)."""
+def cluster_functions(scalar):
+    """``near(lo, hi, x, cut, s)``: whether ``x`` is within ``cut`` of the
+    box ``[lo, hi]`` (not pruning the rounded axes of `warp_kernels.Stencil`
+    ``s``), for ``scalar``."""
     vector = wp.types.vector(3, scalar)
-    lj, lj_forces, _, _, rounded = wk.pair_functions(scalar)
     gap = _gap(scalar)
-    fast = (bool(hoist) and static_bits is not None
-            and not int(static_bits) & wk.HAS_RADII)
 
     @wp.func
-    def near(lo: vector, hi: vector, x: vector, cut: scalar, rx: int,
-             ry: int, rz: int):
-        g = vector(gap(lo[0], hi[0], x[0], rx), gap(lo[1], hi[1], x[1], ry),
-                   gap(lo[2], hi[2], x[2], rz))
+    def near(lo: vector, hi: vector, x: vector, cut: scalar, s: wk.Stencil):
+        g = vector(gap(lo[0], hi[0], x[0], s.rx),
+                   gap(lo[1], hi[1], x[1], s.ry),
+                   gap(lo[2], hi[2], x[2], s.rz))
         return wp.dot(g, g) < cut * cut
 
-    @wp.func
-    def difference(q: vector, x: vector, side: vector, rx: int, ry: int,
-                   rz: int):
-        d = q - x
-        d = vector(rounded(d[0], side[0], rx), rounded(d[1], side[1], ry),
-                   rounded(d[2], side[2], rz))
-        return d, wp.dot(d, d)
-
-    @wp.func
-    def terms(d2: scalar, cut: scalar, cut2: scalar, sigma: scalar,
-              epsilon: scalar, r_onset: scalar, r_cutoff: scalar,
-              inverse_cube: scalar):
-        if wp.static(fast):
-            e, g, ds, de = lj_forces(d2, sigma * sigma, epsilon,
-                                     r_onset * r_onset, cut2, inverse_cube)
-            return e, g, ds / sigma, de
-        scale = cut / r_cutoff
-        return lj(d2, sigma * scale, epsilon, r_onset * scale, cut, sigma)
-
-    return near, difference, terms
+    return near
 
 
 def _cluster_load(scalar, size):
@@ -192,8 +158,9 @@ def _cluster_kernel(scalar, static_bits, hoist, size, prune, unroll):
     sums_t = wp.types.vector(size, scalar)
     hits_t = wp.types.vector(size, wp.int32)
     points_t = wp.types.matrix((size, 3), scalar)
-    x_ranges, row, _ = wk.stencil_functions(scalar)
-    near, difference, terms = cluster_functions(scalar, static_bits, hoist)
+    span, difference = wk.stencil_functions(scalar)
+    terms = wk.pair_functions(scalar, static_bits, hoist)
+    near = cluster_functions(scalar)
     load = _cluster_load(scalar, size)
     fixed = -1 if static_bits is None else int(static_bits)
 
@@ -223,14 +190,10 @@ def _cluster_kernel(scalar, static_bits, hoist, size, prune, unroll):
         if wp.static(fixed >= 0):
             low = wp.static(fixed)
         has_radii, counting = low & wk.HAS_RADII, low & wk.COUNT
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[wk.SIDE]
         sigma, epsilon = params[wk.SIGMA], params[wk.EPSILON]
         r_onset, r_cutoff = params[wk.R_ONSET], params[wk.R_CUTOFF]
-        rx, ry, rz = rounded_axes(flags, cells)
-        key = keys[first]
+        s = wk.stencil(flags, cells, keys[first])
         p, r, lo, hi, r_max = load(position, radius, first, members,
                                    has_radii, r_cutoff)
         cut2 = r_cutoff * r_cutoff
@@ -239,51 +202,38 @@ def _cluster_kernel(scalar, static_bits, hoist, size, prune, unroll):
         f = points_t()
         e_sum, ds_sum, de_sum = sums_t(), sums_t(), sums_t()
         hits = hits_t()
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(key % nx, ax, nx, px, rx)
-        # A loop bound read at run time: kept a loop where ``size`` unrolls.
-        parts = wp.where(hi1 >= lo1, 2, 1)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(key / (nx * ny), dz, nz, pz, az)
-            for dy in range(-ay, ay + 1):
-                y, oy, oky = row((key / nx) % ny, dy, ny, py, ay)
-                for part in range(parts * wp.where(okz and oky, 1, 0)):
-                    ox = wp.where(part == 0, ox0, ox1)
-                    shift = vector(scalar(ox) * side[0], scalar(oy) * side[1],
-                                   scalar(oz) * side[2])
-                    base = nx * (y + ny * z)
-                    for j in range(start[base + wp.where(part == 0, lo0, lo1)],
-                                   start[base + wp.where(part == 0, hi0, hi1)
-                                         + 1]):
-                        pj = position[j]
-                        rj = scalar(0.0)
-                        cut_j = r_cutoff
-                        if has_radii != 0:
-                            rj = radius[j]
-                            cut_j = wp.max(r_max, rj)
-                        if wp.static(prune):
-                            if not near(lo - shift, hi - shift, pj, cut_j, rx,
-                                        ry, rz):
-                                continue
-                        for k in range(wp.static(size)):
-                            if k < members:
-                                d, d2 = difference(p[k] - shift, pj, side, rx,
-                                                   ry, rz)
-                                cut = r_cutoff
-                                if has_radii != 0:
-                                    cut = wp.max(r[k], rj)
-                                    cut2 = cut * cut
-                                if (counting != 0 and d2 < cut2
-                                        and j != first + k):
-                                    hits[k] = hits[k] + 1
-                                if d2 < cut2 and d2 > scalar(0.0):
-                                    e, g, ds, de = terms(
-                                        d2, cut, cut2, sigma, epsilon, r_onset,
-                                        r_cutoff, inverse_cube)
-                                    f[k] = f[k] + g * d
-                                    e_sum[k] = e_sum[k] + e
-                                    if low & wk.DERIVATIVES != 0:
-                                        ds_sum[k] = ds_sum[k] + ds
-                                        de_sum[k] = de_sum[k] + de
+        # Bounds read at run time: loops still where ``size`` unrolls.
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                begin, end, shift = span(s, start, side, dz, piece)
+                for j in range(begin, end):
+                    pj = position[j]
+                    rj = scalar(0.0)
+                    cut_j = r_cutoff
+                    if has_radii != 0:
+                        rj = radius[j]
+                        cut_j = wp.max(r_max, rj)
+                    if wp.static(prune):
+                        if not near(lo - shift, hi - shift, pj, cut_j, s):
+                            continue
+                    for k in range(wp.static(size)):
+                        if k < members:
+                            d, d2 = difference(p[k] - shift, pj, side, s)
+                            cut = r_cutoff
+                            if has_radii != 0:
+                                cut = wp.max(r[k], rj)
+                                cut2 = cut * cut
+                            if counting != 0 and d2 < cut2 and j != first + k:
+                                hits[k] = hits[k] + 1
+                            if d2 < cut2 and d2 > scalar(0.0):
+                                e, g, ds, de = terms(
+                                    d2, cut, cut2, sigma, epsilon, r_onset,
+                                    r_cutoff, inverse_cube)
+                                f[k] = f[k] + g * d
+                                e_sum[k] = e_sum[k] + e
+                                if low & wk.DERIVATIVES != 0:
+                                    ds_sum[k] = ds_sum[k] + ds
+                                    de_sum[k] = de_sum[k] + de
         for k in range(wp.static(size)):
             if k < members:
                 forces[values[first + k]] = vector(f[k, 0], f[k, 1], f[k, 2])

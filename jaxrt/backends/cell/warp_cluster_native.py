@@ -65,70 +65,26 @@ def _drop_lowest(mask: int) -> int:
     ...
 
 
-@wp.func_native("""
+# Shuffles of an int, float32 or float64 (overloads of one name): from
+# lane ``lane``, and from the lane ``m`` apart (xor).
+_SHFL = """
 #if defined(__CUDA_ARCH__)
 return __shfl_sync(0xffffffffu, x, lane);
 #else
 return x;
 #endif
-""")
-def _shfl_i(x: int, lane: int) -> int:
-    ...
+"""
+_SHFL_XOR = _SHFL.replace("__shfl_sync(0xffffffffu, x, lane)",
+                          "__shfl_xor_sync(0xffffffffu, x, m)")
+for _type in (int, wp.float32, wp.float64):
+    @wp.func_native(_SHFL)
+    def _shfl(x: _type, lane: int) -> _type:
+        ...
 
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_sync(0xffffffffu, x, lane);
-#else
-return x;
-#endif
-""")
-def _shfl_f32(x: wp.float32, lane: int) -> wp.float32:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_sync(0xffffffffu, x, lane);
-#else
-return x;
-#endif
-""")
-def _shfl_f64(x: wp.float64, lane: int) -> wp.float64:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_i(x: int, m: int) -> int:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_f32(x: wp.float32, m: int) -> wp.float32:
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __shfl_xor_sync(0xffffffffu, x, m);
-#else
-return x;
-#endif
-""")
-def _xor_f64(x: wp.float64, m: int) -> wp.float64:
-    ...
+    @wp.func_native(_SHFL_XOR)
+    def _xor(x: _type, m: int) -> _type:
+        ...
+del _type
 
 
 def _lane_functions(scalar, size, lanes):
@@ -136,8 +92,6 @@ def _lane_functions(scalar, size, lanes):
     lanes, each slot's next survivor of a ballot, the sums over the
     slots."""
     vector = wp.types.vector(3, scalar)
-    shfl = _shfl_f32 if scalar == wp.float32 else _shfl_f64
-    xor = _xor_f32 if scalar == wp.float32 else _xor_f64
     slots = lanes // size
 
     @wp.func
@@ -152,11 +106,11 @@ def _lane_functions(scalar, size, lanes):
         lo, hi, r_max = p, p, ri
         s = int(1)
         while s < wp.static(size):
-            lo = wp.min(lo, vector(xor(lo[0], s), xor(lo[1], s),
-                                   xor(lo[2], s)))
-            hi = wp.max(hi, vector(xor(hi[0], s), xor(hi[1], s),
-                                   xor(hi[2], s)))
-            r_max = wp.max(r_max, xor(r_max, s))
+            lo = wp.min(lo, vector(_xor(lo[0], s), _xor(lo[1], s),
+                                   _xor(lo[2], s)))
+            hi = wp.max(hi, vector(_xor(hi[0], s), _xor(hi[1], s),
+                                   _xor(hi[2], s)))
+            r_max = wp.max(r_max, _xor(r_max, s))
             s = s * 2
         return lo, hi, r_max, ri
 
@@ -166,7 +120,7 @@ def _lane_functions(scalar, size, lanes):
         y = x
         s = int(wp.static(size))
         while s < wp.static(lanes):
-            y = y + xor(y, s)
+            y = y + _xor(y, s)
             s = s * 2
         return y
 
@@ -183,11 +137,11 @@ def _lane_functions(scalar, size, lanes):
                 source = low_bit
             left = _drop_lowest(left)
         src = wp.max(source, 0)
-        qj = vector(shfl(pj[0], src), shfl(pj[1], src), shfl(pj[2], src))
+        qj = vector(_shfl(pj[0], src), _shfl(pj[1], src), _shfl(pj[2], src))
         r = rj
         if has_radii != 0:
-            r = shfl(rj, src)
-        return left, source, _shfl_i(j, src), qj, r
+            r = _shfl(rj, src)
+        return left, source, _shfl(j, src), qj, r
 
     @wp.func
     def reduce_slots(f: vector, e: scalar, ds: scalar, de: scalar, hits: int,
@@ -196,7 +150,7 @@ def _lane_functions(scalar, size, lanes):
         h = int(hits)
         s = int(wp.static(size))
         while s < wp.static(lanes):
-            h = h + _xor_i(h, s)
+            h = h + _xor(h, s)
             s = s * 2
         ds_sum, de_sum = ds, de
         if derivatives != 0:
@@ -212,9 +166,9 @@ def _native_kernel(scalar, static_bits, hoist, size, lanes):
     ``scalar``; ``static_bits``/``hoist`` as `warp_kernels.walk_kernel`'s,
     ``size`` particles per cluster, ``lanes`` threads per cluster."""
     vector = wp.types.vector(3, scalar)
-    x_ranges, row, _ = wk.stencil_functions(scalar)
-    near, difference, terms = wc.cluster_functions(scalar, static_bits,
-                                                   hoist)
+    span, difference = wk.stencil_functions(scalar)
+    terms = wk.pair_functions(scalar, static_bits, hoist)
+    near = wc.cluster_functions(scalar)
     box, survivor, reduce_slots = _lane_functions(scalar, size, lanes)
     fixed = -1 if static_bits is None else int(static_bits)
 
@@ -250,14 +204,10 @@ def _native_kernel(scalar, static_bits, hoist, size, lanes):
         if wp.static(fixed >= 0):
             low = wp.static(fixed)
         has_radii, counting = low & wk.HAS_RADII, low & wk.COUNT
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[wk.SIDE]
         sigma, epsilon = params[wk.SIGMA], params[wk.EPSILON]
         r_onset, r_cutoff = params[wk.R_ONSET], params[wk.R_CUTOFF]
-        rx, ry, rz = wc.rounded_axes(flags, cells)
-        key = keys[first]
+        s = wk.stencil(flags, cells, keys[first])
         p = position[i]
         lo, hi, r_max, ri = box(p, radius, i, has_radii, r_cutoff)
         cut2 = r_cutoff * r_cutoff
@@ -265,56 +215,45 @@ def _native_kernel(scalar, static_bits, hoist, size, lanes):
         inverse_cube = scalar(1.0) / (band * band * band)
         f, hits = vector(), int(0)
         e_sum, ds_sum, de_sum = scalar(0.0), scalar(0.0), scalar(0.0)
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(key % nx, ax, nx, px, rx)
-        parts = wp.where(hi1 >= lo1, 2, 1)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(key / (nx * ny), dz, nz, pz, az)
-            for dy in range(-ay, ay + 1):
-                y, oy, oky = row((key / nx) % ny, dy, ny, py, ay)
-                for part in range(parts * wp.where(okz and oky, 1, 0)):
-                    ox = wp.where(part == 0, ox0, ox1)
-                    shift = vector(scalar(ox) * side[0], scalar(oy) * side[1],
-                                   scalar(oz) * side[2])
-                    base = nx * (y + ny * z)
-                    begin = start[base + wp.where(part == 0, lo0, lo1)]
-                    end = start[base + wp.where(part == 0, hi0, hi1) + 1]
-                    for chunk in range(begin, end, wp.static(lanes)):
-                        # A candidate per lane, kept within the box's cut.
-                        j = chunk + lane
-                        keep = int(0)
-                        pj = vector()
-                        rj = scalar(0.0)
-                        if j < end:
-                            pj = position[j]
-                            cut_j = r_cutoff
-                            if has_radii != 0:
-                                rj = radius[j]
-                                cut_j = wp.max(r_max, rj)
-                            keep = wp.where(near(lo - shift, hi - shift, pj,
-                                                 cut_j, rx, ry, rz), 1, 0)
-                        mask = _ballot(keep)
-                        while mask != 0:
-                            mask, source, jj, qj, rjj = survivor(
-                                mask, slot, j, pj, rj, has_radii)
-                            if source < 0 or not mine:
-                                continue
-                            d, d2 = difference(p - shift, qj, side, rx, ry,
-                                               rz)
-                            cut = r_cutoff
-                            if has_radii != 0:
-                                cut = wp.max(ri, rjj)
-                                cut2 = cut * cut
-                            if counting != 0 and d2 < cut2 and jj != i:
-                                hits = hits + 1
-                            if d2 < cut2 and d2 > scalar(0.0):
-                                e, g, ds, de = terms(d2, cut, cut2, sigma,
-                                                     epsilon, r_onset,
-                                                     r_cutoff, inverse_cube)
-                                f = f + g * d
-                                e_sum = e_sum + e
-                                if low & wk.DERIVATIVES != 0:
-                                    ds_sum = ds_sum + ds
-                                    de_sum = de_sum + de
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                begin, end, shift = span(s, start, side, dz, piece)
+                for chunk in range(begin, end, wp.static(lanes)):
+                    # A candidate per lane, kept within the box's cut.
+                    j = chunk + lane
+                    keep = int(0)
+                    pj = vector()
+                    rj = scalar(0.0)
+                    if j < end:
+                        pj = position[j]
+                        cut_j = r_cutoff
+                        if has_radii != 0:
+                            rj = radius[j]
+                            cut_j = wp.max(r_max, rj)
+                        keep = wp.where(near(lo - shift, hi - shift, pj,
+                                             cut_j, s), 1, 0)
+                    mask = _ballot(keep)
+                    while mask != 0:
+                        mask, source, jj, qj, rjj = survivor(
+                            mask, slot, j, pj, rj, has_radii)
+                        if source < 0 or not mine:
+                            continue
+                        d, d2 = difference(p - shift, qj, side, s)
+                        cut = r_cutoff
+                        if has_radii != 0:
+                            cut = wp.max(ri, rjj)
+                            cut2 = cut * cut
+                        if counting != 0 and d2 < cut2 and jj != i:
+                            hits = hits + 1
+                        if d2 < cut2 and d2 > scalar(0.0):
+                            e, g, ds, de = terms(d2, cut, cut2, sigma,
+                                                 epsilon, r_onset, r_cutoff,
+                                                 inverse_cube)
+                            f = f + g * d
+                            e_sum = e_sum + e
+                            if low & wk.DERIVATIVES != 0:
+                                ds_sum = ds_sum + ds
+                                de_sum = de_sum + de
         f, e_sum, ds_sum, de_sum, hits = reduce_slots(
             f, e_sum, ds_sum, de_sum, hits, low & wk.DERIVATIVES)
         if mine and slot == 0:

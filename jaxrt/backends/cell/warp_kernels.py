@@ -6,7 +6,7 @@ The pipeline, one launch each (`lj_sums`; steps 1 to 4 are `sort_cells`,
 which the SPH walks (`jaxrt.backends.cell.warp_sph`), the cluster walk
 (`jaxrt.backends.cell.warp_cluster`) and the neighbour lists' walk
 (`jaxrt.backends.cell.warp_rows`) share with the stencil's functions,
-`stencil_functions`):
+`stencil` and `stencil_functions`):
 
 1. ``bin_particles``: each particle wrapped into the box on periodic axes,
    its cell's row-major key (x fastest) and its index.
@@ -108,11 +108,167 @@ def _scalar_kernels(scalar):
     return dict(bin_particles=bin_particles, gather=gather)
 
 
-def pair_functions(scalar):
-    """The pair walk's functions for ``scalar``: (lj, lj_forces, x_ranges,
-    row, rounded), the last three `stencil_functions`'; the cluster walk
-    (`jaxrt.backends.cell.warp_cluster`) shares them, so that both add the
-    same terms."""
+@wp.func
+def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
+    """The stencil's x cells as up to two ranges with images: (lo0, hi0,
+    image0, hi1, image1), the second range ``[0, hi1]``, empty (hi1 < 0)
+    for one range."""
+    lo0 = wp.max(c - reach, 0)
+    hi0 = wp.min(c + reach, n - 1)
+    ox0 = 0
+    hi1 = -1
+    ox1 = 0
+    if periodic != 0:
+        if rounded != 0:
+            lo0 = 0
+            hi0 = n - 1
+        elif c - reach < 0:
+            lo0 = c - reach + n
+            hi0 = n - 1
+            ox0 = -1
+            hi1 = c + reach
+        elif c + reach >= n:
+            lo0 = c - reach
+            hi0 = n - 1
+            hi1 = c + reach - n
+            ox1 = 1
+    return lo0, hi0, ox0, hi1, ox1
+
+
+@wp.func
+def row(c: int, d: int, n: int, periodic: int, reach: int):
+    """(cell, image, valid) of the stencil row ``c + d`` on one axis."""
+    t = c + d
+    if periodic == 0:
+        return t, 0, t >= 0 and t < n
+    if n < 2 * reach + 1:  # each distinct cell once, differences rounded
+        return (t + reach * n) % n, 0, d + reach < n
+    if t < 0:
+        return t + n, -1, True
+    if t >= n:
+        return t - n, 1, True
+    return t, 0, True
+
+
+@wp.struct
+class Stencil:
+    """A cell's stencil (`stencil`): the grid's cells ``nx, ny, nz``, the
+    reach ``ay, az`` and periodic bits ``py, pz`` of the rows, the cell's
+    ``cy, cz``, the rounded axes ``rx, ry, rz`` (periodic with too few
+    cells for images), the x ranges of `x_ranges` and ``pieces``, the (y
+    row, x range) pairs of a z row."""
+    nx: wp.int32
+    ny: wp.int32
+    nz: wp.int32
+    ay: wp.int32
+    az: wp.int32
+    py: wp.int32
+    pz: wp.int32
+    cy: wp.int32
+    cz: wp.int32
+    rx: wp.int32
+    ry: wp.int32
+    rz: wp.int32
+    lo0: wp.int32
+    hi0: wp.int32
+    ox0: wp.int32
+    hi1: wp.int32
+    ox1: wp.int32
+    pieces: wp.int32
+
+
+@wp.func
+def stencil(flags: int, cells: wp.array(dtype=wp.int32), key: int):
+    """The `Stencil` of cell ``key`` (row-major, x fastest) on the grid
+    of ``cells`` (`lj_sums`' ``cells``, ``flags``' periodic bits)."""
+    s = Stencil()
+    nx, ny, nz = cells[0], cells[1], cells[2]
+    ax, ay, az = cells[3], cells[4], cells[5]
+    px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
+    s.nx = nx
+    s.ny = ny
+    s.nz = nz
+    s.ay = ay
+    s.az = az
+    s.py = py
+    s.pz = pz
+    s.cy = (key / nx) % ny
+    s.cz = key / (nx * ny)
+    s.rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
+    s.ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
+    s.rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
+    lo0, hi0, ox0, hi1, ox1 = x_ranges(key % nx, ax, nx, px, s.rx)
+    s.lo0 = lo0
+    s.hi0 = hi0
+    s.ox0 = ox0
+    s.hi1 = hi1
+    s.ox1 = ox1
+    # Two per y row (a constant divisor), the second empty for one range.
+    s.pieces = (2 * ay + 1) * 2
+    return s
+
+
+def stencil_functions(scalar):
+    """The stencil walk's functions for ``scalar``, shared by every walk
+    over the grid: ``span(s, start, side, dz, piece)``, the sorted range
+    ``[first, end)`` of `Stencil` ``s``' z row ``dz`` and its ``piece``
+    (y rows ascending, each x range in turn; empty off a free axis' end
+    or past the x ranges) and the shift by which the particle meets it;
+    ``difference(q, x, side, s)``, ``q - x`` rounded to its minimum image
+    on ``s``' rounded axes, and its square. A walk::
+
+        s = stencil(flags, cells, keys[i])
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                first, end, shift = span(s, start, side, dz, piece)
+                for j in range(first, end):
+                    d, d2 = difference(p - shift, position[j], side, s)
+    """
+    vector = wp.types.vector(3, scalar)
+
+    @wp.func
+    def span(s: Stencil, start: wp.array(dtype=wp.int32), side: vector,
+             dz: int, piece: int):
+        part = piece % 2
+        z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
+        y, oy, oky = row(s.cy, piece / 2 - s.ay, s.ny, s.py, s.ay)
+        lo = wp.where(part == 0, s.lo0, 0)
+        hi = wp.where(part == 0, s.hi0, s.hi1)
+        first = int(0)
+        end = int(0)
+        if okz and oky and hi >= lo:
+            base = s.nx * (y + s.ny * z)
+            first = start[base + lo]
+            end = start[base + hi + 1]
+        ox = wp.where(part == 0, s.ox0, s.ox1)
+        return first, end, vector(scalar(ox) * side[0], scalar(oy) * side[1],
+                                  scalar(oz) * side[2])
+
+    @wp.func
+    def rounded(d: scalar, side: scalar, on: int):
+        if on != 0:
+            return d - side * wp.round(d / side)
+        return d
+
+    @wp.func
+    def difference(q: vector, x: vector, side: vector, s: Stencil):
+        d = q - x
+        d = vector(rounded(d[0], side[0], s.rx), rounded(d[1], side[1], s.ry),
+                   rounded(d[2], side[2], s.rz))
+        return d, wp.dot(d, d)
+
+    return span, difference
+
+
+def pair_functions(scalar, static_bits, hoist):
+    """The Lennard-Jones walks' pair terms for ``scalar`` (``static_bits``,
+    ``hoist`` as `walk_kernel`'s): ``terms(d2, cut, cut2, sigma, epsilon,
+    r_onset, r_cutoff, inverse_cube)``, a pair's energy, force factor,
+    d/dsigma and d/depsilon at its cut (``cut2 = cut^2``; ``inverse_cube``
+    the switch band's, ``(r_cutoff^2 - r_onset^2)^-3``). Every Lennard-Jones
+    walk (`jaxrt.backends.cell.warp_cluster`'s too) adds these terms."""
+    fast = (bool(hoist) and static_bits is not None
+            and not int(static_bits) & HAS_RADII)
 
     @wp.func
     def lj(d2: scalar, sigma: scalar, epsilon: scalar, r_onset: scalar,
@@ -166,62 +322,18 @@ def pair_functions(scalar):
                 - scalar(2.0) * dswitch * epsilon * lj_unit,
                 switch * epsilon * repulsion, switch * lj_unit)
 
-    return (lj, lj_forces) + stencil_functions(scalar)
-
-
-def stencil_functions(scalar):
-    """The stencil walk's functions for ``scalar``, shared by every
-    walk over the grid (`_walk_kernel`, `jaxrt.backends.cell.warp_sph`):
-    ``x_ranges`` (the x cells of a row as up to two ranges with images),
-    ``row`` (a y / z row's cell, image and validity), ``rounded`` (a
-    difference to its minimum image on rounded axes)."""
-
     @wp.func
-    def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
-        # The stencil's x cells as up to two ranges [lo, hi] with images
-        # (lo0, hi0, image0, lo1, hi1, image1); hi1 < lo1 for one range.
-        lo0 = wp.max(c - reach, 0)
-        hi0 = wp.min(c + reach, n - 1)
-        ox0 = 0
-        hi1 = -1
-        ox1 = 0
-        if periodic != 0:
-            if rounded != 0:
-                lo0 = 0
-                hi0 = n - 1
-            elif c - reach < 0:
-                lo0 = c - reach + n
-                hi0 = n - 1
-                ox0 = -1
-                hi1 = c + reach
-            elif c + reach >= n:
-                lo0 = c - reach
-                hi0 = n - 1
-                hi1 = c + reach - n
-                ox1 = 1
-        return lo0, hi0, ox0, 0, hi1, ox1
+    def terms(d2: scalar, cut: scalar, cut2: scalar, sigma: scalar,
+              epsilon: scalar, r_onset: scalar, r_cutoff: scalar,
+              inverse_cube: scalar):
+        if wp.static(fast):
+            e, g, ds, de = lj_forces(d2, sigma * sigma, epsilon,
+                                     r_onset * r_onset, cut2, inverse_cube)
+            return e, g, ds / sigma, de
+        scale = cut / r_cutoff
+        return lj(d2, sigma * scale, epsilon, r_onset * scale, cut, sigma)
 
-    @wp.func
-    def row(c: int, d: int, n: int, periodic: int, reach: int):
-        # (cell, image, valid) of the stencil row ``c + d`` on one axis.
-        t = c + d
-        if periodic == 0:
-            return t, 0, t >= 0 and t < n
-        if n < 2 * reach + 1:  # each distinct cell once, differences rounded
-            return (t + reach * n) % n, 0, d + reach < n
-        if t < 0:
-            return t + n, -1, True
-        if t >= n:
-            return t - n, 1, True
-        return t, 0, True
-
-    @wp.func
-    def rounded(d: scalar, side: scalar, on: int):
-        if on != 0:
-            return d - side * wp.round(d / side)
-        return d
-
-    return x_ranges, row, rounded
+    return terms
 
 
 # The flag bits a walk may fix at compile time.
@@ -234,13 +346,13 @@ def _walk_kernel(scalar, static_bits, hoist):
     ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
     (the branches they guard compiled away), or None to read them from
     ``flags``. ``hoist`` (with ``static_bits`` and no radii): the pair
-    terms by `lj_forces`, their constants computed once per particle.
+    terms by `lj_forces` (`pair_functions`).
     """
     vector = wp.types.vector(3, scalar)
-    lj, lj_forces, x_ranges, row, rounded = pair_functions(scalar)
+    _, difference = stencil_functions(scalar)
+    terms = pair_functions(scalar, static_bits, hoist)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
-    fast = bool(hoist) and not generic and not fixed & HAS_RADII
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def pair_sums(position: wp.array(dtype=vector),
@@ -263,59 +375,42 @@ def _walk_kernel(scalar, static_bits, hoist):
         has_radii = low & HAS_RADII
         derivatives = low & DERIVATIVES
         counting = low & COUNT
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         sigma, epsilon = params[SIGMA], params[EPSILON]
         r_onset, r_cutoff = params[R_ONSET], params[R_CUTOFF]
-        # Rounded axes: periodic ones with too few cells for images.
-        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
-        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
-        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
-        key = keys[i]
-        cx = key % nx
-        cy = (key / nx) % ny
-        cz = key / (nx * ny)
+        s = stencil(flags, cells, keys[i])
         p = position[i]
         ri = scalar(0.0)
         if has_radii != 0:
             ri = radius[i]
         cut2 = r_cutoff * r_cutoff
-        # `lj_forces`' constants (the same expressions as `lj`'s).
-        sigma2 = sigma * sigma
-        ro2 = r_onset * r_onset
-        band = cut2 - ro2
+        band = cut2 - r_onset * r_onset
         inverse_cube = scalar(1.0) / (band * band * band)
         f = vector()
         e_sum = scalar(0.0)
         ds_sum = scalar(0.0)
         de_sum = scalar(0.0)
         hits = int(0)
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(cz, dz, nz, pz, az)
+        # `span`'s loops written out (each x range of a row in turn): its
+        # pieces cost this walk 8 registers on sm_90 (64 to 72).
+        for dz in range(-s.az, s.az + 1):
+            z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
             if okz:
-                for dy in range(-ay, ay + 1):
-                    y, oy, oky = row(cy, dy, ny, py, ay)
+                for dy in range(-s.ay, s.ay + 1):
+                    y, oy, oky = row(s.cy, dy, s.ny, s.py, s.ay)
                     if oky:
-                        base = nx * (y + ny * z)
+                        base = s.nx * (y + s.ny * z)
                         for part in range(2):
-                            lo = wp.where(part == 0, lo0, lo1)
-                            hi = wp.where(part == 0, hi0, hi1)
-                            ox = wp.where(part == 0, ox0, ox1)
+                            lo = wp.where(part == 0, s.lo0, 0)
+                            hi = wp.where(part == 0, s.hi0, s.hi1)
+                            ox = wp.where(part == 0, s.ox0, s.ox1)
                             if hi >= lo:
-                                shift = vector(scalar(ox) * side[0],
+                                q = p - vector(scalar(ox) * side[0],
                                                scalar(oy) * side[1],
                                                scalar(oz) * side[2])
-                                q = p - shift
                                 for j in range(start[base + lo],
                                                start[base + hi + 1]):
-                                    d = q - position[j]
-                                    d = vector(rounded(d[0], side[0], rx),
-                                               rounded(d[1], side[1], ry),
-                                               rounded(d[2], side[2], rz))
-                                    d2 = wp.dot(d, d)
+                                    d, d2 = difference(q, position[j], side, s)
                                     cut = r_cutoff
                                     if has_radii != 0:
                                         cut = wp.max(ri, radius[j])
@@ -324,16 +419,9 @@ def _walk_kernel(scalar, static_bits, hoist):
                                     if counting != 0 and d2 < cut2 and j != i:
                                         hits = hits + 1
                                     if d2 < cut2 and d2 > scalar(0.0):
-                                        if wp.static(fast):
-                                            e, g, ds, de = lj_forces(
-                                                d2, sigma2, epsilon, ro2,
-                                                cut2, inverse_cube)
-                                            ds = ds / sigma
-                                        else:
-                                            scale = cut / r_cutoff
-                                            e, g, ds, de = lj(
-                                                d2, sigma * scale, epsilon,
-                                                r_onset * scale, cut, sigma)
+                                        e, g, ds, de = terms(
+                                            d2, cut, cut2, sigma, epsilon,
+                                            r_onset, r_cutoff, inverse_cube)
                                         f = f + g * d
                                         e_sum = e_sum + e
                                         if derivatives != 0:

@@ -39,7 +39,8 @@ WALK_BLOCK = warp_kernels.WALK_BLOCK
 def _rows_kernel(scalar):
     """The walk that writes rows, for positions of ``scalar``."""
     vector = wp.types.vector(3, scalar)
-    x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
+    span, difference = warp_kernels.stencil_functions(scalar)
+    stencil = warp_kernels.stencil
     grid_side = warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=warp_kernels.MODULE_OPTIONS)
@@ -59,66 +60,34 @@ def _rows_kernel(scalar):
         n = position.shape[0]
         mask_self = flags & MASK_SELF
         lower_only = flags & LOWER_ONLY
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[grid_side]
         inner_sq = thresholds[INNER_SQ]
         outer_sq = thresholds[OUTER_SQ]
-        # Rounded axes: periodic ones with too few cells for images.
-        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
-        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
-        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
-        key = keys[i]
-        cx = key % nx
-        cy = (key / nx) % ny
-        cz = key / (nx * ny)
+        s = stencil(flags, cells, keys[i])
         p = position[i]
         me = values[i]
         row_base = me * row_width
         shell_base = me * shell
         hits = int(0)
         near = int(0)
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(cz, dz, nz, pz, az)
-            if okz:
-                for dy in range(-ay, ay + 1):
-                    y, oy, oky = row(cy, dy, ny, py, ay)
-                    if oky:
-                        base = nx * (y + ny * z)
-                        for part in range(2):
-                            lo = wp.where(part == 0, lo0, lo1)
-                            hi = wp.where(part == 0, hi0, hi1)
-                            ox = wp.where(part == 0, ox0, ox1)
-                            if hi >= lo:
-                                shift = vector(scalar(ox) * side[0],
-                                               scalar(oy) * side[1],
-                                               scalar(oz) * side[2])
-                                q = p - shift
-                                for j in range(start[base + lo],
-                                               start[base + hi + 1]):
-                                    d = q - position[j]
-                                    d = vector(rounded(d[0], side[0], rx),
-                                               rounded(d[1], side[1], ry),
-                                               rounded(d[2], side[2], rz))
-                                    d2 = wp.dot(d, d)
-                                    # The caller's index is loaded only for
-                                    # the few candidates that are kept.
-                                    if d2 < outer_sq and (
-                                            mask_self == 0 or j != i):
-                                        theirs = values[j]
-                                        if lower_only == 0 or theirs < me:
-                                            if d2 < inner_sq:
-                                                if hits < row_width:
-                                                    rows[row_base + hits] = (
-                                                        theirs)
-                                                hits = hits + 1
-                                            else:
-                                                if near < shell:
-                                                    shells[shell_base
-                                                           + near] = theirs
-                                                near = near + 1
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                first, end, shift = span(s, start, side, dz, piece)
+                for j in range(first, end):
+                    d, d2 = difference(p - shift, position[j], side, s)
+                    # The caller's index is loaded only for the few candidates
+                    # that are kept.
+                    if d2 < outer_sq and (mask_self == 0 or j != i):
+                        theirs = values[j]
+                        if lower_only == 0 or theirs < me:
+                            if d2 < inner_sq:
+                                if hits < row_width:
+                                    rows[row_base + hits] = theirs
+                                hits = hits + 1
+                            else:
+                                if near < shell:
+                                    shells[shell_base + near] = theirs
+                                near = near + 1
         # The rest of the row is padding (N), as every list pads.
         for k in range(wp.min(hits, row_width), row_width):
             rows[row_base + k] = n

@@ -101,8 +101,8 @@ def _density_walk(scalar, shape):
     """The density walk for ``scalar`` positions and ``shape``
     (`_shape_function`)."""
     vector = wp.types.vector(3, scalar)
-    x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
-    SIDE = warp_kernels.SIDE
+    span, difference = warp_kernels.stencil_functions(scalar)
+    stencil, SIDE = warp_kernels.stencil, warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def density_walk(position: wp.array(dtype=vector),
@@ -120,9 +120,6 @@ def _density_walk(scalar, shape):
                      sound: wp.array(dtype=scalar),
                      density: wp.array(dtype=scalar)):
         i = wp.tid()
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
         # Per-pair divisions by h as products (a rounding apart).
@@ -130,46 +127,20 @@ def _density_walk(scalar, shape):
         support = params[SUPPORT]
         norm_w = params[NORM_W]
         support2 = support * support
-        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
-        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
-        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
-        key = keys[i]
-        cx = key % nx
-        cy = (key / nx) % ny
-        cz = key / (nx * ny)
+        s = stencil(flags, cells, keys[i])
         p = position[i]
         total = scalar(0.0)
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(cz, dz, nz, pz, az)
-            if okz:
-                for dy in range(-ay, ay + 1):
-                    y, oy, oky = row(cy, dy, ny, py, ay)
-                    if oky:
-                        base = nx * (y + ny * z)
-                        for part in range(2):
-                            lo = wp.where(part == 0, lo0, lo1)
-                            hi = wp.where(part == 0, hi0, hi1)
-                            ox = wp.where(part == 0, ox0, ox1)
-                            if hi >= lo:
-                                shift = vector(scalar(ox) * side[0],
-                                               scalar(oy) * side[1],
-                                               scalar(oz) * side[2])
-                                qi = p - shift
-                                for j in range(start[base + lo],
-                                               start[base + hi + 1]):
-                                    d = qi - position[j]
-                                    d = vector(rounded(d[0], side[0], rx),
-                                               rounded(d[1], side[1], ry),
-                                               rounded(d[2], side[2], rz))
-                                    d2 = wp.dot(d, d)
-                                    if d2 < support2 and j != i:
-                                        r = wp.sqrt(d2)
-                                        # `jaxrt.energy.sph`'s cut, r < support h.
-                                        if r < support:
-                                            f, df = shape(r * inv_h)
-                                            total = total + mass[j] * (
-                                                norm_w * f)
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                first, end, shift = span(s, start, side, dz, piece)
+                for j in range(first, end):
+                    d, d2 = difference(p - shift, position[j], side, s)
+                    if d2 < support2 and j != i:
+                        r = wp.sqrt(d2)
+                        # `jaxrt.energy.sph`'s cut, r < support h.
+                        if r < support:
+                            f, df = shape(r * inv_h)
+                            total = total + mass[j] * (norm_w * f)
         if step == 0:
             rho[i] = total
         else:
@@ -196,8 +167,8 @@ def _force_walk(scalar, shape):
     """The force walk for ``scalar`` positions and ``shape``
     (`_shape_function`)."""
     vector = wp.types.vector(3, scalar)
-    x_ranges, row, rounded = warp_kernels.stencil_functions(scalar)
-    SIDE = warp_kernels.SIDE
+    span, difference = warp_kernels.stencil_functions(scalar)
+    stencil, SIDE = warp_kernels.stencil, warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=_OPTIONS)
     def force_walk(position: wp.array(dtype=vector),
@@ -215,9 +186,6 @@ def _force_walk(scalar, shape):
                    pressure: wp.array(dtype=vector),
                    viscosity: wp.array(dtype=vector)):
         i = wp.tid()
-        px, py, pz = (flags >> 3) & 1, (flags >> 4) & 1, (flags >> 5) & 1
-        nx, ny, nz = cells[0], cells[1], cells[2]
-        ax, ay, az = cells[3], cells[4], cells[5]
         side = grid[SIDE]
         h = params[H]
         # Per-pair divisions by h as products (a rounding apart).
@@ -227,13 +195,7 @@ def _force_walk(scalar, shape):
         alpha, beta = params[ALPHA], params[BETA]
         soft = params[EPSILON] * h * h
         support2 = support * support
-        rx = wp.where(px != 0 and nx < 2 * ax + 1, 1, 0)
-        ry = wp.where(py != 0 and ny < 2 * ay + 1, 1, 0)
-        rz = wp.where(pz != 0 and nz < 2 * az + 1, 1, 0)
-        key = keys[i]
-        cx = key % nx
-        cy = (key / nx) % ny
-        cz = key / (nx * ny)
+        s = stencil(flags, cells, keys[i])
         p = position[i]
         vi = velocity[i]
         qi_own = q[i]
@@ -241,49 +203,28 @@ def _force_walk(scalar, shape):
         rhoi = rho[i]
         acc_p = vector()
         acc_v = vector()
-        lo0, hi0, ox0, lo1, hi1, ox1 = x_ranges(cx, ax, nx, px, rx)
-        for dz in range(-az, az + 1):
-            z, oz, okz = row(cz, dz, nz, pz, az)
-            if okz:
-                for dy in range(-ay, ay + 1):
-                    y, oy, oky = row(cy, dy, ny, py, ay)
-                    if oky:
-                        base = nx * (y + ny * z)
-                        for part in range(2):
-                            lo = wp.where(part == 0, lo0, lo1)
-                            hi = wp.where(part == 0, hi0, hi1)
-                            ox = wp.where(part == 0, ox0, ox1)
-                            if hi >= lo:
-                                shift = vector(scalar(ox) * side[0],
-                                               scalar(oy) * side[1],
-                                               scalar(oz) * side[2])
-                                pi_ = p - shift
-                                for j in range(start[base + lo],
-                                               start[base + hi + 1]):
-                                    d = pi_ - position[j]
-                                    d = vector(rounded(d[0], side[0], rx),
-                                               rounded(d[1], side[1], ry),
-                                               rounded(d[2], side[2], rz))
-                                    d2 = wp.dot(d, d)
-                                    # Coincident pairs: no force (unit 0).
-                                    if d2 < support2 and d2 > scalar(0.0):
-                                        r = wp.sqrt(d2)
-                                        if r < support:
-                                            f, df = shape(r * inv_h)
-                                            dw = norm_w * (df * inv_h)
-                                            grad_w = (dw / r) * d
-                                            mj = mass[j]
-                                            acc_p = acc_p - (mj * (
-                                                qi_own + q[j])) * grad_w
-                                            vr = wp.dot(vi - velocity[j], d)
-                                            if vr < scalar(0.0):
-                                                mu = h * vr / (r * r + soft)
-                                                c_mean = (ci + sound[j]) / scalar(2.0)
-                                                rho_mean = (rhoi + rho[j]) / scalar(2.0)
-                                                visc = (-alpha * c_mean * mu
-                                                        + beta * mu * mu
-                                                        ) / rho_mean
-                                                acc_v = acc_v - (mj * visc) * grad_w
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                first, end, shift = span(s, start, side, dz, piece)
+                for j in range(first, end):
+                    d, d2 = difference(p - shift, position[j], side, s)
+                    # Coincident pairs: no force (unit 0).
+                    if d2 < support2 and d2 > scalar(0.0):
+                        r = wp.sqrt(d2)
+                        if r < support:
+                            f, df = shape(r * inv_h)
+                            dw = norm_w * (df * inv_h)
+                            grad_w = (dw / r) * d
+                            mj = mass[j]
+                            acc_p = acc_p - (mj * (qi_own + q[j])) * grad_w
+                            vr = wp.dot(vi - velocity[j], d)
+                            if vr < scalar(0.0):
+                                mu = h * vr / (r * r + soft)
+                                c_mean = (ci + sound[j]) / scalar(2.0)
+                                rho_mean = (rhoi + rho[j]) / scalar(2.0)
+                                visc = (-alpha * c_mean * mu + beta * mu * mu
+                                        ) / rho_mean
+                                acc_v = acc_v - (mj * visc) * grad_w
         out = i
         if scatter != 0:
             out = values[i]
