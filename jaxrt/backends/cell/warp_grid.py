@@ -70,13 +70,6 @@ def _check(periodic, padding, min_size, reach, table):
                          f"holds 1 to {MAX_TABLE} cells.")
 
 
-def _prod(values):
-    out = values[0]
-    for v in values[1:]:
-        out = out * v
-    return out
-
-
 def _room(table: int, others) -> Array:
     """int32 ``max(1, table // prod(others))``, divided one factor at a
     time: the product itself may overflow int32."""
@@ -98,7 +91,7 @@ def _coarsen(counts: list, axes: list[int], table: int) -> list:
     counts = list(counts)
     room = _room(table, [counts[b] for b in range(3) if b not in axes])
     ideal = [counts[a].astype(jnp.float32) for a in axes]
-    ratio = _prod(ideal) / room.astype(jnp.float32)
+    ratio = math.prod(ideal) / room.astype(jnp.float32)
     # Axes already at one cell (a flat cloud) shrink no further: the root
     # is over the others.
     k = jnp.maximum(sum((c > 1).astype(jnp.float32) for c in ideal), 1.0)

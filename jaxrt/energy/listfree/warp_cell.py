@@ -11,7 +11,7 @@ The grid (`jaxrt.backends.cell.warp_grid.build`): cells at least
 ``floor(L reach / bound)`` cells (fixed by the box, the table sized for
 them); a free axis spans the particles' extent, its cells coarsened so that
 all the free axes' cells together fit the rest of the static table
-(``free_cells``); padding axes (`Params.dim`) have one cell.
+(`table_size`); padding axes (`Params.dim`) have one cell.
 """
 from __future__ import annotations
 
@@ -38,11 +38,11 @@ def _min_size(params: Params, reach) -> tuple[float, ...]:
 
 
 def table_size(n: int, params: Params, reach=(1, 1, 1)
-               ) -> tuple[int, int, tuple[int, ...]]:
-    """Static: ``(table, free_cells, periodic cells)``: the cell-start
-    table's size, the budget of cells of the free axes together, and the
-    cells of each periodic axis (0 elsewhere), cells ``bound / reach``
-    wide."""
+               ) -> tuple[int, tuple[int, ...]]:
+    """Static: ``(table, periodic cells)``: the cell-start table's size
+    (the periodic axes' cells times a budget for the free axes' cells
+    together) and the cells of each periodic axis (0 elsewhere), cells
+    ``bound / reach`` wide."""
     flat = _flat(params)
     counted = warp_grid.periodic_cells(params.side, _min_size(params, reach))
     fixed = tuple(c if p and not f else 0
@@ -50,7 +50,7 @@ def table_size(n: int, params: Params, reach=(1, 1, 1)
     product = math.prod(c for c in fixed if c)
     free = sum(1 for c, f in zip(fixed, flat) if not c and not f)
     budget = max(27, -(-2 * n // product)) if free else 1
-    return product * budget, budget, fixed
+    return product * budget, fixed
 
 
 def grid(R3: Array, params: Params, reach=(1, 1, 1)
@@ -61,7 +61,7 @@ def grid(R3: Array, params: Params, reach=(1, 1, 1)
     `jaxrt.backends.cell.warp_grid.build` on the periodic axes' static
     sides, with a table that holds their cells times the free axes'
     budget."""
-    table, _, fixed = table_size(R3.shape[0], params, reach)
+    table, fixed = table_size(R3.shape[0], params, reach)
     g, cells = warp_grid.build(
         R3, params.side, periodic=tuple(bool(c) for c in fixed),
         padding=_flat(params), min_size=_min_size(params, reach),
@@ -80,7 +80,7 @@ def periodic_flags(n: int, params: Params, reach) -> int:
     """Static: the ``PERIODIC << axis`` bits of the grid's periodic axes
     (``reach`` per axis, `stencil_reach`)."""
     flags = 0
-    for a, c in enumerate(table_size(n, params, reach)[2]):
+    for a, c in enumerate(table_size(n, params, reach)[1]):
         flags |= (warp_kernels.PERIODIC << a) if c else 0
     return flags
 
