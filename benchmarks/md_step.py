@@ -162,6 +162,35 @@ def mean_neighbours(nbrs, n):
     return valid / n * (2 if nbrs.format is partition.OrderedSparse else 1)
 
 
+ORDERS = ("lattice", "random", "hilbert", "morton")
+"""How the LJ system's particles are numbered: ``lattice`` x-major over
+the simple-cubic lattice (its rows' gathers stay within a few lattice
+planes), ``random`` a seeded shuffle, ``hilbert`` / ``morton`` the shuffle
+put in that curve's order by `jaxrt.lists.order.spatial_order`."""
+
+
+def lj_system(n: int, order: str = "lattice"):
+    """(N, box, float32 ``(N, 3)`` positions) of the LJ fluid's start: a
+    simple-cubic lattice at density 0.8 of ``round(n ** (1/3)) ** 3``
+    particles, numbered by ``order`` (`ORDERS`)."""
+    import jax.numpy as jnp
+    import numpy as np
+    if order not in ORDERS:
+        raise ValueError(f"order={order!r}: pass one of {ORDERS}")
+    n_side = round(n ** (1 / 3))
+    n = n_side ** 3
+    box = (n / 0.8) ** (1 / 3)
+    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
+    R = g.reshape(-1, 3) * box / n_side
+    if order != "lattice":
+        R = R[np.random.default_rng(0).permutation(n)]
+    R = jnp.asarray(R, jnp.float32)
+    if order in ("hilbert", "morton"):
+        from jaxrt.lists.order import spatial_order
+        R = R[spatial_order(R, box, curve=order)]
+    return n, box, R
+
+
 def lj_step(label: str, n: int, job: dict) -> dict:
     import jax
     import jax.numpy as jnp
@@ -169,11 +198,7 @@ def lj_step(label: str, n: int, job: dict) -> dict:
     from jax import lax
     from jax_md import energy as jmd_energy
     from jax_md import simulate, space
-    n_side = round(n ** (1 / 3))
-    n = n_side ** 3
-    box = (n / 0.8) ** (1 / 3)
-    g = np.stack(np.meshgrid(*[np.arange(n_side)] * 3, indexing="ij"), -1)
-    R = jnp.asarray(g.reshape(-1, 3) * box / n_side, jnp.float32)
+    n, box, R = lj_system(n, job.get("order", "lattice"))
     disp, shift = space.periodic(box)
     if label.startswith("fused:"):
         return _fused_lj_step(label, n, box, R, disp, shift, job)
@@ -314,7 +339,7 @@ def run_row(job: dict) -> dict:
     return fn(job["list"], job["N"], job)
 
 
-COLUMNS = ["system", "list", "N", "k", "median_ms", "min_ms", "max_ms",
+COLUMNS = ["system", "list", "order", "N", "k", "median_ms", "min_ms", "max_ms",
            "repeats"]
 
 
@@ -332,9 +357,13 @@ def plan(args) -> list[dict]:
             chosen = labels(system)
         for label in chosen:
             parse_label(label)  # a typo fails here, not in a worker
-            jobs.append({"system": system, "list": label, "N": args.n,
-                         "steps": args.steps, "repeats": args.repeats,
-                         "warmup": args.warmup})
+            for order in args.order:
+                if order != "lattice" and system != "lj":
+                    raise ValueError(f"--order {order}: the SPH system has "
+                                     "one numbering (lattice)")
+                jobs.append({"system": system, "list": label, "N": args.n,
+                             "order": order, "steps": args.steps,
+                             "repeats": args.repeats, "warmup": args.warmup})
     return jobs
 
 
@@ -348,6 +377,12 @@ def main(argv=None) -> None:
                         help="setup labels to run (default all; see --list)")
     parser.add_argument("--systems", nargs="*", default=["lj", "sph"],
                         choices=["lj", "sph"])
+    parser.add_argument("--order", nargs="+", default=["lattice"],
+                        choices=ORDERS,
+                        help="LJ particles' numbering, one row each "
+                        "(lattice: x-major, the default; random: shuffled; "
+                        "hilbert, morton: the shuffle sorted along that "
+                        "curve by jaxrt's spatial_order)")
     parser.add_argument("--list", action="store_true",
                         help="print the default labels and exit")
     parser.add_argument("--quick", action="store_true",
