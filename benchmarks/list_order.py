@@ -12,9 +12,14 @@ Rows (``stage``), each jitted and timed alone:
 * ``forces``: ``jax_md.quantity.force`` of the energy on the fixed list;
 * ``rebuild``: ``nbrs.update`` forced to search (one particle moved past
   half the skin from the list's reference positions);
-* ``step``: `md_step.lj_step`'s NVE step (``--steps`` steps in one
-  ``lax.scan``, the update's skin rule deciding rebuilds), only with
-  ``--step``.
+* ``gather``: the neighbours' positions alone, ``sum_c R[idx[i, c]]``
+  (what the forces read through the list, with no arithmetic: on a CPU
+  the forces' arithmetic can hide what the gathers cost);
+
+``--stages`` picks them. One worker per N builds every numbering's system,
+then times each stage's calls in turn, repeat after repeat (on a shared
+machine a change of load then falls on every numbering alike).
+The whole step with a numbering: ``md_step.py --order``.
 
 Each row also gives ``ns_per_particle`` (median / N) and ``gap``, the
 median over the list's entries of ``|i - j|`` (how far in memory a row's
@@ -34,7 +39,7 @@ else:  # run as a file: its folder is sys.path[0]
     import md_step
 
 COLUMNS = ["order", "stage", "N", "k", "gap", "median_ms", "ns_per_particle",
-           "min_ms", "max_ms"]
+           "min_ns_per_particle", "min_ms", "max_ms"]
 
 
 def _gap(idx, n: int) -> float:
@@ -45,46 +50,76 @@ def _gap(idx, n: int) -> float:
     return float(np.median(np.abs(idx[real] - rows[real])))
 
 
-def run_row(job: dict) -> list[dict]:
-    """The stages of one (N, order), in a worker."""
+def _calls(stage: str, n: int, R, nbrs, neighbor_fn, energy_fn):
+    """A no-argument call of one stage on one numbering's system."""
     import jax
     import jax.numpy as jnp
-    from jax_md import quantity, space
-    import jaxrt
-    from jaxrt.energy import lennard_jones_neighbor_list
-    n, box, R = md_step.lj_system(job["N"], job["order"])
-    disp, _ = space.periodic(box)
-    neighbor_fn, energy_fn = lennard_jones_neighbor_list(
-        disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3,
-        format=jaxrt.Dense, neighbor_list_fn=jaxrt.neighbor_list)
-    nbrs = neighbor_fn.allocate(R)
-    k = round(float(md_step.mean_neighbours(nbrs, n)), 2)
-    common = {"N": n, "k": k, "gap": _gap(nbrs.idx, n)}
-    reps = dict(repeats=job["repeats"], warmup=job["warmup"])
-    rows = []
-
-    force = jax.jit(quantity.force(energy_fn))
-    timing = _harness.time_calls(lambda r: force(r, neighbor=nbrs), [R],
-                                 **reps)
-    rows.append({"stage": "forces", **common, **timing.columns()})
-
-    # A list whose reference is R with particle 0 moved by 0.2 > skin / 2:
-    # every update from it searches.
+    from jax_md import quantity
+    del neighbor_fn
+    if stage == "forces":
+        force = jax.jit(quantity.force(energy_fn))
+        return lambda: force(R, neighbor=nbrs)
+    if stage == "gather":
+        padded = jnp.concatenate([R, jnp.zeros((1, 3), R.dtype)])
+        gather = jax.jit(lambda r, idx: jnp.sum(r[idx], axis=1))
+        return lambda: gather(padded, nbrs.idx)
+    # rebuild: a list whose reference is R with particle 0 moved by 0.2 >
+    # skin / 2, so every update from it searches.
     stale = nbrs.set(reference_position=R.at[0, 0].add(0.2))
-    update = jax.jit(lambda r, nb: nb.update(r))
-    timing = _harness.time_calls(lambda r: update(r, stale).idx, [R], **reps)
-    rows.append({"stage": "rebuild", **common, **timing.columns()})
-    del stale, nbrs, force, update
+    update = jax.jit(lambda r, nb: nb.update(r).idx)
+    return lambda: update(R, stale)
 
-    if job["step"]:
-        row = md_step.lj_step("jaxrt:cell/Dense", job["N"],
-                              {**job, "steps": job["steps"]})
-        rows.append({"stage": "step", **common, **{
-            c: row[c] for c in ("median_ms", "min_ms", "max_ms", "repeats",
-                                "warmup")}, "rebuilds_per_step":
-            row["rebuilds_per_step"]})
-    for row in rows:
-        row["ns_per_particle"] = round(row["median_ms"] * 1e6 / n, 2)
+
+def _interleaved(calls: dict, repeats: int, warmup: int) -> dict:
+    """Median / min / max ms of each call, the calls taken in turn each
+    repeat, so that a change in the shared machine's load falls on all."""
+    import time
+    import jax
+    for fn in calls.values():
+        for _ in range(max(1, warmup)):
+            jax.block_until_ready(fn())
+    samples = {key: [] for key in calls}
+    for _ in range(repeats):
+        for key, fn in calls.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn())
+            samples[key].append((time.perf_counter() - t) * 1e3)
+    return {key: _harness.summarize(v, max(1, warmup))
+            for key, v in samples.items()}
+
+
+def run_row(job: dict) -> list[dict]:
+    """Every (order, stage) of one N, in one worker: the orders' systems
+    built first, then each stage's calls timed in turn."""
+    import jaxrt
+    from jax_md import space
+    from jaxrt.energy import lennard_jones_neighbor_list
+    stages = job["stages"].split()
+    systems = {}
+    for order in job["orders"].split():
+        n, box, R = md_step.lj_system(job["N"], order)
+        disp, _ = space.periodic(box)
+        neighbor_fn, energy_fn = lennard_jones_neighbor_list(
+            disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3,
+            format=jaxrt.Dense, neighbor_list_fn=jaxrt.neighbor_list)
+        nbrs = neighbor_fn.allocate(R)
+        systems[order] = (R, nbrs, neighbor_fn, energy_fn)
+    rows = []
+    for stage in stages:
+        calls = {order: _calls(stage, n, *system)
+                 for order, system in systems.items()}
+        timings = _interleaved(calls, job["repeats"], job["warmup"])
+        for order, timing in timings.items():
+            nbrs = systems[order][1]
+            rows.append({"order": order, "stage": stage, "N": n,
+                         "k": round(float(md_step.mean_neighbours(nbrs, n)),
+                                    2),
+                         "gap": _gap(nbrs.idx, n), **timing.columns(),
+                         "ns_per_particle": round(
+                             timing.median_ms * 1e6 / n, 1),
+                         "min_ns_per_particle": round(
+                             timing.min_ms * 1e6 / n, 1)})
+        del calls
     return rows
 
 
@@ -96,16 +131,15 @@ def main(argv=None) -> None:
                         help="particles (rounded to a cube)")
     parser.add_argument("--orders", nargs="+", default=list(md_step.ORDERS),
                         choices=md_step.ORDERS)
-    parser.add_argument("--step", action="store_true",
-                        help="also the whole NVE step (md_step's)")
-    parser.add_argument("--steps", type=int, default=10,
-                        help="steps per timed call of the step row")
+    parser.add_argument("--stages", nargs="+",
+                        default=["forces", "rebuild", "gather"],
+                        choices=["forces", "rebuild", "gather"])
     _harness.add_common_args(parser, name="list_order.csv", repeats=5,
                              warmup=1, timeout=900)
     args = parser.parse_args(argv)
-    jobs = [{"N": n, "order": order, "step": args.step, "steps": args.steps,
-             "repeats": args.repeats, "warmup": args.warmup}
-            for n in args.sizes for order in args.orders]
+    jobs = [{"N": n, "orders": " ".join(args.orders),
+             "stages": " ".join(args.stages), "repeats": args.repeats,
+             "warmup": args.warmup} for n in args.sizes]
     _harness.run_jobs("list_order:run_row", jobs, columns=COLUMNS,
                       **_harness.run_options(args))
 

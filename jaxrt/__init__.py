@@ -9,6 +9,9 @@ Public API:
   backends                 the backends as options values (Cell, Brute, Bvh, ...)
   available_backends()     names usable as backend=
   energy                   energies on lists and without one (jaxrt.energy)
+  spatial_order, reorder, inverse_order   number particles along a
+                           space-filling curve (memory locality of list
+                           gathers), and apply it to a state
   Scene                    a simulation of only the effects it names (jaxrt.sim)
   pairs, Pairs, pairs_sizes, PairsError   pairs with lattice shifts (i, j, S)
                            in any cell, jit/vmap/grad-able (jaxrt.pairs)
@@ -44,6 +47,7 @@ _NAMES = {
     "batch_from_ase": "jaxrt.pairs.ase:batch_from_ase",
     "check": "jaxrt.errors:check",
     "energy": "jaxrt.energy",
+    "inverse_order": "jaxrt.lists.order:inverse_order",
     "neighbor_list": "jaxrt.lists.neighbors:neighbor_list",
     "pairs": "jaxrt.pairs.search:pairs",
     "pairs_batch": "jaxrt.pairs.batch:pairs_batch",
@@ -51,7 +55,9 @@ _NAMES = {
     "pairs_from_ase": "jaxrt.pairs.ase:pairs_from_ase",
     "pairs_sizes": "jaxrt.pairs.search:pairs_sizes",
     "pairs_to_ase": "jaxrt.pairs.ase:pairs_to_ase",
+    "reorder": "jaxrt.lists.order:reorder",
     "sim": "jaxrt.sim",
+    "spatial_order": "jaxrt.lists.order:spatial_order",
 }
 __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy.exports(__name__, _NAMES)
