@@ -88,18 +88,20 @@ def test_jit_matches_eager_and_wraps_the_box():
 
 
 def lj_system(n_side=9, seed=3):
-    """A jittered simple-cubic LJ fluid (density 0.8), shuffled, float64."""
+    """A jittered simple-cubic LJ fluid (density 0.8), shuffled: numpy
+    float64 positions (the caller picks the JAX dtype) and the box side."""
     rng = np.random.default_rng(seed)
     n = n_side ** 3
     box = (n / 0.8) ** (1 / 3)
     g = grid(n_side, 3, seed)
     R = (g + 0.5 + rng.uniform(-0.2, 0.2, g.shape)) * box / n_side
-    return jnp.asarray(R, jnp.float64), box
+    return R, box
 
 
 @pytest.mark.parametrize("curve", CURVES)
 def test_energy_and_forces_follow_the_permutation(x64, curve):
     R, box = lj_system()
+    R = jnp.asarray(R, jnp.float64)
     disp, _ = space.periodic(box)
     neighbor_fn, energy_fn = jaxrt.energy.lennard_jones_neighbor_list(
         disp, box, r_onset=2.0, r_cutoff=2.5, dr_threshold=0.3,
@@ -129,7 +131,7 @@ def median_gap(nbrs) -> float:
 @pytest.mark.parametrize("curve", CURVES)
 def test_locality_improves(curve):
     R, box = lj_system(n_side=16)
-    R = R.astype(jnp.float32)
+    R = jnp.asarray(R, jnp.float32)
     disp, _ = space.periodic(box)
     neighbor_fn = jaxrt.neighbor_list(disp, box, 2.5, format=jaxrt.Dense)
     before = median_gap(neighbor_fn.allocate(R))
@@ -143,7 +145,7 @@ def test_locality_improves(curve):
 
 def test_list_stays_right_across_a_reorder():
     R, box = lj_system()
-    R = R.astype(jnp.float32)
+    R = jnp.asarray(R, jnp.float32)
     disp, _ = space.periodic(box)
     neighbor_fn = jaxrt.neighbor_list(disp, box, 2.5, dr_threshold=0.3,
                                       format=jaxrt.Dense)
