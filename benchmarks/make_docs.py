@@ -72,6 +72,13 @@ BENCHMARKS = [
     ("list_forces", "A list step's pieces per layout", "benchmarks/list_forces.py",
      "The update, the Dense-to-Sparse conversion, the forces and the edge "
      "reductions, for Dense, Sparse and OrderedSparse lists."),
+    ("list_order", "A Dense list's forces and rebuild per particle numbering",
+     "benchmarks/list_order.py",
+     "Forces on a fixed Dense list, the neighbours' gathers alone and a "
+     "forced rebuild, with the LJ fluid's particles numbered x-major "
+     "(`lattice`, as md_step), shuffled (`random`) or along a Hilbert "
+     "curve (`jaxrt.spatial_order`); `gap` is the median index distance "
+     "of a list's entries."),
     ("sph_step", "SPH step: lists against list-free", "benchmarks/sph_step.py",
      "One SPH step (density, pressure, viscosity) on a `cell` list "
      "(`list:`) or with `jaxrt.energy.density_fused` / "
