@@ -62,12 +62,13 @@ def _morton_key(bins: Array, bits: int) -> Array:
 
 def _hilbert_key(bins: Array, bits: int) -> Array:
     """int32 Hilbert index of ``bins`` (``(N, dim)`` in ``[0, 2**bits)``):
-    Skilling's transpose (Programming the Hilbert curve, 2004), computed
-    from scratch, then interleaved as a Morton key."""
+    the axes turned into the index's transposed bits as in Skilling's
+    "Programming the Hilbert curve" (2004), then interleaved like a Morton
+    key."""
     dim = bins.shape[1]
     x = [bins[:, a] for a in range(dim)]
     q = 1 << (bits - 1)
-    while q > 1:  # inverse undo: rotate and reflect, coarse to fine
+    while q > 1:  # coarse to fine: each level's reflections and swaps
         p = q - 1
         for a in range(dim):
             hit = (x[a] & q) != 0
@@ -139,7 +140,7 @@ def _bin_counts(box, cell_size: float, dim: int) -> np.ndarray:
     if np.prod(counts, dtype=np.float64) >= 2 ** 31:
         raise ValueError(f"{counts.tolist()} bins overflow int32: pass a "
                          "larger cell_size.")
-    return counts
+    return counts.astype(np.int32)
 
 
 def spatial_order(position: Array, box=None, *, curve: str = "hilbert",

@@ -187,3 +187,11 @@ def test_bad_input_names_the_argument(call, match):
                     jnp.float32)
     with pytest.raises(ValueError, match=match):
         call(R)
+
+
+def test_cells_need_a_concrete_box():
+    R = jnp.full((5, 3), 0.3, jnp.float32)
+    order = jax.jit(lambda r, b: jaxrt.spatial_order(r, b, curve="cells",
+                                                     cell_size=0.5))
+    with pytest.raises(ValueError, match="traced box"):
+        order(R, 1.0)
