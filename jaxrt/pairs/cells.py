@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.words import WORD, pack, popcount, row_words, select_bit
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -451,8 +452,95 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             0, jnp.max(b.length, initial=0), slot_step,
             (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
 
-    return _stream(decide, b, out, n=n, k_offsets=k_offsets, chunk=chunk,
-                   stored=stored)
+    def stream():
+        return _stream(decide, b, out, n=n, k_offsets=k_offsets,
+                       chunk=chunk, stored=stored)
+
+    if brute:
+        return stream()
+
+    def short():
+        return _short_runs(positions, table, b, cut, species, own, out,
+                           half=half, stored=stored)
+
+    # Runs of at most a word (cells of a few atoms each, the common case)
+    # are read a word at a time; a fuller cell anywhere falls back to the
+    # stream.
+    return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, short, stream)
+
+
+def square_limit(cut):
+    """The largest ``x`` (``cut``'s dtype and shape) with ``sqrt(x) < cut``,
+    ``-inf`` where there is none: ``x <= square_limit(c)`` decides as
+    ``sqrt(x) < c`` does, bit for bit, without a square root per candidate.
+    ``sqrt(x) < c`` holds on a down-set of ``x``, whose edge lies within two
+    spacings of the rounded ``c * c`` (for every ``c``, subnormal and
+    overflowing squares included), so it is among the nine floats around
+    it."""
+    dtype = cut.dtype
+    down = up = cut * cut
+    near = [down]
+    for _ in range(4):
+        down = jnp.nextafter(down, jnp.asarray(-jnp.inf, dtype))
+        up = jnp.nextafter(up, jnp.asarray(jnp.inf, dtype))
+        near += [down, up]
+    near = jnp.stack(near)
+    return jnp.max(jnp.where(jnp.sqrt(near) < cut, near, -jnp.inf), axis=0)
+
+
+def _short_runs(positions, table, b: _Binned, cut, species, own, out, *,
+                half, stored):
+    """`candidates` from the full stencil when no run is longer than a
+    word: the slots of every run at once, slot ``t`` of each run in step
+    ``t`` of a loop (as many steps as the longest run), kept as bit ``t``
+    of the run's uint32 word; the rows come out ``i``-major, as the
+    stream's. Each candidate is decided as `candidates`' ``decide`` does,
+    with the squared cutoff (`square_limit`)."""
+    n, k_offsets = b.length.shape
+    dtype = positions.dtype
+    atoms = jnp.arange(n, dtype=jnp.int32)[:, None]
+    # What the atom's side of a candidate reads, gathered once per atom.
+    r_i = [positions[:, c, None] for c in range(3)]
+    h_i = b.h_atom[:, None]                               # (N, 1, 3, 3)
+    rank_i = b.rank[:, None]
+    own_k = own[None, :]
+    limit = square_limit(cut)
+    if species is not None:
+        limit_i = limit[species]                          # (N, S)
+
+    def slot_bits(t, bits):
+        p = jnp.minimum(b.start + t, n - 1)
+        row = table[p]
+        s = b.image - row[..., 3:6].astype(jnp.int32)
+        sv = shift_vectors(s.astype(dtype), h_i)
+        d = [(row[..., c] - r_i[c]) + sv[..., c] for c in range(3)]
+        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        if species is None:
+            lim = limit
+        else:
+            lim = jnp.take_along_axis(
+                limit_i, row[..., 6].astype(jnp.int32), axis=1,
+                mode="fill", fill_value=-jnp.inf)
+        once = ~(own_k & (p == rank_i))
+        if half:
+            j = b.order[p]
+            once = once & ((atoms < j) | ((atoms == j) & lex_positive(s)))
+        keep = (t < b.length) & (d2 <= lim) & once
+        return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
+                                jnp.uint32(0))
+
+    bits = jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
+                             jnp.zeros((n, k_offsets), jnp.uint32))
+    bits = bits.reshape(-1)                                      # (N K,)
+    counts = popcount(bits)
+    ends = prefix_sum(counts, jnp.float64)
+    per_atom = jnp.sum(counts.reshape(n, k_offsets), axis=1,
+                       dtype=jnp.int32)
+    if stored > 0:
+        wid, rank, kept = row_words(counts, ends, stored)
+        slot = b.start.reshape(-1)[wid] + select_bit(bits[wid], rank)
+        out = jnp.where(kept[:, None], jnp.stack([wid, slot], axis=1), out)
+    return ends[-1], per_atom, out
 
 
 def _stream(decide, b: _Binned, out, *, n, k_offsets, chunk, stored):
