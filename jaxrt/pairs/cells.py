@@ -476,8 +476,8 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
 
 def square_limit(cut):
     """The largest ``x`` (``cut``'s dtype and shape) with ``sqrt(x) < cut``,
-    ``-inf`` where there is none: ``x <= square_limit(c)`` decides as
-    ``sqrt(x) < c`` does, bit for bit, without a square root per candidate.
+    ``-inf`` where there is none: for ``x >= 0`` (a squared length),
+    ``x <= square_limit(c)`` decides as ``sqrt(x) < c`` does, bit for bit, without a square root per candidate.
     ``sqrt(x) < c`` holds on a down-set of ``x``, whose edge lies within two
     spacings of the rounded ``c * c`` (for every ``c``, subnormal and
     overflowing squares included), so it is among the nine floats around
