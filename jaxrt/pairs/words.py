@@ -27,20 +27,14 @@ def pack(keep):
 
 def select_bit(bits, rank):
     """int32 ``(R,)``: the position of the set bit of rank ``rank`` (int32
-    ``(R,)``, from 0) in each uint32 ``bits`` ``(R,)`` (``WORD`` where
-    there is none): found by halving, the set bits of the lower half
-    counted at each of five steps."""
-    rank = rank.astype(jnp.uint32)
-    at = jnp.zeros(bits.shape, jnp.uint32)
-    for width in (16, 8, 4, 2, 1):
-        low = jax.lax.population_count(
-            (bits >> at) & jnp.uint32((1 << width) - 1))
-        up = rank >= low
-        at = jnp.where(up, at + jnp.uint32(width), at)
-        rank = jnp.where(up, rank - low, rank)
-    # Past the last set bit the halving ends on bit 31, set or not.
-    found = (rank == 0) & (((bits >> at) & jnp.uint32(1)) == 1)
-    return jnp.where(found, at, jnp.uint32(WORD)).astype(jnp.int32)
+    ``(R,)``, from 0) in each uint32 ``bits`` ``(R,)``: the bits whose
+    inclusive count is at most ``rank``, counted (one reduction: XLA
+    writes it out once rather than computing it again in each reader)."""
+    lanes = jnp.arange(WORD, dtype=jnp.uint32)
+    # (2 << 31) - 1 wraps to every bit, as wanted.
+    upto = (jnp.uint32(2) << lanes) - jnp.uint32(1)
+    inclusive = popcount(bits[:, None] & upto)
+    return jnp.sum(inclusive <= rank[:, None], axis=1, dtype=jnp.int32)
 
 
 def running_max(x):
