@@ -14,28 +14,7 @@ from jaxrt.pairs.cells import (exclusive_prefix, frame, offsets,
                                shift_vectors)
 from jaxrt.pairs.checks import DENSE_WORD as _WORD
 from jaxrt.pairs.host import lex_positive
-
-
-def _popcount(x):
-    """int32 set bits of uint32 ``x`` (elementwise)."""
-    return jax.lax.population_count(x).astype(jnp.int32)
-
-
-def _select_bit(bits, rank):
-    """int32 ``(R,)``: the position of the set bit of rank ``rank`` (int32
-    ``(R,)``, from 0) in each uint32 ``bits`` ``(R,)``: the bits whose
-    inclusive count is at most ``rank``, counted (one reduction: XLA
-    writes it out once rather than computing it again in each reader)."""
-    lanes = jnp.arange(_WORD, dtype=jnp.uint32)
-    # (2 << 31) - 1 wraps to every bit, as wanted.
-    upto = (jnp.uint32(2) << lanes) - jnp.uint32(1)
-    inclusive = _popcount(bits[:, None] & upto)
-    return jnp.sum(inclusive <= rank[:, None], axis=1, dtype=jnp.int32)
-
-
-def _running_max(x):
-    """int32 ``(n,)`` inclusive running maximum of int32 ``(n,)`` ``x``."""
-    return jax.lax.associative_scan(jnp.maximum, x)
+from jaxrt.pairs.words import pack, popcount, row_words, select_bit
 
 
 # Dense blocks of more than one word are read by 32-atom tiles (`dense_rows`):
@@ -88,16 +67,6 @@ def _dense_setup(positions, graph, mask, cells, pbc, cut, species, radius,
         selfs=selfs)
 
 
-def _pack(keep):
-    """uint32 ``(..., W)`` words of bool ``(..., 32 W)`` (bit ``b`` of word
-    ``w``: entry ``32 w + b``)."""
-    shape = keep.shape
-    keep = keep.reshape(shape[:-1] + (shape[-1] // _WORD, _WORD))
-    bit = jnp.arange(_WORD, dtype=jnp.uint32)
-    return jnp.sum(jnp.where(keep, jnp.uint32(1) << bit, jnp.uint32(0)),
-                   axis=-1, dtype=jnp.uint32)
-
-
 def _dense_full(st, cut, species, *, m, half):
     """Every atom against every atom of its system in every image: uint32
     ``(G, M, K W)`` words, word ``k W + t`` holding slots ``32 t ..`` in
@@ -130,7 +99,7 @@ def _dense_full(st, cut, species, *, m, half):
         keep = keep & (before | (same & lex_positive(s)))
     words = -(-m // _WORD)
     keep = jnp.pad(keep, ((0, 0), (0, 0), (0, 0), (0, words * _WORD - m)))
-    return _pack(keep).reshape(g, m, k_offsets * words)
+    return pack(keep).reshape(g, m, k_offsets * words)
 
 
 def _morton(u, bits: int = 3):
@@ -291,8 +260,8 @@ def _dense_tile_rows(st, cut, species, entries, needed, order, *, m, half,
             positive = (s[0] > 0) | ((s[0] == 0) & (
                 (s[1] > 0) | ((s[1] == 0) & (s[2] > 0))))
             keep = keep & ((si[:, None] < slot_t) | (same & positive))
-        bits = _pack(keep)[:, 0]
-        count = jnp.where(is_self, 1, _popcount(bits))
+        bits = pack(keep)[:, 0]
+        count = jnp.where(is_self, 1, popcount(bits))
         # Where the rows of the word find their partner: its tile's first
         # sorted slot (flat over the systems), or -1 for the self pair.
         base = jnp.where(is_self, -1, tile * _WORD)
@@ -328,31 +297,16 @@ def _word_rows(st, words, order, *, m, capacity):
     g = st["real"].shape[0]
     counts = words[:, 1]
     ends = prefix_sum(counts, jnp.float64)
-    wid, rank, stored = _row_words(counts, ends, capacity)
+    wid, rank, stored = row_words(counts, ends, capacity)
     row = words[wid]                                           # (R, 6)
     bits = jax.lax.bitcast_convert_type(row[:, 0], jnp.uint32)
     row_atom, row_g, base, kk = row[:, 2], row[:, 3], row[:, 4], row[:, 5]
-    b = _select_bit(bits, rank)
+    b = select_bit(bits, rank)
     sj = jnp.where(base < 0, row_atom - row_g * m, order.reshape(-1)[
         jnp.maximum(base, 0) + b])
     rows = _block_rows(st, row_atom, row_g, sj, kk, stored, m=m)
     per_system = jax.ops.segment_sum(counts, words[:, 3], g)
     return rows, ends[-1], per_system
-
-
-def _row_words(counts, ends, capacity):
-    """Where each of ``capacity`` rows lies among words of int32 ``counts``
-    ``(W,)`` rows (inclusive running counts ``ends``): int32 ``(capacity,)``
-    word and rank in it, and bool ``(capacity,)`` whether the row is
-    stored. Each nonempty word marks its first row; a row's word is the
-    last mark at or before it (a running maximum: no search per row)."""
-    r = jnp.arange(capacity, dtype=jnp.int32)
-    word_start = ends - counts
-    marks = jnp.zeros((capacity,), jnp.int32).at[jnp.where(
-        counts > 0, word_start, capacity)].set(
-            jnp.arange(counts.shape[0], dtype=jnp.int32), mode="drop")
-    wid = _running_max(marks)
-    return wid, r - word_start[wid], r < ends[-1]
 
 
 def _block_rows(st, row_atom, gi, sj, k, stored, *, m):
@@ -378,7 +332,7 @@ def _dense_decode(st, packed, *, m, capacity):
     g = st["real"].shape[0]
     tiles = -(-m // _WORD)
     width_words = packed.shape[-1]
-    per_word = _popcount(packed).reshape(g * m, width_words)
+    per_word = popcount(packed).reshape(g * m, width_words)
     # Each atom's row of counts: its self pair, then its words; row r of
     # the list is in the word whose running count first passes r.
     counts = jnp.concatenate([st["selfs"].reshape(-1, 1).astype(jnp.int32),
@@ -386,14 +340,14 @@ def _dense_decode(st, packed, *, m, capacity):
     width = counts.shape[1]
     ends = prefix_sum(counts.reshape(-1), jnp.float64)
     degree = jnp.sum(counts, axis=1, dtype=jnp.int32)
-    wid, rank, stored = _row_words(counts.reshape(-1), ends, capacity)
+    wid, rank, stored = row_words(counts.reshape(-1), ends, capacity)
     row_atom = wid // width                               # g M + i slot
     col = wid - row_atom * width
     is_self = col == 0
     word = jnp.maximum(col - 1, 0)
     bits = packed.reshape(-1)[row_atom * width_words + word]
     k = word // tiles
-    b = _select_bit(bits, rank)
+    b = select_bit(bits, rank)
     gi = row_atom // m
     si = row_atom - gi * m
     sj = jnp.where(is_self, si, (word - k * tiles) * _WORD + b)

@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.words import WORD, pack, popcount, row_words, select_bit
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -357,7 +358,9 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     """Step 5: the loop over candidates. Returns the pairs found (int32),
     per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
     (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
-    with ``i = N``: from the half stencil each pair is found once; from the
+    with ``i = N`` (from the ``full`` stencil: decoded, int32 ``(stored,
+    5)`` rows ``(i, j, S)`` padded with ``(N, N, 0)``): from the half
+    stencil each pair is found once; from the
     ``full`` stencil each atom finds all its own pairs (its representatives
     only, with ``half``).
 
@@ -422,7 +425,8 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
                                                p.shape), p], axis=-1)
             out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
                 rows.reshape(-1, 2), mode="drop")
-        return ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
+        found = ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
+        return _decoded(*found, b) if full else found
 
     if not full:
         # Unsorted, the order is free: every run read a slot at a time (as
@@ -451,8 +455,113 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             0, jnp.max(b.length, initial=0), slot_step,
             (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
 
-    return _stream(decide, b, out, n=n, k_offsets=k_offsets, chunk=chunk,
-                   stored=stored)
+    # Each branch decodes its rows itself: outside, XLA fuses the binning
+    # behind the decoding into it and computes it again for every row.
+    def stream():
+        return _decoded(*_stream(decide, b, out, n=n, k_offsets=k_offsets,
+                                 chunk=chunk, stored=stored), b)
+
+    if brute:
+        return stream()
+
+    def short():
+        return _short_runs(positions, table, b, cut, species, own,
+                           half=half, stored=stored)
+
+    # Runs of at most a word (cells of a few atoms each, the common case)
+    # are read a word at a time; a fuller cell anywhere falls back to the
+    # stream.
+    return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, short, stream)
+
+
+def square_limit(cut):
+    """The largest ``x`` (``cut``'s dtype and shape) with ``sqrt(x) < cut``,
+    ``-inf`` where there is none: for ``x >= 0`` (a squared length),
+    ``x <= square_limit(c)`` decides as ``sqrt(x) < c`` does, bit for bit, without a square root per candidate.
+    ``sqrt(x) < c`` holds on a down-set of ``x``, whose edge lies within two
+    spacings of the rounded ``c * c`` (for every ``c``, subnormal and
+    overflowing squares included), so it is among the nine floats around
+    it."""
+    dtype = cut.dtype
+    down = up = cut * cut
+    near = [down]
+    for _ in range(4):
+        down = jnp.nextafter(down, jnp.asarray(-jnp.inf, dtype))
+        up = jnp.nextafter(up, jnp.asarray(jnp.inf, dtype))
+        near += [down, up]
+    near = jnp.stack(near)
+    return jnp.max(jnp.where(jnp.sqrt(near) < cut, near, -jnp.inf), axis=0)
+
+
+def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
+                stored):
+    """`candidates` from the full stencil when no run is longer than a
+    word: the slots of every run at once, slot ``t`` of each run in step
+    ``t`` of a loop (as many steps as the longest run), kept as bit ``t``
+    of the run's uint32 word; the rows come out ``i``-major, as the
+    stream's, decoded (int32 ``(stored, 5)``). Each candidate is decided as
+    `candidates`' ``decide`` does, with the squared cutoff
+    (`square_limit`)."""
+    n, k_offsets = b.length.shape
+    dtype = positions.dtype
+    # Laid out (K, N), the atoms along the fast axis, and every column its
+    # own array: what the atom's side of a candidate reads is read once
+    # per atom, and each step is a run of contiguous lanes.
+    start, length = b.start.T, b.length.T
+    image = [b.image[:, :, c].T for c in range(3)]
+    atoms = jnp.arange(n, dtype=jnp.int32)[None, :]
+    r_i = [positions[None, :, c] for c in range(3)]
+    h_i = [[b.h_atom[None, :, a, c] for c in range(3)] for a in range(3)]
+    rank_i = b.rank[None, :]
+    own_k = own[:, None]
+    columns = [table[:, c] for c in range(table.shape[1])]
+    limit = square_limit(cut)
+    if species is not None:
+        limit_i = limit[species]                          # (N, S)
+
+    def slot_bits(t, bits):
+        p = jnp.minimum(start + t, n - 1)
+        s = [image[c] - columns[3 + c][p].astype(jnp.int32) for c in range(3)]
+        sf = [x.astype(dtype) for x in s]
+        d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
+                                         + sf[2] * h_i[2][c])
+             for c in range(3)]
+        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        if species is None:
+            lim = limit
+        else:
+            lim = jnp.take_along_axis(
+                limit_i, columns[6][p].astype(jnp.int32).T, axis=1,
+                mode="fill", fill_value=-jnp.inf).T
+        once = ~(own_k & (p == rank_i))
+        if half:
+            j = b.order[p]
+            once = once & ((atoms < j) | ((atoms == j) & lex_positive(
+                jnp.stack(s, axis=-1))))
+        keep = (t < length) & (d2 <= lim) & once
+        return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
+                                jnp.uint32(0))
+
+    bits = jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
+                             jnp.zeros((k_offsets, n), jnp.uint32)).T
+    bits = bits.reshape(-1)                                      # (N K,)
+    counts = popcount(bits)
+    ends = prefix_sum(counts, jnp.float64)
+    per_atom = jnp.sum(counts.reshape(n, k_offsets), axis=1,
+                       dtype=jnp.int32)
+    rows = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
+                            (stored, 5))
+    if stored > 0:
+        wid, rank, kept = row_words(counts, ends, stored)
+        slot = jnp.minimum(b.start.reshape(-1)[wid]
+                           + select_bit(bits[wid], rank), n - 1)
+        # The rows decoded here, from the arrays the loop read.
+        i = jax.lax.div(wid, jnp.int32(k_offsets))
+        j = b.order[slot]
+        shift = b.image.reshape(-1, 3)[wid] - b.w.astype(jnp.int32)[j]
+        rows = jnp.where(kept[:, None], jnp.concatenate(
+            [i[:, None], j[:, None], shift], axis=1), rows)
+    return ends[-1], per_atom, rows
 
 
 def _stream(decide, b: _Binned, out, *, n, k_offsets, chunk, stored):
@@ -531,14 +640,22 @@ def _stored_pairs(out, binned: _Binned):
     return jnp.where(kept, i, n), j, jnp.where(kept[:, None], s, 0)
 
 
-def placed_rows(per_atom, out, binned, selfs, *, capacity, n_graph):
-    """The full stencil's rows, found ``i``-major (so stored at their place
-    when there are no self pairs), with atom ``i``'s self pair (``selfs``)
-    placed before its pairs. Returns int32 ``(capacity, 5)`` rows padded
-    with ``(N, N, 0)``, their count and the count per system."""
-    n = binned.order.shape[0]
+def _decoded(found, per_atom, out, binned: _Binned):
+    """`candidates`' stored candidates ``out`` as int32 ``(stored, 5)``
+    rows ``(i, j, S)`` padded with ``(N, N, 0)``."""
     i, j, s = _stored_pairs(out, binned)
-    rows = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
+    return found, per_atom, jnp.concatenate([i[:, None], j[:, None], s],
+                                            axis=1)
+
+
+def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):
+    """The full stencil's rows (int32 ``(capacity, 5)`` from `candidates`),
+    found ``i``-major (so stored at their place when there are no self
+    pairs), with atom ``i``'s self pair (``selfs``) placed before its
+    pairs. Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``,
+    their count and the count per system."""
+    n = binned.order.shape[0]
+    i = rows[:, 0]
     if selfs is None:
         return rows, jnp.sum(per_atom, dtype=jnp.int32), \
             jax.ops.segment_sum(per_atom, binned.graph, n_graph)

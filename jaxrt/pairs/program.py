@@ -33,7 +33,9 @@ How it searches (the search of one system is the same with one graph):
 5. **Decide and store.** Sorted by ``i``, the candidates are the runs'
    slots laid end to end, atom by atom and offset by offset (``i``-major),
    read ``chunk`` at a time in a loop until every one is read (the work
-   follows the candidates there are); unsorted, every run is read a slot
+   follows the candidates there are), or, where no run is longer than a
+   word (32 atoms), every run at once, slot ``t`` of each in step ``t``,
+   its keep bits packed in one uint32 per run; unsorted, every run is read a slot
    at a time until the fullest cell is read. Each is decided as ASE
    decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
    cutoff`` (strict; the cutoff of the two atoms' species with a cutoff

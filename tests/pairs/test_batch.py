@@ -178,3 +178,77 @@ def test_sixteen_sizes_compile_two_programs(x64):
 @pytest.mark.slow
 def test_fifty_sizes_compile_a_few_programs(x64):
     assert programs_for_sizes(range(20, 70)) <= 6
+
+
+def _scene(clustered: bool, seed: int):
+    """A triclinic periodic box of random atoms, some outside the cell (so
+    their wraps count); ``clustered``: 160 of them packed into a ball of
+    radius 1.2 Å, whose cells hold far more than a word of atoms."""
+    rng = np.random.default_rng(seed)
+    cell = np.array([[16.0, 0, 0], [2.0, 15.0, 0], [1.0, -1.5, 17.0]])
+    frac = rng.uniform(-0.1, 1.1, (420, 3))
+    r = frac @ cell
+    if clustered:
+        ball = rng.normal(0, 1, (160, 3))
+        ball *= 1.2 * rng.uniform(0, 1, (160, 1)) ** (1 / 3) / np.linalg.norm(
+            ball, axis=1, keepdims=True)
+        r = np.concatenate([r, ball + np.array([5.0, 6.0, 7.0])])
+    return r, cell
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+def test_cell_runs_short_and_long_match_ase_exactly(x64, clustered):
+    """The cell search (max_nodes=0), whose runs of at most a word are read
+    as words and longer ones by the stream: every (i, j, S) and each
+    distance's decision exactly as ASE's in float64."""
+    from ase.neighborlist import primitive_neighbor_list
+    cells = importlib.import_module("jaxrt.pairs.cells")
+    words = importlib.import_module("jaxrt.pairs.words")
+    cutoff = 3.0
+    r, cell = _scene(clustered, seed=3)
+    n = len(r)
+    binned = cells.bin_atoms(
+        jnp.asarray(r), jnp.zeros(n, jnp.int32), jnp.ones(n, bool),
+        jnp.asarray(cell)[None], jnp.ones((1, 3), bool), jnp.asarray(cutoff),
+        reach=(1, 1, 1), brute=False, n_graph=1, completed=False, full=True)
+    longest = int(jnp.max(binned.length))
+    assert (longest > words.WORD) == clustered, longest
+    sizes = jaxrt.pairs_batch_sizes(r, np.array([n]), cutoff, cell=cell[None])
+    kwargs = dict(sizes.kwargs, max_nodes=0)
+    got = jax.jit(lambda x: jaxrt.pairs_batch(
+        x, jnp.array([n]), cutoff, cell=jnp.asarray(cell)[None],
+        **kwargs))(jnp.asarray(r))
+    got.check()
+    i, j, s = primitive_neighbor_list("ijS", [True] * 3, cell, r, cutoff)
+    want = {(int(a), int(b), *map(int, c)) for a, b, c in zip(i, j, s)}
+    count = int(got.count)
+    have = {(int(a), int(b), *map(int, c)) for a, b, c in zip(
+        np.asarray(got.i)[:count], np.asarray(got.j)[:count],
+        np.asarray(got.shift)[:count])}
+    assert count == len(want) and have == want
+    # Sorted by i, as the stream lays them out.
+    assert np.all(np.diff(np.asarray(got.i)[:count]) >= 0)
+
+
+def test_square_limit_decides_as_the_square_root(x64):
+    """x <= square_limit(c) exactly where sqrt(x) < c, for floats x >= 0
+    around c² in both dtypes and for the edge cutoffs."""
+    cells = importlib.import_module("jaxrt.pairs.cells")
+    rng = np.random.default_rng(0)
+    for dtype in (np.float64, np.float32):
+        cuts = np.concatenate([rng.uniform(0.5, 12, 200), [0.0, -1.0, 5.0,
+                               np.inf, 1e-30, 1e30]]).astype(dtype)
+        limit = np.asarray(cells.square_limit(jnp.asarray(cuts)))
+        for c, t in zip(cuts, limit):
+            x = np.array([c * c], dtype)
+            near = [x[0]]
+            for _ in range(6):
+                near += [np.nextafter(near[-1], dtype(np.inf))]
+            down = [x[0]]
+            for _ in range(6):
+                down += [np.nextafter(down[-1], dtype(-np.inf))]
+            for v in near + down:
+                v = dtype(v)
+                if v < 0:  # a squared length is never negative
+                    continue
+                assert (v <= t) == (np.sqrt(v) < c), (dtype, c, v, t)
