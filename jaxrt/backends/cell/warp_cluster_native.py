@@ -103,7 +103,12 @@ def _lane_functions(scalar, size, lanes):
         ri = r_cutoff
         if has_radii != 0:
             ri = radius[i]
-        lo, hi, r_max = p, p, ri
+        # Fresh values, not names of ``p`` and ``ri``: Warp gives a plain
+        # ``a = b`` the variable of ``b``, and the loop below would then
+        # write lo's, hi's and r_max's updates into one variable each.
+        lo = vector(p[0], p[1], p[2])
+        hi = vector(p[0], p[1], p[2])
+        r_max = wp.max(ri, ri)
         s = int(1)
         while s < wp.static(size):
             lo = wp.min(lo, vector(_xor(lo[0], s), _xor(lo[1], s),
