@@ -17,12 +17,20 @@ EOS = sph.Tait(rho0=1.0, c0=10.0, gamma=7.0)
 KERNEL = {2: sph.CubicSpline(1.3, dim=2), 3: sph.WendlandC2(1.3, dim=3)}
 
 
-def close(a, b, rtol=RTOL):
-    """``a == b`` to ``rtol`` of b's largest entry (shapes equal)."""
+def close(a, b, rtol=RTOL, row_scale=None):
+    """``a == b`` to ``rtol`` of b's largest entry (shapes equal), or of
+    ``row_scale[i]`` (float ``(N,)``) for row ``i`` where that is larger."""
     a, b = np.asarray(a), np.asarray(b)
     assert a.shape == b.shape
     scale = max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
-    np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
+    if row_scale is None:
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale)
+        return
+    rows = np.maximum(np.asarray(row_scale), scale)
+    atol = rtol * rows.reshape(rows.shape + (1,) * (b.ndim - 1))
+    bad = np.abs(a - b) > atol
+    assert not np.any(bad), (f"{np.sum(bad)} entries differ beyond {rtol} "
+                             f"of their row's scale: {a[bad]} vs {b[bad]}")
 
 
 def fluid(n_side, dim, dx=1.0, seed=0, jitter=0.2):
@@ -113,9 +121,16 @@ def check_coincident_and_exact_support(dim, backend):
     nbrs = neighbour_fn(displacement, None, float(kernel.cutoff)).allocate(R)
     ref = sph.acceleration(displacement, kernel, EOS, alpha=1.0, beta=1.0)
     out = accel(R, V)
-    for a, b in zip(out, jax.jit(ref)(R, V, nbrs)):
+    want = jax.jit(ref)(R, V, nbrs)
+    # The 1e-9 pair's viscosity (~1e-13) is a sliver of that pair's pressure
+    # force (~1e-4, the same kernel gradient): a walk may round it anywhere
+    # within float64's rtol of the particle's largest pair term, which is
+    # the scale each row is held to (not the viscosity column's own max).
+    row_scale = np.max([np.max(np.abs(np.asarray(f)), -1) for f in want
+                        if np.ndim(f) == 2], 0)
+    for a, b in zip(out, want):
         assert np.all(np.isfinite(a))
-        close(a, b)
+        close(a, b, row_scale=row_scale if np.ndim(b) == 2 else None)
     np.testing.assert_array_equal(np.asarray(out.total[:4]), 0.0)
     return accel, ref, nbrs, R, V
 
