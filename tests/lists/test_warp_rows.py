@@ -299,3 +299,23 @@ def test_where_the_walk_cannot_serve_the_error_names_the_fix():
 def test_a_bad_graph_mode_is_refused_naming_the_choices():
     with pytest.raises(ValueError, match=r"warp_graph='cuda'.*'none'"):
         backends.Cell(kernel="warp", warp_graph="cuda")
+
+
+@pytest.mark.parametrize("n,table", [(1, 1), (1, 10), (5, 5), (1000, 100),
+                                     (37, 20000)])
+def test_cell_table_is_the_keys_lower_bound(n, table):
+    """``start[c]`` is the first sorted particle whose key is ``>= c`` for
+    every entry of the table, the empty tail past the last key included
+    (tables far larger than their keys, as the list's are)."""
+    import warp as wp
+    from jaxrt.backends.cell import warp_kernels as wk
+    keys = np.sort(np.random.default_rng(n).integers(
+        0, min(table, 3 * n + 1), n)).astype(np.int32)
+    # The sort's keys array holds 2 N entries; the table reads the first N.
+    scratch = wp.array(np.concatenate([keys, np.full(n, -1, np.int32)]),
+                       dtype=wp.int32, device="cpu")
+    start = wp.full(table + 1, -7, dtype=wp.int32, device="cpu")
+    wp.launch(wk.cell_table, dim=wk.table_threads(n, table), device="cpu",
+              inputs=[scratch, n, table, start])
+    want = np.searchsorted(keys, np.arange(table + 1), side="left")
+    np.testing.assert_array_equal(start.numpy(), want)

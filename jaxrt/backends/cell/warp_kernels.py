@@ -458,17 +458,27 @@ def walk_kernel(scalar, flags: int, *, specialize: bool = True,
 @wp.kernel
 def cell_table(keys: wp.array(dtype=wp.int32), n: int, table: int,
                start: wp.array(dtype=wp.int32)):
-    """``start[c]`` for the cells between sorted particle ``i - 1``'s and
-    ``i``'s (a thread per ``i`` in ``[0, n]``)."""
-    i = wp.tid()
-    previous = int(-1)
-    if i > 0:
-        previous = keys[i - 1]
-    current = table
-    if i < n:
-        current = keys[i]
-    for c in range(previous + 1, current + 1):
-        start[c] = i
+    """``start[c]``: thread ``t < n`` writes the cells between sorted
+    particles ``t - 1``'s and ``t``'s keys; thread ``t <= table`` past the
+    last key writes ``n`` there (launch ``table_threads(n, table)``)."""
+    t = wp.tid()
+    if t < n:
+        previous = int(-1)
+        if t > 0:
+            previous = keys[t - 1]
+        for c in range(previous + 1, keys[t] + 1):
+            start[c] = t
+    # The tail past the last key is most of the table where the grid has
+    # fewer cells than the table holds: a thread per entry, not one thread
+    # looping over all of them (serial on a GPU).
+    if t <= table and t > keys[n - 1]:
+        start[t] = n
+
+
+def table_threads(n: int, table: int) -> int:
+    """`cell_table`'s launch size for ``n >= 1`` sorted keys and a table
+    of ``table + 1`` entries."""
+    return max(n, table + 1)
 
 
 KERNELS = {t: _scalar_kernels(t) for t in (wp.float32, wp.float64)}
@@ -499,7 +509,7 @@ def sort_cells(points, radii, grid, cells, flags: int, *, keys, values,
               inputs=[points, grid, cells, flags, wrapped, keys, values])
     wp.utils.radix_sort_pairs(keys, values, n,
                               end_bit=max(1, int(table).bit_length()))
-    wp.launch(cell_table, dim=n + 1, device=device,
+    wp.launch(cell_table, dim=table_threads(n, table), device=device,
               inputs=[keys, n, table, start])
     wp.launch(k["gather"], dim=n, device=device,
               inputs=[values, wrapped, radii, flags & HAS_RADII, position,
