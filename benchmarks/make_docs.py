@@ -98,6 +98,11 @@ BENCHMARKS = [
      "`Cell(kernel=\"warp\")` timed apart on the GPU (CUDA events), the "
      "pipeline whole, the host's launches, and each stage's floor from "
      "its bytes and flops."),
+    ("warp_rebuild_stages", "The Warp cell-list rebuild, stage by stage",
+     "benchmarks/warp_rebuild_stages.py",
+     "Bin, radix sort, gather, grid, cell table and the rows walk of a "
+     "`cell[warp]` Dense rebuild timed apart on the GPU (CUDA events), the "
+     "jitted `update` whole, and the host's enqueue time."),
     ("pairs", "`jaxrt.pairs` against ASE, matscipy, vesin",
      "benchmarks/pairs.py",
      "Pairs with lattice shifts of silicon (cutoff 5 Å, float64 on the "

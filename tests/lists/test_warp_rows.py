@@ -309,13 +309,15 @@ def test_cell_table_is_the_keys_lower_bound(n, table):
     (tables far larger than their keys, as the list's are)."""
     import warp as wp
     from jaxrt.backends.cell import warp_kernels as wk
+    # The kernel runs where the list's does: a GPU when there is one.
+    device = "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
     keys = np.sort(np.random.default_rng(n).integers(
         0, min(table, 3 * n + 1), n)).astype(np.int32)
     # The sort's keys array holds 2 N entries; the table reads the first N.
     scratch = wp.array(np.concatenate([keys, np.full(n, -1, np.int32)]),
-                       dtype=wp.int32, device="cpu")
-    start = wp.full(table + 1, -7, dtype=wp.int32, device="cpu")
-    wp.launch(wk.cell_table, dim=wk.table_threads(n, table), device="cpu",
+                       dtype=wp.int32, device=device)
+    start = wp.full(table + 1, -7, dtype=wp.int32, device=device)
+    wp.launch(wk.cell_table, dim=wk.table_threads(n, table), device=device,
               inputs=[scratch, n, table, start])
     want = np.searchsorted(keys, np.arange(table + 1), side="left")
     np.testing.assert_array_equal(start.numpy(), want)
