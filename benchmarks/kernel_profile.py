@@ -6,7 +6,9 @@ idle time (a ``while_loop`` on a GPU reads its predicate back every trip).
 Cases (``--cases``, each ``NAME:N``):
 
 * ``pairs:N``: `jaxrt.pairs` jitted with `jaxrt.pairs_sizes`' sizes, on
-  pairs.py's diamond scene (float32, cutoff 5).
+  pairs.py's diamond scene (float32, its cutoff); ``pairs-looped:N``
+  with the short runs' loop kept a loop on the GPU
+  (``jaxrt.pairs.cells.UNROLL_SLOTS_ON_CUDA`` off).
 * ``rows:N``: `jaxrt.backends.rt.ffi.cell_candidate_rows` jitted alone, on
   warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``).
 * ``update:N``: the ``cell[warp]`` Dense list's jitted update on the same
@@ -36,12 +38,15 @@ else:
     import _harness
 
 
-def _pairs_case(n):
+def _pairs_case(n, unroll=True):
     import jax
     import jax.numpy as jnp
     import numpy as np
     import jaxrt
     import pairs as pairs_bench
+    from jaxrt.pairs import cells
+    cells.UNROLL_SLOTS_ON_CUDA = unroll
+    jax.clear_caches()
     pos, cell = pairs_bench.scene(n)
     x = jnp.asarray(pos, jnp.float32)
     c = jnp.asarray(cell, jnp.float32)
@@ -171,8 +176,8 @@ def main(argv=None) -> None:
         name, _, size = case.partition(":")
         n = int(size or 1000)
         try:
-            if name == "pairs":
-                fn, n = _pairs_case(n)
+            if name in ("pairs", "pairs-looped"):
+                fn, n = _pairs_case(n, unroll=name == "pairs")
             elif name == "rows":
                 fn, n = _rows_case(n, args.width)
             elif name in ("update", "update-pallas"):
@@ -180,7 +185,8 @@ def main(argv=None) -> None:
                                      else "cell[warp]")
             else:
                 raise ValueError(f"--cases: unknown case {name!r} (pairs, "
-                                 f"rows, update, update-pallas)")
+                                 f"pairs-looped, rows, update, "
+                                 f"update-pallas)")
             rows += profile(case, fn, args.repeats, {"N": n, **common})
         except Exception as e:  # noqa: BLE001 - report and go on
             import traceback

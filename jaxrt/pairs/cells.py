@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
 from jaxrt.pairs.words import WORD, pack, popcount, row_words, select_bit
@@ -25,6 +26,10 @@ CELLS_PER_SYSTEM = 64
 # Dense blocks up to this many candidates in all (their flat index is an
 # int32, their keep bits one array); past it the cells search the batch.
 DENSE_MOST = 2 ** 28
+# On a GPU the short runs' loop is written out, every slot of a word in
+# one program: a loop with a traced trip count reads its predicate back to
+# the host on every trip there.
+UNROLL_SLOTS_ON_CUDA = True
 
 
 def shift_vectors(s, h):
@@ -542,8 +547,21 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
         return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
                                 jnp.uint32(0))
 
-    bits = jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
-                             jnp.zeros((k_offsets, n), jnp.uint32)).T
+    no_bits = jnp.zeros((k_offsets, n), jnp.uint32)
+
+    def looped():
+        return jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
+                                 no_bits)
+
+    def unrolled():
+        # Slots past a run's length keep nothing (``t < length``).
+        bits = no_bits
+        for t in range(WORD):
+            bits = slot_bits(jnp.int32(t), bits)
+        return bits
+
+    bits = (platforms.cuda_or_default(unrolled, looped)
+            if UNROLL_SLOTS_ON_CUDA else looped()).T
     bits = bits.reshape(-1)                                      # (N K,)
     counts = popcount(bits)
     ends = prefix_sum(counts, jnp.float64)
