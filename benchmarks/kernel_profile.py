@@ -10,9 +10,11 @@ Cases (``--cases``, each ``NAME:N``):
   with the short runs' loop kept a loop on the GPU
   (``jaxrt.pairs.cells.UNROLL_SLOTS_ON_CUDA`` off).
 * ``rows:N``: `jaxrt.backends.rt.ffi.cell_candidate_rows` jitted alone, on
-  warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``).
+  warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``),
+  Warp's graphs on (``rows-none``, ``rows-jax``: the other graph modes).
 * ``update:N``: the ``cell[warp]`` Dense list's jitted update on the same
-  scene (and ``update-pallas:N``: ``cell[pallas]``).
+  scene; ``update-pallas``: ``cell[pallas]``; ``update-warp-G``:
+  ``cell[warp]`` with ``warp_graph=G`` (none, warp, jax).
 
 One CSV row per (case, kernel): calls per traced call, device time per
 traced call (summed over the kernel's launches), and per case a
@@ -65,7 +67,7 @@ def _uniform(n):
                        .astype(np.float32)), side
 
 
-def _rows_case(n, width):
+def _rows_case(n, width, graph=None):
     import jax
     import warp_rebuild_stages as stages_bench
     R, side = _uniform(n)
@@ -76,7 +78,9 @@ def _rows_case(n, width):
     grid, cells, table, thresholds, flags = stages_bench.jax_stages(
         Quiet(), [R], side, n, width, False)
     from jaxrt.backends.rt import ffi
-    graph = "warp" if jax.default_backend() in ("gpu", "cuda") else "none"
+    if jax.default_backend() not in ("gpu", "cuda"):
+        graph = "none"
+    graph = graph or "warp"
     f = jax.jit(lambda p, g, c, t: ffi.cell_candidate_rows(
         p, g, c, t, flags=flags, table=table, row_width=width,
         shell=stages_bench.SHELL, graph=graph))
@@ -94,6 +98,12 @@ def _update_case(n, backend):
     nbrs = fns.allocate(R)
     update = jax.jit(fns.update)
     return lambda: update(R, nbrs).idx, n
+
+
+UPDATES = {"update": "cell[warp]", "update-pallas": "cell[pallas]",
+           "update-warp-none": "cell[kernel=warp,warp_graph=none]",
+           "update-warp-warp": "cell[kernel=warp,warp_graph=warp]",
+           "update-warp-jax": "cell[kernel=warp,warp_graph=jax]"}
 
 
 def _device_events(path):
@@ -178,15 +188,14 @@ def main(argv=None) -> None:
         try:
             if name in ("pairs", "pairs-looped"):
                 fn, n = _pairs_case(n, unroll=name == "pairs")
-            elif name == "rows":
-                fn, n = _rows_case(n, args.width)
-            elif name in ("update", "update-pallas"):
-                fn, n = _update_case(n, "cell[pallas]" if "pallas" in name
-                                     else "cell[warp]")
+            elif name.startswith("rows"):
+                fn, n = _rows_case(n, args.width, name.partition("-")[2])
+            elif name in UPDATES:
+                fn, n = _update_case(n, UPDATES[name])
             else:
                 raise ValueError(f"--cases: unknown case {name!r} (pairs, "
-                                 f"pairs-looped, rows, update, "
-                                 f"update-pallas)")
+                                 f"pairs-looped, rows, rows-GRAPH, "
+                                 f"{', '.join(UPDATES)})")
             rows += profile(case, fn, args.repeats, {"N": n, **common})
         except Exception as e:  # noqa: BLE001 - report and go on
             import traceback
