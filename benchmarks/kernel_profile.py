@@ -15,6 +15,8 @@ Cases (``--cases``, each ``NAME:N``):
 * ``update:N``: the ``cell[warp]`` Dense list's jitted update on the same
   scene; ``update-pallas``: ``cell[pallas]``; ``update-warp-G``:
   ``cell[warp]`` with ``warp_graph=G`` (none, warp, jax).
+* ``step:N``: md_step.py's LJ NVE step on the default Dense list, ten
+  steps in one ``lax.scan`` per call (so per step: a tenth).
 
 One CSV row per (case, kernel): calls per traced call, device time per
 traced call (summed over the kernel's launches), and per case a
@@ -106,6 +108,29 @@ UPDATES = {"update": "cell[warp]", "update-pallas": "cell[pallas]",
            "update-warp-jax": "cell[kernel=warp,warp_graph=jax]"}
 
 
+def _step_case(n, steps=10):
+    """md_step.py's LJ NVE step with the default Dense list (its lattice
+    numbering): ``steps`` steps in one ``lax.scan`` per call."""
+    import jax
+    import md_step
+    job = {"steps": steps, "repeats": 1, "warmup": 0}
+    captured = {}
+    original = md_step._harness.time_carry
+
+    def keep(run, carry, **kwargs):
+        captured["call"] = lambda: run(carry)
+        return original(run, carry, **kwargs)
+    md_step._harness.time_carry = keep
+    try:
+        row = md_step.lj_step("jaxrt:cell/Dense", n, job)
+    finally:
+        md_step._harness.time_carry = original
+    print(f"  step:{n}: k {row.get('k')}, rebuilds per step "
+          f"{row.get('rebuilds_per_step')}", flush=True)
+    return (lambda: jax.tree_util.tree_leaves(captured["call"]())[0],
+            int(row["N"]))
+
+
 def _device_events(path):
     """(line name, event name, duration ns) of every device event."""
     from jax.profiler import ProfileData
@@ -159,7 +184,7 @@ def profile(case, fn, repeats, common):
                      "us_per_call": ns / repeats / 1e3, **common})
     print(f"== {case}: wall {rows[0]['us_per_call']:.1f} us, device busy "
           f"{busy:.1f} us, lines {dict(lines)}", flush=True)
-    for r in rows[2:22]:
+    for r in rows[2:14]:
         print(f"  {r['us_per_call']:10.1f} us  x{r['calls']:<6g} "
               f"{r['kernel'][:90]}", flush=True)
     return rows
@@ -190,11 +215,13 @@ def main(argv=None) -> None:
                 fn, n = _pairs_case(n, unroll=name == "pairs")
             elif name.startswith("rows"):
                 fn, n = _rows_case(n, args.width, name.partition("-")[2])
+            elif name == "step":
+                fn, n = _step_case(n)
             elif name in UPDATES:
                 fn, n = _update_case(n, UPDATES[name])
             else:
                 raise ValueError(f"--cases: unknown case {name!r} (pairs, "
-                                 f"pairs-looped, rows, rows-GRAPH, "
+                                 f"pairs-looped, rows, rows-GRAPH, step, "
                                  f"{', '.join(UPDATES)})")
             rows += profile(case, fn, args.repeats, {"N": n, **common})
         except Exception as e:  # noqa: BLE001 - report and go on
