@@ -60,14 +60,17 @@ if __package__:  # run as -m, or imported: the package's modules
 else:  # run as a file: its folder is sys.path[0]
     import _harness
 
-# The walk's variants: (label, specialize, hoist, block_dim). Measured
+# The walk's variants: (label, specialize, hoist, block_dim[, trim]);
+# ``trim``: rows skipped and x ranges cut by `warp_kernels.trim_functions`
+# (the sphere the stencil covers, not the cutoff). Measured
 # before and dropped (slower; results/h200/warp_stages_244e535): each
 # stencil row's x range trimmed to the particle's cutoff (171 -> 116
 # candidates per particle, but a warp still walks its widest lane's range).
 VARIANTS = (("generic", False, False, 256), ("static", True, False, 256),
             ("static+hoist", True, True, 256),
             ("static+hoist b128", True, True, 128),
-            ("static+hoist b64", True, True, 64))
+            ("static+hoist b64", True, True, 64),
+            ("static+hoist b64 trim", True, True, 64, True))
 # The lists' walk's row and shell widths (rows of the LJ system hold ~52).
 ROW_WIDTH, SHELL_WIDTH = 96, 8
 # Flops of the walk: a candidate's difference, square and test; a pair's
@@ -181,9 +184,10 @@ def measure(n_target, args, rows, device_columns):
                        block_dim=block)
 
     def walk(variant, walk_flags=flags):
-        _, specialize, hoist, block = variant
+        _, specialize, hoist, block = variant[:4]
+        trim = variant[4] if len(variant) > 4 else False
         kernel = wk.walk_kernel(wp.float32, walk_flags, specialize=specialize,
-                                hoist=hoist)
+                                hoist=hoist, trim=trim)
         wp.launch(kernel, dim=n, device=device, block_dim=block,
                   inputs=[position, keys, values, radius, start, grid_w,
                           cells_w, params_w, walk_flags, forces, energy,

@@ -109,12 +109,14 @@ def _scalar_kernels(scalar):
 
 
 @wp.func
-def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
-    """The stencil's x cells as up to two ranges with images: (lo0, hi0,
-    image0, hi1, image1), the second range ``[0, hi1]``, empty (hi1 < 0)
-    for one range."""
-    lo0 = wp.max(c - reach, 0)
-    hi0 = wp.min(c + reach, n - 1)
+def x_ranges_between(c: int, lo: int, hi: int, n: int, periodic: int,
+                     rounded: int):
+    """The x cells ``c + lo .. c + hi`` (``lo <= 0 <= hi``, ``hi - lo <
+    n`` on a periodic axis that is not rounded) as up to two ranges with
+    images: (lo0, hi0, image0, hi1, image1), the second range ``[0, hi1]``,
+    empty (hi1 < 0) for one range."""
+    lo0 = wp.max(c + lo, 0)
+    hi0 = wp.min(c + hi, n - 1)
     ox0 = 0
     hi1 = -1
     ox1 = 0
@@ -122,17 +124,25 @@ def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
         if rounded != 0:
             lo0 = 0
             hi0 = n - 1
-        elif c - reach < 0:
-            lo0 = c - reach + n
+        elif c + lo < 0:
+            lo0 = c + lo + n
             hi0 = n - 1
             ox0 = -1
-            hi1 = c + reach
-        elif c + reach >= n:
-            lo0 = c - reach
+            hi1 = c + hi
+        elif c + hi >= n:
+            lo0 = c + lo
             hi0 = n - 1
-            hi1 = c + reach - n
+            hi1 = c + hi - n
             ox1 = 1
     return lo0, hi0, ox0, hi1, ox1
+
+
+@wp.func
+def x_ranges(c: int, reach: int, n: int, periodic: int, rounded: int):
+    """The stencil's x cells as up to two ranges with images: (lo0, hi0,
+    image0, hi1, image1), the second range ``[0, hi1]``, empty (hi1 < 0)
+    for one range."""
+    return x_ranges_between(c, -reach, reach, n, periodic, rounded)
 
 
 @wp.func
@@ -156,7 +166,8 @@ class Stencil:
     reach ``ay, az`` and periodic bits ``py, pz`` of the rows, the cell's
     ``cy, cz``, the rounded axes ``rx, ry, rz`` (periodic with too few
     cells for images), the x ranges of `x_ranges` and ``pieces``, the (y
-    row, x range) pairs of a z row."""
+    row, x range) pairs of a z row; the cell's ``cx``, the reach ``ax``
+    and periodic bit ``px`` of x."""
     nx: wp.int32
     ny: wp.int32
     nz: wp.int32
@@ -175,6 +186,9 @@ class Stencil:
     hi1: wp.int32
     ox1: wp.int32
     pieces: wp.int32
+    cx: wp.int32
+    ax: wp.int32
+    px: wp.int32
 
 
 @wp.func
@@ -205,6 +219,9 @@ def stencil(flags: int, cells: wp.array(dtype=wp.int32), key: int):
     s.ox1 = ox1
     # Two per y row (a constant divisor), the second empty for one range.
     s.pieces = (2 * ay + 1) * 2
+    s.cx = key % nx
+    s.ax = ax
+    s.px = px
     return s
 
 
@@ -258,6 +275,103 @@ def stencil_functions(scalar):
         return d, wp.dot(d, d)
 
     return span, difference
+
+
+def trim_functions(scalar):
+    """The stencil's rows trimmed to the sphere the stencil covers, for
+    ``scalar``: ``frame(s, p, grid, cells)``, a particle's `Trim`; and
+    ``row_range(s, t, dy, dz)``, whether its stencil row ``(dy, dz)``
+    comes within the sphere and the x cells ``lo..hi`` (relative to its
+    own, ``-ax <= lo <= 0 <= hi <= ax``) that reach it (`x_ranges_between`
+    makes them ranges). The sphere's radius is the least ``width * reach``
+    of the trimmed axes (at least the cutoff, as every cell is at least
+    cutoff / reach wide), widened by a margin for rounding: a row or cell
+    is dropped only where no point of it is within that radius of the
+    particle. Only periodic axes with images are trimmed (a free axis'
+    edge cells also hold the particles clamped into them; a rounded
+    axis' cells are each met once at the minimum image)."""
+    vector = wp.types.vector(3, scalar)
+    Trim = _TRIMS[scalar]
+
+    @wp.func
+    def frame(s: Stencil, p: vector, grid: wp.array(dtype=vector),
+              cells: wp.array(dtype=wp.int32)):
+        o, w, side = grid[ORIGIN], grid[WIDTH], grid[SIDE]
+        f = p - vector(o[0] + scalar(s.cx) * w[0], o[1] + scalar(s.cy) * w[1],
+                       o[2] + scalar(s.cz) * w[2])
+        tx = wp.where(s.px != 0 and s.rx == 0, 1, 0)
+        ty = wp.where(s.py != 0 and s.ry == 0, 1, 0)
+        tz = wp.where(s.pz != 0 and s.rz == 0, 1, 0)
+        big = scalar(3.0e38)
+        radius = wp.min(
+            wp.where(tx != 0, w[0] * scalar(cells[3]), big),
+            wp.min(wp.where(ty != 0, w[1] * scalar(cells[4]), big),
+                   wp.where(tz != 0, w[2] * scalar(cells[5]), big)))
+        largest = wp.max(side[0], wp.max(side[1], side[2]))
+        # Positions within a cell are good to a few ulp of the side.
+        margin = wp.where(radius < big, radius * scalar(0.0009765625)
+                          + largest * scalar(9.5367431640625e-07), scalar(0.0))
+        reach = wp.where(radius < big, radius + margin, big)
+        t = Trim()
+        t.f = f
+        t.w = w
+        t.reach_sq = reach * reach
+        t.margin = margin
+        t.tx = tx
+        t.ty = ty
+        t.tz = tz
+        return t
+
+    @wp.func
+    def gap(d: int, f: scalar, w: scalar, margin: scalar):
+        # From the particle to the nearest point of the cells d away.
+        g = scalar(0.0)
+        if d > 0:
+            g = scalar(d) * w - f
+        if d < 0:
+            g = f - scalar(d + 1) * w
+        return wp.max(g - margin, scalar(0.0))
+
+    @wp.func
+    def row_range(s: Stencil, t: Trim, dy: int, dz: int):
+        gy = wp.where(t.ty != 0, gap(dy, t.f[1], t.w[1], t.margin),
+                      scalar(0.0))
+        gz = wp.where(t.tz != 0, gap(dz, t.f[2], t.w[2], t.margin),
+                      scalar(0.0))
+        h2 = gy * gy + gz * gz
+        lo = -s.ax
+        hi = s.ax
+        if t.tx != 0 and h2 < t.reach_sq:
+            chord = wp.sqrt(t.reach_sq - h2) + t.margin
+            lo = wp.min(wp.max(int(wp.floor((t.f[0] - chord) / t.w[0])),
+                               -s.ax), 0)
+            hi = wp.max(wp.min(int(wp.floor((t.f[0] + chord) / t.w[0])),
+                               s.ax), 0)
+        return h2 < t.reach_sq, lo, hi
+
+    return frame, row_range
+
+
+def _trim_struct(scalar):
+    vector = wp.types.vector(3, scalar)
+
+    class Trim:
+        """A particle's frame for `trim_functions`: its offset ``f`` in
+        its cell, the cell widths ``w``, the sphere's squared radius, the
+        rounding margin and which axes ``tx, ty, tz`` are trimmed."""
+        f: vector
+        w: vector
+        reach_sq: scalar
+        margin: scalar
+        tx: wp.int32
+        ty: wp.int32
+        tz: wp.int32
+
+    Trim.__name__ = Trim.__qualname__ = f"Trim_{scalar.__name__}"
+    return wp.struct(Trim)
+
+
+_TRIMS = {t: _trim_struct(t) for t in (wp.float32, wp.float64)}
 
 
 def pair_functions(scalar, static_bits, hoist):
@@ -340,9 +454,11 @@ def pair_functions(scalar, static_bits, hoist):
 STATIC_BITS = HAS_RADII | DERIVATIVES | COUNT
 
 
-def _walk_kernel(scalar, static_bits, hoist):
+def _walk_kernel(scalar, static_bits, hoist, trim):
     """The thread walk (`lj_sums` step 5) for positions of ``scalar``.
 
+    ``trim``: each stencil row cut to the sphere it covers
+    (`trim_functions`).
     ``static_bits``: the `STATIC_BITS` of ``flags`` fixed at compile time
     (the branches they guard compiled away), or None to read them from
     ``flags``. ``hoist`` (with ``static_bits`` and no radii): the pair
@@ -351,6 +467,7 @@ def _walk_kernel(scalar, static_bits, hoist):
     vector = wp.types.vector(3, scalar)
     _, difference = stencil_functions(scalar)
     terms = pair_functions(scalar, static_bits, hoist)
+    frame, row_range = trim_functions(scalar)
     generic = static_bits is None
     fixed = 0 if generic else int(static_bits)
 
@@ -393,17 +510,29 @@ def _walk_kernel(scalar, static_bits, hoist):
         hits = int(0)
         # `span`'s loops written out (each x range of a row in turn): its
         # pieces cost this walk 8 registers on sm_90 (64 to 72).
+        t = frame(s, p, grid, cells)
         for dz in range(-s.az, s.az + 1):
             z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
             if okz:
                 for dy in range(-s.ay, s.ay + 1):
                     y, oy, oky = row(s.cy, dy, s.ny, s.py, s.ay)
+                    # Fresh values (a field is a reference in Warp).
+                    lo0 = s.lo0 + 0
+                    hi0 = s.hi0 + 0
+                    ox0 = s.ox0 + 0
+                    hi1 = s.hi1 + 0
+                    ox1 = s.ox1 + 0
+                    if wp.static(trim):
+                        near_row, dlo, dhi = row_range(s, t, dy, dz)
+                        oky = oky and near_row
+                        lo0, hi0, ox0, hi1, ox1 = x_ranges_between(
+                            s.cx, dlo, dhi, s.nx, s.px, s.rx)
                     if oky:
                         base = s.nx * (y + s.ny * z)
                         for part in range(2):
-                            lo = wp.where(part == 0, s.lo0, 0)
-                            hi = wp.where(part == 0, s.hi0, s.hi1)
-                            ox = wp.where(part == 0, s.ox0, s.ox1)
+                            lo = wp.where(part == 0, lo0, 0)
+                            hi = wp.where(part == 0, hi0, hi1)
+                            ox = wp.where(part == 0, ox0, ox1)
                             if hi >= lo:
                                 q = p - vector(scalar(ox) * side[0],
                                                scalar(oy) * side[1],
@@ -437,21 +566,26 @@ def _walk_kernel(scalar, static_bits, hoist):
 
 
 _WALKS: dict = {}
+# Stencil rows cut to the sphere they must cover (`trim_functions`): about
+# a third fewer candidates with reach (4, 2, 2), but a warp still walks its
+# longest lane's range (benchmarks/warp_stages.py measures both).
+TRIM = False
 # The walk's threads per block: small blocks let an SM mix more of them
 # while the longest lanes of one finish (benchmarks/warp_stages.py).
 WALK_BLOCK = 64
 
 
 def walk_kernel(scalar, flags: int, *, specialize: bool = True,
-                hoist: bool = True):
+                hoist: bool = True, trim: bool | None = None):
     """The walk for positions of ``scalar`` and ``flags``, built (and
     compiled) on first use: ``specialize`` fixes ``flags``' `STATIC_BITS`
-    at compile time, ``hoist`` takes `lj_forces` where it can
-    (`_walk_kernel`)."""
+    at compile time, ``hoist`` takes `lj_forces` where it can, ``trim``
+    cuts each stencil row to the sphere it covers (`trim_functions`;
+    `TRIM` by default) (`_walk_kernel`)."""
     bits = (int(flags) & STATIC_BITS) if specialize else None
-    key = (scalar, bits, bool(hoist))
+    key = (scalar, bits, bool(hoist), TRIM if trim is None else bool(trim))
     if key not in _WALKS:
-        _WALKS[key] = _walk_kernel(scalar, bits, bool(hoist))
+        _WALKS[key] = _walk_kernel(*key)
     return _WALKS[key]
 
 

@@ -72,11 +72,36 @@ def _pad(rows: wp.array(dtype=wp.int32), first: int, stop: int, value: int):
         rows[k] = value
 
 
-def _rows_kernel(scalar):
-    """The walk that writes rows, for positions of ``scalar``."""
+@wp.func
+def _append(rows: wp.array(dtype=wp.int32), at: int, row_base: int,
+            value: int, b0: int, b1: int, b2: int, b3: int):
+    """Entry ``at`` of a row starting at ``row_base``: kept in its quad's
+    registers (by the address' last two bits), the quad stored when full
+    (entry by entry where the row starts inside it)."""
+    slot = at & 3
+    c0 = wp.where(slot == 0, value, b0)
+    c1 = wp.where(slot == 1, value, b1)
+    c2 = wp.where(slot == 2, value, b2)
+    c3 = wp.where(slot == 3, value, b3)
+    if slot == 3:
+        if at - 3 >= row_base:
+            _store_quad(rows, at >> 2, c0, c1, c2, c3)
+        else:
+            for k in range(row_base, at + 1):
+                rows[k] = _pick(k & 3, c0, c1, c2, c3)
+    return c0, c1, c2, c3
+
+
+def _rows_kernel(scalar, trim):
+    """The walk that writes rows, for positions of ``scalar``; ``trim``:
+    each stencil row cut to the sphere the stencil covers
+    (`jaxrt.backends.cell.warp_kernels.trim_functions`)."""
     vector = wp.types.vector(3, scalar)
-    span, difference = warp_kernels.stencil_functions(scalar)
+    _, difference = warp_kernels.stencil_functions(scalar)
+    frame, row_range = warp_kernels.trim_functions(scalar)
     stencil = warp_kernels.stencil
+    row = warp_kernels.row
+    x_ranges_between = warp_kernels.x_ranges_between
     grid_side = warp_kernels.SIDE
 
     @wp.kernel(module="unique", module_options=warp_kernels.MODULE_OPTIONS)
@@ -112,40 +137,49 @@ def _rows_kernel(scalar):
         b1 = int(0)
         b2 = int(0)
         b3 = int(0)
+        t = frame(s, p, grid, cells)
         for dz in range(-s.az, s.az + 1):
-            for piece in range(s.pieces):
-                first, end, shift = span(s, start, side, dz, piece)
-                q = p - shift
-                for j in range(first, end):
-                    d, d2 = difference(q, position[j], side, s)
-                    # The caller's index is loaded only for the few candidates
-                    # that are kept.
-                    if d2 < outer_sq and (mask_self == 0 or j != i):
-                        theirs = values[j]
-                        if lower_only == 0 or theirs < me:
-                            if d2 < inner_sq:
-                                if hits < row_width:
-                                    at = row_base + hits
-                                    slot = at & 3
-                                    b0 = wp.where(slot == 0, theirs, b0)
-                                    b1 = wp.where(slot == 1, theirs, b1)
-                                    b2 = wp.where(slot == 2, theirs, b2)
-                                    b3 = wp.where(slot == 3, theirs, b3)
-                                    if slot == 3:
-                                        if at - 3 >= row_base:
-                                            _store_quad(rows, at >> 2, b0, b1,
-                                                        b2, b3)
+            z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
+            for dy in range(-s.ay, s.ay + 1):
+                y, oy, oky = row(s.cy, dy, s.ny, s.py, s.ay)
+                near_row = True
+                lo = -s.ax
+                hi = s.ax
+                if wp.static(trim):
+                    near_row, lo, hi = row_range(s, t, dy, dz)
+                if okz and oky and near_row:
+                    base = s.nx * (y + s.ny * z)
+                    lo0, hi0, ox0, hi1, ox1 = x_ranges_between(
+                        s.cx, lo, hi, s.nx, s.px, s.rx)
+                    for part in range(2):
+                        a = wp.where(part == 0, lo0, 0)
+                        b = wp.where(part == 0, hi0, hi1)
+                        ox = wp.where(part == 0, ox0, ox1)
+                        if b >= a:
+                            q = p - vector(scalar(ox) * side[0],
+                                           scalar(oy) * side[1],
+                                           scalar(oz) * side[2])
+                            for j in range(start[base + a],
+                                           start[base + b + 1]):
+                                d, d2 = difference(q, position[j], side, s)
+                                # The caller's index is loaded only for the
+                                # few candidates that are kept.
+                                if d2 < outer_sq and (mask_self == 0
+                                                      or j != i):
+                                    theirs = values[j]
+                                    if lower_only == 0 or theirs < me:
+                                        if d2 < inner_sq:
+                                            if hits < row_width:
+                                                b0, b1, b2, b3 = _append(
+                                                    rows, row_base + hits,
+                                                    row_base, theirs, b0, b1,
+                                                    b2, b3)
+                                            hits = hits + 1
                                         else:
-                                            # The row's first quad starts
-                                            # before it: only its own entries.
-                                            for k in range(row_base, at + 1):
-                                                rows[k] = _pick(k & 3, b0, b1,
-                                                                b2, b3)
-                                hits = hits + 1
-                            else:
-                                if near < shell:
-                                    shells[shell_base + near] = theirs
-                                near = near + 1
+                                            if near < shell:
+                                                shells[shell_base + near] = \
+                                                    theirs
+                                            near = near + 1
         # The entries of an unfinished last quad, then the padding (N, as
         # every list pads).
         stop = row_base + wp.min(hits, row_width)
@@ -161,12 +195,19 @@ def _rows_kernel(scalar):
 _WALKS: dict = {}
 
 
-def rows_kernel(scalar):
-    """The row-writing walk for positions of ``scalar``, built on first
-    use (a module of its own: load it before a graph capture)."""
-    if scalar not in _WALKS:
-        _WALKS[scalar] = _rows_kernel(scalar)
-    return _WALKS[scalar]
+# Each stencil row cut to the sphere it must cover: about a third fewer
+# candidates with the list's reach (4, 2, 2).
+TRIM = True
+
+
+def rows_kernel(scalar, trim: bool | None = None):
+    """The row-writing walk for positions of ``scalar`` (``trim``: as
+    `_rows_kernel`'s, `TRIM` by default), built on first use (a module of
+    its own: load it before a graph capture)."""
+    key = (scalar, TRIM if trim is None else bool(trim))
+    if key not in _WALKS:
+        _WALKS[key] = _rows_kernel(*key)
+    return _WALKS[key]
 
 
 def candidate_rows(points, grid, cells, thresholds, flags: int, *,
