@@ -25,6 +25,8 @@ CELLS_PER_SYSTEM = 64
 # Dense blocks up to this many candidates in all (their flat index is an
 # int32, their keep bits one array); past it the cells search the batch.
 DENSE_MOST = 2 ** 28
+# Slots of every run decided per step of `_half_words`' loop.
+HALF_UNROLL = 8
 
 
 def shift_vectors(s, h):
@@ -226,10 +228,10 @@ class _Binned(NamedTuple):
     w: jax.Array          # float (N, 3) whole cells each atom was moved by
 
 
-def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
-    """The atoms sorted by cell: each target cell's run (first sorted slot
-    and length, int32 ``(N, K)``), ``order`` (slot -> atom) and ``rank``
-    (atom -> slot)."""
+def _sort_cells(coord, cells_a, base_a, real, n_graph):
+    """The atoms sorted by cell: ``order`` (slot -> atom), ``rank`` (atom
+    -> slot) and the key of a cell, and each cell's run (first sorted slot
+    and length, int32 ``(table,)``)."""
     n = coord.shape[0]
     table = table_size(n, n_graph, False)
 
@@ -246,16 +248,18 @@ def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
     first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
         slots, mode="drop")
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(slots)
+    return order, rank, key_of, jnp.stack([first, sizes], axis=1)
+
+
+def _runs_of(target, inside, cells_a, base_a, key_of, runs):
+    """Each target cell's run: first sorted slot and length, int32 ``(N,
+    K)``. One gather for both (the key's arithmetic is fused into the
+    gather, and would be done once per gathered array)."""
     tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
                                     base_a[:, None]), 0)
-    # One gather for both (the key's arithmetic is fused into the gather,
-    # and would be done once per gathered array).
-    run = jnp.stack([first, sizes], axis=1)[tkey]
-    start = run[..., 0]
-    length = jnp.where(inside, run[..., 1], 0)
-    rank = jnp.zeros((n,), jnp.int32).at[order].set(
-        jnp.arange(n, dtype=jnp.int32))
-    return start, length, order, rank
+    run = runs[tkey]
+    return run[..., 0], jnp.where(inside, run[..., 1], 0)
 
 
 class _Frame(NamedTuple):
@@ -305,12 +309,15 @@ def frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
 
 
 def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
-         n_graph, completed, full) -> _Binned:
-    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+              n_graph, completed, full, by_slot=False) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``).
+    ``by_slot`` (not with ``brute``, where slots are atoms): the rows of
+    ``start``, ``length`` and ``image`` are sorted slots, not atoms."""
     n = positions.shape[0]
     (error, real, graph, unclipped, h, bad_cell, h_height, count, pbc_a, w,
      fw) = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
                   completed=completed)
+    frame_real = real
     grid_cells, origin, width, base = _grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
     # The reach covers the cutoff unless the cell is too short for it.
@@ -321,6 +328,20 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     cells_a, base_a = grid_cells[graph], base[graph]
     coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
         jnp.int32), 0, cells_a - 1)
+    atom_w = w
+    if brute:
+        # One cell per system: a system's run is its atoms as given (they
+        # are contiguous; padding atoms in it are skipped by the loop), so
+        # nothing is sorted.
+        order = rank = jnp.arange(n, dtype=jnp.int32)
+    else:
+        order, rank, key_of, runs = _sort_cells(coord, cells_a, base_a, real,
+                                                n_graph)
+        if by_slot:
+            # The atom side in sorted order: atoms of a cell side by side
+            # read the same runs (the reads of the loop stay in cache).
+            coord, cells_a, base_a, pbc_a, real, w = (
+                x[order] for x in (coord, cells_a, base_a, pbc_a, real, w))
     # The half stencil's target cells and their images (docstring, 4.).
     target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
     cells_k = cells_a[:, None, :]
@@ -334,10 +355,6 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
         real[:, None]
     if brute:
-        # One cell per system: a system's run is its atoms as given (they
-        # are contiguous; padding atoms in it are skipped by the loop), so
-        # nothing is sorted.
-        order = rank = jnp.arange(n, dtype=jnp.int32)
         system = jnp.clip(unclipped, 0, n_graph)
         sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
                                     n_graph + 1)
@@ -345,24 +362,24 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         start = jnp.broadcast_to(first[system][:, None], inside.shape)
         length = jnp.where(inside, sizes[system][:, None], 0)
     else:
-        start, length, order, rank = _runs(coord, target, inside, cells_a,
-                                           base_a, real, n_graph)
+        start, length = _runs_of(target, inside, cells_a, base_a, key_of,
+                                 runs)
     # Shifts of the caller's positions: S = S' + w[i] - w[j].
     image = image + w.astype(jnp.int32)[:, None, :]
-    return _Binned(error, real, graph, h[graph], start, length, image, order,
-                   rank, w)
+    return _Binned(error, frame_real, graph, h[graph], start, length, image,
+                   order, rank, atom_w)
 
 
 def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
                 stored, brute, full, half):
     """Step 5: the loop over candidates. Returns the pairs found (int32),
-    per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
-    (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
-    with ``i = N`` (from the ``full`` stencil: decoded, int32 ``(stored,
-    5)`` rows ``(i, j, S)`` padded with ``(N, N, 0)``): from the half
-    stencil each pair is found once; from the
-    ``full`` stencil each atom finds all its own pairs (its representatives
-    only, with ``half``).
+    per atom (int32 ``(N,)``) and the pairs stored: from the half stencil
+    int32 ``i``, ``j`` ``(stored,)`` and ``S`` ``(stored, 3)`` (``i = j =
+    N``, ``S = 0`` where padded), each pair found once; from the ``full``
+    stencil int32 ``(stored, 5)`` rows ``(i, j, S)`` padded with ``(N, N,
+    0)``, each atom finding all its own pairs (its representatives only,
+    with ``half``). With ``b`` by slot (`bin_atoms`), runs of at most a word
+    are read by `_half_words`.
 
     From the ``full`` stencil the candidates are the runs' slots laid end
     to end, atom by atom and offset by offset (``i``-major), and read
@@ -426,34 +443,25 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
                 rows.reshape(-1, 2), mode="drop")
         found = ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
-        return _decoded(*found, b) if full else found
+        return _decoded(*found, b) if full else (
+            *found[:2], _stored_pairs(out, b))
 
     if not full:
-        # Unsorted, the order is free: every run read a slot at a time (as
-        # many steps as the fullest cell holds), which on a CPU costs less
-        # than laying out the stream for one system of ~100 atoms.
-        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
-        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+        def slots():
+            by_atom = b if brute else _by_atom(b)
+            found, per_atom, kept = _slot_loop(
+                decide, by_atom, n=n, k_offsets=k_offsets, stored=stored,
+                out=out)
+            return found, per_atom, _stored_pairs(kept, by_atom)
 
-        def slot_step(t, carry):
-            total, per_atom, out = carry
-            p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
-            keep = ((t < b.length[:, :, None]) & decide(
-                atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
-            ranks = row_ranks(keep)
-            row_count = ranks[:, -1]
-            if stored > 0:
-                at = total + exclusive_prefix(row_count)[:, None] + ranks - 1
-                rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
-                                  p.reshape(n, -1)], axis=-1)
-                out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
-                    rows.reshape(-1, 2), mode="drop")
-            return (total + jnp.sum(row_count, dtype=jnp.int32),
-                    per_atom + row_count, out)
+        if brute:
+            return slots()
 
-        return jax.lax.fori_loop(
-            0, jnp.max(b.length, initial=0), slot_step,
-            (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+        def words():
+            return _half_words(table, b, cut, species, own, stored=stored)
+
+        return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, words,
+                            slots)
 
     # Each branch decodes its rows itself: outside, XLA fuses the binning
     # behind the decoding into it and computes it again for every row.
@@ -472,6 +480,114 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     # are read a word at a time; a fuller cell anywhere falls back to the
     # stream.
     return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, short, stream)
+
+
+def _by_atom(b: _Binned) -> _Binned:
+    """``b`` with the rows of its runs by atom (`bin_atoms`' ``by_slot``
+    undone)."""
+    return b._replace(start=b.start[b.rank], length=b.length[b.rank],
+                      image=b.image[b.rank])
+
+
+def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
+    """`candidates` from the half stencil, runs of any length: every run
+    read a slot at a time (as many steps as the fullest cell holds), which
+    on a CPU costs less than laying out the stream for one system of ~100
+    atoms; the kept candidates stored at the running count."""
+    atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+    k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+
+    def slot_step(t, carry):
+        total, per_atom, out = carry
+        p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
+        keep = ((t < b.length[:, :, None]) & decide(
+            atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
+        ranks = row_ranks(keep)
+        row_count = ranks[:, -1]
+        if stored > 0:
+            at = total + exclusive_prefix(row_count)[:, None] + ranks - 1
+            rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
+                              p.reshape(n, -1)], axis=-1)
+            out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
+                rows.reshape(-1, 2), mode="drop")
+        return (total + jnp.sum(row_count, dtype=jnp.int32),
+                per_atom + row_count, out)
+
+    return jax.lax.fori_loop(
+        0, jnp.max(b.length, initial=0), slot_step,
+        (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+
+
+def _half_words(table, b: _Binned, cut, species, own, *, stored):
+    """`candidates` from the half stencil when no run is longer than a
+    word (``b`` by slot, `bin_atoms`' ``by_slot``): slot ``t`` of every run
+    in step ``t`` of a loop, kept as bit ``t`` of the run's uint32 word,
+    the atoms in sorted order (atoms of a cell read the same runs), then
+    the kept candidates stored in one pass, slot-major: a row's word found
+    by a running maximum, its slot by the rank of its bit. Each candidate
+    is decided as `candidates`' ``decide`` does, with the squared cutoff
+    (`square_limit`)."""
+    n, k_offsets = b.length.shape
+    dtype = table.dtype
+    # Laid out (K, N), the atoms along the fast axis, every column its
+    # own array (as in `_short_runs`).
+    start, length = b.start.T, b.length.T
+    image = [b.image[:, :, c].T for c in range(3)]
+    columns = [table[:, c] for c in range(table.shape[1])]
+    r_i = [x[None, :] for x in columns[:3]]
+    h_s = b.h_atom[b.order]
+    h_i = [[h_s[None, :, a, c] for c in range(3)] for a in range(3)]
+    slot_i = jnp.arange(n, dtype=jnp.int32)[None, :]
+    own_k = own[:, None]
+    limit = square_limit(cut)
+    if species is not None:
+        limit_i = limit[columns[6].astype(jnp.int32)]     # (N, S)
+
+    def slot_bits(t, bits):
+        p = jnp.minimum(start + t, n - 1)
+        sf = [(image[c] - columns[3 + c][p].astype(jnp.int32)).astype(dtype)
+              for c in range(3)]
+        d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
+                                         + sf[2] * h_i[2][c])
+             for c in range(3)]
+        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        if species is None:
+            lim = limit
+        else:
+            lim = jnp.take_along_axis(
+                limit_i, columns[6][p].astype(jnp.int32).T, axis=1,
+                mode="fill", fill_value=-jnp.inf).T
+        # Within the own cell, from the atom sorted first.
+        keep = (t < length) & (d2 <= lim) & (~own_k | (p > slot_i))
+        return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
+                                jnp.uint32(0))
+
+    def block_bits(u, bits):
+        # UNROLL slots a step: one fused pass over the runs reads each
+        # run's start and image once for them all.
+        for t in range(HALF_UNROLL):
+            bits = slot_bits(u * HALF_UNROLL + t, bits)
+        return bits
+
+    blocks = -(-jnp.max(b.length, initial=0) // HALF_UNROLL)
+    bits = jax.lax.fori_loop(0, blocks, block_bits,
+                             jnp.zeros((k_offsets, n), jnp.uint32)).T
+    bits = bits.reshape(-1)                                      # (N K,)
+    counts = popcount(bits)
+    ends = prefix_sum(counts, jnp.float64)
+    per_slot = jnp.sum(counts.reshape(n, k_offsets), axis=1, dtype=jnp.int32)
+    i = j = jnp.full((stored,), n, jnp.int32)
+    s = jnp.zeros((stored, 3), jnp.int32)
+    if stored > 0:
+        wid, rank, kept = row_words(counts, ends, stored)
+        slot = jnp.minimum(b.start.reshape(-1)[wid]
+                           + select_bit(bits[wid], rank), n - 1)
+        i = jnp.where(kept, b.order[jax.lax.div(wid, jnp.int32(k_offsets))],
+                      n)
+        j = jnp.where(kept, b.order[slot], n)
+        s = jnp.where(kept[:, None], b.image.reshape(-1, 3)[wid] - b.w[
+            jnp.minimum(j, n - 1)].astype(jnp.int32), 0)
+    return ends[-1], per_slot[b.rank], (i, j, s)
 
 
 def square_limit(cut):
@@ -678,11 +794,12 @@ def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):
         degree, binned.graph, n_graph)
 
 
-def pair_rows(found, per_atom, out, binned, *, half, n_graph):
-    """The stored rows as pairs ``(i, j, S)``: both directions of each (a
-    full list) or its representative (a half list). Returns the rows, their
-    count and the count per system (exact past the capacity)."""
-    i, j, s = _stored_pairs(out, binned)
+def pair_rows(found, per_atom, pairs, binned, *, half, n_graph):
+    """The stored pairs ``(i, j, S)`` (int32 ``(R,)``, ``(R,)``, ``(R, 3)``,
+    ``i = N`` where padded) as rows: both directions of each (a full list)
+    or its representative (a half list). Returns the rows, their count and
+    the count per system (exact past the capacity)."""
+    i, j, s = pairs
     per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
     if half:
         # The representative: i < j, or i == j and S > 0.

@@ -127,7 +127,8 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
                        capacity=capacity)
     binned = bin_atoms(positions, graph, mask, cells.astype(dtype), pbc,
                        radius, reach=reach, brute=brute, n_graph=n_graph,
-                       completed=completed, full=sort)
+                       completed=completed, full=sort,
+                       by_slot=not (sort or brute))
     selfs = self_mask(binned.real, cut, species) if self_interaction \
         else None
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
