@@ -240,11 +240,18 @@ def _sort_cells(coord, cells_a, base_a, real, n_graph):
             cells_c[..., 0] + c[..., 0]
 
     key = jnp.where(real, key_of(coord, cells_a, base_a), table)
-    sorted_key, order = jax.lax.sort(
-        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    slots = jnp.arange(n, dtype=jnp.int32)
+    if jax.dtypes.canonicalize_dtype(jnp.int64) == jnp.int64:
+        # Stable: key and atom as one int64, and one array sorts several
+        # times faster than a key with its payload.
+        packed = jax.lax.sort((key.astype(jnp.int64) << 32) | slots)
+        sorted_key = (packed >> 32).astype(jnp.int32)
+        order = (packed & 0xFFFFFFFF).astype(jnp.int32)
+    else:  # no int64 (x64 off): the same order
+        sorted_key, order = jax.lax.sort((key, slots), num_keys=1,
+                                         is_stable=True)
     # Each cell's run: its first sorted slot and its length, by two
     # scatters (an empty cell's start is never read).
-    slots = jnp.arange(n, dtype=jnp.int32)
     first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
         slots, mode="drop")
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
