@@ -124,23 +124,25 @@ def _triangular_dot(x, strict: bool = False):
 _PREFIX_BLOCK = 64
 
 
-def prefix_sum(x, dtype=jnp.float32):
+def prefix_sum(x, dtype=jnp.float32, small: bool = False):
     """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
     triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
     sum may pass 2^24): a CPU runs them several times faster than
-    ``cumsum``'s scan."""
+    ``cumsum``'s scan. ``small``: every entry is at most 2^18, so the sums
+    within a block are exact in float32, which the first products use."""
     m = x.shape[0]
     if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
         return jnp.cumsum(x, dtype=jnp.int32)
-    x = x.astype(dtype)
+    x = x.astype(jnp.float32 if small else dtype)
     if m <= _PREFIX_BLOCK:
         return _triangular_dot(x).astype(jnp.int32)
     rows = -(-m // _PREFIX_BLOCK)
     inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
         rows, _PREFIX_BLOCK))
     totals = inner[:, -1]
-    before = prefix_sum(totals, dtype).astype(dtype) - totals
-    return (inner + before[:, None]).reshape(-1)[:m].astype(jnp.int32)
+    before = prefix_sum(totals, dtype).astype(dtype) - totals.astype(dtype)
+    return (inner.astype(dtype) + before[:, None]).reshape(-1)[:m].astype(
+        jnp.int32)
 
 
 _RANK_BLOCK = 32
@@ -219,10 +221,11 @@ class _Binned(NamedTuple):
     error: jax.Array      # int32 bits so far
     real: jax.Array       # bool (N,)
     graph: jax.Array      # int32 (N,)
-    h_atom: jax.Array     # (N, 3, 3) each atom's completed cell
+    h_atom: jax.Array     # (N, 3, 3) each atom's (by slot) completed cell
     start: jax.Array      # int32 (N, K) first sorted slot of each target run
     length: jax.Array     # int32 (N, K) its length
     image: jax.Array      # int32 (N, K, 3) S' + w[i] of each target
+    # (by slot: (K, N), (K, N) and (3, K, N), `bin_atoms`)
     order: jax.Array      # int32 (N,) sorted slot -> atom
     rank: jax.Array       # int32 (N,) atom -> sorted slot
     w: jax.Array          # float (N, 3) whole cells each atom was moved by
@@ -230,16 +233,12 @@ class _Binned(NamedTuple):
 
 def _sort_cells(coord, cells_a, base_a, real, n_graph):
     """The atoms sorted by cell: ``order`` (slot -> atom), ``rank`` (atom
-    -> slot) and the key of a cell, and each cell's run (first sorted slot
+    -> slot) and each cell's run (first sorted slot
     and length, int32 ``(table,)``)."""
     n = coord.shape[0]
     table = table_size(n, n_graph, False)
-
-    def key_of(c, cells_c, base_c):
-        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
-            cells_c[..., 0] + c[..., 0]
-
-    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
+    key = jnp.where(real, base_a + (coord[:, 2] * cells_a[:, 1] + coord[:, 1])
+                    * cells_a[:, 0] + coord[:, 0], table)
     slots = jnp.arange(n, dtype=jnp.int32)
     if jax.dtypes.canonicalize_dtype(jnp.int64) == jnp.int64:
         # Stable: key and atom as one int64, and one array sorts several
@@ -256,15 +255,16 @@ def _sort_cells(coord, cells_a, base_a, real, n_graph):
         slots, mode="drop")
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
     rank = jnp.zeros((n,), jnp.int32).at[order].set(slots)
-    return order, rank, key_of, jnp.stack([first, sizes], axis=1)
+    return order, rank, jnp.stack([first, sizes], axis=1)
 
 
-def _runs_of(target, inside, cells_a, base_a, key_of, runs):
-    """Each target cell's run: first sorted slot and length, int32 ``(N,
-    K)``. One gather for both (the key's arithmetic is fused into the
-    gather, and would be done once per gathered array)."""
-    tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
-                                    base_a[:, None]), 0)
+def _runs_of(target, inside, cells_k, base_k, runs):
+    """Each target cell's run: first sorted slot and length, int32 (the
+    shape of ``inside``; ``target`` and ``cells_k`` a list per axis). One
+    gather for both (the key's arithmetic is fused into the gather, and
+    would be done once per gathered array)."""
+    tkey = jnp.where(inside, base_k + (target[2] * cells_k[1] + target[1])
+                     * cells_k[0] + target[0], 0)
     run = runs[tkey]
     return run[..., 0], jnp.where(inside, run[..., 1], 0)
 
@@ -318,8 +318,9 @@ def frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
 def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
               n_graph, completed, full, by_slot=False) -> _Binned:
     """Steps 1-4 of the module docstring (step 1 unless ``completed``).
-    ``by_slot`` (not with ``brute``, where slots are atoms): the rows of
-    ``start``, ``length`` and ``image`` are sorted slots, not atoms."""
+    ``by_slot`` (not with ``brute``): ``start`` and ``length`` are laid out
+    ``(K, N)`` and ``image`` ``(3, K, N)``, their atoms (and ``h_atom``'s)
+    sorted slots."""
     n = positions.shape[0]
     (error, real, graph, unclipped, h, bad_cell, h_height, count, pbc_a, w,
      fw) = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
@@ -342,25 +343,40 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         # nothing is sorted.
         order = rank = jnp.arange(n, dtype=jnp.int32)
     else:
-        order, rank, key_of, runs = _sort_cells(coord, cells_a, base_a, real,
-                                                n_graph)
+        order, rank, runs = _sort_cells(coord, cells_a, base_a, real,
+                                        n_graph)
         if by_slot:
             # The atom side in sorted order: atoms of a cell side by side
             # read the same runs (the reads of the loop stay in cache).
             coord, cells_a, base_a, pbc_a, real, w = (
                 x[order] for x in (coord, cells_a, base_a, pbc_a, real, w))
-    # The half stencil's target cells and their images (docstring, 4.).
-    target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
-    cells_k = cells_a[:, None, :]
+    # The half stencil's target cells and their images (docstring, 4.);
+    # by slot laid out (K, N) (offset-major: the loop's layout), an array
+    # per axis.
+    o = offsets(reach, full)
+    if by_slot:
+        target = [coord[None, :, c] + jnp.asarray(o[:, c, None])
+                  for c in range(3)]
+        cells_k = [cells_a[None, :, c] for c in range(3)]
+        pbc_k = [pbc_a[None, :, c] for c in range(3)]
+        real_k, base_k = real[None], base_a[None]
+    else:
+        target = [coord[:, None, c] + jnp.asarray(o[None, :, c])
+                  for c in range(3)]
+        cells_k = [cells_a[:, None, c] for c in range(3)]
+        pbc_k = [pbc_a[:, None, c] for c in range(3)]
+        real_k, base_k = real[:, None], base_a[:, None]
     # floor(target / cells) of small whole numbers, in float32 (exact:
     # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
     # faster than an integer division.
-    image = jnp.where(pbc_a[:, None, :], jnp.floor(
-        (target.astype(jnp.float32) + 0.5) / cells_k.astype(jnp.float32)
-    ).astype(jnp.int32), 0)
-    target = target - image * cells_k
-    inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
-        real[:, None]
+    image = [jnp.where(p, jnp.floor((t.astype(jnp.float32) + 0.5)
+                                    / c.astype(jnp.float32)).astype(
+                                        jnp.int32), 0)
+             for t, c, p in zip(target, cells_k, pbc_k)]
+    target = [t - m * c for t, m, c in zip(target, image, cells_k)]
+    inside = real_k
+    for t, c in zip(target, cells_k):
+        inside = inside & (t >= 0) & (t < c)
     if brute:
         system = jnp.clip(unclipped, 0, n_graph)
         sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
@@ -369,12 +385,16 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         start = jnp.broadcast_to(first[system][:, None], inside.shape)
         length = jnp.where(inside, sizes[system][:, None], 0)
     else:
-        start, length = _runs_of(target, inside, cells_a, base_a, key_of,
-                                 runs)
+        start, length = _runs_of(target, inside, cells_k, base_k, runs)
     # Shifts of the caller's positions: S = S' + w[i] - w[j].
-    image = image + w.astype(jnp.int32)[:, None, :]
-    return _Binned(error, frame_real, graph, h[graph], start, length, image,
-                   order, rank, atom_w)
+    wi = w.astype(jnp.int32)
+    if by_slot:  # (3, K, N): an array per axis
+        image = jnp.stack([m + wi[None, :, c] for c, m in enumerate(image)])
+    else:
+        image = jnp.stack(image, axis=-1) + wi[:, None, :]
+    return _Binned(error, frame_real, graph, h[graph[order] if by_slot
+                                                else graph], start, length,
+                   image, order, rank, atom_w)
 
 
 def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
@@ -399,6 +419,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     b = binned
     own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
     k_offsets = own.shape[0]
+    by_slot = not (full or brute)  # as `bin_atoms` was told
     columns = [positions[b.order], b.w[b.order]]
     if species is not None:
         columns.append(species[b.order][:, None].astype(dtype))
@@ -412,7 +433,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
         row = table[p]
         s = image - row[..., 3:6].astype(jnp.int32)
         d = (row[..., :3] - positions[i]) + shift_vectors(
-            s.astype(dtype), b.h_atom[i])
+            s.astype(dtype), b.h_atom[b.rank[i] if by_slot else i])
         dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
                         + d[..., 2] * d[..., 2])
         if species is None:
@@ -458,7 +479,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             by_atom = b if brute else _by_atom(b)
             found, per_atom, kept = _slot_loop(
                 decide, by_atom, n=n, k_offsets=k_offsets, stored=stored,
-                out=out)
+                out=jnp.broadcast_to(pad, (stored, 2)))
             return found, per_atom, _stored_pairs(kept, by_atom)
 
         if brute:
@@ -491,9 +512,10 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
 
 def _by_atom(b: _Binned) -> _Binned:
     """``b`` with the rows of its runs by atom (`bin_atoms`' ``by_slot``
-    undone)."""
-    return b._replace(start=b.start[b.rank], length=b.length[b.rank],
-                      image=b.image[b.rank])
+    undone; ``h_atom`` stays by slot)."""
+    return b._replace(start=b.start.T[b.rank], length=b.length.T[b.rank],
+                      image=jnp.moveaxis(b.image, 0, -1).transpose(
+                          1, 0, 2)[b.rank])
 
 
 def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
@@ -534,16 +556,14 @@ def _half_words(table, b: _Binned, cut, species, own, *, stored):
     by a running maximum, its slot by the rank of its bit. Each candidate
     is decided as `candidates`' ``decide`` does, with the squared cutoff
     (`square_limit`)."""
-    n, k_offsets = b.length.shape
+    k_offsets, n = b.length.shape
     dtype = table.dtype
     # Laid out (K, N), the atoms along the fast axis, every column its
     # own array (as in `_short_runs`).
-    start, length = b.start.T, b.length.T
-    image = [b.image[:, :, c].T for c in range(3)]
+    start, length, image = b.start, b.length, b.image
     columns = [table[:, c] for c in range(table.shape[1])]
     r_i = [x[None, :] for x in columns[:3]]
-    h_s = b.h_atom[b.order]
-    h_i = [[h_s[None, :, a, c] for c in range(3)] for a in range(3)]
+    h_i = [[b.h_atom[None, :, a, c] for c in range(3)] for a in range(3)]
     slot_i = jnp.arange(n, dtype=jnp.int32)[None, :]
     own_k = own[:, None]
     limit = square_limit(cut)
@@ -578,21 +598,20 @@ def _half_words(table, b: _Binned, cut, species, own, *, stored):
 
     blocks = -(-jnp.max(b.length, initial=0) // HALF_UNROLL)
     bits = jax.lax.fori_loop(0, blocks, block_bits,
-                             jnp.zeros((k_offsets, n), jnp.uint32)).T
-    bits = bits.reshape(-1)                                      # (N K,)
+                             jnp.zeros((k_offsets, n), jnp.uint32))
+    per_slot = jnp.sum(popcount(bits), axis=0, dtype=jnp.int32)
+    bits = bits.reshape(-1)                                      # (K N,)
     counts = popcount(bits)
-    ends = prefix_sum(counts, jnp.float64)
-    per_slot = jnp.sum(counts.reshape(n, k_offsets), axis=1, dtype=jnp.int32)
+    ends = prefix_sum(counts, jnp.float64, small=True)
     i = j = jnp.full((stored,), n, jnp.int32)
     s = jnp.zeros((stored, 3), jnp.int32)
     if stored > 0:
         wid, rank, kept = row_words(counts, ends, stored)
         slot = jnp.minimum(b.start.reshape(-1)[wid]
                            + select_bit(bits[wid], rank), n - 1)
-        i = jnp.where(kept, b.order[jax.lax.div(wid, jnp.int32(k_offsets))],
-                      n)
+        i = jnp.where(kept, b.order[jax.lax.rem(wid, jnp.int32(n))], n)
         j = jnp.where(kept, b.order[slot], n)
-        s = jnp.where(kept[:, None], b.image.reshape(-1, 3)[wid] - b.w[
+        s = jnp.where(kept[:, None], b.image.reshape(3, -1)[:, wid].T - b.w[
             jnp.minimum(j, n - 1)].astype(jnp.int32), 0)
     return ends[-1], per_slot[b.rank], (i, j, s)
 
@@ -669,7 +688,7 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
                              jnp.zeros((k_offsets, n), jnp.uint32)).T
     bits = bits.reshape(-1)                                      # (N K,)
     counts = popcount(bits)
-    ends = prefix_sum(counts, jnp.float64)
+    ends = prefix_sum(counts, jnp.float64, small=True)
     per_atom = jnp.sum(counts.reshape(n, k_offsets), axis=1,
                        dtype=jnp.int32)
     rows = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
