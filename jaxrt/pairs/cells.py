@@ -348,8 +348,11 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         if by_slot:
             # The atom side in sorted order: atoms of a cell side by side
             # read the same runs (the reads of the loop stay in cache).
-            coord, cells_a, base_a, pbc_a, real, w = (
-                x[order] for x in (coord, cells_a, base_a, pbc_a, real, w))
+            # Written out once (each reader would gather them again).
+            coord, cells_a, base_a, pbc_a, real, w = \
+                jax.lax.optimization_barrier(tuple(
+                    x[order] for x in (coord, cells_a, base_a, pbc_a, real,
+                                       w)))
     # The half stencil's target cells and their images (docstring, 4.);
     # by slot laid out (K, N) (offset-major: the loop's layout), an array
     # per axis.
@@ -392,9 +395,15 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         image = jnp.stack([m + wi[None, :, c] for c, m in enumerate(image)])
     else:
         image = jnp.stack(image, axis=-1) + wi[:, None, :]
-    return _Binned(error, frame_real, graph, h[graph[order] if by_slot
-                                                else graph], start, length,
-                   image, order, rank, atom_w)
+    if n_graph == 1:  # a broadcast (a gather would be written out)
+        h_atom = jnp.broadcast_to(h[0], (n, 3, 3))
+    else:
+        h_atom = h[graph[order] if by_slot else graph]
+    if by_slot:  # written out once, for the loop and the rows both
+        start, length, image = jax.lax.optimization_barrier(
+            (start, length, image))
+    return _Binned(error, frame_real, graph, h_atom, start, length, image,
+                   order, rank, atom_w)
 
 
 def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
@@ -609,6 +618,9 @@ def _half_words(table, b: _Binned, cut, species, own, *, stored):
         wid, rank, kept = row_words(counts, ends, stored)
         slot = jnp.minimum(b.start.reshape(-1)[wid]
                            + select_bit(bits[wid], rank), n - 1)
+        # Written out once: each of the rows' columns below would compute
+        # them again.
+        wid, slot, kept = jax.lax.optimization_barrier((wid, slot, kept))
         i = jnp.where(kept, b.order[jax.lax.rem(wid, jnp.int32(n))], n)
         j = jnp.where(kept, b.order[slot], n)
         s = jnp.where(kept[:, None], b.image.reshape(3, -1)[:, wid].T - b.w[
@@ -823,22 +835,25 @@ def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):
 def pair_rows(found, per_atom, pairs, binned, *, half, n_graph):
     """The stored pairs ``(i, j, S)`` (int32 ``(R,)``, ``(R,)``, ``(R, 3)``,
     ``i = N`` where padded) as rows: both directions of each (a full list)
-    or its representative (a half list). Returns the rows, their count and
-    the count per system (exact past the capacity)."""
+    or its representative (a half list). Returns the rows as five int32
+    columns (``i``, ``j``, ``S``; a list: XLA reads the output's ``i``,
+    ``j`` and ``S`` straight from them, no array of rows in between), their
+    count and the count per system (exact past the capacity)."""
     i, j, s = pairs
+    s = [s[:, c] for c in range(3)]
     per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
     if half:
         # The representative: i < j, or i == j and S > 0.
-        swap = (j < i) | ((j == i) & ~lex_positive(s))
-        rows = jnp.concatenate([
-            jnp.stack([jnp.where(swap, j, i), jnp.where(swap, i, j)], axis=1),
-            jnp.where(swap[:, None], -s, s)], axis=1)
-        return rows, found, per_system
+        swap = (j < i) | ((j == i) & ~lex_positive(jnp.stack(s, axis=-1)))
+        return ([jnp.where(swap, j, i), jnp.where(swap, i, j)]
+                + [jnp.where(swap, -x, x) for x in s]), found, per_system
+
     # Each pair next to its reverse (j, i, -S).
-    forward = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
-    reverse = jnp.concatenate([j[:, None], i[:, None], -s], axis=1)
-    rows = jnp.stack([forward, reverse], axis=1).reshape(-1, 5)
-    return rows, 2 * found, 2 * per_system
+    def interleave(a, b):
+        return jnp.stack([a, b], axis=1).reshape(-1)
+
+    return ([interleave(i, j), interleave(j, i)]
+            + [interleave(x, -x) for x in s]), 2 * found, 2 * per_system
 
 
 def self_mask(real, cut, species):

@@ -145,9 +145,10 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
         found, per_atom, out = candidates(
             positions, binned, cut, species, reach=reach, chunk=chunk,
             stored=stored, brute=brute, full=False, half=half)
-        rows, total, per_system = pair_rows(
+        columns, total, per_system = pair_rows(
             found, per_atom, out, binned, half=half, n_graph=n_graph)
         if self_interaction:
+            rows = jnp.stack(columns, axis=1)
             self_rows, n_self, self_system = self_pair_rows(
                 selfs, binned.graph, n_graph)
             both = jnp.concatenate([self_rows, jnp.broadcast_to(
@@ -155,19 +156,24 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
             rows = jax.lax.dynamic_update_slice(both, rows,
                                                 (n_self, jnp.int32(0)))
             total, per_system = total + n_self, per_system + self_system
+            columns = [rows[:capacity, c] for c in range(5)]
         else:
-            rows = jnp.concatenate([rows, jnp.broadcast_to(
-                pad, (max(capacity - rows.shape[0], 0), 5))])
-        rows = rows[:capacity]
+            extra = max(capacity - columns[0].shape[0], 0)
+            columns = [jnp.concatenate([x, jnp.full((extra,), v, jnp.int32)])[
+                :capacity] for x, v in zip(columns, (n, n, 0, 0, 0))]
+        rows = columns
     return _finish(rows, total, per_system, binned.error, pad_index, n=n,
                    capacity=capacity)
 
 
 def _finish(rows, total, per_system, error, pad_index, *, n, capacity):
-    """Padding rows set to ``pad_index``, the capacity's bit."""
-    padding = rows[:, 0] >= n
-    fill = jnp.concatenate([jnp.broadcast_to(pad_index, (2,)).astype(
-        jnp.int32), jnp.zeros((3,), jnp.int32)])
-    rows = jnp.where(padding[:, None], fill, rows)
+    """Padding rows set to ``pad_index``, the capacity's bit; ``rows`` an
+    int32 ``(capacity, 5)`` array or its five columns."""
+    columns = rows if isinstance(rows, list) else [rows[:, c]
+                                                   for c in range(5)]
+    padding = columns[0] >= n
+    fill = [jnp.asarray(pad_index, jnp.int32)] * 2 + [jnp.int32(0)] * 3
+    rows = jnp.stack([jnp.where(padding, f, x) for f, x in zip(fill, columns)],
+                     axis=1)
     error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
     return rows, total, per_system, error.astype(jnp.int32)
