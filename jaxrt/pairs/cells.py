@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
-from jaxrt.pairs.words import WORD, pack, popcount, row_words, select_bit
+from jaxrt.pairs.words import WORD, popcount, row_words, select_bit
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -520,8 +520,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
 
 
 def _by_atom(b: _Binned) -> _Binned:
-    """``b`` with the rows of its runs by atom (`bin_atoms`' ``by_slot``
-    undone; ``h_atom`` stays by slot)."""
+    """``b``'s runs by atom (``by_slot`` undone; not ``h_atom``)."""
     return b._replace(start=b.start.T[b.rank], length=b.length.T[b.rank],
                       image=jnp.moveaxis(b.image, 0, -1).transpose(
                           1, 0, 2)[b.rank])
@@ -529,9 +528,8 @@ def _by_atom(b: _Binned) -> _Binned:
 
 def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
     """`candidates` from the half stencil, runs of any length: every run
-    read a slot at a time (as many steps as the fullest cell holds), which
-    on a CPU costs less than laying out the stream for one system of ~100
-    atoms; the kept candidates stored at the running count."""
+    read a slot at a time (as many steps as the fullest cell holds), the
+    kept candidates stored at the running count."""
     atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
     k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
 
@@ -800,80 +798,3 @@ def _decoded(found, per_atom, out, binned: _Binned):
     i, j, s = _stored_pairs(out, binned)
     return found, per_atom, jnp.concatenate([i[:, None], j[:, None], s],
                                             axis=1)
-
-
-def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):
-    """The full stencil's rows (int32 ``(capacity, 5)`` from `candidates`),
-    found ``i``-major (so stored at their place when there are no self
-    pairs), with atom ``i``'s self pair (``selfs``) placed before its
-    pairs. Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``,
-    their count and the count per system."""
-    n = binned.order.shape[0]
-    i = rows[:, 0]
-    if selfs is None:
-        return rows, jnp.sum(per_atom, dtype=jnp.int32), \
-            jax.ops.segment_sum(per_atom, binned.graph, n_graph)
-    kept = i < n
-    at_i = jnp.where(kept, i, 0)
-    own = selfs.astype(jnp.int32)
-    # Each pair moves down by the self pairs of the atoms up to its own.
-    before = prefix_sum(own, jnp.float64)
-    at = jnp.where(kept, jnp.arange(capacity, dtype=jnp.int32)
-                   + before[at_i], capacity)
-    placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
-                              (capacity, 5)).at[at].set(rows, mode="drop")
-    degree = per_atom + own
-    first = exclusive_prefix(degree)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    placed = placed.at[jnp.where(selfs, first, capacity)].set(
-        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-        mode="drop")
-    return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
-        degree, binned.graph, n_graph)
-
-
-def pair_rows(found, per_atom, pairs, binned, *, half, n_graph):
-    """The stored pairs ``(i, j, S)`` (int32 ``(R,)``, ``(R,)``, ``(R, 3)``,
-    ``i = N`` where padded) as rows: both directions of each (a full list)
-    or its representative (a half list). Returns the rows as five int32
-    columns (``i``, ``j``, ``S``; a list: XLA reads the output's ``i``,
-    ``j`` and ``S`` straight from them, no array of rows in between), their
-    count and the count per system (exact past the capacity)."""
-    i, j, s = pairs
-    s = [s[:, c] for c in range(3)]
-    per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
-    if half:
-        # The representative: i < j, or i == j and S > 0.
-        swap = (j < i) | ((j == i) & ~lex_positive(jnp.stack(s, axis=-1)))
-        return ([jnp.where(swap, j, i), jnp.where(swap, i, j)]
-                + [jnp.where(swap, -x, x) for x in s]), found, per_system
-
-    # Each pair next to its reverse (j, i, -S).
-    def interleave(a, b):
-        return jnp.stack([a, b], axis=1).reshape(-1)
-
-    return ([interleave(i, j), interleave(j, i)]
-            + [interleave(x, -x) for x in s]), 2 * found, 2 * per_system
-
-
-def self_mask(real, cut, species):
-    """bool ``(N,)``: the atoms with a self pair ``(i, i, 0)``, the real
-    ones whose own cutoff is positive (ASE keeps ``0 < rc``)."""
-    if species is None:
-        return real & (cut > 0)
-    return real & (cut.at[species, species].get(mode="fill",
-                                                 fill_value=0) > 0)
-
-
-def self_pair_rows(selfs, graph, n_graph):
-    """Step 6's self pairs ``(i, i, 0)`` of ``selfs``, packed first: int32
-    ``(N, 5)``, their count and count per system."""
-    n = selfs.shape[0]
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    at = exclusive_prefix(selfs.astype(jnp.int32))
-    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
-    rows = jnp.broadcast_to(pad, (n, 5)).at[jnp.where(selfs, at, n)].set(
-        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-        mode="drop")
-    return rows, jnp.sum(selfs, dtype=jnp.int32), jax.ops.segment_sum(
-        selfs.astype(jnp.int32), graph, n_graph)

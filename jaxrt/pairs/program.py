@@ -74,9 +74,9 @@ import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.blocks import dense_rows
-from jaxrt.pairs.cells import (DENSE_MOST, bin_atoms, candidates, offsets,
-                               pair_rows, placed_rows, self_mask,
-                               self_pair_rows)
+from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
+from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
+                              self_pair_rows)
 
 
 @functools.partial(jax.jit, static_argnames=(
