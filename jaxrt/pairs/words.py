@@ -27,15 +27,14 @@ def pack(keep):
 
 def select_bit(bits, rank):
     """int32 ``(R,)``: the position of the set bit of rank ``rank`` (int32
-    ``(R,)``, from 0, below the word's count) in each uint32 ``bits``
-    ``(R,)``: the largest position with at most ``rank`` set bits below
-    it, found by halving (five counts a row, not one per bit)."""
-    at = jnp.zeros(bits.shape, jnp.uint32)
-    for width in (16, 8, 4, 2, 1):
-        step = at + jnp.uint32(width)
-        below = popcount(bits & ((jnp.uint32(1) << step) - jnp.uint32(1)))
-        at = jnp.where(below <= rank, step, at)
-    return at.astype(jnp.int32)
+    ``(R,)``, from 0) in each uint32 ``bits`` ``(R,)``: the bits whose
+    inclusive count is at most ``rank``, counted (one reduction: XLA
+    writes it out once rather than computing it again in each reader)."""
+    lanes = jnp.arange(WORD, dtype=jnp.uint32)
+    # (2 << 31) - 1 wraps to every bit, as wanted.
+    upto = (jnp.uint32(2) << lanes) - jnp.uint32(1)
+    inclusive = popcount(bits[:, None] & upto)
+    return jnp.sum(inclusive <= rank[:, None], axis=1, dtype=jnp.int32)
 
 
 def running_max(x):
