@@ -6,11 +6,17 @@ idle time (a ``while_loop`` on a GPU reads its predicate back every trip).
 Cases (``--cases``, each ``NAME:N``):
 
 * ``pairs:N``: `jaxrt.pairs` jitted with `jaxrt.pairs_sizes`' sizes, on
-  pairs.py's diamond scene (float32, cutoff 5).
+  pairs.py's diamond scene (float32, its cutoff); ``pairs-looped:N``
+  with the short runs' loop kept a loop on the GPU
+  (``jaxrt.pairs.cells.UNROLL_SLOTS_ON_CUDA`` off).
 * ``rows:N``: `jaxrt.backends.rt.ffi.cell_candidate_rows` jitted alone, on
-  warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``).
+  warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``),
+  Warp's graphs on (``rows-none``, ``rows-jax``: the other graph modes).
 * ``update:N``: the ``cell[warp]`` Dense list's jitted update on the same
-  scene (and ``update-pallas:N``: ``cell[pallas]``).
+  scene; ``update-pallas``: ``cell[pallas]``; ``update-warp-G``:
+  ``cell[warp]`` with ``warp_graph=G`` (none, warp, jax).
+* ``step:N``: md_step.py's LJ NVE step on the default Dense list, ten
+  steps in one ``lax.scan`` per call (so per step: a tenth).
 
 One CSV row per (case, kernel): calls per traced call, device time per
 traced call (summed over the kernel's launches), and per case a
@@ -36,12 +42,15 @@ else:
     import _harness
 
 
-def _pairs_case(n):
+def _pairs_case(n, unroll=True):
     import jax
     import jax.numpy as jnp
     import numpy as np
     import jaxrt
     import pairs as pairs_bench
+    from jaxrt.pairs import cells
+    cells.UNROLL_SLOTS_ON_CUDA = unroll
+    jax.clear_caches()
     pos, cell = pairs_bench.scene(n)
     x = jnp.asarray(pos, jnp.float32)
     c = jnp.asarray(cell, jnp.float32)
@@ -60,7 +69,7 @@ def _uniform(n):
                        .astype(np.float32)), side
 
 
-def _rows_case(n, width):
+def _rows_case(n, width, graph=None):
     import jax
     import warp_rebuild_stages as stages_bench
     R, side = _uniform(n)
@@ -71,7 +80,9 @@ def _rows_case(n, width):
     grid, cells, table, thresholds, flags = stages_bench.jax_stages(
         Quiet(), [R], side, n, width, False)
     from jaxrt.backends.rt import ffi
-    graph = "warp" if jax.default_backend() in ("gpu", "cuda") else "none"
+    if jax.default_backend() not in ("gpu", "cuda"):
+        graph = "none"
+    graph = graph or "warp"
     f = jax.jit(lambda p, g, c, t: ffi.cell_candidate_rows(
         p, g, c, t, flags=flags, table=table, row_width=width,
         shell=stages_bench.SHELL, graph=graph))
@@ -89,6 +100,35 @@ def _update_case(n, backend):
     nbrs = fns.allocate(R)
     update = jax.jit(fns.update)
     return lambda: update(R, nbrs).idx, n
+
+
+UPDATES = {"update": "cell[warp]", "update-pallas": "cell[pallas]",
+           "update-warp-none": "cell[kernel=warp,warp_graph=none]",
+           "update-warp-warp": "cell[kernel=warp,warp_graph=warp]",
+           "update-warp-jax": "cell[kernel=warp,warp_graph=jax]"}
+
+
+def _step_case(n, steps=10):
+    """md_step.py's LJ NVE step with the default Dense list (its lattice
+    numbering): ``steps`` steps in one ``lax.scan`` per call."""
+    import jax
+    import md_step
+    job = {"steps": steps, "repeats": 1, "warmup": 0}
+    captured = {}
+    original = md_step._harness.time_carry
+
+    def keep(run, carry, **kwargs):
+        captured["call"] = lambda: run(carry)
+        return original(run, carry, **kwargs)
+    md_step._harness.time_carry = keep
+    try:
+        row = md_step.lj_step("jaxrt:cell/Dense", n, job)
+    finally:
+        md_step._harness.time_carry = original
+    print(f"  step:{n}: k {row.get('k')}, rebuilds per step "
+          f"{row.get('rebuilds_per_step')}", flush=True)
+    return (lambda: jax.tree_util.tree_leaves(captured["call"]())[0],
+            int(row["N"]))
 
 
 def _device_events(path):
@@ -144,7 +184,7 @@ def profile(case, fn, repeats, common):
                      "us_per_call": ns / repeats / 1e3, **common})
     print(f"== {case}: wall {rows[0]['us_per_call']:.1f} us, device busy "
           f"{busy:.1f} us, lines {dict(lines)}", flush=True)
-    for r in rows[2:22]:
+    for r in rows[2:14]:
         print(f"  {r['us_per_call']:10.1f} us  x{r['calls']:<6g} "
               f"{r['kernel'][:90]}", flush=True)
     return rows
@@ -171,16 +211,18 @@ def main(argv=None) -> None:
         name, _, size = case.partition(":")
         n = int(size or 1000)
         try:
-            if name == "pairs":
-                fn, n = _pairs_case(n)
-            elif name == "rows":
-                fn, n = _rows_case(n, args.width)
-            elif name in ("update", "update-pallas"):
-                fn, n = _update_case(n, "cell[pallas]" if "pallas" in name
-                                     else "cell[warp]")
+            if name in ("pairs", "pairs-looped"):
+                fn, n = _pairs_case(n, unroll=name == "pairs")
+            elif name.startswith("rows"):
+                fn, n = _rows_case(n, args.width, name.partition("-")[2])
+            elif name == "step":
+                fn, n = _step_case(n)
+            elif name in UPDATES:
+                fn, n = _update_case(n, UPDATES[name])
             else:
                 raise ValueError(f"--cases: unknown case {name!r} (pairs, "
-                                 f"rows, update, update-pallas)")
+                                 f"pairs-looped, rows, rows-GRAPH, step, "
+                                 f"{', '.join(UPDATES)})")
             rows += profile(case, fn, args.repeats, {"N": n, **common})
         except Exception as e:  # noqa: BLE001 - report and go on
             import traceback

@@ -103,6 +103,17 @@ BENCHMARKS = [
      "Bin, radix sort, gather, grid, cell table and the rows walk of a "
      "`cell[warp]` Dense rebuild timed apart on the GPU (CUDA events), the "
      "jitted `update` whole, and the host's enqueue time."),
+    ("warp_rows_variants", "How the Warp rows walk stores its rows",
+     "benchmarks/warp_rows_variants.py",
+     "The `cell[warp]` rows walk at N = 10^6 next to variants that differ "
+     "only in their stores (none, 16- and 32-byte stores, rows in sorted "
+     "order, a transposed layout, lane groups with ballot-compacted "
+     "stores), each checked against the library's rows."),
+    ("kernel_profile", "A jitted call's GPU kernels against its wall time",
+     "benchmarks/kernel_profile.py",
+     "JAX's profiler on `jaxrt.pairs`, the Warp rows call and the Dense "
+     "list update: device time per kernel per call, the device's busy "
+     "time and the wall time (the gap is launches and host read-backs)."),
     ("pairs", "`jaxrt.pairs` against ASE, matscipy, vesin",
      "benchmarks/pairs.py",
      "Pairs with lattice shifts of silicon (cutoff 5 Å, float64 on the "

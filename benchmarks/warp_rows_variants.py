@@ -15,6 +15,9 @@ Variants (``--variants``):
   padding likewise.
 * ``vec4 sorted``: ``vec4`` at the sorted particle's row (rows in the
   walk's order: what locality of the stores alone is worth).
+* ``lanesG``: ``G`` threads per particle (4, 8, 32): each stencil range
+  read ``G`` candidates at a time, the sure pairs compacted by a ballot
+  over the group and stored side by side (one lane on a CPU).
 * ``transposed``: entry ``k`` of sorted particle ``i`` at ``k * N + i``
   (a warp's stores of one ``k`` coalesce), with ``transpose (XLA)``: the
   jitted ``(W, N) -> (N, W)`` transpose and reorder to the caller's rows
@@ -39,7 +42,8 @@ else:
     import _harness
     import warp_rebuild_stages as stages_bench
 
-VARIANTS = ("current", "counts", "vec4", "vec8", "vec4 sorted", "transposed")
+VARIANTS = ("current", "counts", "vec4", "vec8", "vec4 sorted", "transposed",
+            "lanes4", "lanes8", "lanes32")
 
 
 import warp as wp  # noqa: E402 - a native snippet is parsed from source
@@ -58,6 +62,109 @@ q[0] = a; q[1] = b; q[2] = c; q[3] = d;
 def store4(rows: wp.array(dtype=wp.int32), at: int, a: int, b: int, c: int,
            d: int):
     ...
+
+
+# A ballot over the ``width`` lanes of a lane group (bits from the group's
+# first lane), and a population count; one lane on the CPU.
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+unsigned bits = width == 32 ? 0xffffffffu : ((1u << width) - 1u);
+return (int)((__ballot_sync(bits << shift, pred != 0) >> shift) & bits);
+#else
+return pred != 0 ? 1 : 0;
+#endif
+""")
+def group_ballot(pred: int, shift: int, width: int) -> int:
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __popc((unsigned)x);
+#else
+return __builtin_popcount((unsigned)x);
+#endif
+""")
+def popcount(x: int) -> int:
+    ...
+
+
+def _group_kernel(lanes: int):
+    """The rows walk with ``lanes`` threads per particle: each stencil
+    range read ``lanes`` candidates at a time, the group's sure pairs
+    compacted by a ballot and stored side by side (one lane on a CPU)."""
+    import warp as wp
+    from jaxrt.backends.cell import warp_kernels as wk
+    from jaxrt.backends.cell import warp_rows as wr
+    scalar = wp.float32
+    vector = wp.types.vector(3, scalar)
+    span, difference = wk.stencil_functions(scalar)
+    stencil = wk.stencil
+    grid_side = wk.SIDE
+    group = lanes
+
+    @wp.kernel(module="unique", module_options=wk.MODULE_OPTIONS)
+    def walk(position: wp.array(dtype=vector),
+             keys: wp.array(dtype=wp.int32),
+             values: wp.array(dtype=wp.int32),
+             start: wp.array(dtype=wp.int32),
+             grid: wp.array(dtype=vector),
+             cells: wp.array(dtype=wp.int32),
+             thresholds: wp.array(dtype=scalar), flags: int,
+             row_width: int, shell: int,
+             rows: wp.array(dtype=wp.int32),
+             count: wp.array(dtype=wp.int32),
+             shells: wp.array(dtype=wp.int32),
+             shell_count: wp.array(dtype=wp.int32)):
+        t = wp.tid()
+        width = wp.static(group)
+        i = t / width
+        lane = t % width
+        shift = (t % 32) / width * width
+        below_me = (1 << lane) - 1
+        side = grid[grid_side]
+        inner_sq = thresholds[wr.INNER_SQ]
+        outer_sq = thresholds[wr.OUTER_SQ]
+        s = stencil(flags, cells, keys[i])
+        p = position[i]
+        me = values[i]
+        n = position.shape[0]
+        hits = int(0)
+        near = int(0)
+        for dz in range(-s.az, s.az + 1):
+            for piece in range(s.pieces):
+                first, end, shift3 = span(s, start, side, dz, piece)
+                q = p - shift3
+                for j0 in range(first, end, width):
+                    j = j0 + lane
+                    sure = int(0)
+                    close = int(0)
+                    theirs = int(0)
+                    if j < end:
+                        d, d2 = difference(q, position[j], side, s)
+                        if d2 < outer_sq and j != i:
+                            theirs = values[j]
+                            if d2 < inner_sq:
+                                sure = 1
+                            else:
+                                close = 1
+                    m = group_ballot(sure, shift, width)
+                    at = hits + popcount(m & below_me)
+                    if sure != 0 and at < row_width:
+                        rows[me * row_width + at] = theirs
+                    hits = hits + popcount(m)
+                    m2 = group_ballot(close, shift, width)
+                    at2 = near + popcount(m2 & below_me)
+                    if close != 0 and at2 < shell:
+                        shells[me * shell + at2] = theirs
+                    near = near + popcount(m2)
+        for k in range(wp.min(hits, row_width) + lane, row_width, width):
+            rows[me * row_width + k] = n
+        if lane == 0:
+            count[me] = hits
+            shell_count[me] = near
+
+    return walk
 
 
 def _variant_kernel(variant: str):
@@ -234,11 +341,18 @@ def variant_stages(rec, R, grid, cells, table, thresholds, flags, width,
         try:
             w = width if name == "current" else (
                 wide if name == "vec8" else -(-width // 4) * 4)
-            kernel = (wr.rows_kernel(wp.float32) if name == "current"
-                      else _variant_kernel(name))
+            lanes = int(name[5:]) if name.startswith("lanes") else 1
+            if lanes > 1 and device == "cpu":
+                lanes = 1
+            if name.startswith("lanes"):
+                w = width
+                kernel = _group_kernel(lanes)
+            else:
+                kernel = (wr.rows_kernel(wp.float32) if name == "current"
+                          else _variant_kernel(name))
             f = flags if name == "current" else flags & ~wr.MASK_SELF
-            launch = lambda kernel=kernel, w=w, f=f: wp.launch(  # noqa: E731
-                kernel, dim=n, device=device, block_dim=wr.WALK_BLOCK,
+            launch = lambda kernel=kernel, w=w, f=f, lanes=lanes: wp.launch(  # noqa: E731,E501
+                kernel, dim=n * lanes, device=device, block_dim=wr.WALK_BLOCK,
                 inputs=[position, keys, values, start, grid_w, cells_w, thr,
                         f, w, stages_bench.SHELL, rows, count, shells,
                         shell_count])

@@ -10,8 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.prefix import exclusive_prefix, prefix_sum, row_ranks
 from jaxrt.pairs.words import WORD, popcount, row_words, select_bit
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
@@ -26,7 +28,11 @@ CELLS_PER_SYSTEM = 64
 # int32, their keep bits one array); past it the cells search the batch.
 DENSE_MOST = 2 ** 28
 # Slots of every run decided per step of `_half_words`' loop.
-HALF_UNROLL = 8
+HALF_UNROLL = 4
+# On a GPU the short runs' loop is written out, every slot of a word in
+# one program: a loop with a traced trip count reads its predicate back to
+# the host on every trip there.
+UNROLL_SLOTS_ON_CUDA = True
 
 
 def shift_vectors(s, h):
@@ -104,66 +110,6 @@ def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
         return every
     first = np.array([next((v for v in o if v != 0), 0) for o in every])
     return every[first >= 0]
-
-
-def exclusive_prefix(x):
-    """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
-    return prefix_sum(x, jnp.float64) - x
-
-
-def _triangular_dot(x, strict: bool = False):
-    """Inclusive (or, ``strict``, exclusive) prefix sums along the last
-    axis of float ``x`` as one product with a triangular matrix: exact for
-    whole sums below 2^24 (float32) or 2^53 (float64), and one small dot
-    compiles and runs faster than a scan on a CPU."""
-    m = x.shape[-1]
-    upper = jnp.asarray(np.triu(np.ones((m, m), x.dtype), k=int(strict)))
-    return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
-
-
-_PREFIX_BLOCK = 64
-
-
-def prefix_sum(x, dtype=jnp.float32, small: bool = False):
-    """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
-    triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
-    sum may pass 2^24): a CPU runs them several times faster than
-    ``cumsum``'s scan. ``small``: every entry is at most 2^18, so the sums
-    within a block are exact in float32, which the first products use."""
-    m = x.shape[0]
-    if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
-        return jnp.cumsum(x, dtype=jnp.int32)
-    x = x.astype(jnp.float32 if small else dtype)
-    if m <= _PREFIX_BLOCK:
-        return _triangular_dot(x).astype(jnp.int32)
-    rows = -(-m // _PREFIX_BLOCK)
-    inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
-        rows, _PREFIX_BLOCK))
-    totals = inner[:, -1]
-    before = prefix_sum(totals, dtype).astype(dtype) - totals.astype(dtype)
-    return (inner.astype(dtype) + before[:, None]).reshape(-1)[:m].astype(
-        jnp.int32)
-
-
-_RANK_BLOCK = 32
-
-
-def row_ranks(keep):
-    """int32 ``(R, M)``: the inclusive count of True along each row of bool
-    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
-    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
-    ``M²``."""
-    rows, m = keep.shape
-    x = keep.astype(jnp.float32)
-    if m <= 2 * _RANK_BLOCK:
-        return _triangular_dot(x).astype(jnp.int32)
-    blocks = -(-m // _RANK_BLOCK)
-    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
-        rows, blocks, _RANK_BLOCK)
-    inner = _triangular_dot(x)
-    before = _triangular_dot(inner[..., -1], strict=True)
-    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
-    return ranks.astype(jnp.int32)
 
 
 def table_size(n: int, n_graph: int, brute: bool) -> int:
@@ -694,8 +640,21 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
         return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
                                 jnp.uint32(0))
 
-    bits = jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
-                             jnp.zeros((k_offsets, n), jnp.uint32)).T
+    no_bits = jnp.zeros((k_offsets, n), jnp.uint32)
+
+    def looped():
+        return jax.lax.fori_loop(0, jnp.max(b.length, initial=0), slot_bits,
+                                 no_bits)
+
+    def unrolled():
+        # Slots past a run's length keep nothing (``t < length``).
+        bits = no_bits
+        for t in range(WORD):
+            bits = slot_bits(jnp.int32(t), bits)
+        return bits
+
+    bits = (platforms.cuda_or_default(unrolled, looped)
+            if UNROLL_SLOTS_ON_CUDA else looped()).T
     bits = bits.reshape(-1)                                      # (N K,)
     counts = popcount(bits)
     ends = prefix_sum(counts, jnp.float64, small=True)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxrt.pairs.cells import exclusive_prefix, prefix_sum
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.prefix import exclusive_prefix, prefix_sum
 
 
 def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):

@@ -321,3 +321,53 @@ def test_cell_table_is_the_keys_lower_bound(n, table):
               inputs=[scratch, n, table, start])
     want = np.searchsorted(keys, np.arange(table + 1), side="left")
     np.testing.assert_array_equal(start.numpy(), want)
+
+
+@pytest.mark.parametrize("row_width", [1, 2, 3, 4, 5, 6, 7, 9, 13, 64])
+def test_rows_of_every_width_hold_the_first_pairs_then_padding(row_width):
+    """The walk's rows at widths of every residue mod 4 (its stores are
+    16-byte quads of the whole ``(N * width,)`` buffer, so a row starts and
+    ends anywhere in a quad): every row holds the first ``min(count,
+    width)`` of its sure pairs, all of them distinct true pairs, then ``N``;
+    its count and shell are exact; nothing is written outside it."""
+    from jaxrt.backends.cell import warp_grid, warp_rows
+    from jaxrt.backends.rt import ffi
+    n, side, cutoff = 300, 6.0, 1.2
+    R = np.asarray(uniform(3, n, side), np.float32)
+    reach = (4, 2, 2)
+    table = 4 * n + 64
+    grid, cells = warp_grid.build(
+        jnp.asarray(R), jnp.full((3,), side, jnp.float32),
+        periodic=(True,) * 3, padding=(False,) * 3, reach=reach, table=table,
+        min_size=tuple(cutoff * (1 + 2.0 ** -10) / r for r in reach))
+    inner, outer = cutoff - 0.05, cutoff
+    flags = warp_rows.MASK_SELF | sum(warp_rows.PERIODIC << a
+                                      for a in range(3))
+    rows, count, shells, shell_count = ffi.cell_candidate_rows(
+        jnp.asarray(R), grid, cells, jnp.asarray([inner ** 2, outer ** 2],
+                                                 jnp.float32),
+        flags=flags, table=table, row_width=row_width, shell=n)
+    rows, count = np.asarray(rows), np.asarray(count)
+    shells, shell_count = np.asarray(shells), np.asarray(shell_count)
+    d = R[:, None, :] - R[None, :, :]
+    d = d - side * np.round(d / side)
+    d2 = np.sum(d.astype(np.float64) ** 2, axis=-1)
+    np.fill_diagonal(d2, np.inf)
+    # Pairs within float32 rounding of a threshold may land on either side.
+    eps = 1e-4
+    sure = d2 < inner ** 2 - eps
+    maybe_sure = d2 < inner ** 2 + eps
+    maybe_near = d2 < outer ** 2 + eps
+    assert rows.shape == (n, row_width)
+    for i in range(n):
+        k = min(int(count[i]), row_width)
+        assert sure[i].sum() <= count[i] <= maybe_sure[i].sum()
+        got = rows[i, :k]
+        assert len(set(got.tolist())) == k
+        assert np.all(maybe_sure[i, got])
+        if count[i] <= row_width:
+            assert set(np.flatnonzero(sure[i])) <= set(got.tolist())
+        np.testing.assert_array_equal(rows[i, k:], n)
+        near = shells[i, :shell_count[i]]
+        assert np.all(maybe_near[i, near]) and not np.any(sure[i, near])
+    assert np.any(count > row_width) == (row_width < int(sure.sum(1).max()))

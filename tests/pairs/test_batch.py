@@ -196,14 +196,23 @@ def _scene(clustered: bool, seed: int):
     return r, cell
 
 
+@pytest.mark.parametrize("unrolled", [False, True])
 @pytest.mark.parametrize("clustered", [False, True])
-def test_cell_runs_short_and_long_match_ase_exactly(x64, clustered):
+def test_cell_runs_short_and_long_match_ase_exactly(x64, clustered, unrolled,
+                                                    monkeypatch):
     """The cell search (max_nodes=0), whose runs of at most a word are read
     as words and longer ones by the stream: every (i, j, S) and each
-    distance's decision exactly as ASE's in float64."""
+    distance's decision exactly as ASE's in float64. ``unrolled``: the
+    short runs' loop as a GPU runs it (every slot of a word written out),
+    taken here on the CPU."""
     from ase.neighborlist import primitive_neighbor_list
     cells = importlib.import_module("jaxrt.pairs.cells")
     words = importlib.import_module("jaxrt.pairs.words")
+    if unrolled:
+        monkeypatch.setattr(cells.platforms, "cuda_or_default",
+                            lambda cuda, default: cuda())
+        # The program traced before (the CPU's loop) would be reused.
+        jax.clear_caches()
     cutoff = 3.0
     r, cell = _scene(clustered, seed=3)
     n = len(r)

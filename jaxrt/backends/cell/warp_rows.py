@@ -36,6 +36,42 @@ INNER_SQ, OUTER_SQ = 0, 1
 WALK_BLOCK = warp_kernels.WALK_BLOCK
 
 
+# The rows are stored 16 bytes at a time: one 4-byte store per pair (a
+# store instruction per sector per thread) made the walk two and a half
+# times the walk that only counts (benchmarks/warp_rows_variants.py).
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+reinterpret_cast<int4*>(rows.data)[quad] = make_int4(a, b, c, d);
+#else
+int* q = reinterpret_cast<int*>(rows.data) + 4 * (size_t)quad;
+q[0] = a; q[1] = b; q[2] = c; q[3] = d;
+#endif
+""")
+def _store_quad(rows: wp.array(dtype=wp.int32), quad: int, a: int, b: int,
+                c: int, d: int):
+    ...
+
+
+@wp.func
+def _pick(slot: int, b0: int, b1: int, b2: int, b3: int):
+    return wp.where(slot == 0, b0,
+                    wp.where(slot == 1, b1, wp.where(slot == 2, b2, b3)))
+
+
+@wp.func
+def _pad(rows: wp.array(dtype=wp.int32), first: int, stop: int, value: int):
+    """``rows[first:stop] = value``: the aligned quads whole, the ends one
+    entry at a time."""
+    at = wp.max(first, first)
+    while at < stop and (at & 3) != 0:
+        rows[at] = value
+        at = at + 1
+    for quad in range(at >> 2, stop >> 2):
+        _store_quad(rows, quad, value, value, value, value)
+    for k in range(wp.max(at, (stop >> 2) << 2), stop):
+        rows[k] = value
+
+
 def _rows_kernel(scalar):
     """The walk that writes rows, for positions of ``scalar``."""
     vector = wp.types.vector(3, scalar)
@@ -70,11 +106,18 @@ def _rows_kernel(scalar):
         shell_base = me * shell
         hits = int(0)
         near = int(0)
+        # The row's entries of the current aligned quad of ``rows``, by
+        # their address' last two bits.
+        b0 = int(0)
+        b1 = int(0)
+        b2 = int(0)
+        b3 = int(0)
         for dz in range(-s.az, s.az + 1):
             for piece in range(s.pieces):
                 first, end, shift = span(s, start, side, dz, piece)
+                q = p - shift
                 for j in range(first, end):
-                    d, d2 = difference(p - shift, position[j], side, s)
+                    d, d2 = difference(q, position[j], side, s)
                     # The caller's index is loaded only for the few candidates
                     # that are kept.
                     if d2 < outer_sq and (mask_self == 0 or j != i):
@@ -82,15 +125,33 @@ def _rows_kernel(scalar):
                         if lower_only == 0 or theirs < me:
                             if d2 < inner_sq:
                                 if hits < row_width:
-                                    rows[row_base + hits] = theirs
+                                    at = row_base + hits
+                                    slot = at & 3
+                                    b0 = wp.where(slot == 0, theirs, b0)
+                                    b1 = wp.where(slot == 1, theirs, b1)
+                                    b2 = wp.where(slot == 2, theirs, b2)
+                                    b3 = wp.where(slot == 3, theirs, b3)
+                                    if slot == 3:
+                                        if at - 3 >= row_base:
+                                            _store_quad(rows, at >> 2, b0, b1,
+                                                        b2, b3)
+                                        else:
+                                            # The row's first quad starts
+                                            # before it: only its own entries.
+                                            for k in range(row_base, at + 1):
+                                                rows[k] = _pick(k & 3, b0, b1,
+                                                                b2, b3)
                                 hits = hits + 1
                             else:
                                 if near < shell:
                                     shells[shell_base + near] = theirs
                                 near = near + 1
-        # The rest of the row is padding (N), as every list pads.
-        for k in range(wp.min(hits, row_width), row_width):
-            rows[row_base + k] = n
+        # The entries of an unfinished last quad, then the padding (N, as
+        # every list pads).
+        stop = row_base + wp.min(hits, row_width)
+        for k in range(wp.max(row_base, (stop >> 2) << 2), stop):
+            rows[k] = _pick(k & 3, b0, b1, b2, b3)
+        _pad(rows, stop, row_base + row_width, n)
         count[me] = hits
         shell_count[me] = near
 
