@@ -23,7 +23,7 @@ How it searches (the search of one system is the same with one graph):
    wrapped atoms; a larger reach makes smaller cells). On a free axis the
    cells span the system's atoms. A system has at most ``4 n + 64`` cells
    (coarsened past that); cells of all systems are numbered in one table,
-   atoms sorted by cell.
+   atoms sorted by cell (stable: by index within a cell).
 4. **Stencil.** Atom ``i`` in cell ``a`` reads the cells ``a + o`` of
    its own system, ``|o_k| <= r_k``; on a periodic axis ``a + o`` is the
    cell ``(a + o) mod c`` of the image ``floor((a + o) / c)``, so each
@@ -35,8 +35,11 @@ How it searches (the search of one system is the same with one graph):
    read ``chunk`` at a time in a loop until every one is read (the work
    follows the candidates there are), or, where no run is longer than a
    word (32 atoms), every run at once, slot ``t`` of each in step ``t``,
-   its keep bits packed in one uint32 per run; unsorted, every run is read a slot
-   at a time until the fullest cell is read. Each is decided as ASE
+   its keep bits packed in one uint32 per run; unsorted, the same words
+   from the half stencil, the atoms in their cells' order (atoms of a
+   cell read the same runs), the kept ones stored in one pass after the
+   loop, or, past a word, every run read a slot at a time until the
+   fullest cell is read. Each is decided as ASE
    decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
    cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
    matrix), and kept candidates are written at the running count, so the
