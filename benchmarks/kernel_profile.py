@@ -8,7 +8,10 @@ Cases (``--cases``, each ``NAME:N``):
 * ``pairs:N``: `jaxrt.pairs` jitted with `jaxrt.pairs_sizes`' sizes, on
   pairs.py's diamond scene (float32, its cutoff); ``pairs-looped:N``
   with the short runs' loop kept a loop on the GPU
-  (``jaxrt.pairs.cells.UNROLL_SLOTS_ON_CUDA`` off).
+  (``jaxrt.pairs.cells.UNROLL_SLOTS_ON_CUDA`` off); ``pairs-half:N``
+  with the unsorted list searched from the half stencil on the GPU too
+  (``jaxrt.pairs.program.FULL_STENCIL_UNSORTED_ON_CUDA`` off), as the
+  CPU searches it.
 * ``rows:N``: `jaxrt.backends.rt.ffi.cell_candidate_rows` jitted alone, on
   warp_rebuild_stages.py's uniform scene (its grid, row width ``--width``),
   Warp's graphs on (``rows-none``, ``rows-jax``: the other graph modes).
@@ -42,14 +45,15 @@ else:
     import _harness
 
 
-def _pairs_case(n, unroll=True):
+def _pairs_case(n, unroll=True, full_stencil=True):
     import jax
     import jax.numpy as jnp
     import numpy as np
     import jaxrt
     import pairs as pairs_bench
-    from jaxrt.pairs import cells
+    from jaxrt.pairs import cells, program
     cells.UNROLL_SLOTS_ON_CUDA = unroll
+    program.FULL_STENCIL_UNSORTED_ON_CUDA = full_stencil
     jax.clear_caches()
     pos, cell = pairs_bench.scene(n)
     x = jnp.asarray(pos, jnp.float32)
@@ -211,8 +215,9 @@ def main(argv=None) -> None:
         name, _, size = case.partition(":")
         n = int(size or 1000)
         try:
-            if name in ("pairs", "pairs-looped"):
-                fn, n = _pairs_case(n, unroll=name == "pairs")
+            if name in ("pairs", "pairs-looped", "pairs-half"):
+                fn, n = _pairs_case(n, unroll=name != "pairs-looped",
+                                    full_stencil=name != "pairs-half")
             elif name.startswith("rows"):
                 fn, n = _rows_case(n, args.width, name.partition("-")[2])
             elif name == "step":
@@ -221,8 +226,8 @@ def main(argv=None) -> None:
                 fn, n = _update_case(n, UPDATES[name])
             else:
                 raise ValueError(f"--cases: unknown case {name!r} (pairs, "
-                                 f"pairs-looped, rows, rows-GRAPH, step, "
-                                 f"{', '.join(UPDATES)})")
+                                 f"pairs-looped, pairs-half, rows, "
+                                 f"rows-GRAPH, step, {', '.join(UPDATES)})")
             rows += profile(case, fn, args.repeats, {"N": n, **common})
         except Exception as e:  # noqa: BLE001 - report and go on
             import traceback

@@ -3,6 +3,7 @@ and the pieces the dense blocks (`jaxrt.pairs.blocks`) share with it: the
 cells' geometry, fractional frames, prefix sums and row ranks."""
 from __future__ import annotations
 
+import functools
 import itertools
 from typing import NamedTuple
 
@@ -33,6 +34,12 @@ HALF_UNROLL = 4
 # one program: a loop with a traced trip count reads its predicate back to
 # the host on every trip there.
 UNROLL_SLOTS_ON_CUDA = True
+# A system's cells are coarsened by factors 1.25^m, the first that fits the
+# budget taken from a table: of COARSEN_STEPS factors (then a loop for the
+# rest), or on a GPU, where the factors of every system fit this many
+# elements, of every factor up to inf (no loop).
+COARSEN_STEPS = 32
+COARSEN_TABLE_MOST = 2 ** 14
 
 
 def shift_vectors(s, h):
@@ -145,7 +152,7 @@ def _grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
     budget = CELLS_PER_ATOM * count + CELLS_PER_SYSTEM
 
     def count_cells(coarsen):
-        size = least * coarsen[:, None]
+        size = least * coarsen[..., None]
         per_axis = jnp.where(pbc, jnp.maximum(jnp.floor(1 / size), 1),
                              jnp.floor(extent / size) + 1)
         return jnp.where(has, per_axis, 1)
@@ -153,13 +160,50 @@ def _grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
     def over(coarsen):
         return jnp.prod(count_cells(coarsen), axis=-1) > budget
 
-    coarsen = jax.lax.while_loop(
-        lambda c: jnp.any(over(c)),
-        lambda c: jnp.where(over(c), c * 1.25, c), jnp.ones((g,), dtype))
+    whole = powers(dtype).shape[0] * g <= COARSEN_TABLE_MOST
+    coarsen = platforms.cuda_or_default(
+        cuda=lambda: coarsening(over, g, dtype, None if whole
+                                else COARSEN_STEPS),
+        default=lambda: coarsening(over, g, dtype, COARSEN_STEPS))
     cells_f = count_cells(coarsen)
     width = jnp.where(pbc, 1 / cells_f, least * coarsen[:, None])
     cells = cells_f.astype(jnp.int32)
     return cells, origin, width, exclusive_prefix(jnp.prod(cells, axis=-1))
+
+
+@functools.cache
+def powers(dtype, steps=None) -> np.ndarray:
+    """``(M,)`` of ``dtype``: ``1.25^m`` for ``m < steps``, each the one
+    before times 1.25 rounded in ``dtype`` (as a loop multiplying by 1.25
+    rounds); ``steps`` None: up to and including the first ``inf``."""
+    dtype = np.dtype(dtype)
+    out = [np.ones((), dtype)]
+    with np.errstate(over="ignore"):
+        while (len(out) < steps) if steps else np.isfinite(out[-1]):
+            out.append(out[-1] * dtype.type(1.25))
+    return np.array(out, dtype)
+
+
+def coarsening(over, g: int, dtype, steps):
+    """float ``(G,)``: each system's first factor ``c`` of ``1, 1.25,
+    1.25², ...`` (`powers`) with ``over(c)`` False, ``over`` taking float
+    ``(..., G)`` to bool ``(..., G)``: the factors ``m < steps`` tried at
+    once, the first that fits taken. A system that fits none of them (a
+    free extent many times the cells the cutoff allows: rare) goes on in
+    a loop, 1.25 at a time. ``steps`` None: the table runs to ``inf``,
+    where ``over`` is False whatever the system (no finite count of cells
+    past the budget is left), so there is no loop (on a GPU a loop reads
+    its predicate back to the host on every trip)."""
+    table = powers(dtype, steps)
+    fits = ~over(jnp.broadcast_to(jnp.asarray(table)[:, None],
+                                  (table.shape[0], g)))
+    coarsen = jnp.where(jnp.any(fits, axis=0), jnp.asarray(table)[
+        jnp.argmax(fits, axis=0)], table[-1])
+    if steps is None:
+        return coarsen
+    return jax.lax.while_loop(
+        lambda c: jnp.any(over(c)),
+        lambda c: jnp.where(over(c), c * 1.25, c), coarsen)
 
 
 class _Binned(NamedTuple):

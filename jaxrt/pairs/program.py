@@ -29,7 +29,10 @@ How it searches (the search of one system is the same with one graph):
    cell ``(a + o) mod c`` of the image ``floor((a + o) / c)``, so each
    candidate ``(j, S)`` is read once. Unsorted, only half the stencil is
    read (``o >= 0`` lexicographic; within ``o = 0`` only ``j`` sorted
-   after ``i``); sorted by ``i``, all of it.
+   after ``i``); sorted by ``i``, all of it. On a GPU an unsorted list is
+   searched as a sorted one (the full stencil): its order, ``i``-major, is
+   one an unsorted list may have, and the half stencil's loop below has a
+   trip count read back from the device on every trip there.
 5. **Decide and store.** Sorted by ``i``, the candidates are the runs'
    slots laid end to end, atom by atom and offset by offset (``i``-major),
    read ``chunk`` at a time in a loop until every one is read (the work
@@ -50,8 +53,8 @@ How it searches (the search of one system is the same with one graph):
    ``i == j`` and ``S`` lexicographically positive. From the full stencil
    each atom finds its own pairs (only representatives for a half list),
    in ``i``-major order.
-6. **Assemble.** Unsorted: self pairs ``(i, i, 0)`` first when asked for,
-   then the pairs. Sorted: the pairs are already in place (the order they
+6. **Assemble.** Unsorted (the half stencil): self pairs ``(i, i, 0)``
+   first when asked for, then the pairs. Sorted: the pairs are already in place (the order they
    were found in); each atom's self pair, when asked for, is put before its
    pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
@@ -75,11 +78,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.blocks import dense_rows
 from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
 from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
                               self_pair_rows)
+
+# On a GPU an unsorted list is searched as a sorted one (the full stencil,
+# rows ``i``-major): the half stencil's slot loop has a traced trip count.
+FULL_STENCIL_UNSORTED_ON_CUDA = True
 
 
 @functools.partial(jax.jit, static_argnames=(
@@ -128,52 +136,85 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
             self_interaction=self_interaction, capacity=capacity)
         return _finish(rows, total, per_system, error, pad_index, n=n,
                        capacity=capacity)
-    binned = bin_atoms(positions, graph, mask, cells.astype(dtype), pbc,
-                       radius, reach=reach, brute=brute, n_graph=n_graph,
-                       completed=completed, full=sort,
-                       by_slot=not (sort or brute))
-    selfs = self_mask(binned.real, cut, species) if self_interaction \
-        else None
-    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    args = (positions, graph, mask, cells.astype(dtype), pbc, cut, species,
+            radius)
+    static = dict(reach=reach, chunk=chunk, capacity=capacity, brute=brute,
+                  half=half, self_interaction=self_interaction,
+                  n_graph=n_graph, completed=completed)
     if sort:
-        # Each atom finds its own pairs, placed by atom: sorted, no sort.
-        _, per_atom, out = candidates(
-            positions, binned, cut, species, reach=reach, chunk=chunk,
-            stored=capacity, brute=brute, full=True, half=half)
-        rows, total, per_system = placed_rows(
-            per_atom, out, binned, selfs, capacity=capacity,
-            n_graph=n_graph)
+        rows, total, per_system, error = _full_stencil(*args, **static)
+    elif FULL_STENCIL_UNSORTED_ON_CUDA:
+        # Any order is an unsorted list's; the full stencil's word-packed
+        # runs have no loop of a traced trip count on a GPU, where each
+        # trip of the half stencil's slot loop reads its predicate back.
+        rows, total, per_system, error = platforms.cuda_or_default(
+            cuda=lambda: _full_stencil(*args, **static),
+            default=lambda: _half_stencil(*args, **static))
     else:
-        stored = capacity if half else (capacity + 1) // 2
-        found, per_atom, out = candidates(
-            positions, binned, cut, species, reach=reach, chunk=chunk,
-            stored=stored, brute=brute, full=False, half=half)
-        columns, total, per_system = pair_rows(
-            found, per_atom, out, binned, half=half, n_graph=n_graph)
-        if self_interaction:
-            rows = jnp.stack(columns, axis=1)
-            self_rows, n_self, self_system = self_pair_rows(
-                selfs, binned.graph, n_graph)
-            both = jnp.concatenate([self_rows, jnp.broadcast_to(
-                pad, (capacity + rows.shape[0], 5))])
-            rows = jax.lax.dynamic_update_slice(both, rows,
-                                                (n_self, jnp.int32(0)))
-            total, per_system = total + n_self, per_system + self_system
-            columns = [rows[:capacity, c] for c in range(5)]
-        else:
-            extra = max(capacity - columns[0].shape[0], 0)
-            columns = [jnp.concatenate([x, jnp.full((extra,), v, jnp.int32)])[
-                :capacity] for x, v in zip(columns, (n, n, 0, 0, 0))]
-        rows = columns
-    return _finish(rows, total, per_system, binned.error, pad_index, n=n,
+        rows, total, per_system, error = _half_stencil(*args, **static)
+    return _finish(rows, total, per_system, error, pad_index, n=n,
                    capacity=capacity)
 
 
+def _full_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
+                  reach, chunk, capacity, brute, half, self_interaction,
+                  n_graph, completed):
+    """Steps 3-6 from the full stencil: each atom finds its own pairs,
+    placed by atom (``i``-major, no sort). Returns `search`'s rows, count,
+    count per system and error bits (before the capacity's)."""
+    binned = bin_atoms(positions, graph, mask, cells, pbc, radius,
+                       reach=reach, brute=brute, n_graph=n_graph,
+                       completed=completed, full=True)
+    selfs = self_mask(binned.real, cut, species) if self_interaction \
+        else None
+    _, per_atom, out = candidates(
+        positions, binned, cut, species, reach=reach, chunk=chunk,
+        stored=capacity, brute=brute, full=True, half=half)
+    rows, total, per_system = placed_rows(
+        per_atom, out, binned, selfs, capacity=capacity, n_graph=n_graph)
+    return rows, total, per_system, binned.error
+
+
+def _half_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
+                  reach, chunk, capacity, brute, half, self_interaction,
+                  n_graph, completed):
+    """Steps 3-6 from the half stencil: each pair found once, written as
+    both directions (or its representative), self pairs first. Returns as
+    `_full_stencil`."""
+    n = positions.shape[0]
+    binned = bin_atoms(positions, graph, mask, cells, pbc, radius,
+                       reach=reach, brute=brute, n_graph=n_graph,
+                       completed=completed, full=False, by_slot=not brute)
+    stored = capacity if half else (capacity + 1) // 2
+    found, per_atom, out = candidates(
+        positions, binned, cut, species, reach=reach, chunk=chunk,
+        stored=stored, brute=brute, full=False, half=half)
+    columns, total, per_system = pair_rows(
+        found, per_atom, out, binned, half=half, n_graph=n_graph)
+    if self_interaction:
+        rows = jnp.stack(columns, axis=1)
+        self_rows, n_self, self_system = self_pair_rows(
+            self_mask(binned.real, cut, species), binned.graph, n_graph)
+        both = jnp.concatenate([self_rows, jnp.broadcast_to(
+            jnp.array([n, n, 0, 0, 0], jnp.int32),
+            (capacity + rows.shape[0], 5))])
+        rows = jax.lax.dynamic_update_slice(both, rows,
+                                            (n_self, jnp.int32(0)))
+        total, per_system = total + n_self, per_system + self_system
+        return rows[:capacity], total, per_system, binned.error
+    # Columns (`pair_rows`) padded to the capacity, cut there and stacked
+    # last: XLA reads `_finish`'s columns of the stack straight from them.
+    extra = max(capacity - columns[0].shape[0], 0)
+    columns = [jnp.concatenate([x, jnp.full((extra,), v, jnp.int32)])[
+        :capacity] for x, v in zip(columns, (n, n, 0, 0, 0))]
+    return jnp.stack(columns, axis=1), total, per_system, binned.error
+
+
 def _finish(rows, total, per_system, error, pad_index, *, n, capacity):
-    """Padding rows set to ``pad_index``, the capacity's bit; ``rows`` an
-    int32 ``(capacity, 5)`` array or its five columns."""
-    columns = rows if isinstance(rows, list) else [rows[:, c]
-                                                   for c in range(5)]
+    """Padding rows set to ``pad_index`` (column by column: the outputs'
+    ``i``, ``j`` and ``S`` are read from the columns), the capacity's
+    bit."""
+    columns = [rows[:, c] for c in range(5)]
     padding = columns[0] >= n
     fill = [jnp.asarray(pad_index, jnp.int32)] * 2 + [jnp.int32(0)] * 3
     rows = jnp.stack([jnp.where(padding, f, x) for f, x in zip(fill, columns)],
