@@ -223,8 +223,7 @@ class _Binned(NamedTuple):
 
 def _sort_cells(coord, cells_a, base_a, real, n_graph):
     """The atoms sorted by cell: ``order`` (slot -> atom), ``rank`` (atom
-    -> slot) and each cell's run (first sorted slot
-    and length, int32 ``(table,)``)."""
+    -> slot) and each cell's run (first slot, length: int32 ``(T, 2)``)."""
     n = coord.shape[0]
     table = table_size(n, n_graph, False)
     key = jnp.where(real, base_a + (coord[:, 2] * cells_a[:, 1] + coord[:, 1])
@@ -336,16 +335,15 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         order, rank, runs = _sort_cells(coord, cells_a, base_a, real,
                                         n_graph)
         if by_slot:
-            # The atom side in sorted order: atoms of a cell side by side
-            # read the same runs (the reads of the loop stay in cache).
-            # Written out once (each reader would gather them again).
+            # The atom side in sorted order (atoms of a cell side by side
+            # read the same runs), written out once (each reader would
+            # gather them again).
             coord, cells_a, base_a, pbc_a, real, w = \
                 jax.lax.optimization_barrier(tuple(
                     x[order] for x in (coord, cells_a, base_a, pbc_a, real,
                                        w)))
-    # The half stencil's target cells and their images (docstring, 4.);
-    # by slot laid out (K, N) (offset-major: the loop's layout), an array
-    # per axis.
+    # The stencil's target cells and their images (docstring, 4.), an
+    # array per axis; by slot (K, N) (offset-major: the loop's layout).
     o = offsets(reach, full)
     if by_slot:
         target = [coord[None, :, c] + jnp.asarray(o[:, c, None])
@@ -390,8 +388,8 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     else:
         h_atom = h[graph[order] if by_slot else graph]
     if by_slot:  # written out once, for the loop and the rows both
-        start, length, image = jax.lax.optimization_barrier(
-            (start, length, image))
+        start, length, image = jax.lax.optimization_barrier((start, length,
+                                                             image))
     return _Binned(error, frame_real, graph, h_atom, start, length, image,
                    order, rank, atom_w)
 
@@ -546,12 +544,11 @@ def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
 
 def _half_words(table, b: _Binned, cut, species, own, *, stored):
     """`candidates` from the half stencil when no run is longer than a
-    word (``b`` by slot, `bin_atoms`' ``by_slot``): slot ``t`` of every run
-    in step ``t`` of a loop, kept as bit ``t`` of the run's uint32 word,
-    the atoms in sorted order (atoms of a cell read the same runs), then
-    the kept candidates stored in one pass, slot-major: a row's word found
-    by a running maximum, its slot by the rank of its bit. Each candidate
-    is decided as `candidates`' ``decide`` does, with the squared cutoff
+    word (``b`` by slot): slot ``t`` of every run in step ``t`` of a loop,
+    kept as bit ``t`` of the run's uint32 word, then the kept candidates
+    stored in one pass (offset-major): a row's word found by a running
+    maximum, its slot by the rank of its bit. Each candidate is decided as
+    `candidates`' ``decide`` does, with the squared cutoff
     (`square_limit`)."""
     k_offsets, n = b.length.shape
     dtype = table.dtype
