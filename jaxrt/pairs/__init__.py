@@ -1,8 +1,9 @@
 """Pairs ``(i, j, S)`` with lattice shifts in any cell, for ML graphs: one
 system (`jaxrt.pairs.search`), flat batches in jraph's layout
 (`jaxrt.pairs.batch`), ASE in and out (`jaxrt.pairs.ase`); the search
-program (`jaxrt.pairs.program`, with `jaxrt.pairs.cells` and
-`jaxrt.pairs.blocks`), the host search of small systems
+program (`jaxrt.pairs.program`, with `jaxrt.pairs.cells`,
+`jaxrt.pairs.blocks`, `jaxrt.pairs.rows` and `jaxrt.pairs.prefix`), the
+host search of small systems
 (`jaxrt.pairs.host`) and the argument checks (`jaxrt.pairs.checks`) behind
 them."""
 from jaxrt.pairs.ase import neighbor_list as ase_neighbor_list

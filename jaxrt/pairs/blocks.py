@@ -9,11 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
-from jaxrt.pairs.cells import (exclusive_prefix, frame, offsets,
-                               prefix_sum, row_ranks, self_mask,
-                               shift_vectors)
+from jaxrt.pairs.cells import frame, offsets, shift_vectors
 from jaxrt.pairs.checks import DENSE_WORD as _WORD
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.prefix import exclusive_prefix, prefix_sum, row_ranks
+from jaxrt.pairs.rows import self_mask
 from jaxrt.pairs.words import pack, popcount, row_words, select_bit
 
 

@@ -14,7 +14,8 @@ import numpy as np
 from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
-from jaxrt.pairs.words import WORD, pack, popcount, row_words, select_bit
+from jaxrt.pairs.prefix import exclusive_prefix, prefix_sum, row_ranks
+from jaxrt.pairs.words import WORD, popcount, row_words, select_bit
 
 # Cells are this much (relatively) wider than their minimum, so that an atom
 # binned one cell off by rounding still has all its neighbours in reach.
@@ -27,6 +28,8 @@ CELLS_PER_SYSTEM = 64
 # Dense blocks up to this many candidates in all (their flat index is an
 # int32, their keep bits one array); past it the cells search the batch.
 DENSE_MOST = 2 ** 28
+# Slots of every run decided per step of `_half_words`' loop.
+HALF_UNROLL = 4
 # On a GPU the short runs' loop is written out, every slot of a word in
 # one program: a loop with a traced trip count reads its predicate back to
 # the host on every trip there.
@@ -114,64 +117,6 @@ def offsets(reach: tuple[int, ...], full: bool = False) -> np.ndarray:
         return every
     first = np.array([next((v for v in o if v != 0), 0) for o in every])
     return every[first >= 0]
-
-
-def exclusive_prefix(x):
-    """int32 ``(n,)`` exclusive prefix sums of int32 ``(n,)`` ``x``."""
-    return prefix_sum(x, jnp.float64) - x
-
-
-def _triangular_dot(x, strict: bool = False):
-    """Inclusive (or, ``strict``, exclusive) prefix sums along the last
-    axis of float ``x`` as one product with a triangular matrix: exact for
-    whole sums below 2^24 (float32) or 2^53 (float64), and one small dot
-    compiles and runs faster than a scan on a CPU."""
-    m = x.shape[-1]
-    upper = jnp.asarray(np.triu(np.ones((m, m), x.dtype), k=int(strict)))
-    return jnp.dot(x, upper, precision=jax.lax.Precision.HIGHEST)
-
-
-_PREFIX_BLOCK = 64
-
-
-def prefix_sum(x, dtype=jnp.float32):
-    """int32 inclusive prefix sums of 1-d ``x`` (bool or int) by blocks of
-    triangular products (`_triangular_dot`) in ``dtype`` (float64 where the
-    sum may pass 2^24): a CPU runs them several times faster than
-    ``cumsum``'s scan."""
-    m = x.shape[0]
-    if jax.dtypes.canonicalize_dtype(dtype) != dtype:  # x64 off: no float64
-        return jnp.cumsum(x, dtype=jnp.int32)
-    x = x.astype(dtype)
-    if m <= _PREFIX_BLOCK:
-        return _triangular_dot(x).astype(jnp.int32)
-    rows = -(-m // _PREFIX_BLOCK)
-    inner = _triangular_dot(jnp.pad(x, (0, rows * _PREFIX_BLOCK - m)).reshape(
-        rows, _PREFIX_BLOCK))
-    totals = inner[:, -1]
-    before = prefix_sum(totals, dtype).astype(dtype) - totals
-    return (inner + before[:, None]).reshape(-1)[:m].astype(jnp.int32)
-
-
-_RANK_BLOCK = 32
-
-
-def row_ranks(keep):
-    """int32 ``(R, M)``: the inclusive count of True along each row of bool
-    ``(R, M)`` ``keep``: in blocks of 32 by triangular products (M x 32,
-    then the blocks' totals), so the work grows as ``M (32 + M / 32)``, not
-    ``M²``."""
-    rows, m = keep.shape
-    x = keep.astype(jnp.float32)
-    if m <= 2 * _RANK_BLOCK:
-        return _triangular_dot(x).astype(jnp.int32)
-    blocks = -(-m // _RANK_BLOCK)
-    x = jnp.pad(x, ((0, 0), (0, blocks * _RANK_BLOCK - m))).reshape(
-        rows, blocks, _RANK_BLOCK)
-    inner = _triangular_dot(x)
-    before = _triangular_dot(inner[..., -1], strict=True)
-    ranks = (inner + before[..., None]).reshape(rows, -1)[:, :m]
-    return ranks.astype(jnp.int32)
 
 
 def table_size(n: int, n_graph: int, brute: bool) -> int:
@@ -266,45 +211,51 @@ class _Binned(NamedTuple):
     error: jax.Array      # int32 bits so far
     real: jax.Array       # bool (N,)
     graph: jax.Array      # int32 (N,)
-    h_atom: jax.Array     # (N, 3, 3) each atom's completed cell
+    h_atom: jax.Array     # (N, 3, 3) each atom's (by slot) completed cell
     start: jax.Array      # int32 (N, K) first sorted slot of each target run
     length: jax.Array     # int32 (N, K) its length
     image: jax.Array      # int32 (N, K, 3) S' + w[i] of each target
+    # (by slot: (K, N), (K, N) and (3, K, N), `bin_atoms`)
     order: jax.Array      # int32 (N,) sorted slot -> atom
     rank: jax.Array       # int32 (N,) atom -> sorted slot
     w: jax.Array          # float (N, 3) whole cells each atom was moved by
 
 
-def _runs(coord, target, inside, cells_a, base_a, real, n_graph):
-    """The atoms sorted by cell: each target cell's run (first sorted slot
-    and length, int32 ``(N, K)``), ``order`` (slot -> atom) and ``rank``
-    (atom -> slot)."""
+def _sort_cells(coord, cells_a, base_a, real, n_graph):
+    """The atoms sorted by cell: ``order`` (slot -> atom), ``rank`` (atom
+    -> slot) and each cell's run (first slot, length: int32 ``(T, 2)``)."""
     n = coord.shape[0]
     table = table_size(n, n_graph, False)
-
-    def key_of(c, cells_c, base_c):
-        return base_c + (c[..., 2] * cells_c[..., 1] + c[..., 1]) * \
-            cells_c[..., 0] + c[..., 0]
-
-    key = jnp.where(real, key_of(coord, cells_a, base_a), table)
-    sorted_key, order = jax.lax.sort(
-        (key, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=False)
+    key = jnp.where(real, base_a + (coord[:, 2] * cells_a[:, 1] + coord[:, 1])
+                    * cells_a[:, 0] + coord[:, 0], table)
+    slots = jnp.arange(n, dtype=jnp.int32)
+    if jax.dtypes.canonicalize_dtype(jnp.int64) == jnp.int64:
+        # Stable: key and atom as one int64, and one array sorts several
+        # times faster than a key with its payload.
+        packed = jax.lax.sort((key.astype(jnp.int64) << 32) | slots)
+        sorted_key = (packed >> 32).astype(jnp.int32)
+        order = (packed & 0xFFFFFFFF).astype(jnp.int32)
+    else:  # no int64 (x64 off): the same order
+        sorted_key, order = jax.lax.sort((key, slots), num_keys=1,
+                                         is_stable=True)
     # Each cell's run: its first sorted slot and its length, by two
     # scatters (an empty cell's start is never read).
-    slots = jnp.arange(n, dtype=jnp.int32)
     first = jnp.full((table,), n, jnp.int32).at[sorted_key].min(
         slots, mode="drop")
     sizes = jnp.zeros((table,), jnp.int32).at[sorted_key].add(1, mode="drop")
-    tkey = jnp.where(inside, key_of(target, cells_a[:, None, :],
-                                    base_a[:, None]), 0)
-    # One gather for both (the key's arithmetic is fused into the gather,
-    # and would be done once per gathered array).
-    run = jnp.stack([first, sizes], axis=1)[tkey]
-    start = run[..., 0]
-    length = jnp.where(inside, run[..., 1], 0)
-    rank = jnp.zeros((n,), jnp.int32).at[order].set(
-        jnp.arange(n, dtype=jnp.int32))
-    return start, length, order, rank
+    rank = jnp.zeros((n,), jnp.int32).at[order].set(slots)
+    return order, rank, jnp.stack([first, sizes], axis=1)
+
+
+def _runs_of(target, inside, cells_k, base_k, runs):
+    """Each target cell's run: first sorted slot and length, int32 (the
+    shape of ``inside``; ``target`` and ``cells_k`` a list per axis). One
+    gather for both (the key's arithmetic is fused into the gather, and
+    would be done once per gathered array)."""
+    tkey = jnp.where(inside, base_k + (target[2] * cells_k[1] + target[1])
+                     * cells_k[0] + target[0], 0)
+    run = runs[tkey]
+    return run[..., 0], jnp.where(inside, run[..., 1], 0)
 
 
 class _Frame(NamedTuple):
@@ -354,12 +305,16 @@ def frame(positions, graph, mask, cells, pbc, *, n_graph, completed):
 
 
 def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
-         n_graph, completed, full) -> _Binned:
-    """Steps 1-4 of the module docstring (step 1 unless ``completed``)."""
+              n_graph, completed, full, by_slot=False) -> _Binned:
+    """Steps 1-4 of the module docstring (step 1 unless ``completed``).
+    ``by_slot`` (not with ``brute``): ``start`` and ``length`` are laid out
+    ``(K, N)`` and ``image`` ``(3, K, N)``, their atoms (and ``h_atom``'s)
+    sorted slots."""
     n = positions.shape[0]
     (error, real, graph, unclipped, h, bad_cell, h_height, count, pbc_a, w,
      fw) = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
                   completed=completed)
+    frame_real = real
     grid_cells, origin, width, base = _grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
     # The reach covers the cutoff unless the cell is too short for it.
@@ -370,23 +325,50 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     cells_a, base_a = grid_cells[graph], base[graph]
     coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
         jnp.int32), 0, cells_a - 1)
-    # The half stencil's target cells and their images (docstring, 4.).
-    target = coord[:, None, :] + jnp.asarray(offsets(reach, full))[None]
-    cells_k = cells_a[:, None, :]
-    # floor(target / cells) of small whole numbers, in float32 (exact:
-    # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
-    # faster than an integer division.
-    image = jnp.where(pbc_a[:, None, :], jnp.floor(
-        (target.astype(jnp.float32) + 0.5) / cells_k.astype(jnp.float32)
-    ).astype(jnp.int32), 0)
-    target = target - image * cells_k
-    inside = jnp.all((target >= 0) & (target < cells_k), axis=2) & \
-        real[:, None]
+    atom_w = w
     if brute:
         # One cell per system: a system's run is its atoms as given (they
         # are contiguous; padding atoms in it are skipped by the loop), so
         # nothing is sorted.
         order = rank = jnp.arange(n, dtype=jnp.int32)
+    else:
+        order, rank, runs = _sort_cells(coord, cells_a, base_a, real,
+                                        n_graph)
+        if by_slot:
+            # The atom side in sorted order (atoms of a cell side by side
+            # read the same runs), written out once (each reader would
+            # gather them again).
+            coord, cells_a, base_a, pbc_a, real, w = \
+                jax.lax.optimization_barrier(tuple(
+                    x[order] for x in (coord, cells_a, base_a, pbc_a, real,
+                                       w)))
+    # The stencil's target cells and their images (docstring, 4.), an
+    # array per axis; by slot (K, N) (offset-major: the loop's layout).
+    o = offsets(reach, full)
+    if by_slot:
+        target = [coord[None, :, c] + jnp.asarray(o[:, c, None])
+                  for c in range(3)]
+        cells_k = [cells_a[None, :, c] for c in range(3)]
+        pbc_k = [pbc_a[None, :, c] for c in range(3)]
+        real_k, base_k = real[None], base_a[None]
+    else:
+        target = [coord[:, None, c] + jnp.asarray(o[None, :, c])
+                  for c in range(3)]
+        cells_k = [cells_a[:, None, c] for c in range(3)]
+        pbc_k = [pbc_a[:, None, c] for c in range(3)]
+        real_k, base_k = real[:, None], base_a[:, None]
+    # floor(target / cells) of small whole numbers, in float32 (exact:
+    # |target| < 2^24, and the 1/2 keeps the quotient off the integers);
+    # faster than an integer division.
+    image = [jnp.where(p, jnp.floor((t.astype(jnp.float32) + 0.5)
+                                    / c.astype(jnp.float32)).astype(
+                                        jnp.int32), 0)
+             for t, c, p in zip(target, cells_k, pbc_k)]
+    target = [t - m * c for t, m, c in zip(target, image, cells_k)]
+    inside = real_k
+    for t, c in zip(target, cells_k):
+        inside = inside & (t >= 0) & (t < c)
+    if brute:
         system = jnp.clip(unclipped, 0, n_graph)
         sizes = jax.ops.segment_sum(jnp.ones((n,), jnp.int32), system,
                                     n_graph + 1)
@@ -394,24 +376,34 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         start = jnp.broadcast_to(first[system][:, None], inside.shape)
         length = jnp.where(inside, sizes[system][:, None], 0)
     else:
-        start, length, order, rank = _runs(coord, target, inside, cells_a,
-                                           base_a, real, n_graph)
+        start, length = _runs_of(target, inside, cells_k, base_k, runs)
     # Shifts of the caller's positions: S = S' + w[i] - w[j].
-    image = image + w.astype(jnp.int32)[:, None, :]
-    return _Binned(error, real, graph, h[graph], start, length, image, order,
-                   rank, w)
+    wi = w.astype(jnp.int32)
+    if by_slot:  # (3, K, N): an array per axis
+        image = jnp.stack([m + wi[None, :, c] for c, m in enumerate(image)])
+    else:
+        image = jnp.stack(image, axis=-1) + wi[:, None, :]
+    if n_graph == 1:  # a broadcast (a gather would be written out)
+        h_atom = jnp.broadcast_to(h[0], (n, 3, 3))
+    else:
+        h_atom = h[graph[order] if by_slot else graph]
+    if by_slot:  # written out once, for the loop and the rows both
+        start, length, image = jax.lax.optimization_barrier((start, length,
+                                                             image))
+    return _Binned(error, frame_real, graph, h_atom, start, length, image,
+                   order, rank, atom_w)
 
 
 def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
                 stored, brute, full, half):
     """Step 5: the loop over candidates. Returns the pairs found (int32),
-    per atom (int32 ``(N,)``) and the candidates stored, ``(i K + k, p)``
-    (atom ``i``'s offset ``k``, the partner's sorted slot ``p``) padded
-    with ``i = N`` (from the ``full`` stencil: decoded, int32 ``(stored,
-    5)`` rows ``(i, j, S)`` padded with ``(N, N, 0)``): from the half
-    stencil each pair is found once; from the
-    ``full`` stencil each atom finds all its own pairs (its representatives
-    only, with ``half``).
+    per atom (int32 ``(N,)``) and the pairs stored: from the half stencil
+    int32 ``i``, ``j`` ``(stored,)`` and ``S`` ``(stored, 3)`` (``i = j =
+    N``, ``S = 0`` where padded), each pair found once; from the ``full``
+    stencil int32 ``(stored, 5)`` rows ``(i, j, S)`` padded with ``(N, N,
+    0)``, each atom finding all its own pairs (its representatives only,
+    with ``half``). With ``b`` by slot (`bin_atoms`), runs of at most a word
+    are read by `_half_words`.
 
     From the ``full`` stencil the candidates are the runs' slots laid end
     to end, atom by atom and offset by offset (``i``-major), and read
@@ -424,6 +416,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     b = binned
     own = jnp.asarray(~offsets(reach, full).any(axis=1))  # (K,): offset 0
     k_offsets = own.shape[0]
+    by_slot = not (full or brute)  # as `bin_atoms` was told
     columns = [positions[b.order], b.w[b.order]]
     if species is not None:
         columns.append(species[b.order][:, None].astype(dtype))
@@ -437,7 +430,7 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
         row = table[p]
         s = image - row[..., 3:6].astype(jnp.int32)
         d = (row[..., :3] - positions[i]) + shift_vectors(
-            s.astype(dtype), b.h_atom[i])
+            s.astype(dtype), b.h_atom[b.rank[i] if by_slot else i])
         dist = jnp.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]
                         + d[..., 2] * d[..., 2])
         if species is None:
@@ -475,34 +468,25 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
             out = out.at[jnp.where(keep.reshape(-1), ranks - 1, stored)].set(
                 rows.reshape(-1, 2), mode="drop")
         found = ranks[-1], jnp.sum(keep, axis=(1, 2), dtype=jnp.int32), out
-        return _decoded(*found, b) if full else found
+        return _decoded(*found, b) if full else (
+            *found[:2], _stored_pairs(out, b))
 
     if not full:
-        # Unsorted, the order is free: every run read a slot at a time (as
-        # many steps as the fullest cell holds), which on a CPU costs less
-        # than laying out the stream for one system of ~100 atoms.
-        atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
-        k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+        def slots():
+            by_atom = b if brute else _by_atom(b)
+            found, per_atom, kept = _slot_loop(
+                decide, by_atom, n=n, k_offsets=k_offsets, stored=stored,
+                out=jnp.broadcast_to(pad, (stored, 2)))
+            return found, per_atom, _stored_pairs(kept, by_atom)
 
-        def slot_step(t, carry):
-            total, per_atom, out = carry
-            p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
-            keep = ((t < b.length[:, :, None]) & decide(
-                atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
-            ranks = row_ranks(keep)
-            row_count = ranks[:, -1]
-            if stored > 0:
-                at = total + exclusive_prefix(row_count)[:, None] + ranks - 1
-                rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
-                                  p.reshape(n, -1)], axis=-1)
-                out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
-                    rows.reshape(-1, 2), mode="drop")
-            return (total + jnp.sum(row_count, dtype=jnp.int32),
-                    per_atom + row_count, out)
+        if brute:
+            return slots()
 
-        return jax.lax.fori_loop(
-            0, jnp.max(b.length, initial=0), slot_step,
-            (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+        def words():
+            return _half_words(table, b, cut, species, own, stored=stored)
+
+        return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, words,
+                            slots)
 
     # Each branch decodes its rows itself: outside, XLA fuses the binning
     # behind the decoding into it and computes it again for every row.
@@ -521,6 +505,112 @@ def candidates(positions, binned: _Binned, cut, species, *, reach, chunk,
     # are read a word at a time; a fuller cell anywhere falls back to the
     # stream.
     return jax.lax.cond(jnp.max(b.length, initial=0) <= WORD, short, stream)
+
+
+def _by_atom(b: _Binned) -> _Binned:
+    """``b``'s runs by atom (``by_slot`` undone; not ``h_atom``)."""
+    return b._replace(start=b.start.T[b.rank], length=b.length.T[b.rank],
+                      image=jnp.moveaxis(b.image, 0, -1).transpose(
+                          1, 0, 2)[b.rank])
+
+
+def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
+    """`candidates` from the half stencil, runs of any length: every run
+    read a slot at a time (as many steps as the fullest cell holds), the
+    kept candidates stored at the running count."""
+    atoms = jnp.arange(n, dtype=jnp.int32)[:, None, None]
+    k = jnp.arange(k_offsets, dtype=jnp.int32)[None, :, None]
+
+    def slot_step(t, carry):
+        total, per_atom, out = carry
+        p = jnp.clip(b.start[:, :, None] + t, 0, n - 1)
+        keep = ((t < b.length[:, :, None]) & decide(
+            atoms, k, p, b.image[:, :, None, :])).reshape(n, k_offsets)
+        ranks = row_ranks(keep)
+        row_count = ranks[:, -1]
+        if stored > 0:
+            at = total + exclusive_prefix(row_count)[:, None] + ranks - 1
+            rows = jnp.stack([(atoms * k_offsets + k).reshape(n, -1),
+                              p.reshape(n, -1)], axis=-1)
+            out = out.at[jnp.where(keep, at, stored).reshape(-1)].set(
+                rows.reshape(-1, 2), mode="drop")
+        return (total + jnp.sum(row_count, dtype=jnp.int32),
+                per_atom + row_count, out)
+
+    return jax.lax.fori_loop(
+        0, jnp.max(b.length, initial=0), slot_step,
+        (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
+
+
+def _half_words(table, b: _Binned, cut, species, own, *, stored):
+    """`candidates` from the half stencil when no run is longer than a
+    word (``b`` by slot): slot ``t`` of every run in step ``t`` of a loop,
+    kept as bit ``t`` of the run's uint32 word, then the kept candidates
+    stored in one pass (offset-major): a row's word found by a running
+    maximum, its slot by the rank of its bit. Each candidate is decided as
+    `candidates`' ``decide`` does, with the squared cutoff
+    (`square_limit`)."""
+    k_offsets, n = b.length.shape
+    dtype = table.dtype
+    # Laid out (K, N), the atoms along the fast axis, every column its
+    # own array (as in `_short_runs`).
+    start, length, image = b.start, b.length, b.image
+    columns = [table[:, c] for c in range(table.shape[1])]
+    r_i = [x[None, :] for x in columns[:3]]
+    h_i = [[b.h_atom[None, :, a, c] for c in range(3)] for a in range(3)]
+    slot_i = jnp.arange(n, dtype=jnp.int32)[None, :]
+    own_k = own[:, None]
+    limit = square_limit(cut)
+    if species is not None:
+        limit_i = limit[columns[6].astype(jnp.int32)]     # (N, S)
+
+    def slot_bits(t, bits):
+        p = jnp.minimum(start + t, n - 1)
+        sf = [(image[c] - columns[3 + c][p].astype(jnp.int32)).astype(dtype)
+              for c in range(3)]
+        d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
+                                         + sf[2] * h_i[2][c])
+             for c in range(3)]
+        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        if species is None:
+            lim = limit
+        else:
+            lim = jnp.take_along_axis(
+                limit_i, columns[6][p].astype(jnp.int32).T, axis=1,
+                mode="fill", fill_value=-jnp.inf).T
+        # Within the own cell, from the atom sorted first.
+        keep = (t < length) & (d2 <= lim) & (~own_k | (p > slot_i))
+        return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
+                                jnp.uint32(0))
+
+    def block_bits(u, bits):
+        # UNROLL slots a step: one fused pass over the runs reads each
+        # run's start and image once for them all.
+        for t in range(HALF_UNROLL):
+            bits = slot_bits(u * HALF_UNROLL + t, bits)
+        return bits
+
+    blocks = -(-jnp.max(b.length, initial=0) // HALF_UNROLL)
+    bits = jax.lax.fori_loop(0, blocks, block_bits,
+                             jnp.zeros((k_offsets, n), jnp.uint32))
+    per_slot = jnp.sum(popcount(bits), axis=0, dtype=jnp.int32)
+    bits = bits.reshape(-1)                                      # (K N,)
+    counts = popcount(bits)
+    ends = prefix_sum(counts, jnp.float64, small=True)
+    i = j = jnp.full((stored,), n, jnp.int32)
+    s = jnp.zeros((stored, 3), jnp.int32)
+    if stored > 0:
+        wid, rank, kept = row_words(counts, ends, stored)
+        slot = jnp.minimum(b.start.reshape(-1)[wid]
+                           + select_bit(bits[wid], rank), n - 1)
+        # Written out once: each of the rows' columns below would compute
+        # them again.
+        wid, slot, kept = jax.lax.optimization_barrier((wid, slot, kept))
+        i = jnp.where(kept, b.order[jax.lax.rem(wid, jnp.int32(n))], n)
+        j = jnp.where(kept, b.order[slot], n)
+        s = jnp.where(kept[:, None], b.image.reshape(3, -1)[:, wid].T - b.w[
+            jnp.minimum(j, n - 1)].astype(jnp.int32), 0)
+    return ends[-1], per_slot[b.rank], (i, j, s)
 
 
 def square_limit(cut):
@@ -608,7 +698,7 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
             if UNROLL_SLOTS_ON_CUDA else looped()).T
     bits = bits.reshape(-1)                                      # (N K,)
     counts = popcount(bits)
-    ends = prefix_sum(counts, jnp.float64)
+    ends = prefix_sum(counts, jnp.float64, small=True)
     per_atom = jnp.sum(counts.reshape(n, k_offsets), axis=1,
                        dtype=jnp.int32)
     rows = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
@@ -708,76 +798,3 @@ def _decoded(found, per_atom, out, binned: _Binned):
     i, j, s = _stored_pairs(out, binned)
     return found, per_atom, jnp.concatenate([i[:, None], j[:, None], s],
                                             axis=1)
-
-
-def placed_rows(per_atom, rows, binned, selfs, *, capacity, n_graph):
-    """The full stencil's rows (int32 ``(capacity, 5)`` from `candidates`),
-    found ``i``-major (so stored at their place when there are no self
-    pairs), with atom ``i``'s self pair (``selfs``) placed before its
-    pairs. Returns int32 ``(capacity, 5)`` rows padded with ``(N, N, 0)``,
-    their count and the count per system."""
-    n = binned.order.shape[0]
-    i = rows[:, 0]
-    if selfs is None:
-        return rows, jnp.sum(per_atom, dtype=jnp.int32), \
-            jax.ops.segment_sum(per_atom, binned.graph, n_graph)
-    kept = i < n
-    at_i = jnp.where(kept, i, 0)
-    own = selfs.astype(jnp.int32)
-    # Each pair moves down by the self pairs of the atoms up to its own.
-    before = prefix_sum(own, jnp.float64)
-    at = jnp.where(kept, jnp.arange(capacity, dtype=jnp.int32)
-                   + before[at_i], capacity)
-    placed = jnp.broadcast_to(jnp.array([n, n, 0, 0, 0], jnp.int32),
-                              (capacity, 5)).at[at].set(rows, mode="drop")
-    degree = per_atom + own
-    first = exclusive_prefix(degree)
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    placed = placed.at[jnp.where(selfs, first, capacity)].set(
-        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-        mode="drop")
-    return placed, jnp.sum(degree, dtype=jnp.int32), jax.ops.segment_sum(
-        degree, binned.graph, n_graph)
-
-
-def pair_rows(found, per_atom, out, binned, *, half, n_graph):
-    """The stored rows as pairs ``(i, j, S)``: both directions of each (a
-    full list) or its representative (a half list). Returns the rows, their
-    count and the count per system (exact past the capacity)."""
-    i, j, s = _stored_pairs(out, binned)
-    per_system = jax.ops.segment_sum(per_atom, binned.graph, n_graph)
-    if half:
-        # The representative: i < j, or i == j and S > 0.
-        swap = (j < i) | ((j == i) & ~lex_positive(s))
-        rows = jnp.concatenate([
-            jnp.stack([jnp.where(swap, j, i), jnp.where(swap, i, j)], axis=1),
-            jnp.where(swap[:, None], -s, s)], axis=1)
-        return rows, found, per_system
-    # Each pair next to its reverse (j, i, -S).
-    forward = jnp.concatenate([i[:, None], j[:, None], s], axis=1)
-    reverse = jnp.concatenate([j[:, None], i[:, None], -s], axis=1)
-    rows = jnp.stack([forward, reverse], axis=1).reshape(-1, 5)
-    return rows, 2 * found, 2 * per_system
-
-
-def self_mask(real, cut, species):
-    """bool ``(N,)``: the atoms with a self pair ``(i, i, 0)``, the real
-    ones whose own cutoff is positive (ASE keeps ``0 < rc``)."""
-    if species is None:
-        return real & (cut > 0)
-    return real & (cut.at[species, species].get(mode="fill",
-                                                 fill_value=0) > 0)
-
-
-def self_pair_rows(selfs, graph, n_graph):
-    """Step 6's self pairs ``(i, i, 0)`` of ``selfs``, packed first: int32
-    ``(N, 5)``, their count and count per system."""
-    n = selfs.shape[0]
-    atoms = jnp.arange(n, dtype=jnp.int32)
-    at = exclusive_prefix(selfs.astype(jnp.int32))
-    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
-    rows = jnp.broadcast_to(pad, (n, 5)).at[jnp.where(selfs, at, n)].set(
-        jnp.stack([atoms, atoms] + [jnp.zeros_like(atoms)] * 3, axis=1),
-        mode="drop")
-    return rows, jnp.sum(selfs, dtype=jnp.int32), jax.ops.segment_sum(
-        selfs.astype(jnp.int32), graph, n_graph)

@@ -23,7 +23,7 @@ How it searches (the search of one system is the same with one graph):
    wrapped atoms; a larger reach makes smaller cells). On a free axis the
    cells span the system's atoms. A system has at most ``4 n + 64`` cells
    (coarsened past that); cells of all systems are numbered in one table,
-   atoms sorted by cell.
+   atoms sorted by cell (stable: by index within a cell).
 4. **Stencil.** Atom ``i`` in cell ``a`` reads the cells ``a + o`` of
    its own system, ``|o_k| <= r_k``; on a periodic axis ``a + o`` is the
    cell ``(a + o) mod c`` of the image ``floor((a + o) / c)``, so each
@@ -38,8 +38,11 @@ How it searches (the search of one system is the same with one graph):
    read ``chunk`` at a time in a loop until every one is read (the work
    follows the candidates there are), or, where no run is longer than a
    word (32 atoms), every run at once, slot ``t`` of each in step ``t``,
-   its keep bits packed in one uint32 per run; unsorted, every run is read a slot
-   at a time until the fullest cell is read. Each is decided as ASE
+   its keep bits packed in one uint32 per run; unsorted, the same words
+   from the half stencil, the atoms in their cells' order (atoms of a
+   cell read the same runs), the kept ones stored in one pass after the
+   loop, or, past a word, every run read a slot at a time until the
+   fullest cell is read. Each is decided as ASE
    decides, in the positions' dtype: ``|R[j] - R[i] + S @ cell| <
    cutoff`` (strict; the cutoff of the two atoms' species with a cutoff
    matrix), and kept candidates are written at the running count, so the
@@ -78,9 +81,9 @@ import numpy as np
 from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.blocks import dense_rows
-from jaxrt.pairs.cells import (DENSE_MOST, bin_atoms, candidates, offsets,
-                               pair_rows, placed_rows, self_mask,
-                               self_pair_rows)
+from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
+from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
+                              self_pair_rows)
 
 # On a GPU an unsorted list is searched as a sorted one (the full stencil,
 # rows ``i``-major): the half stencil's slot loop has a traced trip count.
@@ -181,33 +184,40 @@ def _half_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
     n = positions.shape[0]
     binned = bin_atoms(positions, graph, mask, cells, pbc, radius,
                        reach=reach, brute=brute, n_graph=n_graph,
-                       completed=completed, full=False)
-    pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+                       completed=completed, full=False, by_slot=not brute)
     stored = capacity if half else (capacity + 1) // 2
     found, per_atom, out = candidates(
         positions, binned, cut, species, reach=reach, chunk=chunk,
         stored=stored, brute=brute, full=False, half=half)
-    rows, total, per_system = pair_rows(
+    columns, total, per_system = pair_rows(
         found, per_atom, out, binned, half=half, n_graph=n_graph)
     if self_interaction:
+        rows = jnp.stack(columns, axis=1)
         self_rows, n_self, self_system = self_pair_rows(
             self_mask(binned.real, cut, species), binned.graph, n_graph)
         both = jnp.concatenate([self_rows, jnp.broadcast_to(
-            pad, (capacity + rows.shape[0], 5))])
+            jnp.array([n, n, 0, 0, 0], jnp.int32),
+            (capacity + rows.shape[0], 5))])
         rows = jax.lax.dynamic_update_slice(both, rows,
                                             (n_self, jnp.int32(0)))
         total, per_system = total + n_self, per_system + self_system
-    else:
-        rows = jnp.concatenate([rows, jnp.broadcast_to(
-            pad, (max(capacity - rows.shape[0], 0), 5))])
-    return rows[:capacity], total, per_system, binned.error
+        return rows[:capacity], total, per_system, binned.error
+    # Columns (`pair_rows`) padded to the capacity, cut there and stacked
+    # last: XLA reads `_finish`'s columns of the stack straight from them.
+    extra = max(capacity - columns[0].shape[0], 0)
+    columns = [jnp.concatenate([x, jnp.full((extra,), v, jnp.int32)])[
+        :capacity] for x, v in zip(columns, (n, n, 0, 0, 0))]
+    return jnp.stack(columns, axis=1), total, per_system, binned.error
 
 
 def _finish(rows, total, per_system, error, pad_index, *, n, capacity):
-    """Padding rows set to ``pad_index``, the capacity's bit."""
-    padding = rows[:, 0] >= n
-    fill = jnp.concatenate([jnp.broadcast_to(pad_index, (2,)).astype(
-        jnp.int32), jnp.zeros((3,), jnp.int32)])
-    rows = jnp.where(padding[:, None], fill, rows)
+    """Padding rows set to ``pad_index`` (column by column: the outputs'
+    ``i``, ``j`` and ``S`` are read from the columns), the capacity's
+    bit."""
+    columns = [rows[:, c] for c in range(5)]
+    padding = columns[0] >= n
+    fill = [jnp.asarray(pad_index, jnp.int32)] * 2 + [jnp.int32(0)] * 3
+    rows = jnp.stack([jnp.where(padding, f, x) for f, x in zip(fill, columns)],
+                     axis=1)
     error = error | jnp.where(total > capacity, int(ErrorBit.CAPACITY), 0)
     return rows, total, per_system, error.astype(jnp.int32)
