@@ -542,6 +542,26 @@ def _slot_loop(decide, b: _Binned, *, n, k_offsets, stored, out):
         (jnp.zeros((), jnp.int32), jnp.zeros((n,), jnp.int32), out))
 
 
+def _slot_decision(t, start, image, columns, r_i, h_i, limit, *, n,
+                   dtype):
+    """Slot ``t`` of every run (laid out (K, N)): the candidate's sorted
+    slot ``p``, lattice shift (three int32), squared length and squared
+    cutoff (``limit``: a scalar, or the atom side's ``(N, S)`` limits by
+    species, read at the partner's species ``columns[6]``)."""
+    p = jnp.minimum(start + t, n - 1)
+    s = [image[c] - columns[3 + c][p].astype(jnp.int32) for c in range(3)]
+    sf = [x.astype(dtype) for x in s]
+    d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
+                                     + sf[2] * h_i[2][c])
+         for c in range(3)]
+    d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    if limit.ndim == 2:
+        limit = jnp.take_along_axis(
+            limit, columns[6][p].astype(jnp.int32).T, axis=1, mode="fill",
+            fill_value=-jnp.inf).T
+    return p, s, d2, limit
+
+
 def _half_words(table, b: _Binned, cut, species, own, *, stored):
     """`candidates` from the half stencil when no run is longer than a
     word (``b`` by slot): slot ``t`` of every run in step ``t`` of a loop,
@@ -565,19 +585,9 @@ def _half_words(table, b: _Binned, cut, species, own, *, stored):
         limit_i = limit[columns[6].astype(jnp.int32)]     # (N, S)
 
     def slot_bits(t, bits):
-        p = jnp.minimum(start + t, n - 1)
-        sf = [(image[c] - columns[3 + c][p].astype(jnp.int32)).astype(dtype)
-              for c in range(3)]
-        d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
-                                         + sf[2] * h_i[2][c])
-             for c in range(3)]
-        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-        if species is None:
-            lim = limit
-        else:
-            lim = jnp.take_along_axis(
-                limit_i, columns[6][p].astype(jnp.int32).T, axis=1,
-                mode="fill", fill_value=-jnp.inf).T
+        p, _, d2, lim = _slot_decision(
+            t, start, image, columns, r_i, h_i,
+            limit if species is None else limit_i, n=n, dtype=dtype)
         # Within the own cell, from the atom sorted first.
         keep = (t < length) & (d2 <= lim) & (~own_k | (p > slot_i))
         return bits | jnp.where(keep, jnp.uint32(1) << t.astype(jnp.uint32),
@@ -659,19 +669,9 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
         limit_i = limit[species]                          # (N, S)
 
     def slot_bits(t, bits):
-        p = jnp.minimum(start + t, n - 1)
-        s = [image[c] - columns[3 + c][p].astype(jnp.int32) for c in range(3)]
-        sf = [x.astype(dtype) for x in s]
-        d = [(columns[c][p] - r_i[c]) + (sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
-                                         + sf[2] * h_i[2][c])
-             for c in range(3)]
-        d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-        if species is None:
-            lim = limit
-        else:
-            lim = jnp.take_along_axis(
-                limit_i, columns[6][p].astype(jnp.int32).T, axis=1,
-                mode="fill", fill_value=-jnp.inf).T
+        p, s, d2, lim = _slot_decision(
+            t, start, image, columns, r_i, h_i,
+            limit if species is None else limit_i, n=n, dtype=dtype)
         once = ~(own_k & (p == rank_i))
         if half:
             j = b.order[p]
