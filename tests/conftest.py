@@ -140,6 +140,15 @@ def pytest_unconfigure(config):
 # after the "#"): most cost is compiling a new program per allocate
 # (~3 s on CI's cores), so a variant costs nearly what its sibling does.
 LONG_CASES = {
+    # test_unsorted_cuda.py: [options0] (plain), [options3] (half, self
+    # pairs and species at once), [options4] (long runs: the stream) and
+    # [options7] (brute force, half) keep the CUDA branch's single systems;
+    # the batch with species, self pairs and half lists keeps [True].
+    "tests/pairs/test_unsorted_cuda.py::test_single_system_unsorted_on_cuda_equals_ase[options1]",
+    "tests/pairs/test_unsorted_cuda.py::test_single_system_unsorted_on_cuda_equals_ase[options2]",
+    "tests/pairs/test_unsorted_cuda.py::test_single_system_unsorted_on_cuda_equals_ase[options5]",
+    "tests/pairs/test_unsorted_cuda.py::test_single_system_unsorted_on_cuda_equals_ase[options6]",
+    "tests/pairs/test_unsorted_cuda.py::test_mixed_batch_unsorted_on_cuda_equals_the_cpu_and_ase[True]",
     # test_cell_kernel.py: the kernel in Pallas' interpreter keeps
     # [random] (faces and 2D on the portable path: test_neighbors).
     "tests/backends/test_cell_kernel.py::test_kernel_matches_brute_force_and_the_portable_path[faces]",
