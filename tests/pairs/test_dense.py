@@ -293,8 +293,13 @@ def test_tiles_match_ase_at_the_cutoff_and_with_many_images(x64):
 
 
 def test_jitted_padded_tiles_match_ase(x64):
-    _, _, sizes, _ = jitted_padded(tiled_systems())
-    assert sizes.max_nodes >= 108
+    systems = tiled_systems()
+    m = bucket(max(len(a) for a in systems))
+    assert m >= 108
+    # The sizes send these thinly filled blocks to the cells; the tiles
+    # are asked for here, and must match ASE all the same.
+    _, _, sizes, _ = jitted_padded(systems, max_nodes=m)
+    assert sizes.max_nodes == 0
 
 
 @pytest.mark.parametrize("half", [False, True])
