@@ -22,6 +22,9 @@ Methods:
   jaxrt          jax.jit of jaxrt.pairs / pairs_batch with static sizes
                  (what a training step runs)
   jaxrt[f32]     the same in float32
+  jaxrt[dense]   jaxrt with max_nodes forced to the largest system's size
+                 bucket: dense blocks (unless the blocks are too many)
+  jaxrt[cells]   jaxrt with max_nodes=0 forced: the cell search
   jaxrt[eager]   jaxrt.pairs / pairs_batch(..., capacity=None): sizing,
                  bucketed programs and the cut to size included
   vesin          vesin.NeighborList(cutoff, full_list=True).compute
@@ -38,6 +41,11 @@ time per call.
     python benchmarks/graphs.py --large          # and 10^5 atoms
     python benchmarks/graphs.py --compiles       # and the compile table
     python benchmarks/graphs.py --quick          # smoke: 3 structures
+
+``--structures batch_cu16_XYZ`` (any digits X, Y, Z) is a batch of 16
+rattled copies of cubic fcc Cu repeated (X, Y, Z), and ``batch_si16_1``
+16 primitive Si cells (reach 3): with ``jaxrt[dense]`` and ``jaxrt[cells]``
+they calibrate `jaxrt.pairs_batch_sizes`'s choice between the two.
 """
 from __future__ import annotations
 
@@ -55,7 +63,8 @@ STRUCTURES = ["si2", "cu1", "cu_108", "mg_hcp_96", "triclinic_7", "slab_36",
               "c60", "random_2000"]
 LARGE = ["cu_1e5"]
 BATCHES = ["batch_mixed_5", "batch_small_64", "batch_medium_16"]
-METHODS = ["jaxrt", "jaxrt[f32]", "jaxrt[eager]", "vesin", "matscipy", "ase"]
+METHODS = ["jaxrt", "jaxrt[f32]", "jaxrt[eager]", "vesin", "matscipy", "ase",
+           "jaxrt[dense]", "jaxrt[cells]"]
 
 
 def structure(name: str):
@@ -98,6 +107,16 @@ def batch(name: str) -> list:
     import numpy as np
     from ase.build import bulk
     rng = np.random.default_rng(3)
+    if name.startswith("batch_cu16_") or name == "batch_si16_1":
+        reps = tuple(int(c) for c in name[-3:]) if "cu16" in name else (1,)*3
+        base = bulk("Cu", "fcc", a=3.61, cubic=True) if "cu16" in name \
+            else bulk("Si", "diamond", a=5.43)
+        out = []
+        for k in range(16):
+            atoms = base.repeat(reps)
+            atoms.rattle(0.05, seed=k)
+            out.append(atoms)
+        return out
     if name == "batch_mixed_5":
         return [structure("c60"), structure("slab_36"),
                 structure("cu_108"), structure("cu1"),
@@ -177,15 +196,22 @@ def _batch_calls(systems, methods):
     import jax
     import jax.numpy as jnp
     import jaxrt
+    from jaxrt.pairs.checks import bucket
     flat = jaxrt.batch_from_ase(systems)
     calls = {}
     for method in methods:
-        if method in ("jaxrt", "jaxrt[f32]"):
-            dtype = jnp.float64 if method == "jaxrt" else jnp.float32
+        if method in ("jaxrt", "jaxrt[f32]", "jaxrt[dense]", "jaxrt[cells]"):
+            dtype = jnp.float32 if method == "jaxrt[f32]" else jnp.float64
             sizes = jaxrt.pairs_batch_sizes(flat.positions.astype(dtype),
                                             flat.n_node, CUTOFF, **flat.kwargs)
-            f = jax.jit(lambda r, n, c, p, m, sizes=sizes: jaxrt.pairs_batch(
-                r, n, CUTOFF, cell=c, pbc=p, graph_mask=m, **sizes.kwargs))
+            kwargs = sizes.kwargs
+            if method == "jaxrt[dense]":
+                kwargs = dict(kwargs, max_nodes=bucket(max(
+                    len(a) for a in systems)))
+            elif method == "jaxrt[cells]":
+                kwargs = dict(kwargs, max_nodes=0)
+            f = jax.jit(lambda r, n, c, p, m, kw=kwargs: jaxrt.pairs_batch(
+                r, n, CUTOFF, cell=c, pbc=p, graph_mask=m, **kw))
             args = (jnp.asarray(flat.positions, dtype), flat.n_node,
                     jnp.asarray(flat.cell, dtype), flat.pbc, flat.graph_mask)
             calls[method] = (lambda f=f, args=args: jax.block_until_ready(
@@ -328,10 +354,22 @@ COMPILE_COLUMNS = ["structure", "method", "N", "calls", "programs",
                    "first_pass_s", "warm_ms_per_call"]
 
 
+def _structure_name(name: str) -> str:
+    """A --structures name checked (the fixed ones or batch_cu16_XYZ)."""
+    import argparse
+    if name in STRUCTURES + LARGE + BATCHES + ["batch_si16_1"] or (
+            name.startswith("batch_cu16_") and len(name) == 14
+            and name[-3:].isdigit() and "0" not in name[-3:]):
+        return name
+    raise argparse.ArgumentTypeError(
+        f"unknown structure {name!r}: choose from "
+        f"{STRUCTURES + LARGE + BATCHES} or batch_cu16_XYZ, batch_si16_1")
+
+
 def main(argv=None) -> None:
     parser = _harness.make_parser(__doc__)
     parser.add_argument("--structures", nargs="+", default=None,
-                        choices=STRUCTURES + LARGE + BATCHES)
+                        metavar="NAME", type=_structure_name)
     parser.add_argument("--methods", nargs="+", default=METHODS,
                         choices=METHODS)
     parser.add_argument("--large", action="store_true",

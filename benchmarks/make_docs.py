@@ -124,7 +124,9 @@ BENCHMARKS = [
      "methods interleaved in one process): jitted with static sizes, eager, "
      "vesin, matscipy where installed, ASE on small systems; "
      "`graphs_compiles`: programs compiled and time over a data set of 50 "
-     "atom counts."),
+     "atom counts; `graphs_dense_cells`: flat batches searched as dense "
+     "blocks against the cell search (what `pairs_batch_sizes` chooses "
+     "between)."),
     ("radii", "Per-particle radii", "benchmarks/radii.py",
      "Lists with per-particle radii on seed 003's scenes: the cell list by "
      "radius classes, one grid of the largest radius, and the BVH."),

@@ -392,7 +392,8 @@ def _prepare(positions, n_node, cells, pbc, periodic, graph_mask, radius,
         candidates=int(np.sum(counts.astype(np.int64) ** 2)))
     if options["max_nodes"] is None:
         options = dict(options, max_nodes=checks.dense_nodes(
-            int(np.max(counts, initial=0)), shift))
+            int(np.max(counts, initial=0)), shift, int(counts.sum()),
+            padded[1].shape[0]))
     if options["max_nodes"]:
         reach = tuple(shift)  # dense blocks: every image within the reach
     # The guess at the padded size (shared by batches of one bucket).
@@ -475,4 +476,5 @@ def pairs_batch_sizes(positions, n_node, cutoff, *, cell=None, pbc=None,
                       0)
     return PairSizes(capacity=checks.bucket(int(result.count)),
                      max_shift=shift, max_nodes=checks.dense_nodes(
-                         int(np.max(counts, initial=0)), shift))
+                         int(np.max(counts, initial=0)), shift,
+                         int(counts.sum()), n_graph))

@@ -381,15 +381,31 @@ def is_small(n: int, max_shift) -> bool:
 DENSE_CANDIDATES = 2 ** 12
 DENSE_TILE_CANDIDATES = 2 ** 15
 DENSE_LARGEST = 1024
+# Every system's block has ``max_nodes`` slots (padding systems too) and
+# the blocks pay for every slot, the cells only for real atoms: dense
+# blocks only where the real atoms fill more than 1/DENSE_SLOTS_PER_ATOM of
+# the slots. Calibrated on a CPU (benchmarks/results/cpu-2core/
+# graphs_dense_cells_1495944.csv, jaxrt[dense] against jaxrt[cells]):
+# batches of 16 fcc Cu cells of 4-256 atoms (24 systems with padding: 2/3
+# of the slots filled) and of 16 primitive Si cells were faster as blocks
+# (up to 2.3x) but for 8 and 16 atoms (cells 1.1x, 1.2x); 16 cells of 72
+# atoms in 96 slots (half filled) and the mixed batches (a third or less)
+# faster by cells (1.1x-6x).
+DENSE_SLOTS_PER_ATOM = 2
 # Atoms per word (and per tile) of a dense block (`jaxrt.pairs.blocks`).
 DENSE_WORD = 32
 
 
-def dense_nodes(largest: int, max_shift) -> int:
+def dense_nodes(largest: int, max_shift, atoms: int | None = None,
+                systems: int | None = None) -> int:
     """The static ``max_nodes`` of dense blocks for systems of at most
     ``largest`` atoms (rounded up by `bucket`), or 0 where cells are the
-    better search."""
+    better search; ``atoms`` real atoms in ``systems`` systems (padding
+    ones included) when known: blocks they fill too little go to cells."""
     m = bucket(largest)
+    if atoms is not None and systems is not None and \
+            systems * m >= DENSE_SLOTS_PER_ATOM * atoms:
+        return 0
     candidates = m * math.prod(2 * r + 1 for r in max_shift)
     if m <= DENSE_WORD:
         return m if candidates <= DENSE_CANDIDATES else 0

@@ -26,6 +26,8 @@ from batch_cases import (CUTOFF, ase_set, assert_padded_as_jraph,  # noqa: E402
                          half_of, per_system, skewed)
 
 ErrorBit = importlib.import_module("jaxrt.pairs.bits").ErrorBit
+checks = importlib.import_module("jaxrt.pairs.checks")
+bucket = checks.bucket
 
 
 def one_atom():
@@ -159,11 +161,17 @@ def test_dense_flags_a_system_larger_than_max_nodes(x64):
 
 
 def test_sizes_choose_dense_blocks_for_small_systems_only(x64):
-    small = jaxrt.batch_from_ase(mixed()[:-1], pad=False)
+    ethanol, slab = mixed()[:2]
+    small = jaxrt.batch_from_ase([ethanol, ethanol.copy(), slab, one_atom()],
+                                 pad=False)
     sizes = jaxrt.pairs_batch_sizes(small.positions, small.n_node, CUTOFF,
                                     **small.kwargs)
     assert sizes.max_shift == (2, 2, 2)
     assert sizes.kwargs["max_nodes"] == 12  # 9 atoms (bucket 12) x 125
+    # 27 atoms in 5 blocks of 12 slots: fewer than half filled, cells.
+    thinly = jaxrt.batch_from_ase(mixed()[:-1], pad=False)
+    assert jaxrt.pairs_batch_sizes(thinly.positions, thinly.n_node, CUTOFF,
+                                   **thinly.kwargs).max_nodes == 0
     thin = jaxrt.batch_from_ase(mixed(), pad=False)
     sizes_thin = jaxrt.pairs_batch_sizes(thin.positions, thin.n_node,
                                          CUTOFF, **thin.kwargs)
@@ -184,6 +192,32 @@ def test_sizes_choose_dense_blocks_for_small_systems_only(x64):
     assert sizes_mid.merge(sizes_thin).max_nodes == 0  # 256 x 729 images
     assert jaxrt.pairs_sizes(big.positions, CUTOFF,
                              cell=big.cell[0]).max_nodes is None
+
+
+def test_sizes_send_thinly_filled_blocks_to_the_cells(x64):
+    """Systems of 16-96 atoms: blocks of 96 slots, mostly empty (padding
+    systems included), go to the cells; the same systems, each as large
+    as the block, stay dense. Both jitted searches equal ASE per system."""
+    si = bulk("Si", "diamond", a=5.43, cubic=True)
+    cu = bulk("Cu", "fcc", a=3.61, cubic=True)
+    systems = [cu.repeat((1, 2, 2)), si.repeat((2, 2, 3)),
+               cu.repeat((2, 2, 1)), si.repeat((1, 2, 2))]
+    for k, a in enumerate(systems):
+        a.rattle(0.05, seed=k)
+    assert [len(a) for a in systems] == [16, 96, 16, 32]
+    # 160 real atoms in 4 + 1 padding systems of 96 slots: a third filled.
+    got, _, sizes, _ = jitted_padded(systems)
+    assert bucket(96) == 96 and 5 * 96 >= 2 * 160
+    assert sizes.max_nodes == 0
+    full = [si.repeat((2, 2, 3)) for _ in range(4)]
+    for k, a in enumerate(full):
+        a.rattle(0.05, seed=k)
+    _, _, sizes_full, _ = jitted_padded(full)
+    assert sizes_full.max_nodes == 96  # 384 atoms in 5 x 96 slots
+    # Calling the sizes' choice explicitly: the slots' rule, not the reach.
+    assert checks.dense_nodes(96, (2, 2, 2)) == 96
+    assert checks.dense_nodes(96, (2, 2, 2), 160, 5) == 0
+    assert checks.dense_nodes(96, (2, 2, 2), 241, 5) == 96
 
 
 def test_dense_capacity_overflow_keeps_exact_counts(x64):
@@ -259,8 +293,13 @@ def test_tiles_match_ase_at_the_cutoff_and_with_many_images(x64):
 
 
 def test_jitted_padded_tiles_match_ase(x64):
-    _, _, sizes, _ = jitted_padded(tiled_systems())
-    assert sizes.max_nodes >= 108
+    systems = tiled_systems()
+    m = bucket(max(len(a) for a in systems))
+    assert m >= 108
+    # The sizes send these thinly filled blocks to the cells; the tiles
+    # are asked for here, and must match ASE all the same.
+    _, _, sizes, _ = jitted_padded(systems, max_nodes=m)
+    assert sizes.max_nodes == 0
 
 
 @pytest.mark.parametrize("half", [False, True])
