@@ -112,6 +112,15 @@ def local_sets(rows, count, systems):
     return out
 
 
+def on_both_branches(branch, systems, cutoff, **kwargs):
+    """`batch_search` on the CUDA branch, then on the default one."""
+    got = {}
+    for name in ("cuda", "default"):
+        branch(name)
+        got[name] = batch_search(systems, cutoff, **kwargs)
+    return got["cuda"], got["default"]
+
+
 def assert_same(cuda, cpu):
     """Identical results as sets: count, per system, error, padding."""
     rows, count, per_system, error, _ = cuda
@@ -130,12 +139,9 @@ def test_mixed_batch_unsorted_on_cuda_equals_the_cpu_and_ase(x64, branch,
     if half:
         want = [half_of(w) for w in want]
     capacity = sum(len(w) for w in want) + 7
-    got = {}
-    for name in ("cuda", "default"):
-        branch(name)
-        got[name] = batch_search(systems, CUTOFF, capacity=capacity,
+    cuda, cpu = on_both_branches(branch, systems, CUTOFF, capacity=capacity,
                                  half=half)
-    rows, count, per_system, error, real = got["cuda"]
+    rows, count, per_system, error, real = cuda
     assert int(error) == 0
     assert local_sets(rows, count, systems) == want
     np.testing.assert_array_equal(per_system[:len(systems)],
@@ -144,7 +150,7 @@ def test_mixed_batch_unsorted_on_cuda_equals_the_cpu_and_ase(x64, branch,
     # Padding rows (pad, pad, 0) after the pairs.
     np.testing.assert_array_equal(rows[count:], [[real, real, 0, 0, 0]] * (
         capacity - count))
-    assert_same(got["cuda"], got["default"])
+    assert_same(cuda, cpu)
     # i-major: the full stencil's order.
     assert np.all(np.diff(rows[:count, 0]) >= 0)
 
@@ -158,16 +164,13 @@ def test_self_pairs_species_and_half_in_a_batch_on_cuda(x64, branch):
         if half:
             want = [half_of(w) for w in want]
         capacity = sum(len(w) for w in want) + 3
-        got = {}
-        for name in ("cuda", "default"):
-            branch(name)
-            got[name] = batch_search(systems, cutoffs, capacity=capacity,
-                                     half=half, self_interaction=True,
-                                     species=True)
-        rows, count, _, error, _ = got["cuda"]
+        cuda, cpu = on_both_branches(
+            branch, systems, cutoffs, capacity=capacity, half=half,
+            self_interaction=True, species=True)
+        rows, count, _, error, _ = cuda
         assert int(error) == 0
         assert local_sets(rows, count, systems) == want
-        assert_same(got["cuda"], got["default"])
+        assert_same(cuda, cpu)
         # Each atom's self pair, where it has one, before its other pairs.
         first = {}
         for i, j, *s in rows[:count].tolist():
@@ -180,19 +183,16 @@ def test_self_pairs_species_and_half_in_a_batch_on_cuda(x64, branch):
 def test_overflow_on_cuda_keeps_exact_counts(x64, branch):
     systems = mixed()[2:4]
     want = [ase_set(a) for a in systems]
-    got = {}
-    for name in ("cuda", "default"):
-        branch(name)
-        got[name] = batch_search(systems, CUTOFF, capacity=10,
+    cuda, cpu = on_both_branches(branch, systems, CUTOFF, capacity=10,
                                  self_interaction=True)
-    rows, count, per_system, error, _ = got["cuda"]
+    rows, count, per_system, error, _ = cuda
     assert int(error) == int(ErrorBit.CAPACITY)
     assert int(count) == sum(len(w) + len(a) for w, a in zip(want, systems))
     np.testing.assert_array_equal(per_system[:2], [
         len(w) + len(a) for w, a in zip(want, systems)])
-    np.testing.assert_array_equal(per_system, got["default"][2])
-    assert int(count) == int(got["default"][1])
-    assert int(error) == int(got["default"][3])
+    np.testing.assert_array_equal(per_system, cpu[2])
+    assert int(count) == int(cpu[1])
+    assert int(error) == int(cpu[3])
     # Every row stored is a real pair (self pairs included), none twice.
     selfs = [{(i, i, 0, 0, 0) for i in range(len(a))} for a in systems]
     stored = local_sets(rows, 10, systems)

@@ -510,7 +510,8 @@ def _walk_kernel(scalar, static_bits, hoist, trim):
         hits = int(0)
         # `span`'s loops written out (each x range of a row in turn): its
         # pieces cost this walk 8 registers on sm_90 (64 to 72).
-        t = frame(s, p, grid, cells)
+        if wp.static(trim):
+            t = frame(s, p, grid, cells)
         for dz in range(-s.az, s.az + 1):
             z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
             if okz:

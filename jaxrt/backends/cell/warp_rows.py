@@ -62,6 +62,7 @@ def _pick(slot: int, b0: int, b1: int, b2: int, b3: int):
 def _pad(rows: wp.array(dtype=wp.int32), first: int, stop: int, value: int):
     """``rows[first:stop] = value``: the aligned quads whole, the ends one
     entry at a time."""
+    # A fresh variable (``at = first`` would make them one in Warp's code).
     at = wp.max(first, first)
     while at < stop and (at & 3) != 0:
         rows[at] = value
@@ -137,7 +138,8 @@ def _rows_kernel(scalar, trim):
         b1 = int(0)
         b2 = int(0)
         b3 = int(0)
-        t = frame(s, p, grid, cells)
+        if wp.static(trim):
+            t = frame(s, p, grid, cells)
         for dz in range(-s.az, s.az + 1):
             z, oz, okz = row(s.cz, dz, s.nz, s.pz, s.az)
             for dy in range(-s.ay, s.ay + 1):
