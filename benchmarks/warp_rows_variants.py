@@ -8,8 +8,9 @@ Variants (``--variants``):
 
 * ``current``: the library's walk (one 4-byte store per sure pair, at the
   caller's row, then the padding one entry at a time).
-* ``untrimmed``: the library's walk with every stencil row read whole
-  (``trim=False``).
+* ``trimmed`` / ``untrimmed``: the library's walk with each stencil row
+  cut to the sphere it covers (``trim=True``) / read whole
+  (``trim=False``); ``current`` is one of them (`warp_rows.TRIM`).
 * ``counts``: the same walk with no row stores (counts only): the walk's
   own cost.
 * ``vec4`` / ``vec8``: sure pairs buffered in registers and stored 16 (32)
@@ -44,7 +45,7 @@ else:
     import _harness
     import warp_rebuild_stages as stages_bench
 
-VARIANTS = ("current", "untrimmed", "counts", "vec4", "vec8", "vec4 sorted", "transposed",
+VARIANTS = ("current", "trimmed", "untrimmed", "counts", "vec4", "vec8", "vec4 sorted", "transposed",
             "lanes4", "lanes8", "lanes32")
 
 
@@ -341,7 +342,7 @@ def variant_stages(rec, R, grid, cells, table, thresholds, flags, width,
     sorted_values = values.numpy()
     for name in names:
         try:
-            w = width if name in ("current", "untrimmed") else (
+            w = width if name in ("current", "trimmed", "untrimmed") else (
                 wide if name == "vec8" else -(-width // 4) * 4)
             lanes = int(name[5:]) if name.startswith("lanes") else 1
             if lanes > 1 and device == "cpu":
@@ -351,9 +352,11 @@ def variant_stages(rec, R, grid, cells, table, thresholds, flags, width,
                 kernel = _group_kernel(lanes)
             else:
                 kernel = (wr.rows_kernel(wp.float32) if name == "current"
-                          else wr.rows_kernel(wp.float32, trim=False)
-                          if name == "untrimmed" else _variant_kernel(name))
-            f = flags if name in ("current", "untrimmed") else \
+                          else wr.rows_kernel(wp.float32,
+                                              trim=name == "trimmed")
+                          if name.endswith("trimmed")
+                          else _variant_kernel(name))
+            f = flags if name in ("current", "trimmed", "untrimmed") else \
                 flags & ~wr.MASK_SELF
             launch = lambda kernel=kernel, w=w, f=f, lanes=lanes: wp.launch(  # noqa: E731,E501
                 kernel, dim=n * lanes, device=device, block_dim=wr.WALK_BLOCK,

@@ -123,7 +123,7 @@ def table_size(n: int, n_graph: int, brute: bool) -> int:
     return n_graph if brute else CELLS_PER_ATOM * n + CELLS_PER_SYSTEM * n_graph
 
 
-def _grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
+def grid(fw, graph, real, pbc, h_height, cutoff, reach, n_graph: int,
           brute: bool, count):
     """Each system's grid (module docstring, 3.).
 
@@ -221,7 +221,7 @@ class _Binned(NamedTuple):
     w: jax.Array          # float (N, 3) whole cells each atom was moved by
 
 
-def _sort_cells(coord, cells_a, base_a, real, n_graph):
+def sort_cells(coord, cells_a, base_a, real, n_graph):
     """The atoms sorted by cell: ``order`` (slot -> atom), ``rank`` (atom
     -> slot) and each cell's run (first slot, length: int32 ``(T, 2)``)."""
     n = coord.shape[0]
@@ -315,7 +315,7 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
      fw) = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
                   completed=completed)
     frame_real = real
-    grid_cells, origin, width, base = _grid(
+    grid_cells, origin, width, base = grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
     # The reach covers the cutoff unless the cell is too short for it.
     short = jnp.any(pbc & (radius * grid_cells / h_height > np.array(reach)),
@@ -332,7 +332,7 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
         # nothing is sorted.
         order = rank = jnp.arange(n, dtype=jnp.int32)
     else:
-        order, rank, runs = _sort_cells(coord, cells_a, base_a, real,
+        order, rank, runs = sort_cells(coord, cells_a, base_a, real,
                                         n_graph)
         if by_slot:
             # The atom side in sorted order (atoms of a cell side by side

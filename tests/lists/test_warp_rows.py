@@ -323,14 +323,19 @@ def test_cell_table_is_the_keys_lower_bound(n, table):
     np.testing.assert_array_equal(start.numpy(), want)
 
 
-@pytest.mark.parametrize("row_width", [1, 2, 3, 4, 5, 6, 7, 9, 13, 64])
-def test_rows_of_every_width_hold_the_first_pairs_then_padding(row_width):
+@pytest.mark.parametrize("row_width,trim", [
+    (w, False) for w in (1, 2, 3, 4, 5, 6, 7, 9, 13, 64)] + [
+    (w, True) for w in (3, 13, 64)])
+def test_rows_of_every_width_hold_the_first_pairs_then_padding(
+        row_width, trim, monkeypatch):
     """The walk's rows at widths of every residue mod 4 (its stores are
     16-byte quads of the whole ``(N * width,)`` buffer, so a row starts and
-    ends anywhere in a quad): every row holds the first ``min(count,
+    ends anywhere in a quad), with stencil rows read whole or trimmed to
+    the sphere they cover: every row holds the first ``min(count,
     width)`` of its sure pairs, all of them distinct true pairs, then ``N``;
     its count and shell are exact; nothing is written outside it."""
     from jaxrt.backends.cell import warp_grid, warp_rows
+    monkeypatch.setattr(warp_rows, "TRIM", trim)
     from jaxrt.backends.rt import ffi
     n, side, cutoff = 300, 6.0, 1.2
     R = np.asarray(uniform(3, n, side), np.float32)

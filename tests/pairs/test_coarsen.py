@@ -38,7 +38,7 @@ def test_powers_round_as_the_loop(x64):
 def grids(dtype, seed):
     """Systems whose free extents are up to 1e12 times the cells the
     cutoff allows (many factors past the table), next to periodic and
-    empty ones: _grid's arguments."""
+    empty ones: grid's arguments."""
     rng = np.random.default_rng(seed)
     g, per = 7, 3
     span = np.array([1e-3, 1.0, 40.0, 3e3, 1e6, 1e9, 1e12])
@@ -58,7 +58,7 @@ def grids(dtype, seed):
 @pytest.mark.parametrize("branch", ["default", "cuda", "cuda-whole"])
 def test_cells_as_the_loop_gave_with_huge_free_extents(x64, monkeypatch,
                                                        dtype, branch):
-    """Every output of _grid (cells, origin, width, first cells) bit for
+    """Every output of grid (cells, origin, width, first cells) bit for
     bit as with the loop, jitted; some systems need factors past the
     table (the CPU's loop after it), a zero cutoff every factor to inf."""
     if branch != "default":
@@ -78,13 +78,13 @@ def test_cells_as_the_loop_gave_with_huge_free_extents(x64, monkeypatch,
         for cutoff in (1e-4, 0.3, 2.5, 0.0):
             def grid(coarsening, jit=True):
                 monkeypatch.setattr(cells, "coarsening", coarsening)
-                f = lambda *a: cells._grid(  # noqa: E731
+                f = lambda *a: cells.grid(  # noqa: E731
                     *a, jnp.asarray(cutoff, dtype), (1, 2, 1), g, False,
                     jnp.asarray(count))
                 return (jax.jit(f) if jit else f)(*args)
             want = grid(looped)
             got = grid(tabled)
-            loops = "while" in str(jax.make_jaxpr(lambda *a: cells._grid(
+            loops = "while" in str(jax.make_jaxpr(lambda *a: cells.grid(
                 *a, jnp.asarray(cutoff, dtype), (1, 2, 1), g, False,
                 jnp.asarray(count)))(*args))
             # No loop on a GPU where the whole table fits.

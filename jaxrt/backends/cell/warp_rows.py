@@ -198,8 +198,10 @@ _WALKS: dict = {}
 
 
 # Each stencil row cut to the sphere it must cover: about a third fewer
-# candidates with the list's reach (4, 2, 2).
-TRIM = True
+# candidates with the list's reach (4, 2, 2), yet the trimmed walk measured
+# slower than the full rows on the H100 (a warp still walks its longest
+# lane's range; benchmarks/warp_rows_variants.py, "untrimmed"): off.
+TRIM = False
 
 
 def rows_kernel(scalar, trim: bool | None = None):
