@@ -98,7 +98,11 @@ def pytest_configure(config):
     code = ("import importlib, warp as wp\n"
             f"for m in {modules!r}:\n"
             "    importlib.import_module(m)\n"
-            "    wp.load_module(module=m, device='cpu')\n")
+            "    wp.load_module(module=m, device='cpu')\n"
+            "from jaxrt.pairs import warp_kernels as pk\n"
+            "wp.load_module(module=pk, device='cpu')\n"
+            "for s in (wp.float32, wp.float64):\n"
+            "    wp.load_module(pk.walk_kernel(s).module, device='cpu')\n")
     try:
         subprocess.run([sys.executable, "-c", code], check=False,
                        capture_output=True, timeout=600)

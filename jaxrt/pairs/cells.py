@@ -30,9 +30,8 @@ CELLS_PER_SYSTEM = 64
 DENSE_MOST = 2 ** 28
 # Slots of every run decided per step of `_half_words`' loop.
 HALF_UNROLL = 4
-# On a GPU the short runs' loop is written out, every slot of a word in
-# one program: a loop with a traced trip count reads its predicate back to
-# the host on every trip there.
+# On a GPU the short runs' loop is written out, every slot of a word in one
+# program: a loop's traced trip count is read back to the host every trip.
 UNROLL_SLOTS_ON_CUDA = True
 # A system's cells are coarsened by factors 1.25^m, the first that fits the
 # budget taken from a table: of COARSEN_STEPS factors (then a loop for the
@@ -666,7 +665,8 @@ def _short_runs(positions, table, b: _Binned, cut, species, own, *, half,
     columns = [table[:, c] for c in range(table.shape[1])]
     limit = square_limit(cut)
     if species is not None:
-        limit_i = limit[species]                          # (N, S)
+        # (N, S); a species past the matrix has no pairs, as `candidates`'.
+        limit_i = limit.at[species].get(mode="fill", fill_value=-jnp.inf)
 
     def slot_bits(t, bits):
         p, s, d2, lim = _slot_decision(

@@ -32,7 +32,11 @@ How it searches (the search of one system is the same with one graph):
    after ``i``); sorted by ``i``, all of it. On a GPU an unsorted list is
    searched as a sorted one (the full stencil): its order, ``i``-major, is
    one an unsorted list may have, and the half stencil's loop below has a
-   trip count read back from the device on every trip there.
+   trip count read back from the device on every trip there. On a GPU
+   the cells' full stencil is walked by a Warp kernel, one thread per atom
+   (`jaxrt.pairs.warp_search`): each atom's pairs counted, the counts
+   scanned, the pairs written at their place; the same rows as steps 5-6
+   below give, without their arrays of runs per atom and offset.
 5. **Decide and store.** Sorted by ``i``, the candidates are the runs'
    slots laid end to end, atom by atom and offset by offset (``i``-major),
    read ``chunk`` at a time in a loop until every one is read (the work
@@ -84,10 +88,15 @@ from jaxrt.pairs.blocks import dense_rows
 from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
 from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
                               self_pair_rows)
+from jaxrt.pairs.warp_search import warp_stencil
 
 # On a GPU an unsorted list is searched as a sorted one (the full stencil,
 # rows ``i``-major): the half stencil's slot loop has a traced trip count.
 FULL_STENCIL_UNSORTED_ON_CUDA = True
+# On a GPU the full stencil of the cells is walked by a Warp kernel
+# (`jaxrt.pairs.warp_search`): the same rows, without the arrays of runs
+# per atom and offset.
+WARP_WALK_ON_CUDA = True
 
 
 @functools.partial(jax.jit, static_argnames=(
@@ -142,13 +151,15 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
                   half=half, self_interaction=self_interaction,
                   n_graph=n_graph, completed=completed)
     if sort:
-        rows, total, per_system, error = _full_stencil(*args, **static)
+        rows, total, per_system, error = platforms.cuda_or_default(
+            cuda=lambda: _cuda_stencil(*args, **static),
+            default=lambda: _full_stencil(*args, **static))
     elif FULL_STENCIL_UNSORTED_ON_CUDA:
         # Any order is an unsorted list's; the full stencil's word-packed
         # runs have no loop of a traced trip count on a GPU, where each
         # trip of the half stencil's slot loop reads its predicate back.
         rows, total, per_system, error = platforms.cuda_or_default(
-            cuda=lambda: _full_stencil(*args, **static),
+            cuda=lambda: _cuda_stencil(*args, **static),
             default=lambda: _half_stencil(*args, **static))
     else:
         rows, total, per_system, error = _half_stencil(*args, **static)
@@ -173,6 +184,14 @@ def _full_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
     rows, total, per_system = placed_rows(
         per_atom, out, binned, selfs, capacity=capacity, n_graph=n_graph)
     return rows, total, per_system, binned.error
+
+
+def _cuda_stencil(*args, brute, chunk, **static):
+    """The full stencil on a GPU: by the Warp walk (the cells), or by
+    `_full_stencil` (the brute force, or with the walk switched off)."""
+    if WARP_WALK_ON_CUDA and not brute:
+        return warp_stencil(*args, **static)
+    return _full_stencil(*args, brute=brute, chunk=chunk, **static)
 
 
 def _half_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,

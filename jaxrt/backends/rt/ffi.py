@@ -1533,3 +1533,98 @@ def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
     rows, count, shells, shell_count = outs[:4]
     return (rows.reshape(n, row_width), count, shells.reshape(n, shell),
             shell_count)
+
+
+_PAIR_WALK_CALLABLES: dict = {}
+
+
+def _pair_walk_callable(vector):
+    """The jax callable of `jaxrt.pairs.warp_kernels`' walk (count, scan,
+    write, padding) for positions of type ``vector``."""
+    from jaxrt.pairs import warp_kernels as pair_kernels
+    if vector in _PAIR_WALK_CALLABLES:
+        return _PAIR_WALK_CALLABLES[vector]
+    scalar = vector._wp_scalar_type_
+    matrix = wp.types.matrix((3, 3), scalar)
+    walk = pair_kernels.walk_kernel(scalar)
+
+    def pair_walk(position: wp.array(dtype=vector),
+                  sorted_position: wp.array(dtype=vector),
+                  sorted_wrap: wp.array(dtype=wp.vec3i),
+                  sorted_species: wp.array(dtype=wp.int32),
+                  order: wp.array(dtype=wp.int32),
+                  coord: wp.array(dtype=wp.vec3i),
+                  wrap: wp.array(dtype=wp.vec3i),
+                  graph: wp.array(dtype=wp.int32),
+                  real: wp.array(dtype=wp.int32),
+                  selfs: wp.array(dtype=wp.int32),
+                  species: wp.array(dtype=wp.int32),
+                  cells: wp.array(dtype=wp.vec3i),
+                  base: wp.array(dtype=wp.int32),
+                  pbc: wp.array(dtype=wp.vec3i),
+                  lattice: wp.array(dtype=matrix),
+                  runs: wp.array(dtype=wp.vec2i),
+                  limit: wp.array(dtype=scalar), n_species: wp.int32,
+                  reach_x: wp.int32, reach_y: wp.int32, reach_z: wp.int32,
+                  half: wp.int32, capacity: wp.int32, pad: wp.int32,
+                  degree: wp.array(dtype=wp.int32),
+                  offset: wp.array(dtype=wp.int32),
+                  total: wp.array(dtype=wp.int32),
+                  rows: wp.array(dtype=wp.int32)):
+        n = position.shape[0]
+        reach = wp.vec3i(int(reach_x), int(reach_y), int(reach_z))
+        inputs = [position, sorted_position, sorted_wrap, sorted_species,
+                  order, coord, wrap, graph, real, selfs, species, cells,
+                  base, pbc, lattice, runs, limit, int(n_species), reach,
+                  int(half)]
+        device = position.device
+        wp.launch(walk, dim=n, device=device, inputs=inputs + [
+            0, int(capacity), offset, degree, rows])
+        wp.utils.array_scan(degree, offset, inclusive=False)
+        wp.launch(pair_kernels.last_total, dim=1, device=device,
+                  inputs=[degree, offset, n, total])
+        if int(capacity) > 0:
+            wp.launch(walk, dim=n, device=device, inputs=inputs + [
+                1, int(capacity), offset, degree, rows])
+            wp.launch(pair_kernels.fill_padding, dim=int(capacity),
+                      device=device,
+                      inputs=[total, int(pad), int(capacity), rows])
+
+    pair_walk.__module__ = pair_kernels.__name__
+    _PAIR_WALK_CALLABLES[vector] = wp.jax_callable(
+        pair_walk, num_outputs=4, graph_mode=_GRAPH_MODES["none"],
+        vmap_method="sequential")
+    return _PAIR_WALK_CALLABLES[vector]
+
+
+def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
+              half: bool, capacity: int):
+    """`jaxrt.pairs.warp_kernels`' walk in one call: each atom's pairs
+    counted, the counts scanned, the pairs written ``i``-major.
+
+    Args:
+      arrays: `jaxrt.pairs.warp_search.WalkInputs` (positions float32 or
+        float64; everything else int32 but the cells and limits, in the
+        positions' dtype).
+      n_species: static rows (and columns) of the squared limits.
+      reach: static stencil reach per axis.
+      half: static; only each pair's representative.
+      capacity: static rows to write (0: count only).
+    Returns:
+      int32 ``(N,)`` rows per atom (its self pair included), int32 ``(1,)``
+      rows in all (exact past the capacity), int32 ``(max(capacity, 1),
+      5)`` rows ``(i, j, S)`` padded with ``(N, N, 0)``.
+    """
+    from jaxrt.pairs import warp_kernels as pair_kernels
+    n = arrays.position.shape[0]
+    vector = _vector_of(arrays.position)
+    wp.load_module(pair_kernels.walk_kernel(vector._wp_scalar_type_).module,
+                   device=_warp_device())
+    wp.load_module(pair_kernels, device=_warp_device())
+    stored = max(int(capacity), 1)
+    degree, _, total, rows = _pair_walk_callable(vector)(
+        *jax.lax.stop_gradient(tuple(arrays)), int(n_species),
+        *(int(r) for r in reach), int(half), int(capacity), n,
+        output_dims={"degree": (n,), "offset": (n,), "total": (1,),
+                     "rows": (stored * pair_kernels.ROW,)})
+    return degree, total, rows.reshape(stored, pair_kernels.ROW)
