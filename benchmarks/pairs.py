@@ -13,6 +13,8 @@ agree with ASE's count where ASE ran: ``same_count``).
 Methods:
   jaxrt          jax.jit(jaxrt.pairs) with static sizes from
                  jaxrt.pairs_sizes (what a training loop runs)
+  jaxrt[xla]     jaxrt on a GPU with the cells' stencil walked by XLA
+                 instead of the Warp walk (the previous GPU search)
   jaxrt[eager]   jaxrt.pairs(..., capacity=None): sizing included
   ase            ase.neighborlist.neighbor_list("ijS", ...)
   matscipy       matscipy.neighbours.neighbour_list("ijS", ...)
@@ -72,12 +74,15 @@ LATTICE = 5.43
 CPU_METHODS = ["jaxrt", "jaxrt[eager]", "ase", "matscipy", "vesin"]
 NVAL_JIT = "nvalchemiops[jax-jit]"
 NVAL_PC = "nvalchemiops[jax-jit-pc]"
-GPU_METHODS = ["jaxrt", "jaxrt[eager]", "nvalchemiops", "nvalchemiops[jax]",
-               NVAL_JIT, NVAL_PC]
+# jaxrt with the GPU's cell stencil walked by XLA instead of the Warp walk
+# (`jaxrt.pairs.program.WARP_WALK_ON_CUDA` off).
+XLA_WALK = "jaxrt[xla]"
+GPU_METHODS = ["jaxrt", XLA_WALK, "jaxrt[eager]", "nvalchemiops",
+               "nvalchemiops[jax]", NVAL_JIT, NVAL_PC]
 CELLS = "jaxrt[cells]"
-BATCH_METHODS = ["jaxrt", CELLS, "vesin", NVAL_JIT, NVAL_PC]
+BATCH_METHODS = ["jaxrt", XLA_WALK, CELLS, "vesin", NVAL_JIT, NVAL_PC]
 CPU_BATCH_METHODS = ["jaxrt", CELLS, "vesin"]
-GPU_BATCH_METHODS = ["jaxrt", NVAL_JIT, NVAL_PC]
+GPU_BATCH_METHODS = ["jaxrt", XLA_WALK, NVAL_JIT, NVAL_PC]
 BATCHES = ["256x32", "64x128"]
 
 
@@ -503,13 +508,17 @@ def run_row(job: dict) -> dict:
             and dtype == "float64":
         import jax
         jax.config.update("jax_enable_x64", True)
+    if method == XLA_WALK:
+        import importlib
+        importlib.import_module("jaxrt.pairs.program").WARP_WALK_ON_CUDA = \
+            False
     if batch:
         g, m = parse_batch(job["system"])
         pos, n_node, cells = batch_scene(g, m)
         jitter = __import__("numpy").random.default_rng(1)
         inputs = [pos] + [pos + jitter.normal(0, 1e-3, pos.shape)
                           for _ in range(2)]
-        if method in ("jaxrt", CELLS):
+        if method in ("jaxrt", XLA_WALK, CELLS):
             call, xs, sync, count = _jaxrt_batch(inputs, n_node, cells, dtype,
                                                  method == CELLS)
         elif method == "vesin":
@@ -589,7 +598,9 @@ def main(argv=None) -> None:
                         f"M a multiple of 4); default {' '.join(BATCHES)}; "
                         "none: single systems only")
     parser.add_argument("--methods", nargs="+", default=None,
-                        choices=CPU_METHODS + GPU_METHODS[2:] + [CELLS])
+                        choices=CPU_METHODS + [m for m in GPU_METHODS
+                                               if m not in CPU_METHODS]
+                        + [CELLS])
     parser.add_argument("--dtype", default="float64",
                         choices=["float32", "float64"],
                         help="jaxrt's and nvalchemiops' dtype (ASE, matscipy "
