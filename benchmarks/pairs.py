@@ -15,6 +15,8 @@ Methods:
                  jaxrt.pairs_sizes (what a training loop runs)
   jaxrt[xla]     jaxrt on a GPU with the cells' stencil walked by XLA
                  instead of the Warp walk (the previous GPU search)
+  jaxrt[graph]   jaxrt on a GPU with the Warp walk's call replayed as a
+                 CUDA graph
   jaxrt[eager]   jaxrt.pairs(..., capacity=None): sizing included
   ase            ase.neighborlist.neighbor_list("ijS", ...)
   matscipy       matscipy.neighbours.neighbour_list("ijS", ...)
@@ -77,10 +79,14 @@ NVAL_PC = "nvalchemiops[jax-jit-pc]"
 # jaxrt with the GPU's cell stencil walked by XLA instead of the Warp walk
 # (`jaxrt.pairs.program.WARP_WALK_ON_CUDA` off).
 XLA_WALK = "jaxrt[xla]"
-GPU_METHODS = ["jaxrt", XLA_WALK, "jaxrt[eager]", "nvalchemiops",
+# jaxrt with the Warp walk's call replayed as a CUDA graph
+# (`jaxrt.pairs.warp_search.GRAPH = "warp"`).
+GRAPH_WALK = "jaxrt[graph]"
+GPU_METHODS = ["jaxrt", XLA_WALK, GRAPH_WALK, "jaxrt[eager]", "nvalchemiops",
                "nvalchemiops[jax]", NVAL_JIT, NVAL_PC]
 CELLS = "jaxrt[cells]"
-BATCH_METHODS = ["jaxrt", XLA_WALK, CELLS, "vesin", NVAL_JIT, NVAL_PC]
+BATCH_METHODS = ["jaxrt", XLA_WALK, GRAPH_WALK, CELLS, "vesin", NVAL_JIT,
+                 NVAL_PC]
 CPU_BATCH_METHODS = ["jaxrt", CELLS, "vesin"]
 GPU_BATCH_METHODS = ["jaxrt", XLA_WALK, NVAL_JIT, NVAL_PC]
 BATCHES = ["256x32", "64x128"]
@@ -512,13 +518,16 @@ def run_row(job: dict) -> dict:
         import importlib
         importlib.import_module("jaxrt.pairs.program").WARP_WALK_ON_CUDA = \
             False
+    if method == GRAPH_WALK:
+        import importlib
+        importlib.import_module("jaxrt.pairs.warp_search").GRAPH = "warp"
     if batch:
         g, m = parse_batch(job["system"])
         pos, n_node, cells = batch_scene(g, m)
         jitter = __import__("numpy").random.default_rng(1)
         inputs = [pos] + [pos + jitter.normal(0, 1e-3, pos.shape)
                           for _ in range(2)]
-        if method in ("jaxrt", XLA_WALK, CELLS):
+        if method in ("jaxrt", XLA_WALK, GRAPH_WALK, CELLS):
             call, xs, sync, count = _jaxrt_batch(inputs, n_node, cells, dtype,
                                                  method == CELLS)
         elif method == "vesin":

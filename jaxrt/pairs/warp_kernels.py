@@ -4,9 +4,12 @@ counts or writes its pairs, ``i``-major. No JAX here: the JAX call is
 `jaxrt.backends.rt.ffi.pair_walk`, the arrays it reads are made by
 `jaxrt.pairs.warp_search`.
 
-The walk runs twice: once counting each atom's pairs (``degree``, its self
-pair included), then, after an exclusive scan of the degrees gives each
-atom the first row it owns, writing them. An atom's rows are its self pair
+The walk runs once, counting each atom's pairs (``degree``, its self pair
+included) and keeping the first ``width`` of them (``j`` and ``S``, one
+16-byte store each) in a scratch row of its own; an exclusive scan of the
+degrees gives each atom the first row it owns; `copy_rows` moves the kept
+pairs there, and the walk runs again only for the atoms with more than
+``width`` pairs, writing them all. An atom's rows are its self pair
 (when asked for), then its pairs offset by offset (the stencil of
 `jaxrt.pairs.cells.offsets`, the first axis slowest) and, within an
 offset's cell, in the cell's sorted order: the order of the program's full
@@ -72,6 +75,39 @@ def fill_padding(total: wp.array(dtype=wp.int32), pad: int, capacity: int,
 
 
 @wp.kernel
+def copy_rows(degree: wp.array(dtype=wp.int32),
+              selfs: wp.array(dtype=wp.int32),
+              offset: wp.array(dtype=wp.int32), width: int, capacity: int,
+              scratch: wp.array(dtype=wp.vec4i),
+              rows: wp.array(dtype=wp.int32)):
+    """Atom ``i``'s rows from its scratch row: its self pair, then its
+    pairs, unless it has more than ``width`` (the walk writes those)."""
+    i = wp.tid()
+    own = selfs[i]
+    kept = degree[i] - own
+    if kept > width:
+        return
+    at = offset[i]
+    if own != 0 and at < capacity:
+        rows[at * 5 + 0] = i
+        rows[at * 5 + 1] = i
+        rows[at * 5 + 2] = 0
+        rows[at * 5 + 3] = 0
+        rows[at * 5 + 4] = 0
+    at = at + own
+    for t in range(kept):
+        if at + t >= capacity:
+            return
+        e = scratch[i * width + t]
+        r = (at + t) * 5
+        rows[r + 0] = i
+        rows[r + 1] = e[0]
+        rows[r + 2] = e[1]
+        rows[r + 3] = e[2]
+        rows[r + 4] = e[3]
+
+
+@wp.kernel
 def last_total(degree: wp.array(dtype=wp.int32),
                offset: wp.array(dtype=wp.int32), n: int,
                total: wp.array(dtype=wp.int32)):
@@ -81,7 +117,10 @@ def last_total(degree: wp.array(dtype=wp.int32),
 
 def walk_kernel(scalar):
     """The walk for positions of ``scalar`` (``wp.float32`` or
-    ``wp.float64``), built on first use."""
+    ``wp.float64``), built on first use. ``write`` 0: count each atom's
+    pairs into ``degree``, keeping the first ``width`` in ``scratch``
+    (``(N * width,)``); 1: write the rows of the atoms with more than
+    ``width`` pairs at ``offset``."""
     if scalar not in _WALKS:
         _WALKS[scalar] = _walk_kernel(scalar)
     return _WALKS[scalar]
@@ -110,8 +149,9 @@ def _walk_kernel(scalar):
                   runs: wp.array(dtype=wp.vec2i),
                   limit: wp.array(dtype=scalar), n_species: int,
                   reach: wp.vec3i, half: int, write: int, capacity: int,
-                  offset: wp.array(dtype=wp.int32),
+                  width: int, offset: wp.array(dtype=wp.int32),
                   degree: wp.array(dtype=wp.int32),
+                  scratch: wp.array(dtype=wp.vec4i),
                   rows: wp.array(dtype=wp.int32)):
         slot = wp.tid()
         i = order[slot]
@@ -119,6 +159,8 @@ def _walk_kernel(scalar):
             if write == 0:
                 degree[i] = 0
             return
+        if write != 0 and degree[i] - selfs[i] <= width:
+            return  # its rows are copied from its scratch row
         g = graph[i]
         c = cells[g]
         b = base[g]
@@ -193,6 +235,9 @@ def _walk_kernel(scalar):
                                     rows[at * 5 + 4] = s[2]
                                 at = at + 1
                             else:
+                                if found < width:
+                                    scratch[i * width + found] = wp.vec4i(
+                                        j, s[0], s[1], s[2])
                                 found = found + 1
         if write == 0:
             degree[i] = found + selfs[i]

@@ -22,6 +22,16 @@ from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.cells import frame, grid, sort_cells, square_limit
 from jaxrt.pairs.rows import self_mask
 
+# How the walk's call runs on CUDA (`jaxrt.backends.rt.ffi.pair_walk`):
+# "none" launches its kernels from the callback every call, "warp" replays
+# a CUDA graph of them.
+GRAPH = "none"
+# The scratch row of each atom during the count holds this many times the
+# pairs per atom the capacity allows (at least WIDTH_LEAST, at most
+# WIDTH_MOST, a multiple of four); atoms with more are walked again.
+WIDTH_SLACK = 1.25
+WIDTH_LEAST, WIDTH_MOST = 8, 512
+
 
 class WalkInputs(NamedTuple):
     """What the walk reads (`jaxrt.pairs.warp_kernels`), in its order."""
@@ -107,6 +117,13 @@ def warp_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
         self_interaction=self_interaction)
     degree, total, rows = ffi.pair_walk(
         inputs, n_species=n_species, reach=tuple(int(r) for r in reach),
-        half=half, capacity=capacity)
+        half=half, capacity=capacity, width=scratch_width(capacity, n),
+        graph=GRAPH)
     per_system = jax.ops.segment_sum(degree, inputs.graph, n_graph)
     return rows[:capacity], total[0], per_system, error
+
+
+def scratch_width(capacity: int, n: int) -> int:
+    """Pairs per atom kept in scratch during the count (static)."""
+    per_atom = int(np.ceil(WIDTH_SLACK * capacity / max(n, 1)))
+    return int(min(max(-(-per_atom // 4) * 4, WIDTH_LEAST), WIDTH_MOST))

@@ -208,3 +208,19 @@ def test_large_periodic_box_row_for_row(x64, walk):
                         half=True)
     assert_identical(warp, xla)
     assert local_sets(warp[0], int(warp[1]), [atoms]) == [want]
+
+
+@pytest.mark.parametrize("width", [1, 3, 64])
+def test_atoms_past_their_scratch_row_are_walked_again(x64, walk,
+                                                       monkeypatch, width):
+    """Scratch rows narrower than most atoms' pairs (every atom written by
+    the second walk), than some, and wider than all: the same rows."""
+    warp_search = importlib.import_module("jaxrt.pairs.warp_search")
+    monkeypatch.setattr(warp_search, "scratch_width",
+                        lambda capacity, n: width)
+    systems = mixed()
+    want = sum(len(ase_set(a, self_interaction=True)) for a in systems)
+    warp, xla = on_both(walk, systems, CUTOFF, capacity=want + 3,
+                        self_interaction=True)
+    assert_identical(warp, xla)
+    assert int(warp[1]) == want

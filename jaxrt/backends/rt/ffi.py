@@ -1538,12 +1538,14 @@ def cell_candidate_rows(points, grid, cells, thresholds, *, flags: int,
 _PAIR_WALK_CALLABLES: dict = {}
 
 
-def _pair_walk_callable(vector):
+def _pair_walk_callable(vector, graph: str):
     """The jax callable of `jaxrt.pairs.warp_kernels`' walk (count, scan,
-    write, padding) for positions of type ``vector``."""
+    copy, write, padding) for positions of type ``vector``; ``graph``:
+    `_GRAPH_MODES`' key."""
     from jaxrt.pairs import warp_kernels as pair_kernels
-    if vector in _PAIR_WALK_CALLABLES:
-        return _PAIR_WALK_CALLABLES[vector]
+    key = (vector, graph)
+    if key in _PAIR_WALK_CALLABLES:
+        return _PAIR_WALK_CALLABLES[key]
     scalar = vector._wp_scalar_type_
     matrix = wp.types.matrix((3, 3), scalar)
     walk = pair_kernels.walk_kernel(scalar)
@@ -1567,9 +1569,11 @@ def _pair_walk_callable(vector):
                   limit: wp.array(dtype=scalar), n_species: wp.int32,
                   reach_x: wp.int32, reach_y: wp.int32, reach_z: wp.int32,
                   half: wp.int32, capacity: wp.int32, pad: wp.int32,
+                  width: wp.int32,
                   degree: wp.array(dtype=wp.int32),
                   offset: wp.array(dtype=wp.int32),
                   total: wp.array(dtype=wp.int32),
+                  scratch: wp.array(dtype=wp.vec4i),
                   rows: wp.array(dtype=wp.int32)):
         n = position.shape[0]
         reach = wp.vec3i(int(reach_x), int(reach_y), int(reach_z))
@@ -1578,27 +1582,29 @@ def _pair_walk_callable(vector):
                   base, pbc, lattice, runs, limit, int(n_species), reach,
                   int(half)]
         device = position.device
+        capacity, width = int(capacity), int(width)
         wp.launch(walk, dim=n, device=device, inputs=inputs + [
-            0, int(capacity), offset, degree, rows])
+            0, capacity, width, offset, degree, scratch, rows])
         wp.utils.array_scan(degree, offset, inclusive=False)
         wp.launch(pair_kernels.last_total, dim=1, device=device,
                   inputs=[degree, offset, n, total])
-        if int(capacity) > 0:
+        if capacity > 0:
+            wp.launch(pair_kernels.copy_rows, dim=n, device=device, inputs=[
+                degree, selfs, offset, width, capacity, scratch, rows])
             wp.launch(walk, dim=n, device=device, inputs=inputs + [
-                1, int(capacity), offset, degree, rows])
-            wp.launch(pair_kernels.fill_padding, dim=int(capacity),
-                      device=device,
-                      inputs=[total, int(pad), int(capacity), rows])
+                1, capacity, width, offset, degree, scratch, rows])
+            wp.launch(pair_kernels.fill_padding, dim=capacity,
+                      device=device, inputs=[total, int(pad), capacity, rows])
 
     pair_walk.__module__ = pair_kernels.__name__
-    _PAIR_WALK_CALLABLES[vector] = wp.jax_callable(
-        pair_walk, num_outputs=4, graph_mode=_GRAPH_MODES["none"],
+    _PAIR_WALK_CALLABLES[key] = wp.jax_callable(
+        pair_walk, num_outputs=5, graph_mode=_GRAPH_MODES[graph],
         vmap_method="sequential")
-    return _PAIR_WALK_CALLABLES[vector]
+    return _PAIR_WALK_CALLABLES[key]
 
 
 def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
-              half: bool, capacity: int):
+              half: bool, capacity: int, width: int, graph: str = "none"):
     """`jaxrt.pairs.warp_kernels`' walk in one call: each atom's pairs
     counted, the counts scanned, the pairs written ``i``-major.
 
@@ -1610,6 +1616,9 @@ def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
       reach: static stencil reach per axis.
       half: static; only each pair's representative.
       capacity: static rows to write (0: count only).
+      width: static pairs per atom kept in scratch during the count (>= 1);
+        the atoms with more are walked again.
+      graph: static, as `cell_lj_sums`'; ``"none"`` on a CPU.
     Returns:
       int32 ``(N,)`` rows per atom (its self pair included), int32 ``(1,)``
       rows in all (exact past the capacity), int32 ``(max(capacity, 1),
@@ -1622,9 +1631,13 @@ def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
                    device=_warp_device())
     wp.load_module(pair_kernels, device=_warp_device())
     stored = max(int(capacity), 1)
-    degree, _, total, rows = _pair_walk_callable(vector)(
+    width = max(int(width), 1) if capacity > 0 else 1
+    call = _pair_walk_callable(vector, graph if _warp_device() == "cuda"
+                               else "none")
+    degree, _, total, _, rows = call(
         *jax.lax.stop_gradient(tuple(arrays)), int(n_species),
-        *(int(r) for r in reach), int(half), int(capacity), n,
+        *(int(r) for r in reach), int(half), int(capacity), n, width,
         output_dims={"degree": (n,), "offset": (n,), "total": (1,),
+                     "scratch": (n * width, 4),
                      "rows": (stored * pair_kernels.ROW,)})
     return degree, total, rows.reshape(stored, pair_kernels.ROW)
