@@ -5,7 +5,7 @@ counts or writes its pairs, ``i``-major. No JAX here: the JAX call is
 `jaxrt.pairs.warp_search`.
 
 The walk runs once, counting each atom's pairs (``degree``, its self pair
-included) and keeping the first ``width`` of them (``j`` and ``S``, one
+included) and keeping the first ``width`` of them (none by default) (``j`` and ``S``, one
 16-byte store each) in a scratch row of its own; an exclusive scan of the
 degrees gives each atom the first row it owns; `copy_rows` moves the kept
 pairs there, and the walk runs again only for the atoms with more than
@@ -80,31 +80,34 @@ def copy_rows(degree: wp.array(dtype=wp.int32),
               offset: wp.array(dtype=wp.int32), width: int, capacity: int,
               scratch: wp.array(dtype=wp.vec4i),
               rows: wp.array(dtype=wp.int32)):
-    """Atom ``i``'s rows from its scratch row: its self pair, then its
-    pairs, unless it has more than ``width`` (the walk writes those)."""
-    i = wp.tid()
+    """One row per thread (``N * (width + 1)`` threads; neighbouring
+    threads write neighbouring rows): slot 0 of atom ``i`` its self pair,
+    slot ``k`` its ``k``-th kept pair, unless it has more than ``width``
+    pairs (the walk writes those)."""
+    t = wp.tid()
+    i = t / (width + 1)
+    k = t - i * (width + 1)
     own = selfs[i]
     kept = degree[i] - own
     if kept > width:
         return
-    at = offset[i]
-    if own != 0 and at < capacity:
-        rows[at * 5 + 0] = i
-        rows[at * 5 + 1] = i
-        rows[at * 5 + 2] = 0
-        rows[at * 5 + 3] = 0
-        rows[at * 5 + 4] = 0
-    at = at + own
-    for t in range(kept):
-        if at + t >= capacity:
+    if k == 0:
+        if own == 0:
             return
-        e = scratch[i * width + t]
-        r = (at + t) * 5
-        rows[r + 0] = i
-        rows[r + 1] = e[0]
-        rows[r + 2] = e[1]
-        rows[r + 3] = e[2]
-        rows[r + 4] = e[3]
+        e = wp.vec4i(i, 0, 0, 0)
+    else:
+        if k > kept:
+            return
+        e = scratch[i * width + k - 1]
+    at = offset[i] + own + k - 1
+    if at >= capacity:
+        return
+    r = at * 5
+    rows[r + 0] = i
+    rows[r + 1] = e[0]
+    rows[r + 2] = e[1]
+    rows[r + 3] = e[2]
+    rows[r + 4] = e[3]
 
 
 @wp.kernel

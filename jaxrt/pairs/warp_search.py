@@ -28,8 +28,10 @@ from jaxrt.pairs.rows import self_mask
 GRAPH = "none"
 # The scratch row of each atom during the count holds this many times the
 # pairs per atom the capacity allows (at least WIDTH_LEAST, at most
-# WIDTH_MOST, a multiple of four); atoms with more are walked again.
-WIDTH_SLACK = 1.25
+# WIDTH_MOST, a multiple of four); atoms with more are walked again. 0: no
+# scratch, the walk runs twice (count, write), which measured faster than
+# the scratch rows' first copy kernel (benchmarks/results/h100/pairs_gpu_*).
+WIDTH_SLACK = 0.0
 WIDTH_LEAST, WIDTH_MOST = 8, 512
 
 
@@ -125,5 +127,7 @@ def warp_stencil(positions, graph, mask, cells, pbc, cut, species, radius, *,
 
 def scratch_width(capacity: int, n: int) -> int:
     """Pairs per atom kept in scratch during the count (static)."""
+    if WIDTH_SLACK <= 0:
+        return 0
     per_atom = int(np.ceil(WIDTH_SLACK * capacity / max(n, 1)))
     return int(min(max(-(-per_atom // 4) * 4, WIDTH_LEAST), WIDTH_MOST))

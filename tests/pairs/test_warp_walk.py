@@ -210,7 +210,7 @@ def test_large_periodic_box_row_for_row(x64, walk):
     assert local_sets(warp[0], int(warp[1]), [atoms]) == [want]
 
 
-@pytest.mark.parametrize("width", [1, 3, 64])
+@pytest.mark.parametrize("width", [0, 1, 3, 64])
 def test_atoms_past_their_scratch_row_are_walked_again(x64, walk,
                                                        monkeypatch, width):
     """Scratch rows narrower than most atoms' pairs (every atom written by

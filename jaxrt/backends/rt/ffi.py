@@ -1589,7 +1589,8 @@ def _pair_walk_callable(vector, graph: str):
         wp.launch(pair_kernels.last_total, dim=1, device=device,
                   inputs=[degree, offset, n, total])
         if capacity > 0:
-            wp.launch(pair_kernels.copy_rows, dim=n, device=device, inputs=[
+            wp.launch(pair_kernels.copy_rows, dim=n * (width + 1),
+                      device=device, inputs=[
                 degree, selfs, offset, width, capacity, scratch, rows])
             wp.launch(walk, dim=n, device=device, inputs=inputs + [
                 1, capacity, width, offset, degree, scratch, rows])
@@ -1616,8 +1617,9 @@ def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
       reach: static stencil reach per axis.
       half: static; only each pair's representative.
       capacity: static rows to write (0: count only).
-      width: static pairs per atom kept in scratch during the count (>= 1);
-        the atoms with more are walked again.
+      width: static pairs per atom kept in scratch during the count (0:
+        none, the walk writes every atom's pairs after the scan); the atoms
+        with more are walked again.
       graph: static, as `cell_lj_sums`'; ``"none"`` on a CPU.
     Returns:
       int32 ``(N,)`` rows per atom (its self pair included), int32 ``(1,)``
@@ -1631,13 +1633,13 @@ def pair_walk(arrays, *, n_species: int, reach: tuple[int, int, int],
                    device=_warp_device())
     wp.load_module(pair_kernels, device=_warp_device())
     stored = max(int(capacity), 1)
-    width = max(int(width), 1) if capacity > 0 else 1
+    width = max(int(width), 0) if capacity > 0 else 0
     call = _pair_walk_callable(vector, graph if _warp_device() == "cuda"
                                else "none")
     degree, _, total, _, rows = call(
         *jax.lax.stop_gradient(tuple(arrays)), int(n_species),
         *(int(r) for r in reach), int(half), int(capacity), n, width,
         output_dims={"degree": (n,), "offset": (n,), "total": (1,),
-                     "scratch": (n * width, 4),
+                     "scratch": (max(n * width, 1), 4),
                      "rows": (stored * pair_kernels.ROW,)})
     return degree, total, rows.reshape(stored, pair_kernels.ROW)
