@@ -82,12 +82,16 @@ from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.blocks import dense_rows
 from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
+from jaxrt.pairs.reach import ragged_full_stencil
 from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
                               self_pair_rows)
 
 # On a GPU an unsorted list is searched as a sorted one (the full stencil,
 # rows ``i``-major): the half stencil's slot loop has a traced trip count.
 FULL_STENCIL_UNSORTED_ON_CUDA = True
+# Sorted lists of several systems: each system searched with its own reach
+# (`jaxrt.pairs.reach`), not the batch's.
+OWN_REACH = True
 
 
 @functools.partial(jax.jit, static_argnames=(
@@ -141,7 +145,13 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     static = dict(reach=reach, chunk=chunk, capacity=capacity, brute=brute,
                   half=half, self_interaction=self_interaction,
                   n_graph=n_graph, completed=completed)
-    if sort:
+    if sort and OWN_REACH and n_graph > 1 and not brute:
+        rows, total, per_system, error = ragged_full_stencil(
+            *args, reach=reach, capacity=capacity, half=half,
+            self_interaction=self_interaction, n_graph=n_graph,
+            completed=completed,
+            fallback=lambda: _full_stencil(*args, **static))
+    elif sort:
         rows, total, per_system, error = _full_stencil(*args, **static)
     elif FULL_STENCIL_UNSORTED_ON_CUDA:
         # Any order is an unsorted list's; the full stencil's word-packed
