@@ -90,18 +90,19 @@ from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
 # rows ``i``-major): the half stencil's slot loop has a traced trip count.
 FULL_STENCIL_UNSORTED_ON_CUDA = True
 # Sorted lists of several systems: each system searched with its own reach
-# (`jaxrt.pairs.reach`), not the batch's.
-OWN_REACH = True
+# (`jaxrt.pairs.reach`), raised to at most this for finer cells where they
+# cost less; 0: the batch's static reach for every system.
+OWN_REACH = 1
 
 
 @functools.partial(jax.jit, static_argnames=(
     "periodic", "reach", "capacity", "brute", "chunk", "half", "sort",
-    "self_interaction", "n_graph", "completed", "max_nodes"))
+    "self_interaction", "n_graph", "completed", "max_nodes", "own_reach"))
 def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
            periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
            brute: bool, chunk: int, half: bool, sort: bool,
            self_interaction: bool, n_graph: int, completed: bool = False,
-           max_nodes: int = 0):
+           max_nodes: int = 0, own_reach: int = 0):
     """The pairs of a flat batch (module docstring).
 
     Args:
@@ -123,6 +124,10 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
         most this many atoms and is searched as one dense block
         (`dense_rows`, with the stencil ``reach``) unless the blocks hold
         more than ``DENSE_MOST`` candidates; 0: cells.
+      own_reach: static; positive (with ``sort``, several systems, not
+        ``brute``): each system searched with its own reach, raised to at
+        most this where finer cells cost less (`jaxrt.pairs.reach`); 0:
+        the static ``reach`` for all.
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -145,9 +150,10 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     static = dict(reach=reach, chunk=chunk, capacity=capacity, brute=brute,
                   half=half, self_interaction=self_interaction,
                   n_graph=n_graph, completed=completed)
-    if sort and OWN_REACH and n_graph > 1 and not brute:
+    if sort and own_reach > 0 and n_graph > 1 and not brute:
         rows, total, per_system, error = ragged_full_stencil(
-            *args, reach=reach, capacity=capacity, half=half,
+            *args, reach=reach, refine=own_reach, capacity=capacity,
+            half=half,
             self_interaction=self_interaction, n_graph=n_graph,
             completed=completed,
             fallback=lambda: _full_stencil(*args, **static))

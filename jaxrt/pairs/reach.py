@@ -37,12 +37,19 @@ from jaxrt.pairs.cells import (CELL_MARGIN, frame, grid, sort_cells,
 from jaxrt.pairs.host import lex_positive
 from jaxrt.pairs.prefix import prefix_sum
 from jaxrt.pairs.rows import placed_rows, self_mask
-from jaxrt.pairs.words import WORD, popcount
+from jaxrt.pairs.words import WORD, popcount, running_max, select_bit
 
 # Lanes read per step of the chunk loop: per atom of the batch (bounded
 # below and above), rounded up to a power of two.
 LANES_PER_ATOM = 8
 LANE_CHUNK = (2 ** 10, 2 ** 13)
+# Rows written per step of a chunk's writing loop, per lane of the chunk.
+WINDOW_ROWS_PER_LANE = 2
+# A system's reach is raised to at most this (finer cells) where its
+# estimated cost, lanes times (LANE_COST plus the mean atoms per cell),
+# is lower.
+REFINE_MOST = 1
+LANE_COST = 1.0
 
 
 def lane_chunk(n: int) -> int:
@@ -83,16 +90,33 @@ class _Lanes(NamedTuple):
 
 
 def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
-              n_graph, completed) -> _Lanes:
+              refine, n_graph, completed) -> _Lanes:
     """Steps 1-3 with each system's own reach (module docstring)."""
     f = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
               completed=completed)
-    r_sys = system_reach(f.h_height, pbc, radius, reach)
-    # The grid of reach 1 on heights times the reach: cells at least
-    # radius / (r h) wide, as the grid of the static reach cuts them.
-    grid_cells, origin, width, base = grid(
-        f.fw, f.graph, f.real, pbc, f.h_height * r_sys, radius, (1, 1, 1),
-        n_graph, False, f.count)
+    need = system_reach(f.h_height, pbc, radius, reach)
+
+    def cut(r):
+        # The grid of reach 1 on heights times the reach: cells at least
+        # radius / (r h) wide, as the grid of the static reach cuts them.
+        return grid(f.fw, f.graph, f.real, pbc, f.h_height * r, radius,
+                    (1, 1, 1), n_graph, False, f.count)
+
+    # Finer cells than the system needs (a larger reach) where they cost
+    # less: lanes times (a lane's own work plus the atoms of a cell).
+    best, r_sys = None, need
+    for m in range(1, refine + 1):
+        r = jnp.maximum(need, m)
+        cells_m = jnp.prod(cut(r)[0], axis=-1).astype(positions.dtype)
+        cost = jnp.prod(2 * r + 1, axis=-1) * (
+            LANE_COST + f.count / cells_m)
+        if best is None:
+            best = cost
+        else:
+            better = cost < best
+            best = jnp.where(better, cost, best)
+            r_sys = jnp.where(better[:, None], r, r_sys)
+    grid_cells, origin, width, base = cut(r_sys)
     short = jnp.any(pbc & (radius * grid_cells / f.h_height > r_sys),
                     axis=-1) & (f.count > 0) & ~f.bad_cell
     error = f.error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
@@ -108,7 +132,8 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
 
 
 def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
-                        radius, *, reach, capacity, half, self_interaction,
+                        radius, *, reach, refine, capacity, half,
+                        self_interaction,
                         n_graph, completed, fallback):
     """`jaxrt.pairs.program`'s full-stencil steps 3-6 with each system's
     own reach (module docstring); ``fallback()`` (the static stencil) where
@@ -116,7 +141,8 @@ def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
     rows ``(i, j, S)`` padded with ``(N, N, 0)``, the count, the count per
     system and the error bits."""
     lanes = bin_lanes(positions, graph, mask, cells, pbc, radius,
-                      reach=reach, n_graph=n_graph, completed=completed)
+                      reach=reach, refine=refine, n_graph=n_graph,
+                      completed=completed)
 
     def ragged():
         per_atom, rows = _read_lanes(positions, lanes, cut, species,
@@ -180,6 +206,7 @@ def _read_lanes(positions, lanes: _Lanes, cut, species, *, stored, half):
     if species is not None:
         species_j = species[lanes.order]
     pad = jnp.array([n, n, 0, 0, 0], jnp.int32)
+    window = WINDOW_ROWS_PER_LANE * chunk
     total_lanes = lanes.lane_end[-1]
     ell0 = jnp.arange(chunk, dtype=jnp.int32)
 
@@ -222,27 +249,60 @@ def _read_lanes(positions, lanes: _Lanes, cut, species, *, stored, half):
         counts = popcount(bits)
         ends = prefix_sum(counts, small=True)
         if stored > 0:
-            lane_first = total + ends - counts
-
-            def write(t, out):
-                bit = jnp.uint32(1) << t.astype(jnp.uint32)
-                kept = (bits & bit) != 0
-                at = lane_first + popcount(bits & (bit - jnp.uint32(1)))
-                p = jnp.minimum(start + t, n - 1)
-                s = image - jnp.stack([columns[3 + c][p] for c in range(3)],
-                                      axis=-1)
-                rows = jnp.concatenate([a[:, None], lanes.order[p][:, None],
-                                        s], axis=1)
-                return out.at[jnp.where(kept, at, stored)].set(
-                    rows, mode="drop")
-
-            out = jax.lax.fori_loop(0, steps, write, out)
+            out = _write_rows(out, total, bits, counts, ends, start, image,
+                              a, columns, lanes.order, n=n, window=window)
         per_atom = per_atom.at[a].add(counts)
         return first + chunk, total + ends[-1], per_atom, out
 
     zero = jnp.zeros((), jnp.int32)
+    # ``window`` rows past the capacity: a window is written whole.
     _, _, per_atom, out = jax.lax.while_loop(
         lambda carry: carry[0] < total_lanes, step,
         (zero, zero, jnp.zeros((n,), jnp.int32),
-         jnp.broadcast_to(pad, (stored, 5))))
-    return per_atom, out
+         jnp.broadcast_to(pad, (stored + window if stored else 0, 5))))
+    return per_atom, out[:stored]
+
+
+def _write_rows(out, total, bits, counts, ends, start, image, a, columns,
+                order, *, n, window):
+    """A chunk's kept candidates (``bits`` of its lanes, ``counts`` and
+    inclusive running ``ends`` of them) written as rows at ``total`` on,
+    ``window`` rows at a time: a row's lane is the last lane starting at or
+    before it (a running maximum of the lanes' first rows), its slot the
+    rank of its bit."""
+    stored = out.shape[0] - window
+    lanes = counts.shape[0]
+    first = ends - counts
+    r = jnp.arange(window, dtype=jnp.int32)
+
+    def one(carry):
+        w0, out = carry
+        at = first - w0
+        marks = jnp.full((window,), -1, jnp.int32).at[jnp.where(
+            (counts > 0) & (at >= 0), at, window)].max(
+                jnp.arange(lanes, dtype=jnp.int32), mode="drop")
+        # The lane holding the window's first row (it may start before).
+        lane0 = jnp.searchsorted(ends, w0, side="right").astype(jnp.int32)
+        marks = marks.at[0].max(lane0)
+        wid = jnp.minimum(running_max(marks), lanes - 1)
+        kept = w0 + r < ends[-1]
+        slot = jnp.minimum(start[wid] + select_bit(bits[wid], w0 + r
+                                                   - first[wid]), n - 1)
+        j = order[slot]
+        shift = image[wid] - jnp.stack([columns[3 + c][slot]
+                                        for c in range(3)], axis=-1)
+        rows = jnp.where(kept[:, None], jnp.concatenate(
+            [a[wid][:, None], j[:, None], shift], axis=1),
+            jnp.array([n, n, 0, 0, 0], jnp.int32))
+        start_row = jnp.minimum(total + w0, stored)
+        old = jax.lax.dynamic_slice(out, (start_row, jnp.int32(0)),
+                                    (window, 5))
+        rows = jnp.where(kept[:, None], rows, old)
+        return w0 + window, jax.lax.dynamic_update_slice(
+            out, rows, (start_row, jnp.int32(0)))
+
+    # Past the capacity nothing is written.
+    _, out = jax.lax.while_loop(
+        lambda c: (c[0] < ends[-1]) & (total + c[0] < stored), one,
+        (jnp.zeros((), jnp.int32), out))
+    return out
