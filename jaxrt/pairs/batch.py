@@ -321,7 +321,7 @@ def _call(positions, n_node, cells, pbc, graph_mask, cut, species, *,
     rows, total, per_system, error = search(
         positions, node_graph, real, cells, pbc, cut, species, pad,
         capacity=capacity, n_graph=n_graph, sort=True,
-        own_reach=program.OWN_REACH, **static)
+        own_reach=bool(program.OWN_REACH), **static)
     padding = jnp.maximum(capacity - total, 0)
     pad_graph = jnp.where(pad < n, node_graph[jnp.minimum(pad, n - 1)],
                           n_graph)

@@ -90,9 +90,9 @@ from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
 # rows ``i``-major): the half stencil's slot loop has a traced trip count.
 FULL_STENCIL_UNSORTED_ON_CUDA = True
 # Sorted lists of several systems: each system searched with its own reach
-# (`jaxrt.pairs.reach`), raised to at most this for finer cells where they
-# cost less; 0: the batch's static reach for every system.
-OWN_REACH = 1
+# (`jaxrt.pairs.reach`); False: the batch's static reach for every system.
+# Read when `jaxrt.pairs_batch` is traced.
+OWN_REACH = True
 
 
 @functools.partial(jax.jit, static_argnames=(
@@ -102,7 +102,7 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
            periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
            brute: bool, chunk: int, half: bool, sort: bool,
            self_interaction: bool, n_graph: int, completed: bool = False,
-           max_nodes: int = 0, own_reach: int = 0):
+           max_nodes: int = 0, own_reach: bool = False):
     """The pairs of a flat batch (module docstring).
 
     Args:
@@ -124,10 +124,9 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
         most this many atoms and is searched as one dense block
         (`dense_rows`, with the stencil ``reach``) unless the blocks hold
         more than ``DENSE_MOST`` candidates; 0: cells.
-      own_reach: static; positive (with ``sort``, several systems, not
-        ``brute``): each system searched with its own reach, raised to at
-        most this where finer cells cost less (`jaxrt.pairs.reach`); 0:
-        the static ``reach`` for all.
+      own_reach: static; with ``sort``, several systems and not ``brute``,
+        each system is searched with its own reach, at most ``reach``
+        (`jaxrt.pairs.reach`); False: with ``reach``.
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -150,10 +149,9 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
     static = dict(reach=reach, chunk=chunk, capacity=capacity, brute=brute,
                   half=half, self_interaction=self_interaction,
                   n_graph=n_graph, completed=completed)
-    if sort and own_reach > 0 and n_graph > 1 and not brute:
+    if sort and own_reach and n_graph > 1 and not brute:
         rows, total, per_system, error = ragged_full_stencil(
-            *args, reach=reach, refine=own_reach, capacity=capacity,
-            half=half,
+            *args, reach=reach, capacity=capacity, half=half,
             self_interaction=self_interaction, n_graph=n_graph,
             completed=completed,
             fallback=lambda: _full_stencil(*args, **static))

@@ -90,33 +90,16 @@ class _Lanes(NamedTuple):
 
 
 def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
-              refine, n_graph, completed) -> _Lanes:
+              n_graph, completed) -> _Lanes:
     """Steps 1-3 with each system's own reach (module docstring)."""
     f = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
               completed=completed)
-    need = system_reach(f.h_height, pbc, radius, reach)
-
-    def cut(r):
-        # The grid of reach 1 on heights times the reach: cells at least
-        # radius / (r h) wide, as the grid of the static reach cuts them.
-        return grid(f.fw, f.graph, f.real, pbc, f.h_height * r, radius,
-                    (1, 1, 1), n_graph, False, f.count)
-
-    # Finer cells than the system needs (a larger reach) where they cost
-    # less: lanes times (a lane's own work plus the atoms of a cell).
-    best, r_sys = None, need
-    for m in range(1, refine + 1):
-        r = jnp.maximum(need, m)
-        cells_m = jnp.prod(cut(r)[0], axis=-1).astype(positions.dtype)
-        cost = jnp.prod(2 * r + 1, axis=-1) * (
-            LANE_COST + f.count / cells_m)
-        if best is None:
-            best = cost
-        else:
-            better = cost < best
-            best = jnp.where(better, cost, best)
-            r_sys = jnp.where(better[:, None], r, r_sys)
-    grid_cells, origin, width, base = cut(r_sys)
+    r_sys = system_reach(f.h_height, pbc, radius, reach)
+    # The grid of reach 1 on heights times the reach: cells at least
+    # radius / (r h) wide, as the grid of the static reach cuts them.
+    grid_cells, origin, width, base = grid(
+        f.fw, f.graph, f.real, pbc, f.h_height * r_sys, radius, (1, 1, 1),
+        n_graph, False, f.count)
     short = jnp.any(pbc & (radius * grid_cells / f.h_height > r_sys),
                     axis=-1) & (f.count > 0) & ~f.bad_cell
     error = f.error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
@@ -132,8 +115,7 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
 
 
 def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
-                        radius, *, reach, refine, capacity, half,
-                        self_interaction,
+                        radius, *, reach, capacity, half, self_interaction,
                         n_graph, completed, fallback):
     """`jaxrt.pairs.program`'s full-stencil steps 3-6 with each system's
     own reach (module docstring); ``fallback()`` (the static stencil) where
@@ -141,8 +123,7 @@ def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
     rows ``(i, j, S)`` padded with ``(N, N, 0)``, the count, the count per
     system and the error bits."""
     lanes = bin_lanes(positions, graph, mask, cells, pbc, radius,
-                      reach=reach, refine=refine, n_graph=n_graph,
-                      completed=completed)
+                      reach=reach, n_graph=n_graph, completed=completed)
 
     def ragged():
         per_atom, rows = _read_lanes(positions, lanes, cut, species,
@@ -213,18 +194,25 @@ def _read_lanes(positions, lanes: _Lanes, cut, species, *, stored, half):
     def step(carry):
         first, total, per_atom, out = carry
         a, start, length, image, own = _lane_runs(lanes, first + ell0, n)
-        r_i = [positions[a, c] for c in range(3)]
-        h_i = lanes.h[lanes.graph[a]]
-        rank_i = lanes.rank[a]
+        h = lanes.h[lanes.graph[a]]
+        # The atom side of every lane, an array per column, written out
+        # once before the slot loop (its readers would gather it again in
+        # every step).
+        side = jax.lax.optimization_barrier((
+            a, start, length, own, lanes.rank[a],
+            [positions[a, c] for c in range(3)],
+            [image[:, c] for c in range(3)],
+            [[h[:, u, c] for c in range(3)] for u in range(3)]))
+        a, start, length, own, rank_i, r_i, image_c, h_i = side
         lim = limit if species is None else limit[species[a]]
 
         def slot(t):
             p = jnp.minimum(start + t, n - 1)
-            s = [image[:, c] - columns[3 + c][p] for c in range(3)]
+            s = [image_c[c] - columns[3 + c][p] for c in range(3)]
             sf = [x.astype(dtype) for x in s]
             d = [(columns[c][p] - r_i[c]) + (
-                sf[0] * h_i[:, 0, c] + sf[1] * h_i[:, 1, c]
-                + sf[2] * h_i[:, 2, c]) for c in range(3)]
+                sf[0] * h_i[0][c] + sf[1] * h_i[1][c]
+                + sf[2] * h_i[2][c]) for c in range(3)]
             return p, s, d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 
         def decide(t, bits):
