@@ -58,6 +58,13 @@ How it searches (the search of one system is the same with one graph):
    were found in); each atom's self pair, when asked for, is put before its
    pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
+**Own reach** (``own_reach``, sorted lists of several systems): steps 3-5
+are replaced by `jaxrt.pairs.reach`: each system's grid and stencil are
+those of its own reach (at most the static one), and the atoms' runs,
+as many as each one's system needs, are read end to end, a chunk at a
+time; a batch with a cell of more than a word of atoms is searched as
+above.
+
 **Dense blocks** (``max_nodes > 0``, sorted lists of flat batches of small
 systems): steps 3-5 are replaced by `dense_rows`: each system is one
 block of ``max_nodes`` slots, every atom against every atom of its system
