@@ -15,7 +15,8 @@ atom by atom (``i``-major) and offset by offset (lexicographic, as
 loop until every lane is read. In each chunk slot ``t`` of every lane is
 decided in step ``t`` of a loop (as many steps as the chunk's longest
 run), kept as bit ``t`` of the lane's uint32 word; the kept candidates
-are then written at the running count, lane by lane and slot by slot, so
+are then written at the running count, a window of rows at a time (a
+row's lane found by a running maximum, its slot by its bit's rank), so
 the rows come out ``i``-major and the count is exact past the capacity.
 
 Each candidate is decided as `jaxrt.pairs.cells` decides it (the same
@@ -45,11 +46,6 @@ LANES_PER_ATOM = 8
 LANE_CHUNK = (2 ** 10, 2 ** 13)
 # Rows written per step of a chunk's writing loop, per lane of the chunk.
 WINDOW_ROWS_PER_LANE = 2
-# A system's reach is raised to at most this (finer cells) where its
-# estimated cost, lanes times (LANE_COST plus the mean atoms per cell),
-# is lower.
-REFINE_MOST = 1
-LANE_COST = 1.0
 
 
 def lane_chunk(n: int) -> int:
@@ -94,6 +90,9 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
     """Steps 1-3 with each system's own reach (module docstring)."""
     f = frame(positions, graph, mask, cells, pbc, n_graph=n_graph,
               completed=completed)
+    # Each system's least reach: finer cells (a larger reach, as the static
+    # stencil cuts them) read more lanes, which cost more than the fuller
+    # cells they spare (graphs.py's batches).
     r_sys = system_reach(f.h_height, pbc, radius, reach)
     # The grid of reach 1 on heights times the reach: cells at least
     # radius / (r h) wide, as the grid of the static reach cuts them.
