@@ -22,7 +22,9 @@ the rows come out ``i``-major and the count is exact past the capacity.
 Each candidate is decided as `jaxrt.pairs.cells` decides it (the same
 sums in the positions' dtype, the squared cutoff of
 `jaxrt.pairs.cells.square_limit`). A batch with a cell of more than a
-word of atoms is searched by ``fallback`` (the static stencil).
+word of atoms is searched by ``fallback`` (the static stencil), and so is
+one where the static stencil's slots are estimated to cost less (its
+finer cells hold fewer atoms).
 """
 from __future__ import annotations
 
@@ -33,8 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
-from jaxrt.pairs.cells import (CELL_MARGIN, frame, grid, sort_cells,
-                               square_limit)
+from jaxrt.pairs.cells import (CELL_MARGIN, frame, grid, offsets,
+                               sort_cells, square_limit)
 from jaxrt.pairs.host import lex_positive
 from jaxrt.pairs.prefix import prefix_sum
 from jaxrt.pairs.rows import placed_rows, self_mask
@@ -44,6 +46,10 @@ from jaxrt.pairs.words import WORD, popcount, running_max, select_bit
 # below and above), rounded up to a power of two.
 LANES_PER_ATOM = 8
 LANE_CHUNK = (2 ** 10, 2 ** 13)
+# A slot of the lanes read here against one of the static stencil's slot
+# loop (`jaxrt.pairs.cells`), which reads its runs in one fused pass: the
+# estimate that picks one search or the other (graphs.py's batches).
+RAGGED_SLOT_COST = 2.0
 # Rows written per step of a chunk's writing loop, per lane of the chunk.
 WINDOW_ROWS_PER_LANE = 2
 
@@ -83,6 +89,8 @@ class _Lanes(NamedTuple):
     w: jax.Array         # float (N, 3) whole cells each atom was moved by
     h: jax.Array         # (G, 3, 3) completed cells
     lane_end: jax.Array  # int32 (N,) inclusive running count of lanes
+    fullest: jax.Array   # int32, the most atoms in a cell of the static
+    # reach's grid
 
 
 def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
@@ -108,9 +116,21 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
     order, rank, runs = sort_cells(coord, cells_a, base_a, f.real, n_graph)
     reach_a = r_sys[f.graph]
     lanes = jnp.where(f.real, jnp.prod(2 * reach_a + 1, axis=-1), 0)
+    # The static grid's fullest cell (its slot loop's steps), counted.
+    s_cells, s_origin, s_width, s_base = grid(
+        f.fw, f.graph, f.real, pbc, f.h_height, radius, reach, n_graph,
+        False, f.count)
+    s_cells_a = s_cells[f.graph]
+    s_coord = jnp.clip(jnp.floor((f.fw - s_origin[f.graph]) / s_width[
+        f.graph]).astype(jnp.int32), 0, s_cells_a - 1)
+    key = jnp.where(f.real, s_base[f.graph] + (
+        s_coord[:, 2] * s_cells_a[:, 1] + s_coord[:, 1]) * s_cells_a[:, 0]
+        + s_coord[:, 0], runs.shape[0])
+    fullest = jnp.max(jnp.zeros((runs.shape[0],), jnp.int32).at[key].add(
+        1, mode="drop"), initial=0)
     return _Lanes(error, f.real, f.graph, order, rank, runs, coord, cells_a,
                   base_a, f.pbc_a, reach_a, f.w, f.h,
-                  prefix_sum(lanes, jnp.float64, small=True))
+                  prefix_sum(lanes, jnp.float64, small=True), fullest)
 
 
 def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
@@ -134,8 +154,13 @@ def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
             n_graph=n_graph)
         return rows, total, per_system, lanes.error
 
-    return jax.lax.cond(jnp.max(lanes.runs[:, 1], initial=0) <= WORD,
-                        ragged, fallback)
+    # Own reach where its slots (lanes times the fullest cell) cost less
+    # than the static stencil's (every atom's runs times its fullest cell).
+    fullest = jnp.max(lanes.runs[:, 1], initial=0)
+    own = RAGGED_SLOT_COST * lanes.lane_end[-1].astype(jnp.float32) * \
+        fullest < positions.shape[0] * offsets(reach, True).shape[0] * \
+        jnp.maximum(lanes.fullest, 1).astype(jnp.float32)
+    return jax.lax.cond((fullest <= WORD) & own, ragged, fallback)
 
 
 def _lane_runs(lanes: _Lanes, ell, n):

@@ -3,6 +3,8 @@
 anisotropic cells, a large bulk cell and a molecule in one batch, checked
 against ASE's ``neighbor_list("ijS")`` system by system (exact sets,
 float64), and against the same program with the batch's static reach.
+The ``ragged`` fixture makes the own reach's search run wherever it can
+(the program otherwise picks it only where it estimates it cheaper).
 """
 from __future__ import annotations
 
@@ -24,6 +26,17 @@ program = importlib.import_module("jaxrt.pairs.program")
 reach = importlib.import_module("jaxrt.pairs.reach")
 checks = importlib.import_module("jaxrt.pairs.checks")
 ErrorBit = importlib.import_module("jaxrt.pairs.bits").ErrorBit
+
+
+@pytest.fixture
+def ragged(monkeypatch):
+    """The own reach's search wherever no cell holds more than a word
+    (its estimate against the static stencil's set aside), the search's
+    traced programs dropped before and after."""
+    monkeypatch.setattr(reach, "RAGGED_SLOT_COST", 0.0)
+    program.search.clear_cache()
+    yield
+    program.search.clear_cache()
 
 
 def tiny_triclinic():
@@ -81,7 +94,7 @@ def test_system_reach_follows_each_cell():
 
 
 @pytest.mark.parametrize("own", [True, False])
-def test_own_reach_batch_matches_ase_per_system_under_jit(x64, own,
+def test_own_reach_batch_matches_ase_per_system_under_jit(x64, own, ragged,
                                                           monkeypatch):
     """The tiny triclinic cell, read with a reach any smaller than its own,
     loses pairs at shifts 3 and 4; the large cell's and the needle's own
@@ -108,7 +121,7 @@ def test_own_reach_batch_matches_ase_per_system_under_jit(x64, own,
         len(w) for w in want]
 
 
-def test_own_reach_half_self_and_species(x64):
+def test_own_reach_half_self_and_species(x64, ragged):
     systems = reach_batch()
     batch = jaxrt.batch_from_ase(systems, pad=False)
     half = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
@@ -136,7 +149,7 @@ def test_own_reach_half_self_and_species(x64):
     assert per_system(by_species, batch.n_node, len(systems)) == want
 
 
-def test_a_cell_past_a_word_falls_back_to_the_static_stencil(x64):
+def test_a_cell_past_a_word_falls_back_to_the_static_stencil(x64, ragged):
     """A molecule of 40 atoms within one cell's width (more than a word in
     a cell) beside the tiny triclinic cell: the static stencil's search,
     the same sets."""
@@ -150,7 +163,7 @@ def test_a_cell_past_a_word_falls_back_to_the_static_stencil(x64):
         ase_set(a) for a in systems]
 
 
-def test_too_small_max_shift_is_flagged(x64):
+def test_too_small_max_shift_is_flagged(x64, ragged):
     systems = reach_batch()
     batch = jaxrt.batch_from_ase(systems)
     _, static = own_reaches(systems)
@@ -164,3 +177,14 @@ def test_too_small_max_shift_is_flagged(x64):
 
     got = edges(*batch[:1], *batch[2:])
     assert int(got.error) & int(ErrorBit.MAX_SHIFT)
+
+
+def test_auto_choice_matches_ase(x64):
+    """Without the fixture: whichever search the estimate picks."""
+    program.search.clear_cache()
+    systems = reach_batch()
+    batch = jaxrt.batch_from_ase(systems, pad=False)
+    got = jaxrt.pairs_batch(batch.positions, batch.n_node, CUTOFF,
+                            **batch.kwargs)
+    assert per_system(got, batch.n_node, len(systems)) == [
+        ase_set(a) for a in systems]
