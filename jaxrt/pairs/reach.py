@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.cells import (CELL_MARGIN, frame, grid, offsets,
-                               sort_cells, square_limit)
+                               sort_cells, square_limit, table_size)
 from jaxrt.pairs.host import lex_positive
 from jaxrt.pairs.prefix import prefix_sum
 from jaxrt.pairs.rows import placed_rows, self_mask
@@ -78,6 +78,7 @@ class _Lanes(NamedTuple):
     error: jax.Array     # int32 bits so far
     real: jax.Array      # bool (N,)
     graph: jax.Array     # int32 (N,) clipped
+    # order, rank, runs: None until the own reach's search sorts the atoms
     order: jax.Array     # int32 (N,) sorted slot -> atom
     rank: jax.Array      # int32 (N,) atom -> sorted slot
     runs: jax.Array      # int32 (T, 2) each cell's first slot and length
@@ -89,8 +90,8 @@ class _Lanes(NamedTuple):
     w: jax.Array         # float (N, 3) whole cells each atom was moved by
     h: jax.Array         # (G, 3, 3) completed cells
     lane_end: jax.Array  # int32 (N,) inclusive running count of lanes
-    fullest: jax.Array   # int32, the most atoms in a cell of the static
-    # reach's grid
+    fullest: jax.Array   # int32 (2,) the most atoms in a cell: own grid,
+    # static grid
 
 
 def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
@@ -113,24 +114,33 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
     cells_a, base_a = grid_cells[f.graph], base[f.graph]
     coord = jnp.clip(jnp.floor((f.fw - origin[f.graph]) / width[f.graph])
                      .astype(jnp.int32), 0, cells_a - 1)
-    order, rank, runs = sort_cells(coord, cells_a, base_a, f.real, n_graph)
     reach_a = r_sys[f.graph]
     lanes = jnp.where(f.real, jnp.prod(2 * reach_a + 1, axis=-1), 0)
-    # The static grid's fullest cell (its slot loop's steps), counted.
+    # The static grid's cells, for its fullest cell (its slot loop's steps).
     s_cells, s_origin, s_width, s_base = grid(
         f.fw, f.graph, f.real, pbc, f.h_height, radius, reach, n_graph,
         False, f.count)
     s_cells_a = s_cells[f.graph]
     s_coord = jnp.clip(jnp.floor((f.fw - s_origin[f.graph]) / s_width[
         f.graph]).astype(jnp.int32), 0, s_cells_a - 1)
-    key = jnp.where(f.real, s_base[f.graph] + (
-        s_coord[:, 2] * s_cells_a[:, 1] + s_coord[:, 1]) * s_cells_a[:, 0]
-        + s_coord[:, 0], runs.shape[0])
-    fullest = jnp.max(jnp.zeros((runs.shape[0],), jnp.int32).at[key].add(
-        1, mode="drop"), initial=0)
-    return _Lanes(error, f.real, f.graph, order, rank, runs, coord, cells_a,
+    table = table_size(positions.shape[0], n_graph, False)
+    fullest = jnp.stack([
+        _fullest(coord, cells_a, base_a, f.real, table),
+        _fullest(s_coord, s_cells_a, s_base[f.graph], f.real, table)])
+    # The atoms are sorted by cell (order, rank, runs) only where the
+    # own reach's search runs.
+    return _Lanes(error, f.real, f.graph, None, None, None, coord, cells_a,
                   base_a, f.pbc_a, reach_a, f.w, f.h,
                   prefix_sum(lanes, jnp.float64, small=True), fullest)
+
+
+def _fullest(coord, cells_a, base_a, real, table):
+    """int32: the most real atoms in one cell."""
+    key = jnp.where(real, base_a + (coord[:, 2] * cells_a[:, 1]
+                                    + coord[:, 1]) * cells_a[:, 0]
+                    + coord[:, 0], table)
+    return jnp.max(jnp.zeros((table,), jnp.int32).at[key].add(
+        1, mode="drop"), initial=0)
 
 
 def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
@@ -145,21 +155,24 @@ def ragged_full_stencil(positions, graph, mask, cells, pbc, cut, species,
                       reach=reach, n_graph=n_graph, completed=completed)
 
     def ragged():
-        per_atom, rows = _read_lanes(positions, lanes, cut, species,
+        order, rank, runs = sort_cells(lanes.coord, lanes.cells, lanes.base,
+                                       lanes.real, n_graph)
+        binned = lanes._replace(order=order, rank=rank, runs=runs)
+        per_atom, rows = _read_lanes(positions, binned, cut, species,
                                      stored=capacity, half=half)
         selfs = self_mask(lanes.real, cut, species) if self_interaction \
             else None
         rows, total, per_system = placed_rows(
-            per_atom, rows, lanes, selfs, capacity=capacity,
+            per_atom, rows, binned, selfs, capacity=capacity,
             n_graph=n_graph)
         return rows, total, per_system, lanes.error
 
     # Own reach where its slots (lanes times the fullest cell) cost less
     # than the static stencil's (every atom's runs times its fullest cell).
-    fullest = jnp.max(lanes.runs[:, 1], initial=0)
+    fullest = lanes.fullest[0]
     own = RAGGED_SLOT_COST * lanes.lane_end[-1].astype(jnp.float32) * \
         fullest < positions.shape[0] * offsets(reach, True).shape[0] * \
-        jnp.maximum(lanes.fullest, 1).astype(jnp.float32)
+        jnp.maximum(lanes.fullest[1], 1).astype(jnp.float32)
     return jax.lax.cond((fullest <= WORD) & own, ragged, fallback)
 
 
