@@ -25,6 +25,9 @@ Methods:
   jaxrt[dense]   jaxrt with max_nodes forced to the largest system's size
                  bucket: dense blocks (unless the blocks are too many)
   jaxrt[cells]   jaxrt with max_nodes=0 forced: the cell search
+  jaxrt[static]  batches: jaxrt with every system searched at the batch's
+                 static reach (``program.OWN_REACH`` off when traced), not
+                 at its own
   jaxrt[eager]   jaxrt.pairs / pairs_batch(..., capacity=None): sizing,
                  bucketed programs and the cut to size included
   vesin          vesin.NeighborList(cutoff, full_list=True).compute
@@ -64,7 +67,7 @@ STRUCTURES = ["si2", "cu1", "cu_108", "mg_hcp_96", "triclinic_7", "slab_36",
 LARGE = ["cu_1e5"]
 BATCHES = ["batch_mixed_5", "batch_small_64", "batch_medium_16"]
 METHODS = ["jaxrt", "jaxrt[f32]", "jaxrt[eager]", "vesin", "matscipy", "ase",
-           "jaxrt[dense]", "jaxrt[cells]"]
+           "jaxrt[dense]", "jaxrt[cells]", "jaxrt[static]"]
 
 
 def structure(name: str):
@@ -200,7 +203,8 @@ def _batch_calls(systems, methods):
     flat = jaxrt.batch_from_ase(systems)
     calls = {}
     for method in methods:
-        if method in ("jaxrt", "jaxrt[f32]", "jaxrt[dense]", "jaxrt[cells]"):
+        if method in ("jaxrt", "jaxrt[f32]", "jaxrt[dense]", "jaxrt[cells]",
+                      "jaxrt[static]"):
             dtype = jnp.float32 if method == "jaxrt[f32]" else jnp.float64
             sizes = jaxrt.pairs_batch_sizes(flat.positions.astype(dtype),
                                             flat.n_node, CUTOFF, **flat.kwargs)
@@ -214,6 +218,8 @@ def _batch_calls(systems, methods):
                 r, n, CUTOFF, cell=c, pbc=p, graph_mask=m, **kw))
             args = (jnp.asarray(flat.positions, dtype), flat.n_node,
                     jnp.asarray(flat.cell, dtype), flat.pbc, flat.graph_mask)
+            if method == "jaxrt[static]":
+                _traced_static(f, args)
             calls[method] = (lambda f=f, args=args: jax.block_until_ready(
                 f(*args)), lambda out: int(out.count))
         elif method == "jaxrt[eager]":
@@ -226,6 +232,19 @@ def _batch_calls(systems, methods):
             calls[method] = (lambda one=one: [c() for c in one],
                              lambda out: sum(len(o[0]) for o in out))
     return calls
+
+
+def _traced_static(f, args):
+    """``f`` traced (and compiled) with each system at the batch's static
+    reach: the switch is read when the program is traced."""
+    import importlib
+    program = importlib.import_module("jaxrt.pairs.program")
+    before = program.OWN_REACH
+    program.OWN_REACH = False
+    try:
+        f(*args)
+    finally:
+        program.OWN_REACH = before
 
 
 def _available(methods, n_atoms: int, ase_max: int):

@@ -31,6 +31,7 @@ from jaxrt.layouts.edges import materialized
 from jaxrt.pairs import checks
 from jaxrt.pairs.bits import ErrorBit, raise_if
 from jaxrt.pairs.cells import safe_norm, shift_vectors
+from jaxrt.pairs import program
 from jaxrt.pairs.program import search
 from jaxrt.pairs.search import PairSizes
 
@@ -319,7 +320,8 @@ def _call(positions, n_node, cells, pbc, graph_mask, cut, species, *,
     pad = jnp.where(jnp.all(real), n, jnp.argmin(real)).astype(jnp.int32)
     rows, total, per_system, error = search(
         positions, node_graph, real, cells, pbc, cut, species, pad,
-        capacity=capacity, n_graph=n_graph, sort=True, **static)
+        capacity=capacity, n_graph=n_graph, sort=True,
+        own_reach=bool(program.OWN_REACH), **static)
     padding = jnp.maximum(capacity - total, 0)
     pad_graph = jnp.where(pad < n, node_graph[jnp.minimum(pad, n - 1)],
                           n_graph)

@@ -62,6 +62,13 @@ How it searches (the search of one system is the same with one graph):
    were found in); each atom's self pair, when asked for, is put before its
    pairs. Padding rows ``(pad, pad, 0)`` at the end.
 
+**Own reach** (``own_reach``, sorted lists of several systems): steps 3-5
+are replaced by `jaxrt.pairs.reach`: each system's grid and stencil are
+those of its own reach (at most the static one), and the atoms' runs,
+as many as each one's system needs, are read end to end, a chunk at a
+time; a batch with a cell of more than a word of atoms is searched as
+above.
+
 **Dense blocks** (``max_nodes > 0``, sorted lists of flat batches of small
 systems): steps 3-5 are replaced by `dense_rows`: each system is one
 block of ``max_nodes`` slots, every atom against every atom of its system
@@ -86,6 +93,7 @@ from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.blocks import dense_rows
 from jaxrt.pairs.cells import DENSE_MOST, bin_atoms, candidates, offsets
+from jaxrt.pairs.reach import ragged_full_stencil
 from jaxrt.pairs.rows import (pair_rows, placed_rows, self_mask,
                               self_pair_rows)
 from jaxrt.pairs.warp_search import warp_stencil
@@ -97,16 +105,20 @@ FULL_STENCIL_UNSORTED_ON_CUDA = True
 # (`jaxrt.pairs.warp_search`): the same rows, without the arrays of runs
 # per atom and offset.
 WARP_WALK_ON_CUDA = True
+# Sorted lists of several systems: each system searched with its own reach
+# (`jaxrt.pairs.reach`); False: the batch's static reach for every system.
+# Read when `jaxrt.pairs_batch` is traced.
+OWN_REACH = True
 
 
 @functools.partial(jax.jit, static_argnames=(
     "periodic", "reach", "capacity", "brute", "chunk", "half", "sort",
-    "self_interaction", "n_graph", "completed", "max_nodes"))
+    "self_interaction", "n_graph", "completed", "max_nodes", "own_reach"))
 def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
            periodic: tuple[bool, ...], reach: tuple[int, ...], capacity: int,
            brute: bool, chunk: int, half: bool, sort: bool,
            self_interaction: bool, n_graph: int, completed: bool = False,
-           max_nodes: int = 0):
+           max_nodes: int = 0, own_reach: bool = False):
     """The pairs of a flat batch (module docstring).
 
     Args:
@@ -128,6 +140,9 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
         most this many atoms and is searched as one dense block
         (`dense_rows`, with the stencil ``reach``) unless the blocks hold
         more than ``DENSE_MOST`` candidates; 0: cells.
+      own_reach: static; with ``sort``, several systems and not ``brute``,
+        each system is searched with its own reach, at most ``reach``
+        (`jaxrt.pairs.reach`); False: with ``reach``.
     Returns:
       int32 ``(capacity, 5)`` rows ``(i, j, S)``, int32 count (exact), int32
       ``(G,)`` rows per system (exact), int32 error bits.
@@ -151,9 +166,19 @@ def search(positions, graph, mask, cells, pbc, cutoff, species, pad_index, *,
                   half=half, self_interaction=self_interaction,
                   n_graph=n_graph, completed=completed)
     if sort:
+        def sorted_default():
+            if own_reach and n_graph > 1 and not brute:
+                return ragged_full_stencil(
+                    *args, reach=reach, capacity=capacity, half=half,
+                    self_interaction=self_interaction, n_graph=n_graph,
+                    completed=completed,
+                    fallback=lambda: _full_stencil(*args, **static))
+            return _full_stencil(*args, **static)
+
+        # The Warp walk reads each atom's own runs already.
         rows, total, per_system, error = platforms.cuda_or_default(
             cuda=lambda: _cuda_stencil(*args, **static),
-            default=lambda: _full_stencil(*args, **static))
+            default=sorted_default)
     elif FULL_STENCIL_UNSORTED_ON_CUDA:
         # Any order is an unsorted list's; the full stencil's word-packed
         # runs have no loop of a traced trip count on a GPU, where each
