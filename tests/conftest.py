@@ -144,6 +144,13 @@ def pytest_unconfigure(config):
 # after the "#"): most cost is compiling a new program per allocate
 # (~3 s on CI's cores), so a variant costs nearly what its sibling does.
 LONG_CASES = {
+    # test_warp_walk.py: [True-True] (half, self pairs) keeps the mixed
+    # batch; scratch widths [0] and [1] keep both write paths.
+    "tests/pairs/test_warp_walk.py::test_mixed_batch_row_for_row_and_ase[False-False]",
+    "tests/pairs/test_warp_walk.py::test_atoms_past_their_scratch_row_are_walked_again[3]",
+    "tests/pairs/test_warp_walk.py::test_atoms_past_their_scratch_row_are_walked_again[64]",
+    # test_batch_reach.py: [True] keeps the own reach under jit.
+    "tests/pairs/test_batch_reach.py::test_own_reach_batch_matches_ase_per_system_under_jit[False]",
     # test_unsorted_cuda.py: [options0] (plain), [options3] (half, self
     # pairs and species at once), [options4] (long runs: the stream) and
     # [options7] (brute force, half) keep the CUDA branch's single systems;
