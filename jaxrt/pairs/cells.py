@@ -14,6 +14,7 @@ import numpy as np
 from jaxrt import platforms
 from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.placement import cell_coords, short_reach_bit
 from jaxrt.pairs.prefix import exclusive_prefix, prefix_sum, row_ranks
 from jaxrt.pairs.words import WORD, popcount, row_words, select_bit
 
@@ -316,14 +317,10 @@ def bin_atoms(positions, graph, mask, cells, pbc, radius, *, reach, brute,
     frame_real = real
     grid_cells, origin, width, base = grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, brute, count)
-    # The reach covers the cutoff unless the cell is too short for it.
-    short = jnp.any(pbc & (radius * grid_cells / h_height > np.array(reach)),
-                    axis=-1) & (count > 0) & ~bad_cell
-    error = error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
-
+    error = error | short_reach_bit(pbc, grid_cells, h_height, radius,
+                                    np.array(reach), count, bad_cell)
     cells_a, base_a = grid_cells[graph], base[graph]
-    coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
-        jnp.int32), 0, cells_a - 1)
+    coord = cell_coords(fw, graph, origin, width, cells_a)
     atom_w = w
     if brute:
         # One cell per system: a system's run is its atoms as given (they

@@ -34,10 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.cells import (CELL_MARGIN, frame, grid, offsets,
                                sort_cells, square_limit, table_size)
 from jaxrt.pairs.host import lex_positive
+from jaxrt.pairs.placement import cell_coords, short_reach_bit
 from jaxrt.pairs.prefix import prefix_sum
 from jaxrt.pairs.rows import placed_rows, self_mask
 from jaxrt.pairs.words import WORD, popcount, running_max, select_bit
@@ -108,12 +108,10 @@ def bin_lanes(positions, graph, mask, cells, pbc, radius, *, reach,
     grid_cells, origin, width, base = grid(
         f.fw, f.graph, f.real, pbc, f.h_height * r_sys, radius, (1, 1, 1),
         n_graph, False, f.count)
-    short = jnp.any(pbc & (radius * grid_cells / f.h_height > r_sys),
-                    axis=-1) & (f.count > 0) & ~f.bad_cell
-    error = f.error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
+    error = f.error | short_reach_bit(pbc, grid_cells, f.h_height, radius,
+                                      r_sys, f.count, f.bad_cell)
     cells_a, base_a = grid_cells[f.graph], base[f.graph]
-    coord = jnp.clip(jnp.floor((f.fw - origin[f.graph]) / width[f.graph])
-                     .astype(jnp.int32), 0, cells_a - 1)
+    coord = cell_coords(f.fw, f.graph, origin, width, cells_a)
     reach_a = r_sys[f.graph]
     lanes = jnp.where(f.real, jnp.prod(2 * reach_a + 1, axis=-1), 0)
     # The static grid's cells, for its fullest cell (its slot loop's steps).

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrt.pairs.bits import ErrorBit
 from jaxrt.pairs.cells import frame, grid, sort_cells, square_limit
+from jaxrt.pairs.placement import cell_coords, short_reach_bit
 from jaxrt.pairs.rows import self_mask
 
 # How the walk's call runs on CUDA (`jaxrt.backends.rt.ffi.pair_walk`):
@@ -66,13 +66,10 @@ def walk_inputs(positions, graph, mask, cells, pbc, cut, species, radius, *,
                  completed=completed)
     grid_cells, origin, width, base = grid(
         fw, graph, real, pbc, h_height, radius, reach, n_graph, False, count)
-    # The reach covers the cutoff unless the cell is too short for it.
-    short = jnp.any(pbc & (radius * grid_cells / h_height > np.array(reach)),
-                    axis=-1) & (count > 0) & ~bad_cell
-    error = error | jnp.where(jnp.any(short), int(ErrorBit.MAX_SHIFT), 0)
+    error = error | short_reach_bit(pbc, grid_cells, h_height, radius,
+                                    np.array(reach), count, bad_cell)
     cells_a = grid_cells[graph]
-    coord = jnp.clip(jnp.floor((fw - origin[graph]) / width[graph]).astype(
-        jnp.int32), 0, cells_a - 1)
+    coord = cell_coords(fw, graph, origin, width, cells_a)
     order, _, runs = sort_cells(coord, cells_a, base[graph], real, n_graph)
     n = positions.shape[0]
     if species is None:
